@@ -1,0 +1,32 @@
+"""ament_python build of roigsf_ros: library, `roigsf` CLI and ROS 2 nodes."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "roigsf_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="roigsf_ros developers",
+    maintainer_email="roigsf@example.org",
+    description="Active mapping with 2D Gaussian surfels and ROI-GSurFisher next-best-view selection.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "roigsf = roigsf_ros.cli:main",
+            "bag_player = roigsf_ros.nodes.bag_player:main",
+        ],
+    },
+)
