@@ -22,7 +22,6 @@ setup(
     maintainer_email="roigsf@example.org",
     description="Active mapping with 2D Gaussian surfels and ROI-GSurFisher next-best-view selection.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "roigsf = roigsf_ros.cli:main",

@@ -96,7 +96,8 @@ def load_cam_params(path: str | Path) -> Intrinsics:
     except (TypeError, ValueError) as exc:
         raise InputError(path, f"camera field is not a number: {exc}") from None
     values = np.array([intr.fx, intr.fy, intr.cx, intr.cy, intr.depth_scale])
-    if intr.width <= 0 or intr.height <= 0 or not np.all(np.isfinite(values)) or min(intr.fx, intr.fy, intr.depth_scale) <= 0:
+    positive = min(intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale) > 0
+    if not positive or not np.all(np.isfinite(values)):
         raise InputError(path, f"invalid camera parameters {cam}")
     return intr
 

@@ -151,7 +151,8 @@ class ReplicaSequence:
         self.depth_paths = {i: self.results / f"depth{i:0{digits}d}.png" for i in self.indices}
         missing = [str(p) for p in self.depth_paths.values() if not p.is_file()]
         if missing:
-            raise InputError(missing[0], f"depth image missing ({len(missing)} of {len(self.indices)} frames have none)")
+            n = len(self.indices)
+            raise InputError(missing[0], f"depth image missing ({len(missing)} of {n} frames have none)")
 
         traj_path = self.root / "traj.txt"
         all_poses = load_traj(traj_path)

@@ -1,0 +1,42 @@
+"""Shared test set-up: ROS isolation (localhost discovery, a domain id per run), data fixtures."""
+
+from __future__ import annotations
+
+import os
+import random
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+# ROS hygiene before anything imports rclpy: loopback-only discovery, and a domain id of this run's
+# own so that two test runs on one machine never hear each other (xdist workers get their own).
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+if "ROIGSF_TEST_DOMAIN_ID" not in os.environ:
+    os.environ["ROIGSF_TEST_DOMAIN_ID"] = str(random.SystemRandom().randrange(1, 100))
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+os.environ["ROS_DOMAIN_ID"] = str(int(os.environ["ROIGSF_TEST_DOMAIN_ID"]) + int(_worker.lstrip("gw") or 0))
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("ROIGSF_SHARED_DATA", REPO.parent / "shared" / "data"))
+OFFICE0 = SHARED_DATA / "replica_office0"
+
+
+@pytest.fixture(scope="session")
+def office0() -> Path:
+    """The shared real Replica office0 sample (mesh, 2000 poses, 4 frames); skips when absent."""
+    if not (OFFICE0 / "office0" / "traj.txt").is_file() or not (OFFICE0 / "office0_mesh.ply").is_file():
+        pytest.skip(f"Replica office0 sample not found at {OFFICE0} (set ROIGSF_SHARED_DATA; not redistributable)")
+    return OFFICE0
+
+
+@pytest.fixture
+def ros_context() -> Iterator[object]:
+    """A fresh rclpy Context on this run's domain, shut down after the test."""
+    rclpy = pytest.importorskip("rclpy")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    try:
+        yield ctx
+    finally:
+        ctx.try_shutdown()

@@ -1,0 +1,168 @@
+"""Intrinsics, poses and the Replica layout reader/writer (bad input included)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from roigsf_ros.camera import (
+    Intrinsics,
+    check_pose,
+    load_cam_params,
+    matrix_to_quat_xyzw,
+    pose_from_position_quat,
+    quat_xyzw_to_matrix,
+)
+from roigsf_ros.errors import InputError
+from roigsf_ros.replica import Frame, ReplicaSequence, load_traj, write_replica
+
+INTR = Intrinsics(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
+
+
+def _random_pose(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    T = np.eye(4)
+    T[:3, :3] = quat_xyzw_to_matrix(q / np.linalg.norm(q))
+    T[:3, 3] = rng.normal(size=3)
+    return T
+
+
+def _frames(n: int, seed: int = 0) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    return [
+        Frame(
+            index=i,
+            rgb=cv2.resize(rng.integers(0, 256, (3, 4, 3), dtype=np.uint8), (INTR.width, INTR.height)),
+            depth_m=rng.uniform(0.3, 5.0, (INTR.height, INTR.width)).astype(np.float32),
+            T_wc=_random_pose(rng),
+        )
+        for i in range(n)
+    ]
+
+
+@pytest.fixture
+def seq_dir(tmp_path: Path) -> Path:
+    out = tmp_path / "scene"
+    write_replica(out, INTR, _frames(3))
+    return out
+
+
+def test_resized_intrinsics_keep_pixel_centres_aligned() -> None:
+    replica = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
+    small = replica.resized(240, 136)
+    assert (small.fx, small.fy, small.cx, small.cy) == (120.0, 120.0, 119.5, 67.5)
+    # The image centre stays the principal point's counterpart at any scale.
+    assert replica.resized(600, 340).cx == pytest.approx(299.5)
+
+
+def test_load_cam_params_errors_name_the_file(tmp_path: Path) -> None:
+    p = tmp_path / "cam.json"
+    p.write_text(json.dumps({"camera": {"w": 10, "h": 10, "fx": 5.0, "fy": 5.0, "cx": 4.5}}))
+    with pytest.raises(InputError, match=r"cam\.json.*cy"):
+        load_cam_params(p)
+    p.write_text("{not json")
+    with pytest.raises(InputError, match=r"cam\.json"):
+        load_cam_params(p)
+    p.write_text(json.dumps({"camera": {"w": 10, "h": 10, "fx": -5.0, "fy": 5.0, "cx": 4.5, "cy": 4.5}}))
+    with pytest.raises(InputError, match="invalid"):
+        load_cam_params(p)
+    with pytest.raises(InputError, match="not found"):
+        load_cam_params(tmp_path / "missing.json")
+
+
+def test_quaternion_round_trip_and_pose_checks() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        T = _random_pose(rng)
+        q = matrix_to_quat_xyzw(T[:3, :3])
+        np.testing.assert_allclose(quat_xyzw_to_matrix(q), T[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(pose_from_position_quat(T[:3, 3], q), T, atol=1e-12)
+    bad = np.eye(4)
+    bad[0, 0] = 2.0
+    with pytest.raises(InputError, match="rigid"):
+        check_pose(bad, "traj.txt:7")
+    bad = np.eye(4)
+    bad[1, 3] = np.nan
+    with pytest.raises(InputError, match="non-finite"):
+        check_pose(bad, "here")
+    with pytest.raises(InputError, match="unit quaternion"):
+        quat_xyzw_to_matrix(np.array([0.0, 0.0, 0.0, 2.0]))
+
+
+def test_write_read_round_trip(seq_dir: Path) -> None:
+    frames = _frames(3)
+    seq = ReplicaSequence(seq_dir)
+    assert len(seq) == 3 and seq.intrinsics == INTR
+    for k, fr in enumerate(seq):
+        assert fr.index == k
+        np.testing.assert_array_equal(fr.T_wc, frames[k].T_wc)  # traj.txt keeps full precision
+        # uint16 PNG quantises depth to 1 / 6553.5 m.
+        assert np.abs(fr.depth_m - frames[k].depth_m).max() <= 0.5 / 6553.5 + 1e-6
+        assert np.abs(fr.rgb.astype(int) - frames[k].rgb).mean() < 3  # JPEG of a smooth image
+
+
+def test_layout_variants(seq_dir: Path, tmp_path: Path) -> None:
+    # The `results` folder itself is accepted; cam_params.json may live in the parent (Replica download).
+    assert len(ReplicaSequence(seq_dir / "results")) == 3
+    dataset = tmp_path / "Replica"
+    shutil.copytree(seq_dir, dataset / "office9")
+    (dataset / "office9" / "cam_params.json").rename(dataset / "cam_params.json")
+    seq = ReplicaSequence(dataset / "office9", size=(16, 12))
+    assert seq.intrinsics == INTR.resized(16, 12)
+    assert seq.frame(0).rgb.shape == (12, 16, 3) and seq.frame(0).depth_m.shape == (12, 16)
+
+
+def test_traj_count_mismatch_is_an_error_unless_partial(seq_dir: Path) -> None:
+    traj = seq_dir / "traj.txt"
+    traj.write_text(traj.read_text() + traj.read_text().splitlines(keepends=True)[0])
+    with pytest.raises(InputError, match=r"traj\.txt.*4 poses.*3 frames"):
+        ReplicaSequence(seq_dir)
+    assert len(ReplicaSequence(seq_dir, allow_partial=True)) == 3
+    traj.write_text("".join(traj.read_text().splitlines(keepends=True)[:2]))
+    with pytest.raises(InputError, match=r"traj\.txt.*frame number 2"):
+        ReplicaSequence(seq_dir, allow_partial=True)
+
+
+def test_bad_pose_line_is_named(seq_dir: Path) -> None:
+    traj = seq_dir / "traj.txt"
+    lines = traj.read_text().splitlines()
+    values = lines[1].split()
+    values[0] = "3.0"  # scales the rotation: not rigid
+    lines[1] = " ".join(values)
+    traj.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"traj\.txt:2: .*rigid"):
+        load_traj(traj)
+    lines[1] = " ".join(values[:15])
+    traj.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"traj\.txt:2: .*15 values"):
+        load_traj(traj)
+
+
+def test_missing_unreadable_and_mismatched_images(seq_dir: Path) -> None:
+    (seq_dir / "results" / "depth000001.png").unlink()
+    with pytest.raises(InputError, match=r"depth000001\.png.*missing"):
+        ReplicaSequence(seq_dir)
+    cv2.imwrite(str(seq_dir / "results" / "depth000001.png"), np.zeros((24, 32, 3), np.uint8))
+    with pytest.raises(InputError, match=r"depth000001\.png.*uint16"):
+        ReplicaSequence(seq_dir).frame(1)
+    (seq_dir / "results" / "frame000002.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(InputError, match=r"frame000002\.jpg.*unreadable"):
+        ReplicaSequence(seq_dir).frame(2)
+    cv2.imwrite(str(seq_dir / "results" / "depth000000.png"), np.zeros((10, 10), np.uint16))
+    with pytest.raises(InputError, match=r"frame000000\.jpg.*colour is 32x24 but depth is 10x10"):
+        ReplicaSequence(seq_dir).frame(0)
+
+
+def test_office0_sample_is_readable(office0: Path) -> None:
+    with pytest.raises(InputError, match="2000 poses"):
+        ReplicaSequence(office0 / "office0")
+    seq = ReplicaSequence(office0 / "office0", allow_partial=True)
+    assert len(seq) == 4 and seq.intrinsics.width == 1200 and seq.intrinsics.height == 680
+    fr = seq.frame(3)
+    assert fr.rgb.shape == (680, 1200, 3) and fr.depth_m.dtype == np.float32
+    assert 0.1 < float(np.median(fr.depth_m)) < 10.0
