@@ -42,13 +42,23 @@ if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$REQ_HASH" ]; then
     echo "$REQ_HASH" > "$STAMP"
 fi
 
-# 4. This package (not editable: pip -e drops the ament marker and config data_files).
+# 4. The interface package (ament_cmake), rebuilt when its sources or the pinned packages change.
+IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
+    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
+IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
+if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
+    log "building roigsf_interfaces into $VENV"
+    bash "$REPO/scripts/build_interfaces.sh" "$VENV"
+    echo "$IFACE_HASH" > "$IFACE_STAMP"
+fi
+
+# 5. This package (not editable: pip -e drops the ament marker and config data_files).
 log "installing roigsf_ros into $VENV"
 "$VENV/bin/python" -m pip install -q --no-deps --no-build-isolation --force-reinstall "$REPO" 2>&1 \
     | grep -v -e 'DEPRECATION' -e '^$' >&2 || true
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
-# 5. Environment for ROS: ament index in the venv, loopback-only discovery.
+# 6. Environment for ROS: ament index in the venv, loopback-only discovery.
 export VIRTUAL_ENV="$VENV"
 export PATH="$VENV/bin:$PATH"
 export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
