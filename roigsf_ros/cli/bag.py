@@ -1,0 +1,125 @@
+"""``roigsf bag``: Replica folders to ROS 2 bags (rosbag2, MCAP) and bag summaries."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from roigsf_ros.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
+from roigsf_ros.errors import InputError
+from roigsf_ros.replica import ReplicaSequence
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``bag from-replica`` and ``bag info``."""
+    parser = sub.add_parser(
+        "bag",
+        help="make and inspect ROS 2 bags (rosbag2 MCAP)",
+        description="Convert Replica folders to ROS 2 bags (rosbag2 folder, MCAP storage) and summarise bags.",
+    )
+    bag_sub = parser.add_subparsers(dest="bag_command", metavar="BAG_COMMAND", required=True)
+
+    conv = bag_sub.add_parser(
+        "from-replica",
+        help="convert a Replica-layout folder to a rosbag2 MCAP bag",
+        description="Convert a NICE-SLAM Replica folder (results/, traj.txt, cam_params.json) into a rosbag2 "
+        "MCAP bag with /camera/color/image_raw, /camera/depth/image_raw, /camera/camera_info and "
+        "/camera/pose, all four messages of a frame sharing one header stamp.",
+    )
+    conv.add_argument("dir", type=Path, metavar="DIR", help="Replica scene folder (or its results/ folder)")
+    conv.add_argument("--out", type=Path, required=True, metavar="BAG", help="bag folder to create")
+    conv.add_argument(
+        "--cam",
+        type=Path,
+        metavar="CAM_JSON",
+        help="camera parameters JSON (default: DIR/cam_params.json, else the parent folder's)",
+    )
+    conv.add_argument("--width", type=int, metavar="W", help="resize images to this width (needs --height)")
+    conv.add_argument("--height", type=int, metavar="H", help="resize images to this height (needs --width)")
+    conv.add_argument("--stride", type=int, default=1, metavar="S", help="keep every S-th frame (default 1)")
+    conv.add_argument("--max-frames", type=int, metavar="N", help="write at most N frames (default all)")
+    conv.add_argument(
+        "--rate",
+        type=float,
+        default=DEFAULT_RATE_HZ,
+        metavar="HZ",
+        help=f"frame rate of the stamps, frames per second (default {DEFAULT_RATE_HZ:g})",
+    )
+    conv.add_argument(
+        "--depth-encoding",
+        choices=DEPTH_ENCODINGS,
+        default="32FC1",
+        help="depth as float32 metres (32FC1, default) or uint16 millimetres (16UC1)",
+    )
+    conv.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a traj.txt with more poses than frames on disk (a partial download)",
+    )
+    conv.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    conv.add_argument("--no-progress", action="store_true", help="no progress bar")
+    conv.set_defaults(func=_from_replica)
+
+    info = bag_sub.add_parser(
+        "info",
+        help="summarise a bag: topics, types, counts, duration, resolution",
+        description="Summarise a rosbag2 bag folder or .mcap file: topics with types and message counts, "
+        "duration, image resolution, depth encoding and complete frames.",
+    )
+    info.add_argument("bag", type=Path, metavar="BAG", help="rosbag2 folder or .mcap file")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.set_defaults(func=_info)
+
+
+def _from_replica(args: argparse.Namespace) -> int:
+    if (args.width is None) != (args.height is None):
+        raise InputError("--width/--height", "give both or neither")
+    size = (args.width, args.height) if args.width is not None else None
+    if args.out.exists() and not args.overwrite:
+        raise FileExistsError(f"{args.out}: already exists (pass --overwrite to replace it)")
+    seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
+    n = write_bag(
+        seq,
+        args.out,
+        rate_hz=args.rate,
+        depth_encoding=args.depth_encoding,
+        stride=args.stride,
+        max_frames=args.max_frames,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
+    )
+    intr = seq.intrinsics
+    print(f"wrote {n} frames ({intr.width}x{intr.height}, depth {args.depth_encoding}, {args.rate:g} Hz) to {args.out}")
+    return 0
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """A readable multi-line summary of :func:`roigsf_ros.bags.bag_info`'s dictionary."""
+    lines = [f"bag:          {info['path']}"]
+    if info["start_ns"] is not None:
+        lines.append(
+            f"duration:     {info['duration_s']:.3f} s "
+            f"(stamps {info['start_ns'] / 1e9:.3f} .. {info['end_ns'] / 1e9:.3f} s)"
+        )
+    else:
+        lines.append("duration:     empty bag")
+    if info["width"] is not None:
+        lines.append(
+            f"images:       {info['width']}x{info['height']}, colour {info['color_encoding']}, "
+            f"depth {info['depth_encoding']}"
+        )
+    lines.append(f"frames:       {info['frame_count']} complete, {info['incomplete_stamps']} incomplete stamps")
+    lines.append(f"messages:     {info['message_count']}")
+    width = max([len(t) for t in info["topics"]] + [5])
+    lines.append("topics:")
+    for topic, entry in sorted(info["topics"].items()):
+        lines.append(f"  {topic:<{width}}  {entry['type']:<32}  {entry['count']:>7}")
+    return "\n".join(lines)
+
+
+def _info(args: argparse.Namespace) -> int:
+    info = bag_info(args.bag)
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
+    return 0

@@ -1,0 +1,297 @@
+"""``bag_player``: publish a rosbag2 bag's messages at their recorded timing (a stand-in for ``ros2 bag play``).
+
+Messages are published as their serialized CDR bytes, never deserialized, so any message type whose
+Python package is installed can be played. Run it as::
+
+    ros2 run roigsf_ros bag_player --ros-args -p bag:=office0.bag -p rate:=1.0
+    bag_player --ros-args -p bag:=office0.bag -p rate:=0.0        # as fast as possible
+
+Parameters: ``bag`` (path to a rosbag2 folder or .mcap), ``rate`` (factor on recorded timing; <= 0
+publishes as fast as possible), ``loop``, ``start_delay_s`` (time for subscribers to connect),
+``topics`` (string list, unset = all), ``progress_period_s``, ``qos_depth``, ``ack_timeout_s``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.context import Context
+from rclpy.duration import Duration
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from roigsf_ros.bags import open_any_reader
+from roigsf_ros.errors import InputError
+
+
+def message_class(type_name: str, where: str = "message type") -> type:
+    """The rclpy message class of a ROS 2 type name, e.g. ``sensor_msgs/msg/Image`` -> ``sensor_msgs.msg.Image``."""
+    parts = type_name.split("/")
+    if len(parts) != 3 or not all(parts):
+        raise InputError(where, f"'{type_name}' is not a ROS 2 type name of the form package/msg/Name")
+    package, kind, name = parts
+    try:
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ImportError, AttributeError):
+        problem = f"message type {type_name} is not installed (no Python class {package}.{kind}.{name})"
+        raise InputError(where, problem) from None
+
+
+def reliable_qos(depth: int) -> QoSProfile:
+    """Reliable, volatile, keep-last ``depth``: what the player offers and its test subscribers use."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+class BagPlayer(Node):
+    """Publishes a bag's messages on their topics, timed against a monotonic clock relative to the start.
+
+    Playback runs in a thread of its own that starts after ``start_delay_s``; the node's executor
+    only runs the progress timer. ``done`` turns true when playback ends (never with ``loop``, unless
+    stopped); :meth:`destroy_node` stops the thread and joins it. ``published``, ``loops_completed``
+    and ``play_duration_s`` (start of the latest loop to its latest publish) report progress.
+    """
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        parameter_overrides: list[Parameter] | None = None,
+        node_name: str = "bag_player",
+    ) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        try:
+            self._setup(node_name)
+        except BaseException:
+            super().destroy_node()
+            raise
+
+    def _setup(self, node_name: str) -> None:
+        """Declare and check parameters, open the bag, create publishers, start the playback thread."""
+        self.declare_parameter("bag", "", ParameterDescriptor(description="rosbag2 folder or .mcap file to play"))
+        self.declare_parameter(
+            "rate",
+            1.0,
+            ParameterDescriptor(description="factor on recorded timing; 1.0 real time, <= 0 as fast as possible"),
+        )
+        self.declare_parameter("loop", False, ParameterDescriptor(description="restart from the beginning at the end"))
+        self.declare_parameter(
+            "start_delay_s", 0.5, ParameterDescriptor(description="seconds to wait for subscribers before publishing")
+        )
+        topics_param = self.declare_parameter(
+            "topics", Parameter.Type.STRING_ARRAY, ParameterDescriptor(description="topics to play; unset = all")
+        )
+        self.declare_parameter(
+            "progress_period_s", 2.0, ParameterDescriptor(description="seconds between progress lines; <= 0 = none")
+        )
+        self.declare_parameter("qos_depth", 100, ParameterDescriptor(description="keep-last depth of the publishers"))
+        self.declare_parameter(
+            "ack_timeout_s",
+            5.0,
+            ParameterDescriptor(description="at the end, seconds to wait for reliable subscribers to acknowledge"),
+        )
+
+        bag = str(self.get_parameter("bag").value)
+        self.rate = float(self.get_parameter("rate").value)
+        self.loop = bool(self.get_parameter("loop").value)
+        self.start_delay_s = max(0.0, float(self.get_parameter("start_delay_s").value))
+        wanted = topics_param.value  # None when unset (an empty list cannot be typed as a string array)
+        progress_period_s = float(self.get_parameter("progress_period_s").value)
+        qos_depth = int(self.get_parameter("qos_depth").value)
+        self.ack_timeout_s = max(0.0, float(self.get_parameter("ack_timeout_s").value))
+        if not bag:
+            raise InputError("parameter 'bag'", "no bag given (use --ros-args -p bag:=PATH)")
+        if qos_depth < 1:
+            raise InputError("parameter 'qos_depth'", f"must be >= 1, got {qos_depth}")
+        self.bag_path = Path(bag)
+
+        reader = open_any_reader(self.bag_path)
+        try:
+            reader.open()
+            connections = list(reader.connections)
+            reader.close()
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(self.bag_path, f"cannot open bag: {exc}") from None
+        types: dict[str, str] = {}
+        counts: dict[str, int] = {}
+        for c in connections:
+            if types.setdefault(c.topic, c.msgtype) != c.msgtype:
+                problem = f"has two message types, {types[c.topic]} and {c.msgtype}"
+                raise InputError(f"{self.bag_path}:{c.topic}", problem)
+            counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+        if wanted:
+            missing = [t for t in wanted if t not in types]
+            if missing:
+                have = ", ".join(sorted(types)) or "no topics"
+                raise InputError(self.bag_path, f"topic(s) {', '.join(missing)} not in the bag (it has {have})")
+            types = {t: types[t] for t in wanted}
+        if not types:
+            raise InputError(self.bag_path, "bag has no topics to play")
+
+        qos = reliable_qos(qos_depth)
+        self._publishers_by_topic: dict[str, Publisher] = {
+            topic: self.create_publisher(message_class(typ, f"{self.bag_path}:{topic}"), topic, qos)
+            for topic, typ in types.items()
+        }
+        self.total_per_loop = sum(counts[t] for t in types)
+        self.published = 0
+        self.loops_completed = 0
+        self.play_duration_s = 0.0
+        self.error: BaseException | None = None
+        self._t_first_publish: float | None = None
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self._progress_timer = (
+            self.create_timer(progress_period_s, self._report_progress) if progress_period_s > 0 else None
+        )
+        mode = "as fast as possible" if self.rate <= 0 else f"at rate x{self.rate:g}"
+        self.get_logger().info(
+            f"playing {self.bag_path}: {self.total_per_loop} messages on {len(types)} topics {mode}"
+            f"{' in a loop' if self.loop else ''}, starting in {self.start_delay_s:g} s"
+        )
+        self._thread = threading.Thread(target=self._run, name=f"{node_name}_playback", daemon=True)
+        self._thread.start()
+
+    @property
+    def done(self) -> bool:
+        """True once playback has ended (finished, stopped, or failed)."""
+        return self._done.is_set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until playback ends or ``timeout_s`` passes; True if it ended."""
+        return self._done.wait(timeout_s)
+
+    def stop(self) -> None:
+        """Ask playback to stop and wait for its thread."""
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join()
+
+    def destroy_node(self) -> None:
+        """Stop playback, join its thread, then destroy the node."""
+        self.stop()
+        super().destroy_node()
+
+    def summary(self) -> dict[str, Any]:
+        """Counts and timing of the playback so far."""
+        return {
+            "bag": str(self.bag_path),
+            "topics": sorted(self._publishers_by_topic),
+            "published": self.published,
+            "messages_per_loop": self.total_per_loop,
+            "loops_completed": self.loops_completed,
+            "play_duration_s": self.play_duration_s,
+            "rate": self.rate,
+            "error": None if self.error is None else str(self.error),
+        }
+
+    def _report_progress(self) -> None:
+        if self.done or self._t_first_publish is None:
+            return
+        in_loop = self.published - self.loops_completed * self.total_per_loop
+        pct = 100.0 * in_loop / max(1, self.total_per_loop)
+        loop = f", loop {self.loops_completed + 1}" if self.loop else ""
+        self.get_logger().info(
+            f"{pct:5.1f}% ({in_loop}/{self.total_per_loop} messages{loop}), {self.published} published"
+        )
+
+    def _run(self) -> None:
+        try:
+            if self._stop.wait(self.start_delay_s):
+                return
+            while not self._stop.is_set():
+                if not self._play_once():
+                    break
+                self.loops_completed += 1
+                if not self.loop:
+                    break
+            if not self._stop.is_set():
+                self._wait_for_acks()
+                self.get_logger().info(
+                    f"finished: published {self.published} messages on {len(self._publishers_by_topic)} topics "
+                    f"in {self.play_duration_s:.3f} s ({self.loops_completed} loop(s), rate "
+                    f"{'max' if self.rate <= 0 else f'x{self.rate:g}'})"
+                )
+        except Exception as exc:  # the context shut down under us, or the bag broke mid-way
+            if not self._stop.is_set() and self.context.ok():
+                self.error = exc
+                self.get_logger().error(f"playback failed: {exc}")
+        finally:
+            self._done.set()
+
+    def _play_once(self) -> bool:
+        """Publish the bag once; False if stopped part-way."""
+        reader = open_any_reader(self.bag_path)
+        with reader:
+            conns = [c for c in reader.connections if c.topic in self._publishers_by_topic]
+            t_start = time.monotonic()
+            first_ns: int | None = None
+            for conn, stamp_ns, raw in reader.messages(connections=conns):
+                if first_ns is None:
+                    first_ns = stamp_ns
+                if self.rate > 0:
+                    delay_s = t_start + (stamp_ns - first_ns) / 1e9 / self.rate - time.monotonic()
+                    if delay_s > 0 and self._stop.wait(delay_s):
+                        return False
+                elif self._stop.is_set():
+                    return False
+                self._publishers_by_topic[conn.topic].publish(raw if isinstance(raw, bytes) else bytes(raw))
+                now = time.monotonic()
+                if self._t_first_publish is None:
+                    self._t_first_publish = now
+                self.published += 1
+                self.play_duration_s = now - t_start
+        return True
+
+    def _wait_for_acks(self) -> None:
+        deadline = time.monotonic() + self.ack_timeout_s
+        for pub in self._publishers_by_topic.values():
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                self.get_logger().warning(
+                    f"{pub.topic_name}: not all messages acknowledged within {self.ack_timeout_s:g} s"
+                )
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``bag_player``: play, then exit 0 (also on Ctrl-C), 2 on bad input, 1 if playback failed."""
+    rclpy.init(args=sys.argv if args is None else args)
+    try:
+        node = BagPlayer()
+    except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:
+        hint = " (a float parameter needs a decimal point, e.g. rate:=1.0)" if "'DOUBLE'" in str(exc) else ""
+        print(f"bag_player: error: {exc}{hint}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if not node.done:  # interrupted; the context may be shut down already, so no rosout logging
+            print(f"bag_player: stopped after {node.published} messages", file=sys.stderr)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 1 if node.error is not None else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,170 @@
+"""bag_player: every message arrives byte-identical and in order, timing follows the rate factor, main() exits."""
+
+from __future__ import annotations
+
+import os
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from roigsf_ros import bags
+from roigsf_ros.benchmarks.io import make_synthetic_replica
+from roigsf_ros.errors import InputError
+from roigsf_ros.nodes.bag_player import BagPlayer, message_class, reliable_qos
+from roigsf_ros.replica import ReplicaSequence
+
+pytestmark = pytest.mark.ros
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """5 frames of 32x24 (20 messages on 4 topics) recorded at 10 Hz."""
+    root = tmp_path_factory.mktemp("player")
+    make_synthetic_replica(root / "scene", 32, 24, 5, seed=5)
+    out = root / "bag"
+    bags.write_bag(ReplicaSequence(root / "scene"), out, rate_hz=10.0, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def bag20hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """10 frames of 16x12 recorded at 20 Hz: 0.45 s from the first stamp to the last."""
+    root = tmp_path_factory.mktemp("player20")
+    make_synthetic_replica(root / "scene", 16, 12, 10, seed=6)
+    out = root / "bag"
+    bags.write_bag(ReplicaSequence(root / "scene"), out, rate_hz=20.0, progress=False)
+    return out
+
+
+def _bag_messages(path: Path) -> tuple[dict[str, str], dict[str, list[bytes]]]:
+    with bags.open_any_reader(path) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        raws: dict[str, list[bytes]] = {t: [] for t in types}
+        for conn, _, raw in reader.messages():
+            raws[conn.topic].append(bytes(raw))
+    return types, raws
+
+
+def _player(ctx: Any, bag: Path, **params: Any) -> BagPlayer:
+    overrides = [Parameter("bag", value=str(bag)), Parameter("progress_period_s", value=0.2)]
+    overrides += [Parameter(name, value=value) for name, value in params.items()]
+    return BagPlayer(context=ctx, parameter_overrides=overrides)
+
+
+@contextmanager
+def _spinning(ctx: Any, *nodes: Any) -> Iterator[None]:
+    """Spin ``nodes`` on one executor in a thread; shut it down, join it and destroy the nodes on exit."""
+    executor = SingleThreadedExecutor(context=ctx)
+    for node in nodes:
+        executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, name="test_executor")
+    thread.start()
+    try:
+        yield
+    finally:
+        executor.shutdown()
+        thread.join(timeout=10)
+        assert not thread.is_alive()
+        for node in nodes:
+            node.destroy_node()
+
+
+def test_every_message_arrives_in_order_with_identical_payload(ros_context: Any, bag: Path) -> None:
+    import rclpy
+
+    types, expected = _bag_messages(bag)
+    received: dict[str, list[bytes]] = {t: [] for t in types}
+    sink = rclpy.create_node("test_sink", context=ros_context)
+    for topic, typ in types.items():
+        sink.create_subscription(
+            message_class(typ), topic, lambda msg, out=received[topic]: out.append(msg), reliable_qos(100), raw=True
+        )
+    player = _player(ros_context, bag, rate=0.0, start_delay_s=0.5)
+    with _spinning(ros_context, sink, player):
+        assert player.wait(30.0), "playback did not finish"
+        deadline = time.monotonic() + 10.0
+        while sum(map(len, received.values())) < 20 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        summary = player.summary()
+    assert summary["published"] == 20 and summary["loops_completed"] == 1 and summary["error"] is None
+    for topic in types:
+        assert received[topic] == expected[topic], f"{topic}: payloads differ or arrived out of order"
+        stamps = [struct.unpack_from("<iI", raw, 4) for raw in received[topic]]
+        assert stamps == sorted(stamps) and len(set(stamps)) == 5
+
+
+def test_rate_factor_sets_the_timing(ros_context: Any, bag20hz: Path) -> None:
+    span_s = 0.45  # 10 frames at 20 Hz; every message is due at start + (stamp - first) / rate
+    for rate in (1.0, 2.0):
+        player = _player(ros_context, bag20hz, rate=rate, start_delay_s=0.0)
+        try:
+            assert player.wait(30.0)
+            assert player.published == 40 and player.error is None
+            # Scheduling can only delay a message, never publish it early: a strict lower bound.
+            assert span_s / rate - 1e-3 <= player.play_duration_s < span_s / rate + 2.0
+        finally:
+            player.destroy_node()
+    player = _player(ros_context, bag20hz, rate=0.0, start_delay_s=0.0)
+    try:
+        assert player.wait(30.0) and player.published == 40
+    finally:
+        player.destroy_node()
+
+
+def test_topic_filter_and_loop_until_stopped(ros_context: Any, bag: Path) -> None:
+    player = _player(ros_context, bag, rate=0.0, start_delay_s=0.0, loop=True, topics=[bags.POSE_TOPIC])
+    try:
+        deadline = time.monotonic() + 20.0
+        while player.loops_completed < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert player.loops_completed >= 3 and not player.done
+        assert player.total_per_loop == 5 and player.summary()["topics"] == [bags.POSE_TOPIC]
+    finally:
+        player.destroy_node()
+    assert player.done and player.error is None
+
+
+def test_bad_parameters_name_the_problem(ros_context: Any, bag: Path, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="bag not found") as exc:
+        _player(ros_context, tmp_path / "missing_bag")
+    assert "missing_bag" in str(exc.value)
+    with pytest.raises(InputError, match=r"/nope.*not in the bag"):
+        _player(ros_context, bag, topics=["/nope"])
+    with pytest.raises(InputError, match="no bag given"):
+        BagPlayer(context=ros_context)
+
+
+def _run_main(*ros_args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    cmd = [sys.executable, "-m", "roigsf_ros.nodes.bag_player", "--ros-args", *ros_args]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, cwd=REPO)
+
+
+def test_main_plays_and_exits_0(bag: Path) -> None:
+    proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=0.0", "-p", "start_delay_s:=0.2")
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, output
+    assert "finished: published 20 messages on 4 topics" in output
+
+
+def test_main_bad_path_exits_nonzero_naming_it(tmp_path: Path) -> None:
+    missing = tmp_path / "no_such_bag"
+    proc = _run_main("-p", f"bag:={missing}")
+    assert proc.returncode != 0
+    assert str(missing) in proc.stderr and "bag not found" in proc.stderr

@@ -1,0 +1,372 @@
+"""Replica folder -> rosbag2 MCAP bag -> frames: exact round trips, bag_info, the `roigsf bag` CLI, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from roigsf_ros import bags
+from roigsf_ros.benchmarks.io import make_synthetic_replica
+from roigsf_ros.cli import main as cli_main
+from roigsf_ros.errors import InputError
+from roigsf_ros.replica import ReplicaSequence
+
+W, H, N = 64, 48, 5
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+@pytest.fixture(scope="module")
+def replica(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A deterministic 64x48, 5-frame Replica folder (noise colour, smooth depth with an invalid corner)."""
+    root = tmp_path_factory.mktemp("replica") / "scene"
+    make_synthetic_replica(root, W, H, N, seed=3)
+    return root
+
+
+@pytest.fixture(scope="module")
+def bag32(replica: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The replica fixture as a 32FC1 bag at 10 Hz."""
+    out = tmp_path_factory.mktemp("bags") / "scene_bag"
+    assert bags.write_bag(ReplicaSequence(replica), out, rate_hz=10.0, progress=False) == N
+    return out
+
+
+def _copy_replica(replica: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "scene"
+    shutil.copytree(replica, dst)
+    return dst
+
+
+def _rewrite_bag(src: Path, dst: Path, edit: Callable[[str, int, Any], Any | None]) -> None:
+    """Copy a bag message by message; ``edit(topic, index_on_topic, msg)`` returns the new message or None to drop."""
+    with bags.open_any_reader(src) as any_reader:
+        seen: dict[str, int] = {}
+        with Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conns: dict[str, Any] = {}
+            for conn, stamp, raw in any_reader.messages():
+                k = seen.get(conn.topic, 0)
+                seen[conn.topic] = k + 1
+                msg = edit(conn.topic, k, any_reader.deserialize(raw, conn.msgtype))
+                if msg is None:
+                    continue
+                if conn.topic not in conns:
+                    conns[conn.topic] = writer.add_connection(conn.topic, conn.msgtype, typestore=TYPESTORE)
+                writer.write(conns[conn.topic], stamp, TYPESTORE.serialize_cdr(msg, conn.msgtype))
+
+
+def _leftovers(parent: Path, name: str) -> list[str]:
+    return sorted(p.name for p in parent.iterdir() if p.name == name or p.name.startswith(f".{name}."))
+
+
+# ------------------------------------------------------------------------------------------ round trips
+
+
+def test_roundtrip_32fc1_is_exact(replica: Path, bag32: Path) -> None:
+    seq = ReplicaSequence(replica)
+    with bags.BagReader(bag32) as reader:
+        frames = list(reader.frames())
+        assert reader.skipped_frames == 0
+    assert len(frames) == N
+    for k, fr in enumerate(frames):
+        ref = seq.frame(k)
+        assert fr.rgb.dtype == np.uint8 and fr.rgb.shape == (H, W, 3)
+        assert np.array_equal(fr.rgb, ref.rgb)
+        assert fr.depth_m.dtype == np.float32
+        assert np.array_equal(fr.depth_m, ref.depth_m)  # exact float equality, zeros (invalid) included
+        assert np.abs(fr.T_wc - ref.T_wc).max() < 1e-9
+        intr = fr.intrinsics
+        assert (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy) == (
+            W,
+            H,
+            seq.intrinsics.fx,
+            seq.intrinsics.fy,
+            seq.intrinsics.cx,
+            seq.intrinsics.cy,
+        )
+        assert fr.stamp_ns == bags.DEFAULT_T0_NS + k * 100_000_000
+    assert (frames[0].depth_m == 0).any(), "the synthetic depth has an invalid corner that must stay 0"
+    # rosbag2 folder layout: metadata.yaml and the MCAP file named after the folder, no temp folders beside it.
+    assert sorted(p.name for p in bag32.iterdir()) == sorted([f"{bag32.name}.mcap", "metadata.yaml"])
+    assert _leftovers(bag32.parent, bag32.name) == [bag32.name]
+    assert "storage_identifier: mcap" in (bag32 / "metadata.yaml").read_text()
+
+
+def test_all_four_messages_share_the_stamp_and_frames(bag32: Path) -> None:
+    with bags.open_any_reader(bag32) as any_reader:
+        by_topic: dict[str, list[tuple[int, Any]]] = {}
+        for conn, record_ns, raw in any_reader.messages():
+            msg = any_reader.deserialize(raw, conn.msgtype)
+            assert bags.stamp_to_ns(msg.header.stamp) == record_ns
+            by_topic.setdefault(conn.topic, []).append((record_ns, msg))
+    assert set(by_topic) == {bags.COLOR_TOPIC, bags.DEPTH_TOPIC, bags.CAMERA_INFO_TOPIC, bags.POSE_TOPIC}
+    stamps = [[s for s, _ in v] for v in by_topic.values()]
+    assert all(s == stamps[0] for s in stamps)
+    assert np.all(np.diff(stamps[0]) == 100_000_000)
+    assert {m.header.frame_id for _, m in by_topic[bags.POSE_TOPIC]} == {"map"}
+    assert {m.header.frame_id for _, m in by_topic[bags.COLOR_TOPIC]} == {bags.CAMERA_FRAME_ID}
+    info = by_topic[bags.CAMERA_INFO_TOPIC][0][1]
+    assert info.distortion_model == "plumb_bob" and not np.any(info.d)
+    assert np.array_equal(info.r, np.eye(3).ravel())
+    assert np.array_equal(np.asarray(info.p).reshape(3, 4)[:, :3], np.asarray(info.k).reshape(3, 3))
+    assert by_topic[bags.COLOR_TOPIC][0][1].encoding == "rgb8"
+    assert by_topic[bags.DEPTH_TOPIC][0][1].encoding == "32FC1"
+
+
+def test_roundtrip_16uc1_is_rounded_millimetres(replica: Path, tmp_path: Path) -> None:
+    seq = ReplicaSequence(replica)
+    out = tmp_path / "mm"
+    assert bags.write_bag(seq, out, depth_encoding="16UC1", progress=False) == N
+    frames, skipped = bags.read_bag_frames(out)
+    assert skipped == 0 and len(frames) == N
+    for k, fr in enumerate(frames):
+        ref = seq.frame(k).depth_m
+        mm = np.round(ref.astype(np.float64) * 1000.0).astype(np.uint16)
+        assert np.array_equal(fr.depth_m, mm.astype(np.float32) / np.float32(1000.0))
+        assert np.array_equal(fr.depth_m == 0, ref == 0)
+        assert np.abs(fr.depth_m - ref).max() <= 0.0005 + 1e-6
+
+
+def test_stride_max_frames_rate_and_bare_mcap(replica: Path, tmp_path: Path) -> None:
+    seq = ReplicaSequence(replica)
+    out = tmp_path / "strided"
+    assert bags.write_bag(seq, out, rate_hz=20.0, stride=2, max_frames=2, progress=False) == 2
+    frames, _ = bags.read_bag_frames(out / "strided.mcap")  # a bare .mcap reads too
+    assert [f.stamp_ns - frames[0].stamp_ns for f in frames] == [0, 50_000_000]
+    for fr, k in zip(frames, (0, 2), strict=True):
+        assert np.abs(fr.T_wc - seq.frame(k).T_wc).max() < 1e-9
+        assert np.array_equal(fr.rgb, seq.frame(k).rgb)
+
+
+def test_incomplete_stamps_are_skipped_and_counted(bag32: Path, tmp_path: Path) -> None:
+    out = tmp_path / "holey"
+    _rewrite_bag(bag32, out, lambda topic, k, msg: None if (topic == bags.POSE_TOPIC and k == 2) else msg)
+    frames, skipped = bags.read_bag_frames(out)
+    assert skipped == 1
+    assert [f.stamp_ns - bags.DEFAULT_T0_NS for f in frames] == [0, 100_000_000, 300_000_000, 400_000_000]
+    info = bags.bag_info(out)
+    assert info["frame_count"] == 4 and info["incomplete_stamps"] == 1
+    assert info["topics"][bags.POSE_TOPIC]["count"] == 4
+
+
+# ------------------------------------------------------------------------------------------ bag_info + CLI
+
+
+def test_bag_info_numbers(bag32: Path) -> None:
+    info = bags.bag_info(bag32)
+    assert info["frame_count"] == N and info["incomplete_stamps"] == 0
+    assert info["message_count"] == 4 * N
+    assert math.isclose(info["duration_s"], (N - 1) / 10.0)
+    assert (info["width"], info["height"]) == (W, H)
+    assert (info["color_encoding"], info["depth_encoding"]) == ("rgb8", "32FC1")
+    assert info["topics"] == {
+        bags.COLOR_TOPIC: {"type": "sensor_msgs/msg/Image", "count": N},
+        bags.DEPTH_TOPIC: {"type": "sensor_msgs/msg/Image", "count": N},
+        bags.CAMERA_INFO_TOPIC: {"type": "sensor_msgs/msg/CameraInfo", "count": N},
+        bags.POSE_TOPIC: {"type": "geometry_msgs/msg/PoseStamped", "count": N},
+    }
+
+
+def test_cli_info_text_and_json(bag32: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["bag", "info", str(bag32)]) == 0
+    text = capsys.readouterr().out
+    for needle in (bags.POSE_TOPIC, "geometry_msgs/msg/PoseStamped", f"{W}x{H}", "32FC1", "0.400 s", f"{N} complete"):
+        assert needle in text
+    assert cli_main(["bag", "info", str(bag32), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(bags.bag_info(bag32)))
+
+
+def test_cli_from_replica_resize_scales_intrinsics(replica: Path, tmp_path: Path) -> None:
+    out = tmp_path / "small"
+    argv = ["bag", "from-replica", str(replica), "--out", str(out), "--width", "32", "--height", "24"]
+    assert cli_main([*argv, "--depth-encoding", "16UC1", "--rate", "5", "--no-progress"]) == 0
+    seq = ReplicaSequence(replica, size=(32, 24))
+    expected = ReplicaSequence(replica).intrinsics.resized(32, 24)
+    frames, _ = bags.read_bag_frames(out)
+    assert len(frames) == N
+    for k, fr in enumerate(frames):
+        got = fr.intrinsics
+        assert (got.width, got.height) == (32, 24)
+        assert np.allclose([got.fx, got.fy, got.cx, got.cy], [expected.fx, expected.fy, expected.cx, expected.cy])
+        assert np.array_equal(fr.rgb, seq.frame(k).rgb)
+        assert fr.stamp_ns - frames[0].stamp_ns == k * 200_000_000
+    assert bags.bag_info(out)["depth_encoding"] == "16UC1"
+
+
+def test_cli_overwrite(replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "again"
+    argv = ["bag", "from-replica", str(replica), "--out", str(out), "--no-progress"]
+    assert cli_main([*argv, "--max-frames", "2"]) == 0
+    assert cli_main([*argv, "--max-frames", "2"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert cli_main([*argv, "--max-frames", "3", "--overwrite"]) == 0
+    assert bags.bag_info(out)["frame_count"] == 3
+    assert _leftovers(tmp_path, "again") == ["again"]
+
+
+# ------------------------------------------------------------------------------------------ bad input
+
+
+def test_cli_traj_mismatch_exit_2_leaves_nothing(
+    replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scene = _copy_replica(replica, tmp_path)
+    traj = scene / "traj.txt"
+    traj.write_text(traj.read_text() + traj.read_text().splitlines()[0] + "\n")
+    out = tmp_path / "out" / "bag"
+    assert cli_main(["bag", "from-replica", str(scene), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "traj.txt" in err and "6 poses" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert not out.parent.exists() or _leftovers(out.parent, "bag") == []
+    # A partial download is accepted when asked for.
+    assert cli_main(["bag", "from-replica", str(scene), "--out", str(out), "--allow-partial", "--no-progress"]) == 0
+    assert bags.bag_info(out)["frame_count"] == N
+
+
+def test_cli_missing_depth_names_the_file(replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    scene = _copy_replica(replica, tmp_path)
+    (scene / "results" / "depth000002.png").unlink()
+    out = tmp_path / "bag"
+    assert cli_main(["bag", "from-replica", str(scene), "--out", str(out), "--no-progress"]) == 2
+    assert "depth000002.png" in capsys.readouterr().err
+    assert _leftovers(tmp_path, "bag") == []
+
+
+def test_failure_mid_write_leaves_no_partial_bag(
+    replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scene = _copy_replica(replica, tmp_path)
+    (scene / "results" / "frame000003.jpg").write_bytes(b"not a jpeg")
+    out = tmp_path / "bag"
+    assert cli_main(["bag", "from-replica", str(scene), "--out", str(out), "--no-progress"]) == 2
+    assert "frame000003.jpg" in capsys.readouterr().err
+    assert _leftovers(tmp_path, "bag") == []
+
+
+def test_bag_missing_a_topic_names_it(bag32: Path, tmp_path: Path) -> None:
+    out = tmp_path / "no_pose"
+    _rewrite_bag(bag32, out, lambda topic, k, msg: None if topic == bags.POSE_TOPIC else msg)
+    with pytest.raises(InputError, match="/camera/pose") as exc:
+        bags.read_bag_frames(out)
+    assert str(out) in str(exc.value)
+
+
+def test_missing_bag_path_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(InputError, match="bag not found"):
+        bags.BagReader(tmp_path / "nope")
+    assert cli_main(["bag", "info", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("topic", "encoding"),
+    [(bags.DEPTH_TOPIC, "8UC1"), (bags.DEPTH_TOPIC, "bgr8"), (bags.COLOR_TOPIC, "mono8")],
+)
+def test_unsupported_encoding_names_topic_and_encoding(bag32: Path, tmp_path: Path, topic: str, encoding: str) -> None:
+    def edit(t: str, k: int, msg: Any) -> Any:
+        if t == topic:
+            msg.encoding = encoding
+        return msg
+
+    out = tmp_path / "bad_encoding"
+    _rewrite_bag(bag32, out, edit)
+    with pytest.raises(InputError) as exc:
+        bags.read_bag_frames(out)
+    assert topic in str(exc.value) and f"'{encoding}'" in str(exc.value)
+
+
+def test_nan_pose_is_rejected(bag32: Path, tmp_path: Path) -> None:
+    def edit(t: str, k: int, msg: Any) -> Any:
+        if t == bags.POSE_TOPIC and k == 1:
+            msg.pose.position.y = float("nan")
+        return msg
+
+    out = tmp_path / "nan_pose"
+    _rewrite_bag(bag32, out, edit)
+    with pytest.raises(InputError, match=r"/camera/pose.*not 3 finite numbers"):
+        bags.read_bag_frames(out)
+
+
+def test_non_unit_quaternion_is_rejected(bag32: Path, tmp_path: Path) -> None:
+    def edit(t: str, k: int, msg: Any) -> Any:
+        if t == bags.POSE_TOPIC:
+            msg.pose.orientation.w *= 3.0
+        return msg
+
+    out = tmp_path / "bad_quat"
+    _rewrite_bag(bag32, out, edit)
+    with pytest.raises(InputError, match="not a finite unit quaternion"):
+        bags.read_bag_frames(out)
+
+
+# ------------------------------------------------------------------------------------------ converters
+
+
+def _image(encoding: str, pixels: np.ndarray, pad: int = 0, big_endian: bool = False) -> Any:
+    h, w = pixels.shape[:2]
+    raw = pixels.astype(pixels.dtype.newbyteorder(">" if big_endian else "<")).reshape(h, -1).view(np.uint8)
+    rows = np.concatenate([raw, np.zeros((h, pad), np.uint8)], axis=1) if pad else raw
+    return TYPESTORE.types["sensor_msgs/msg/Image"](
+        header=TYPESTORE.types["std_msgs/msg/Header"](
+            stamp=TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="cam"
+        ),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=int(big_endian),
+        step=rows.shape[1],
+        data=np.ascontiguousarray(rows).reshape(-1),
+    )
+
+
+def test_converters_handle_bgr_padding_and_endianness() -> None:
+    rng = np.random.default_rng(7)
+    rgb = rng.integers(0, 256, size=(5, 7, 3), dtype=np.uint8)
+    assert np.array_equal(bags.image_to_rgb(_image("bgr8", rgb[..., ::-1].copy(), pad=3)), rgb)
+    rgba = np.concatenate([rgb, np.full((5, 7, 1), 9, np.uint8)], axis=2)
+    assert np.array_equal(bags.image_to_rgb(_image("rgba8", rgba)), rgb)
+    depth = rng.uniform(0.5, 4.0, size=(5, 7)).astype(np.float32)
+    depth[0, 0] = np.nan
+    got = bags.image_to_depth_m(_image("32FC1", depth, pad=4, big_endian=True))
+    assert got[0, 0] == 0.0 and np.array_equal(got[1:], depth[1:])
+    mm = rng.integers(0, 5000, size=(5, 7)).astype(np.uint16)
+    assert np.array_equal(bags.image_to_depth_m(_image("16UC1", mm)), mm.astype(np.float32) / np.float32(1000))
+
+
+def test_converters_reject_bad_sizes() -> None:
+    msg = _image("rgb8", np.zeros((4, 6, 3), np.uint8))
+    msg.data = msg.data[:-1]
+    with pytest.raises(InputError, match=r"/camera/color/image_raw: data has 71 bytes"):
+        bags.image_to_rgb(msg)
+    msg = _image("32FC1", np.zeros((4, 6), np.float32))
+    msg.step = 10
+    with pytest.raises(InputError, match=r"/camera/depth/image_raw: step 10 is less than"):
+        bags.image_to_depth_m(msg)
+
+
+def test_converters_accept_rclpy_messages() -> None:
+    """The converters read rclpy messages too (same field names), so nodes can reuse them."""
+    sensor_msgs = pytest.importorskip("sensor_msgs.msg")
+    geometry_msgs = pytest.importorskip("geometry_msgs.msg")
+    rgb = np.arange(4 * 3 * 3, dtype=np.uint8).reshape(4, 3, 3)
+    img = sensor_msgs.Image(height=4, width=3, encoding="rgb8", step=9, data=rgb.tobytes())
+    assert np.array_equal(bags.image_to_rgb(img), rgb)
+    depth = np.linspace(0.5, 2.0, 12, dtype=np.float32).reshape(4, 3)
+    dimg = sensor_msgs.Image(height=4, width=3, encoding="32FC1", step=12, data=depth.tobytes())
+    assert np.array_equal(bags.image_to_depth_m(dimg), depth)
+    info = sensor_msgs.CameraInfo(width=3, height=4, k=[2.0, 0.0, 1.0, 0.0, 3.0, 1.5, 0.0, 0.0, 1.0])
+    intr = bags.camera_info_to_intrinsics(info)
+    assert (intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy) == (3, 4, 2.0, 3.0, 1.0, 1.5)
+    pose = geometry_msgs.PoseStamped()
+    pose.pose.position.x, pose.pose.orientation.z, pose.pose.orientation.w = 1.5, math.sqrt(0.5), math.sqrt(0.5)
+    T = bags.pose_to_matrix(pose)
+    assert np.allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]]) and T[0, 3] == 1.5
