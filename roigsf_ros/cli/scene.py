@@ -1,0 +1,177 @@
+"""``roigsf scene``: ground-truth RGB-D sequences in the Replica layout, ray-cast from meshes.
+
+``scene render`` re-renders a mesh (e.g. Replica office0) along a ``traj.txt`` at any resolution;
+``scene synth`` builds the procedural test room and a handheld-like loop and renders it. Both write
+``results/``, ``traj.txt``, ``cam_params.json``, the ground-truth ``mesh.ply`` and ``render.json``
+into a new folder, all or nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from roigsf_ros.camera import Intrinsics, load_cam_params
+from roigsf_ros.errors import InputError
+from roigsf_ros.replica import load_traj
+
+SYNTH_WIDTH, SYNTH_HEIGHT = 320, 240
+SYNTH_FOCAL_PER_WIDTH = 0.8
+"""``scene synth`` camera: fx = fy = 0.8 * width (64 deg horizontal field of view, like a Kinect/TUM
+RGB-D camera's fx = 525 at 640 px), principal point at the image centre."""
+
+
+def synth_intrinsics(width: int, height: int) -> Intrinsics:
+    """The ``scene synth`` pinhole camera for a ``width`` x ``height`` image (see SYNTH_FOCAL_PER_WIDTH)."""
+    if width <= 0 or height <= 0:
+        raise InputError("--width/--height", f"image size must be positive, got {width}x{height}")
+    f = SYNTH_FOCAL_PER_WIDTH * width
+    return Intrinsics(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2)
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Fail early, before any work, if ``out`` exists and may not be replaced."""
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+
+
+def _check_texture(strength: float) -> None:
+    """``--texture-strength`` must be finite and >= 0."""
+    if not math.isfinite(strength) or strength < 0:
+        raise InputError("--texture-strength", f"must be a finite number >= 0, got {strength}")
+
+
+def _render(args: argparse.Namespace) -> int:
+    """Handler of ``scene render``."""
+    from roigsf_ros.scene import load_mesh, render_sequence  # open3d import only when used
+
+    out = Path(args.out)
+    _check_out(out, args.overwrite)
+    _check_texture(args.texture_strength)
+    if args.stride < 1:
+        raise InputError("--stride", f"must be >= 1, got {args.stride}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
+    if (args.width is None) != (args.height is None):
+        raise InputError("--width/--height", "give both or neither")
+    intr = load_cam_params(args.cam)
+    if args.width is not None:
+        intr = intr.resized(args.width, args.height)
+    poses = load_traj(args.traj)[:: args.stride]
+    if args.max_frames is not None:
+        poses = poses[: args.max_frames]
+    mesh = load_mesh(args.mesh)
+    render_sequence(
+        mesh,
+        poses,
+        intr,
+        out,
+        texture_strength=args.texture_strength,
+        texture_seed=args.texture_seed,
+        overwrite=args.overwrite,
+        metadata={"source_mesh": str(args.mesh), "source_traj": str(args.traj), "stride": args.stride},
+    )
+    print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} to {out}")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    """Handler of ``scene synth``."""
+    from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+
+    out = Path(args.out)
+    _check_out(out, args.overwrite)
+    _check_texture(args.texture_strength)
+    if args.frames < 1:
+        raise InputError("--frames", f"must be >= 1, got {args.frames}")
+    intr = synth_intrinsics(args.width, args.height)
+    mesh = synth_room(args.seed)
+    poses = synth_trajectory(args.seed, args.frames)
+    render_sequence(
+        mesh,
+        poses,
+        intr,
+        out,
+        texture_strength=args.texture_strength,
+        texture_seed=args.seed,
+        overwrite=args.overwrite,
+        metadata={"synth_seed": args.seed},
+    )
+    print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} (seed {args.seed}) to {out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``scene render`` and ``scene synth``."""
+    parser = sub.add_parser("scene", help="ray-cast ground-truth RGB-D sequences (Replica layout)", description=__doc__)
+    scene_sub = parser.add_subparsers(dest="scene_command", metavar="ACTION", required=True)
+
+    p = scene_sub.add_parser(
+        "render",
+        help="render a mesh along a traj.txt into a Replica-layout folder",
+        description="Ray-cast MESH at the camera-to-world poses of TRAJ with CAM_JSON's intrinsics (optionally "
+        "resized) and write colour, z-depth, poses, intrinsics and the mesh into OUT.",
+    )
+    p.add_argument(
+        "--mesh",
+        required=True,
+        metavar="MESH",
+        help="triangle mesh with vertex colours (PLY/OBJ), e.g. office0_mesh.ply",
+    )
+    p.add_argument(
+        "--traj", required=True, metavar="TRAJ", help="traj.txt: one row-major 4x4 camera-to-world pose per line"
+    )
+    p.add_argument(
+        "--cam", required=True, metavar="CAM_JSON", help="cam_params.json ({'camera': {w, h, fx, fy, cx, cy, scale}})"
+    )
+    p.add_argument("--out", required=True, metavar="OUT", help="output folder (must not exist unless --overwrite)")
+    p.add_argument("--width", type=int, metavar="W", help="output width in px; intrinsics are scaled (needs --height)")
+    p.add_argument("--height", type=int, metavar="H", help="output height in px; intrinsics are scaled (needs --width)")
+    p.add_argument("--stride", type=int, default=1, metavar="S", help="render every S-th pose of TRAJ (default 1)")
+    p.add_argument("--max-frames", type=int, metavar="N", help="render at most N frames (after --stride; default all)")
+    p.add_argument(
+        "--texture-strength",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="procedural surface texture multiplied onto vertex colours: 0 off, 1 full (default 1)",
+    )
+    p.add_argument(
+        "--texture-seed", type=int, default=0, metavar="SEED", help="seed of the procedural texture pattern (default 0)"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (only once the new one is done)")
+    p.set_defaults(func=_render)
+
+    p = scene_sub.add_parser(
+        "synth",
+        help="procedural textured room + handheld loop, rendered to a Replica-layout folder",
+        description="Build the seeded procedural room and camera loop and render it into OUT. Camera: "
+        f"fx = fy = {SYNTH_FOCAL_PER_WIDTH} * width (64 deg horizontal FOV), principal point at the image centre.",
+    )
+    p.add_argument("--out", required=True, metavar="OUT", help="output folder (must not exist unless --overwrite)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        metavar="SEED",
+        help="seed of the room layout, trajectory and texture (default 0)",
+    )
+    p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
+    p.add_argument(
+        "--width", type=int, default=SYNTH_WIDTH, metavar="W", help=f"image width in px (default {SYNTH_WIDTH})"
+    )
+    p.add_argument(
+        "--height", type=int, default=SYNTH_HEIGHT, metavar="H", help=f"image height in px (default {SYNTH_HEIGHT})"
+    )
+    p.add_argument(
+        "--texture-strength",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="procedural surface texture multiplied onto vertex colours: 0 off, 1 full (default 1)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (only once the new one is done)")
+    p.set_defaults(func=_synth)

@@ -1,0 +1,414 @@
+"""Ray-cast ground truth: office0 re-rendering vs the real frames, the procedural room, the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from roigsf_ros import scene
+from roigsf_ros.camera import Intrinsics, check_pose, load_cam_params
+from roigsf_ros.cli import build_parser, main
+from roigsf_ros.cli.scene import synth_intrinsics
+from roigsf_ros.errors import InputError
+from roigsf_ros.replica import MAX_DEPTH_M, ReplicaSequence, load_traj
+from roigsf_ros.scene import (
+    REPLICA_PIXEL_OFFSET,
+    ROOM_MAX,
+    ROOM_MIN,
+    MeshRenderer,
+    load_mesh,
+    render_sequence,
+    surface_texture,
+    synth_room,
+    synth_trajectory,
+)
+
+SMALL = synth_intrinsics(160, 120)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _leftovers(parent: Path) -> list[str]:
+    """Hidden temp folders/files that atomic writes would leave behind on failure."""
+    return [p.name for p in parent.iterdir() if p.name.startswith(".")]
+
+
+def _grad_median(rgb: np.ndarray) -> float:
+    """Median |Sobel x| of the grey image; Sobel's 3x3 kernel is about 8x the per-pixel step."""
+    g = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    return float(np.median(np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3))))
+
+
+# ---------------------------------------------------------------------------------------------
+# Renderer semantics on an analytic scene
+# ---------------------------------------------------------------------------------------------
+
+
+def _plane_mesh(z: float, colour_of_x: tuple[float, float]) -> o3d.geometry.TriangleMesh:
+    """A 20 m square at world z (fronto-parallel to an identity camera), red linear in x."""
+    v = np.array([[-10, -10, z], [10, -10, z], [10, 10, z], [-10, 10, z]], dtype=np.float64)
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]))
+    a, b = colour_of_x
+    m.vertex_colors = o3d.utility.Vector3dVector([[a + b * x, 0.4, 0.25] for x in v[:, 0]])
+    return m
+
+
+def test_depth_is_z_depth_and_rays_go_through_integer_pixel_centres() -> None:
+    intr = Intrinsics(width=9, height=7, fx=3.0, fy=3.0, cx=4.0, cy=3.0)
+    # Red = 0.45 + 0.04 x on the plane z = 2; the pixel at column u sees x = 2 (u - cx) / fx.
+    renderer = MeshRenderer(_plane_mesh(2.0, (0.45, 0.04)), texture_strength=0.0)
+    tilt = np.eye(4)
+    tilt[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]  # yaw 0.3 rad: rays hit obliquely
+    rgb, depth = renderer.render(np.eye(4), intr)
+    # Every pixel sees the plane at z = 2 exactly (z-depth, not ray length).
+    np.testing.assert_allclose(depth, 2.0, atol=1e-6)
+    u = np.arange(intr.width)
+    # Barycentric vertex colour at the hit, within 8-bit rounding; half a pixel off would be 3.4 levels.
+    expected_red = (0.45 + 0.04 * 2.0 * (u - intr.cx) / intr.fx) * 255
+    np.testing.assert_allclose(rgb[3, :, 0], expected_red, atol=0.51)
+    assert np.all(rgb[..., 1] == 102) and np.all(rgb[..., 2] == 64)
+    # Rotated camera: z-depth of the hit in the camera frame equals the rendered depth.
+    d_tilt = renderer.render_depth(tilt, intr)
+    dirs_w = scene.camera_rays(tilt, intr)[..., 3:].astype(np.float64)
+    t = 2.0 / dirs_w[..., 2]  # ray parameter where the world ray meets z = 2
+    hit_c = np.einsum("kj,hwk->hwj", tilt[:3, :3], dirs_w * t[..., None])  # R^T p
+    np.testing.assert_allclose(d_tilt, hit_c[..., 2], rtol=1e-5)
+    assert np.ptp(d_tilt) > 0.1  # not trivially constant
+    # A half-pixel offset moves the sampled x by half a pixel's footprint.
+    rgb_off, _ = renderer.render(np.eye(4), intr, pixel_offset=0.5)
+    np.testing.assert_allclose(rgb_off[3, :, 0], (0.45 + 0.08 * (u + 0.5 - intr.cx) / intr.fx) * 255, atol=0.51)
+
+
+def test_rays_missing_the_mesh_give_zero_depth_and_black() -> None:
+    intr = Intrinsics(width=8, height=6, fx=4.0, fy=4.0, cx=3.5, cy=2.5)
+    renderer = MeshRenderer(_plane_mesh(2.0, (0.5, 0.0)))
+    away = np.diag([1.0, -1.0, -1.0, 1.0])  # looking along -z, away from the plane
+    rgb, depth = renderer.render(away, intr)
+    assert depth.dtype == np.float32 and depth.shape == (6, 8) and np.all(depth == 0)
+    assert rgb.dtype == np.uint8 and rgb.shape == (6, 8, 3) and np.all(rgb == 0)
+    with pytest.raises(InputError, match="rigid"):
+        renderer.render(np.diag([2.0, 1.0, 1.0, 1.0]), intr)
+
+
+def test_surface_texture_is_deterministic_bounded_and_smooth() -> None:
+    pts = np.random.default_rng(0).uniform(-3.0, 3.0, (20000, 3))
+    tex = surface_texture(pts, seed=1)
+    assert tex.shape == (20000, 3) and tex.dtype == np.float32
+    np.testing.assert_array_equal(tex, surface_texture(pts, seed=1))
+    assert np.abs(tex - surface_texture(pts, seed=2)).mean() > 0.05
+    # Brightness modulation roughly 0.6-1.3 (5th-95th percentile), with some hue variation.
+    lo, hi = np.percentile(tex, [5, 95])
+    assert 0.55 < lo < 0.75 and 1.1 < hi < 1.35
+    assert np.percentile(np.abs(tex[:, 0] / tex[:, 1] - 1), 90) > 0.03
+    # A surface property: continuous in space (1 mm away changes little), not per-pixel noise.
+    assert np.abs(surface_texture(pts + 1e-3, seed=1) - tex).max() < 0.05
+    np.testing.assert_array_equal(surface_texture(pts, seed=1, strength=0.0), 1.0)
+    half = surface_texture(pts, seed=1, strength=0.5)
+    np.testing.assert_allclose(half, 1.0 + 0.5 * (tex - 1.0), atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# office0: the renderer reproduces the real Replica depth
+# ---------------------------------------------------------------------------------------------
+
+
+def test_office0_render_matches_real_depth(office0: Path) -> None:
+    seq = ReplicaSequence(office0 / "office0", allow_partial=True)
+    assert (seq.intrinsics.width, seq.intrinsics.height) == (1200, 680)
+    renderer = MeshRenderer(load_mesh(office0 / "office0_mesh.ply"))
+    for k in range(len(seq)):
+        frame = seq.frame(k)
+        depth = renderer.render_depth(frame.T_wc, seq.intrinsics, pixel_offset=REPLICA_PIXEL_OFFSET)
+        valid = (depth > 0) & (frame.depth_m > 0)
+        assert valid.mean() > 0.99
+        err = np.abs(depth - frame.depth_m)[valid]
+        assert np.median(err) < 1e-3, f"frame {k}: median depth error {np.median(err) * 1e3:.2f} mm"
+        assert (err < 0.02).mean() > 0.99
+        if k == 0:
+            # Replica's renderer sampled pixel u at u + 0.5 with the published cx = 599.5: the nominal
+            # integer-centre rays are half a pixel off, which shows as several times the error.
+            nominal = np.abs(renderer.render_depth(frame.T_wc, seq.intrinsics) - frame.depth_m)[valid]
+            assert np.median(nominal) > 3 * np.median(err)
+
+
+def test_load_mesh_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not found") as exc:
+        load_mesh(tmp_path / "nope.ply")
+    assert "nope.ply" in str(exc.value)
+    junk = tmp_path / "junk.ply"
+    junk.write_text("this is not a mesh\n")
+    with pytest.raises(InputError, match="no triangles") as exc:
+        load_mesh(junk)
+    assert "junk.ply" in str(exc.value)
+
+
+# ---------------------------------------------------------------------------------------------
+# The procedural room and trajectory
+# ---------------------------------------------------------------------------------------------
+
+
+def test_synth_room_is_deterministic_and_reasonably_sized() -> None:
+    a, b, c = synth_room(0), synth_room(0), synth_room(1)
+    np.testing.assert_array_equal(np.asarray(a.vertices), np.asarray(b.vertices))
+    np.testing.assert_array_equal(np.asarray(a.vertex_colors), np.asarray(b.vertex_colors))
+    np.testing.assert_array_equal(np.asarray(a.triangles), np.asarray(b.triangles))
+    assert not np.array_equal(np.asarray(a.vertex_colors)[:100], np.asarray(c.vertex_colors)[:100])
+    assert 10_000 < len(a.triangles) < 100_000
+    np.testing.assert_allclose(a.get_min_bound(), ROOM_MIN, atol=1e-9)
+    np.testing.assert_allclose(a.get_max_bound(), ROOM_MAX, atol=1e-9)
+    # Walls are subdivided and their vertex colours vary (not one flat colour per wall).
+    wall = np.abs(np.asarray(a.vertices)[:, 0] - ROOM_MIN[0]) < 1e-9
+    assert wall.sum() > 500 and np.asarray(a.vertex_colors)[wall].std(axis=0).max() > 0.01
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_synth_trajectory_is_smooth_safe_and_sees_the_room(seed: int) -> None:
+    poses = synth_trajectory(seed, 100)
+    assert poses.shape == (100, 4, 4) and poses.dtype == np.float64
+    for i, T in enumerate(poses):
+        check_pose(T, f"pose {i}", tol=1e-9)
+    pos = poses[:, :3, 3]
+    assert np.all(pos[:, :2] >= ROOM_MIN[:2] + 0.5) and np.all(pos[:, :2] <= ROOM_MAX[:2] - 0.5)
+    assert np.all((pos[:, 2] >= 1.2) & (pos[:, 2] <= 1.7))
+    steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    assert steps.max() < 0.15  # smooth: under 15 cm between consecutive frames of a 100-frame loop
+    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    angles = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert angles.max() < 15.0
+    # The loop goes round the centre (covers all four quadrants) and the view direction varies.
+    quads = set(zip((pos[:, 0] > 0).tolist(), (pos[:, 1] > 0).tolist(), strict=True))
+    assert len(quads) == 4
+    # Every ray hits (closed room) and no surface is closer than 0.4 m (never inside furniture).
+    renderer = MeshRenderer(synth_room(seed), texture_strength=0.0)
+    tiny = synth_intrinsics(40, 30)
+    depths = np.stack([renderer.render_depth(T, tiny) for T in poses])
+    assert depths.min() > 0.4 and depths.max() < MAX_DEPTH_M
+
+
+@pytest.fixture(scope="module")
+def synth_dirs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Seed 0 rendered twice and seed 1 once: 6 frames at 160x120."""
+    root = tmp_path_factory.mktemp("synth")
+    out = {}
+    for name, seed in (("a", 0), ("b", 0), ("c", 1)):
+        out[name] = render_sequence(
+            synth_room(seed), synth_trajectory(seed, 6), SMALL, root / name, texture_seed=seed, progress=False
+        )
+    return out
+
+
+def test_synth_render_is_byte_identical_for_a_seed(synth_dirs: dict[str, Path]) -> None:
+    a, b, c = (_files(synth_dirs[k]) for k in "abc")
+    expected = {"traj.txt", "cam_params.json", "mesh.ply", "render.json"}
+    expected |= {f"results/{kind}{i:06d}.{ext}" for i in range(6) for kind, ext in (("frame", "jpg"), ("depth", "png"))}
+    assert set(a) == expected
+    assert a == b
+    for name in ("traj.txt", "mesh.ply", "results/frame000000.jpg", "results/depth000000.png"):
+        assert a[name] != c[name], name
+
+
+def test_synth_frames_are_textured_full_and_on_the_mesh(synth_dirs: dict[str, Path]) -> None:
+    root = synth_dirs["a"]
+    seq = ReplicaSequence(root)
+    assert seq.intrinsics == SMALL
+    mesh = load_mesh(root / "mesh.ply")
+    flat = MeshRenderer(mesh, texture_strength=0.0)
+    raycast = o3d.t.geometry.RaycastingScene()
+    raycast.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    u, v = np.meshgrid(np.arange(SMALL.width), np.arange(SMALL.height))
+    for frame in seq:
+        # Closed room: every pixel has a valid depth.
+        assert np.all(frame.depth_m > 0.3) and np.all(frame.depth_m < MAX_DEPTH_M)
+        # Texture: the median horizontal grey gradient is at least ~1 grey level per pixel (Sobel
+        # about 8x the step) and 3x the untextured render's, whose gradient is only at object edges
+        # and 8-bit rounding. Photometric Fisher information needs this everywhere, not at edges.
+        g_tex = _grad_median(frame.rgb)
+        g_flat = _grad_median(flat.render(frame.T_wc, SMALL)[0])
+        assert g_tex >= 8.0 and g_tex >= 3.0 * g_flat, (g_tex, g_flat)
+        # Back-projected depth lies on the ground-truth mesh (well within the 1 mm requirement).
+        d = frame.depth_m.astype(np.float64)
+        p_c = np.stack([(u - SMALL.cx) / SMALL.fx * d, (v - SMALL.cy) / SMALL.fy * d, d], -1).reshape(-1, 3)
+        p_w = p_c @ frame.T_wc[:3, :3].T + frame.T_wc[:3, 3]
+        dist = raycast.compute_distance(o3d.core.Tensor(p_w.astype(np.float32))).numpy()
+        # Half a PNG step is 0.076 mm of z; along oblique rays and in float32 that stays under 0.25 mm.
+        assert dist.max() < 2.5e-4, dist.max()
+
+
+def test_render_sequence_failure_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = {"n": 0}
+    real_render = MeshRenderer.render
+
+    def failing_render(self: MeshRenderer, *args: object, **kwargs: object) -> tuple[np.ndarray, np.ndarray]:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("simulated crash mid-sequence")
+        return real_render(self, *args, **kwargs)
+
+    monkeypatch.setattr(MeshRenderer, "render", failing_render)
+    with pytest.raises(RuntimeError, match="simulated"):
+        render_sequence(synth_room(0), synth_trajectory(0, 5), synth_intrinsics(32, 24), tmp_path / "out")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------
+
+
+def test_cli_synth_round_trip(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "room"
+    args = ["scene", "synth", "--out", str(out), "--seed", "3", "--frames", "4", "--width", "64", "--height", "48"]
+    assert main(args) == 0
+    seq = ReplicaSequence(out)
+    intr = synth_intrinsics(64, 48)
+    assert len(seq) == 4 and seq.intrinsics == intr
+    assert (intr.fx, intr.cx, intr.cy) == (0.8 * 64, 31.5, 23.5)
+    np.testing.assert_array_equal(seq.poses, synth_trajectory(3, 4))
+    assert seq.frame(0).rgb.shape == (48, 64, 3)
+    assert (out / "mesh.ply").is_file()
+    assert "wrote 4 frames" in capsys.readouterr().out
+    # Existing output: refused without --overwrite, replaced with it.
+    assert main(args) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main([*args[:-4], "--width", "32", "--height", "24", "--overwrite"]) == 0
+    assert ReplicaSequence(out).intrinsics.width == 32
+    assert _leftovers(tmp_path) == []
+
+
+def test_cli_render_office0_subsampled(office0: Path, tmp_path: Path) -> None:
+    out = tmp_path / "office0_small"
+    args = [
+        "scene", "render", "--mesh", str(office0 / "office0_mesh.ply"), "--traj", str(office0 / "office0" / "traj.txt"),
+        "--cam", str(office0 / "cam_params.json"), "--out", str(out), "--width", "120", "--height", "68",
+        "--stride", "500", "--max-frames", "3", "--texture-strength", "0.5",
+    ]  # fmt: skip
+    assert main(args) == 0
+    seq = ReplicaSequence(out)
+    assert len(seq) == 3
+    assert seq.intrinsics == load_cam_params(office0 / "cam_params.json").resized(120, 68)
+    np.testing.assert_array_equal(seq.poses, load_traj(office0 / "office0" / "traj.txt")[[0, 500, 1000]])
+    for frame in seq:
+        assert (frame.depth_m > 0).mean() > 0.99 and frame.rgb.std() > 10
+    assert len(load_mesh(out / "mesh.ply").triangles) == 50_000
+
+
+@pytest.fixture
+def small_inputs(tmp_path: Path) -> dict[str, Path]:
+    """A tiny mesh, a 3-pose traj.txt and a cam_params.json in tmp_path/in."""
+    src = tmp_path / "in"
+    src.mkdir()
+    o3d.io.write_triangle_mesh(str(src / "mesh.ply"), _plane_mesh(3.0, (0.5, 0.01)))
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 0.1, 0.2]
+    (src / "traj.txt").write_text("".join(" ".join(map(str, T.ravel())) + "\n" for T in poses))
+    intr = Intrinsics(width=16, height=12, fx=10.0, fy=10.0, cx=7.5, cy=5.5)
+    (src / "cam.json").write_text(json.dumps(intr.to_replica_json()))
+    return {"mesh": src / "mesh.ply", "traj": src / "traj.txt", "cam": src / "cam.json"}
+
+
+def _render_args(inputs: dict[str, Path], out: Path, *extra: str) -> list[str]:
+    return [
+        "scene", "render", "--mesh", str(inputs["mesh"]), "--traj", str(inputs["traj"]),
+        "--cam", str(inputs["cam"]), "--out", str(out), *extra,
+    ]  # fmt: skip
+
+
+def test_cli_render_small_inputs_work(small_inputs: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(_render_args(small_inputs, out)) == 0
+    seq = ReplicaSequence(out)
+    assert len(seq) == 3
+    np.testing.assert_allclose(seq.frame(2).depth_m, 3.0, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("bad_line", "what"),
+    [
+        ("2 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "rigid"),  # scaled rotation
+        ("1 0 0 nan 0 1 0 0 0 0 1 0 0 0 0 1", "non-finite"),
+    ],
+)
+def test_cli_render_bad_traj_line(
+    small_inputs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], bad_line: str, what: str
+) -> None:
+    lines = small_inputs["traj"].read_text().splitlines()
+    lines[1] = bad_line
+    small_inputs["traj"].write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    assert main(_render_args(small_inputs, out)) == 2
+    err = capsys.readouterr().err
+    assert f"{small_inputs['traj']}:2" in err and what in err
+    assert err.count("\n") == 1  # one line, no traceback
+    assert not out.exists() and _leftovers(tmp_path) == []
+
+
+def test_cli_render_bad_inputs(
+    small_inputs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    # Missing mesh file.
+    missing = dict(small_inputs, mesh=tmp_path / "in" / "absent.ply")
+    assert main(_render_args(missing, out)) == 2
+    assert "absent.ply" in capsys.readouterr().err
+    # Camera JSON without fx.
+    cam = tmp_path / "in" / "cam_nofx.json"
+    cam.write_text('{"camera": {"w": 16, "h": 12, "fy": 10, "cx": 7.5, "cy": 5.5}}')
+    assert main(_render_args(dict(small_inputs, cam=cam), out)) == 2
+    err = capsys.readouterr().err
+    assert "cam_nofx.json" in err and "fx" in err
+    # Bad numbers.
+    for extra, name in (
+        (["--stride", "0"], "--stride"),
+        (["--max-frames", "0"], "--max-frames"),
+        (["--width", "50"], "--width/--height"),
+        (["--width", "0", "--height", "10"], "--width/--height"),
+        (["--texture-strength", "-1"], "--texture-strength"),
+    ):
+        assert main(_render_args(small_inputs, out, *extra)) == 2
+        assert name in capsys.readouterr().err
+    assert not out.exists() and _leftovers(tmp_path) == []
+    # Existing output without --overwrite is refused and left untouched.
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    assert main(_render_args(small_inputs, out)) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert (out / "keep.txt").read_text() == "mine"
+    # Synth with bad counts.
+    assert main(["scene", "synth", "--out", str(tmp_path / "s"), "--frames", "0"]) == 2
+    assert "--frames" in capsys.readouterr().err
+    assert main(["scene", "synth", "--out", str(tmp_path / "s"), "--width", "-4"]) == 2
+    assert not (tmp_path / "s").exists() and _leftovers(tmp_path) == []
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices[name]
+
+
+def test_cli_help_documents_every_option() -> None:
+    scene_parser = _subparser(build_parser(), "scene")
+    for name in ("render", "synth"):
+        parser = _subparser(scene_parser, name)
+        options = [a for a in parser._actions if a.option_strings and "--help" not in a.option_strings]
+        assert len(options) >= 6
+        for action in options:
+            assert action.help and len(action.help.split()) >= 3, f"scene {name} {action.option_strings}"
+        assert "--overwrite" in parser.format_help()
+
+
+def test_texture_strength_zero_gives_plain_vertex_colours() -> None:
+    mesh = synth_room(0)
+    T = synth_trajectory(0, 1)[0]
+    flat, _ = MeshRenderer(mesh, texture_strength=0.0).render(T, SMALL)
+    tex, _ = MeshRenderer(mesh, texture_strength=1.0).render(T, SMALL)
+    assert np.abs(flat.astype(int) - tex.astype(int)).mean() > 10
+    with pytest.raises(InputError, match="texture_strength"):
+        MeshRenderer(mesh, texture_strength=float("nan"))
