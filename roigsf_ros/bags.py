@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -37,6 +37,7 @@ from roigsf_ros.camera import Intrinsics, check_pose, matrix_to_quat_xyzw, pose_
 from roigsf_ros.errors import InputError
 from roigsf_ros.fileio import atomic_dir
 from roigsf_ros.replica import ReplicaSequence
+from roigsf_ros.sync import StampMatcher
 
 COLOR_TOPIC = "/camera/color/image_raw"
 DEPTH_TOPIC = "/camera/depth/image_raw"
@@ -402,24 +403,20 @@ class BagReader:
         """Yield complete frames in the order they complete (stamp order for bags from :func:`write_bag`)."""
         if not self._open:
             raise RuntimeError("BagReader.frames() needs an open reader: use it in a `with` block")
-        t = self.topics
-        conns = [c for c in self._reader.connections if c.topic in t.types()]
-        pending: dict[int, dict[str, tuple[Any, bytes]]] = {}
+        conns = [c for c in self._reader.connections if c.topic in self.topics.types()]
+        matcher: StampMatcher[tuple[Any, bytes]] = StampMatcher(self.topics.types(), MAX_PENDING_STAMPS)
         for conn, _, raw in self._reader.messages(connections=conns):
             try:
                 stamp = _header_stamp_ns(raw)
             except (struct.error, IndexError):
                 raise InputError(f"{self.path}:{conn.topic}", "message too short to hold a header") from None
-            parts = pending.setdefault(stamp, {})
-            parts[conn.topic] = (conn, raw)
-            if len(parts) == 4:
-                del pending[stamp]
+            parts = matcher.add(stamp, conn.topic, (conn, raw))
+            self.skipped_frames = matcher.dropped
+            if parts is not None:
                 self.frames_read += 1
                 yield self._convert(stamp, parts)
-            elif len(pending) > MAX_PENDING_STAMPS:
-                del pending[min(pending)]
-                self.skipped_frames += 1
-        self.skipped_frames += len(pending)
+        matcher.flush()
+        self.skipped_frames = matcher.dropped
 
     def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]]) -> BagFrame:
         t = self.topics
@@ -434,18 +431,37 @@ class BagReader:
         def where(topic: str) -> str:
             return f"{self.path}:{topic} @ {stamp} ns"
 
-        rgb = image_to_rgb(msg(t.color), where(t.color))
-        depth_m = image_to_depth_m(msg(t.depth), where(t.depth))
-        intr = camera_info_to_intrinsics(msg(t.camera_info), where(t.camera_info))
-        T_wc = pose_to_matrix(msg(t.pose), where(t.pose))
-        h, w = depth_m.shape
-        if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
-            raise InputError(
-                where(t.depth),
-                f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
-                f"camera info {intr.width}x{intr.height}",
-            )
-        return BagFrame(stamp_ns=stamp, rgb=rgb, depth_m=depth_m, T_wc=T_wc, intrinsics=intr)
+        return assemble_frame(
+            stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where
+        )
+
+
+def assemble_frame(
+    stamp_ns: int,
+    color_msg: Any,
+    depth_msg: Any,
+    info_msg: Any,
+    pose_msg: Any,
+    topics: CameraTopics | None = None,
+    where: Callable[[str], str] = str,
+) -> BagFrame:
+    """Convert the four messages of one stamp into a :class:`BagFrame`, checking that sizes agree.
+
+    Shared by the bag reader and the ROS nodes; ``where(topic)`` names the source in errors.
+    """
+    t = topics or CameraTopics()
+    rgb = image_to_rgb(color_msg, where(t.color))
+    depth_m = image_to_depth_m(depth_msg, where(t.depth))
+    intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
+    T_wc = pose_to_matrix(pose_msg, where(t.pose))
+    h, w = depth_m.shape
+    if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
+        raise InputError(
+            where(t.depth),
+            f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
+            f"camera info {intr.width}x{intr.height}",
+        )
+    return BagFrame(stamp_ns=stamp_ns, rgb=rgb, depth_m=depth_m, T_wc=T_wc, intrinsics=intr)
 
 
 def read_bag_frames(path: str | Path, topics: CameraTopics | None = None) -> tuple[list[BagFrame], int]:
