@@ -1,0 +1,347 @@
+"""NBV scoring: z-score fusion and ranking, ROI-weighted Fisher vs brute force, the scorer's choices, uncertainty."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from roigsf_ros.camera import Intrinsics, matrix_to_quat_xyzw
+from roigsf_ros.close_front import CloseFrontMemory
+from roigsf_ros.errors import InputError
+from roigsf_ros.evaluation import raycast_depth, raycasting_scene
+from roigsf_ros.fisher import GEOMETRIC_PARAMS
+from roigsf_ros.nbv import (
+    NBVConfig,
+    NBVScorer,
+    block_mean,
+    depth_error_ause,
+    downsampled,
+    fuse_scores,
+    rank_candidates,
+    zscore,
+)
+from roigsf_ros.render import camera_tensors, render_map
+from roigsf_ros.render_reference import rasterize_surfels as reference_rasterize
+from roigsf_ros.scene import MeshRenderer, look_at
+from roigsf_ros.surfels import SH_C0, SurfelMap, rotmat_to_quat, surfels_from_rgbd
+from roigsf_ros.tsdf import TSDFVolume
+
+UP = np.array([0.0, 0.0, 1.0])
+INTR = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread() -> Iterator[None]:
+    """One torch thread: on a shared 2-core machine OpenMP's spinning threads can make passes 10-50x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# ----------------------------------------------------------------------------- fusion, ranking
+def test_zscore_is_finite_and_constant_inputs_give_zero() -> None:
+    for const in ([3.0, 3.0, 3.0], [0.0], [1e12, 1e12], [1e-300, 1e-300]):
+        z = zscore(np.array(const))
+        assert np.all(z == 0.0)
+    z = zscore(np.array([1.0, 2.0, 3.0, 10.0]))
+    assert z.mean() == pytest.approx(0.0, abs=1e-12) and z.std() == pytest.approx(1.0)
+    assert zscore(np.zeros(0)).shape == (0,)
+    with pytest.raises(InputError, match="non-finite"):
+        zscore(np.array([1.0, np.nan]))
+    # Fusion (Eq. 15): scale-invariant per term; a constant term contributes nothing.
+    f, i = np.array([1.0, 5.0, 3.0]), np.array([2.0, 2.0, 2.0])
+    np.testing.assert_allclose(fuse_scores(f, i), 0.4 * zscore(f))
+    np.testing.assert_allclose(fuse_scores(1e9 * f, np.array([0.0, 1.0, 0.0])), fuse_scores(f, [0.0, 7.0, 0.0]))
+    assert np.all(fuse_scores(np.zeros(4), np.zeros(4)) == 0.0)
+
+
+def test_ranking_is_descending_deterministic_and_puts_flagged_last() -> None:
+    s = np.array([0.5, 2.0, 0.5, 2.0, -1.0])
+    np.testing.assert_array_equal(rank_candidates(s), [1, 3, 0, 2, 4])
+    flagged = np.array([False, True, False, False, False])
+    np.testing.assert_array_equal(rank_candidates(s, flagged), [3, 0, 2, 4, 1])
+    np.testing.assert_array_equal(rank_candidates(np.zeros(3)), [0, 1, 2])
+
+
+def test_config_validation_and_from_dict() -> None:
+    cfg = NBVConfig()
+    assert (cfg.epsilon, cfg.delta, cfg.footprint_pref_px) == (0.4, 0.6, 2.5)
+    assert (cfg.angle_pref_texture_poor_deg, cfg.angle_pref_texture_rich_deg) == (30.0, 40.0)
+    assert cfg.fisher_params == GEOMETRIC_PARAMS and cfg.fisherrf_lambda == 1e-6
+    for bad in ({"mode": "best"}, {"beta": 0.0}, {"mu": -1.0}, {"phi": float("nan")}, {"far_m": 0.1}, {"top_k": 0}):
+        with pytest.raises(InputError):
+            NBVConfig(**bad)
+    with pytest.raises(InputError, match="outputs"):
+        NBVConfig(fisher_outputs=("colour",))
+    got = NBVConfig.from_dict({"mode": "fisherrf", "fisher_outputs": ["color"], "mu": 0.5})
+    assert got.mode == "fisherrf" and got.fisher_outputs == ("color",) and got.mu == 0.5
+    with pytest.raises(InputError, match="unknown parameter"):
+        NBVConfig.from_dict({"epsilonn": 0.3})
+
+
+def test_downsampled_intrinsics_match_block_averaging() -> None:
+    intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    small = downsampled(intr, 2)
+    assert (small.width, small.height, small.fx, small.cx) == (32, 24, 25.0, 15.5)
+    img = np.arange(48 * 64, dtype=float).reshape(48, 64)
+    assert block_mean(img, 2)[0, 0] == pytest.approx((0 + 1 + 64 + 65) / 4)
+    assert downsampled(intr, 1) is intr
+
+
+# --------------------------------------------------------------------- Fisher vs brute force
+def _tiny_scene() -> tuple[SurfelMap, TSDFVolume, np.ndarray, Intrinsics]:
+    """Nine tilted surfels on a plane 1.5 m away, a TSDF of the plane, an oblique view (16 x 12 px)."""
+    intr = Intrinsics(16, 12, 14.0, 14.0, 7.5, 5.5)
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid([-0.3, 0.0, 0.3], [-0.3, 0.0, 0.3], indexing="ij"), -1).reshape(-1, 2)
+    means = np.column_stack([g, np.full(9, 1.5)]) + rng.normal(0, 0.02, (9, 3))
+    R = np.stack([np.linalg.qr(np.eye(3) + 0.15 * rng.normal(size=(3, 3)))[0] for _ in range(9)])
+    R *= np.sign(np.linalg.det(R))[:, None, None]
+    smap = SurfelMap(
+        means=torch.tensor(means),
+        quats=rotmat_to_quat(torch.tensor(R)) * torch.tensor(rng.uniform(0.8, 1.2, (9, 1))),  # non-unit on purpose
+        log_scales=torch.tensor(np.log(rng.uniform(0.08, 0.16, (9, 2)))),
+        opacity_logits=torch.tensor(rng.uniform(0.5, 2.0, 9)),
+        sh_dc=torch.tensor((rng.uniform(0.1, 0.9, (9, 3)) - 0.5) / SH_C0),
+    )
+    plane = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 0.01).translate((-0.5, -0.5, 1.5))
+    scene = raycasting_scene(plane)
+    vol = TSDFVolume(voxel_size_m=0.03)
+    for eye in ([0.0, 0.0, 0.0], [0.3, 0.2, 0.2], [-0.3, -0.1, 0.1]):
+        T = look_at(np.array(eye), np.array([0.0, 0.0, 1.5]), np.array([0.0, -1.0, 0.0]))
+        vol.integrate(raycast_depth(scene, T, intr), T, intr)
+    T = look_at(np.array([0.35, -0.25, 0.3]), np.array([0.05, 0.0, 1.5]), np.array([0.0, -1.0, 0.0]))
+    return smap, vol, T, intr
+
+
+def test_roi_weighted_fisher_score_equals_brute_force_autograd() -> None:
+    smap, vol, T, intr = _tiny_scene()
+    cfg = NBVConfig(sigma_p=0.5, fisher_outputs=("color", "depth"))
+    scorer = NBVScorer(cfg)
+    rng = np.random.default_rng(4)
+    h_train = {k: torch.tensor(rng.uniform(0.0, 2.0, tuple(getattr(smap, k).shape))) for k in GEOMETRIC_PARAMS}
+    res = scorer.score(smap, h_train, vol, [], [T], intr, mode="roi-fisher")
+    roi = scorer.roi(vol, T, intr, smap).weights
+    # The ROI is non-trivial here: graded weights, some pixels outside it.
+    assert 0 < (roi > 0).sum() < roi.size and roi.max() > 2 * roi[roi > 0].min()
+
+    leaves = {k: getattr(smap, k).clone().requires_grad_(True) for k in GEOMETRIC_PARAMS}
+    viewmat, K = camera_tensors(T, intr, dtype=torch.float64)
+    out = reference_rasterize(
+        leaves["means"], leaves["quats"], torch.exp(leaves["log_scales"]), torch.sigmoid(smap.opacity_logits),
+        smap.colors(), viewmat, K, intr.width, intr.height, near=cfg.near_m, far=cfg.far_m,
+    )  # fmt: skip
+    F = {k: torch.zeros_like(v) for k, v in leaves.items()}
+    w = roi / cfg.sigma_p**2
+    for y, x in zip(*np.nonzero(w), strict=True):
+        for value in (*out.features[y, x].unbind(), out.depth[y, x]):
+            grads = torch.autograd.grad(value, list(leaves.values()), retain_graph=True, allow_unused=True)
+            for k, g in zip(leaves, grads, strict=True):
+                if g is not None:
+                    F[k] += w[y, x] * g**2
+    brute = sum(float((F[k] / (h_train[k] + cfg.phi)).sum()) for k in F)
+    assert brute > 0
+    assert res.fisher[0] == pytest.approx(brute, rel=1e-8)
+    assert res.n_roi_pixels[0] == (roi > 0).sum() and res.roi_mass[0] == pytest.approx(roi.sum())
+
+
+# ------------------------------------------------------------------------------ two-panel world
+def _panel(x: float) -> o3d.geometry.TriangleMesh:
+    b = o3d.geometry.TriangleMesh.create_box(0.02, 1.6, 1.2).translate((x - 0.01, -0.8, 0.4))
+    b.paint_uniform_color([0.6, 0.5, 0.4])
+    return b
+
+
+class World:
+    """Panel A (x = +2) seen closely by three training views; panel B (x = -2) once, far and obliquely."""
+
+    def __init__(self) -> None:
+        self.renderer = MeshRenderer(_panel(2.0) + _panel(-2.0), texture_strength=1.0)
+        self.train = [look_at(np.array([0.5, y, 1.0]), np.array([2.0, 0.5 * y, 1.0]), UP) for y in (-0.3, 0.0, 0.3)]
+        self.train.append(look_at(np.array([1.0, 1.6, 1.0]), np.array([-2.0, -0.2, 1.0]), UP))
+        self.tsdf = TSDFVolume(voxel_size_m=0.04)
+        maps = []
+        self.memory = CloseFrontMemory(self.tsdf.voxel_size_m, NBVConfig())
+        for T in self.train:
+            rgb, d = self.renderer.render(T, INTR)
+            self.tsdf.integrate(d, T, INTR, rgb)
+            self.memory.add_view(NBVScorer().surface(self.tsdf), T, INTR)  # incrementally, after integrating
+            if T is self.train[1] or T is self.train[3]:  # seed once per panel (no duplicate surfel layers)
+                maps.append(surfels_from_rgbd(rgb, d, T, INTR, stride=2, dtype=torch.float64))
+        self.map = SurfelMap.cat(maps)
+        self.n_a = len(maps[0])  # surfels 0..n_a-1 lie on panel A
+        self.view_a = self.train[1]  # a training view of A, again
+        self.view_b = look_at(np.array([-0.9, 0.0, 1.0]), np.array([-2.0, 0.0, 1.0]), UP)  # close, frontal on B
+        self.view_up = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 3.0]), np.array([1.0, 0.0, 0.0]))
+        self.candidates = np.stack([self.view_a, self.view_b, self.view_up])
+        self.h_train = NBVScorer().train_fisher(self.map, self.train, INTR)
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return World()
+
+
+def test_scorer_prefers_the_weakly_observed_panel_in_every_mode(world: World) -> None:
+    scorer = NBVScorer()
+    for mode in ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf"):
+        h = world.h_train if mode != "fisherrf" else None  # FisherRF's colour-only H_train is computed here
+        res = scorer.score(world.map, h, world.tsdf, world.train, world.candidates, INTR, mode=mode)
+        assert res.mode == mode and res.best_index == 1, mode
+        np.testing.assert_array_equal(res.ranking, [1, 0, 2])
+        np.testing.assert_array_equal(res.flagged, [False, False, True])  # looking at the sky
+        assert np.all(np.isfinite(res.fused)) and res.reason == ""
+        assert res.fisher[2] == 0.0 and res.close_front[2] == 0.0
+        np.testing.assert_array_equal(res.top_k, res.ranking[:5])
+        if mode in ("roi-gsurfisher", "close-front"):
+            assert res.close_front[0] == 0.0 and res.close_front[1] > 0.0  # a repeated training view gains nothing
+        if mode != "fisherrf":
+            assert res.n_roi_pixels[1] > 0.9 * INTR.width * INTR.height and res.n_visible_voxels[2] == 0
+            assert res.fisher[1] > res.fisher[0] > 0.0 or mode == "close-front"
+    fused = scorer.score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR)
+    np.testing.assert_allclose(fused.fused, 0.4 * fused_z(fused.fisher) + 0.6 * fused_z(fused.close_front))
+
+
+def fused_z(x: np.ndarray) -> np.ndarray:
+    return (x - x.mean()) / x.std()
+
+
+def test_dividing_by_training_information_steers_away_from_trained_surfels(world: World) -> None:
+    scorer = NBVScorer()
+    cands = world.candidates[:2]
+    n, n_a = len(world.map), world.n_a
+
+    def h_with(big_on_a: bool) -> dict[str, torch.Tensor]:
+        big = torch.zeros(n, dtype=torch.float64)
+        big[:n_a] = 1e6 if big_on_a else 0.0
+        big[n_a:] = 0.0 if big_on_a else 1e6
+        return {k: big.reshape(-1, *[1] * (getattr(world.map, k).dim() - 1)).expand_as(getattr(world.map, k)).clone()
+                for k in GEOMETRIC_PARAMS}  # fmt: skip
+
+    a_trained = scorer.score(world.map, h_with(True), world.tsdf, world.train, cands, INTR, mode="roi-fisher")
+    b_trained = scorer.score(world.map, h_with(False), world.tsdf, world.train, cands, INTR, mode="roi-fisher")
+    assert a_trained.best_index == 1 and b_trained.best_index == 0
+    assert a_trained.fisher[0] < 1e-3 * a_trained.fisher[1]
+    assert b_trained.fisher[1] < 1e-3 * b_trained.fisher[0]
+
+
+def test_incremental_memory_and_input_forms_give_the_same_scores(world: World) -> None:
+    scorer = NBVScorer()
+    exact = scorer.score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR, mode="close-front")
+    inc = scorer.score(world.map, world.h_train, world.tsdf, [], world.candidates, INTR, mode="close-front",
+                       close_front_memory=world.memory)  # fmt: skip
+    assert inc.best_index == exact.best_index == 1
+    # Voxels that entered the surface band after a view was added do not get that view's weight, so the
+    # incremental gain can only be higher; here the views barely overlap and it is (nearly) the same.
+    assert np.all(inc.close_front >= exact.close_front - 1e-9)
+    assert inc.close_front[1] == pytest.approx(exact.close_front[1], rel=0.05)
+    # Candidates as [M, 7] position + (x, y, z, w) quaternion rows and as a list of matrices.
+    rows = np.stack([np.concatenate([T[:3, 3], matrix_to_quat_xyzw(T[:3, :3])]) for T in world.candidates])
+    for form in (rows, list(world.candidates)):
+        res = scorer.score(world.map, world.h_train, world.tsdf, world.train, form, INTR, mode="close-front")
+        np.testing.assert_allclose(res.close_front, exact.close_front, rtol=1e-9)
+
+
+def test_fisher_downsampling_keeps_the_choice(world: World) -> None:
+    full = NBVScorer().score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR, "roi-fisher")
+    half = NBVScorer(NBVConfig(fisher_downsample=2)).score(
+        world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR, mode="roi-fisher"
+    )
+    assert half.best_index == full.best_index == 1
+    np.testing.assert_allclose(half.fisher, full.fisher, rtol=0.5)  # same units: weights scaled by 4
+
+
+def test_bad_and_degenerate_inputs(world: World) -> None:
+    scorer = NBVScorer()
+    args = (world.map, world.h_train, world.tsdf, world.train)
+    with pytest.raises(InputError, match="no candidate"):
+        scorer.score(*args, [], INTR)
+    with pytest.raises(InputError, match="no candidate"):
+        scorer.score(*args, np.zeros((0, 4, 4)), INTR)
+    with pytest.raises(InputError, match="unit quaternion"):
+        scorer.score(*args, np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0]]), INTR)
+    with pytest.raises(InputError, match="rigid"):
+        scorer.score(*args, np.diag([1.0, 2.0, 1.0, 1.0])[None], INTR)
+    with pytest.raises(InputError, match="expected"):
+        scorer.score(*args, np.zeros((2, 3, 3)), INTR)
+    with pytest.raises(InputError, match="mode"):
+        scorer.score(*args, world.candidates, INTR, mode="random")
+    bad_h = dict(world.h_train)
+    bad_h["means"] = bad_h["means"][:-1]
+    with pytest.raises(InputError, match="means"):
+        scorer.score(world.map, bad_h, world.tsdf, world.train, world.candidates, INTR)
+    with pytest.raises(InputError, match="has no entry"):
+        scorer.score(world.map, {"means": world.h_train["means"]}, world.tsdf, world.train, world.candidates, INTR)
+
+    def check_zero(res: object, field: str, reason: str) -> None:
+        assert reason in res.reason
+        assert np.all(getattr(res, field) == 0.0) and np.all(np.isfinite(res.fused))
+        assert res.best_index == 0 and list(res.ranking) == [0, 1, 2]
+
+    empty = SurfelMap.empty(dtype=torch.float64)
+    for mode in ("roi-fisher", "fisherrf"):
+        res = scorer.score(empty, None, world.tsdf, world.train, world.candidates, INTR, mode=mode)
+        check_zero(res, "fisher", "surfel map is empty")
+    for smap in (empty, None):
+        res = scorer.score(smap, None, world.tsdf, world.train, world.candidates, INTR, mode="roi-gsurfisher")
+        assert "surfel map is empty" in res.reason and not res.fisher.any()
+        assert res.best_index == 1  # close-front still works from the TSDF
+    no_surface = TSDFVolume(voxel_size_m=0.04)
+    for tsdf, reason in ((no_surface, "no surface voxels"), (None, "no TSDF")):
+        for mode in ("roi-gsurfisher", "roi-fisher", "close-front"):
+            res = scorer.score(world.map, world.h_train, tsdf, world.train, world.candidates, INTR, mode=mode)
+            check_zero(res, "fisher", reason)
+            check_zero(res, "close_front", reason)
+            assert res.flagged.all()
+
+
+# ----------------------------------------------------------------------------- uncertainty, AUSE
+def test_pixel_uncertainty_is_high_where_training_information_is_low(world: World) -> None:
+    scorer = NBVScorer()
+    u_a = scorer.uncertainty(world.map, world.h_train, world.view_a, INTR, world.tsdf)
+    u_b = scorer.uncertainty(world.map, world.h_train, world.view_b, INTR, world.tsdf)
+    for maps in (u_a, u_b):
+        for img in (maps.u, maps.u_roi, maps.roi):
+            assert img.shape == (48, 64) and np.all(np.isfinite(img)) and img.min() >= 0.0
+        assert np.all(maps.u_roi[maps.roi == 0] == 0.0)
+        np.testing.assert_allclose(maps.u_roi, maps.roi / NBVConfig().sigma_p ** 2 * maps.u)
+    # 100x less training information on panel B's surfels: B's uncertainty grows ~100x, A's view is unchanged.
+    low_b = {k: v.clone() for k, v in world.h_train.items()}
+    for v in low_b.values():
+        v[world.n_a :] *= 0.01
+    u_a2 = scorer.uncertainty(world.map, low_b, world.view_a, INTR, world.tsdf)
+    u_b2 = scorer.uncertainty(world.map, low_b, world.view_b, INTR, world.tsdf)
+    np.testing.assert_allclose(u_a2.u, u_a.u, rtol=1e-9)
+    covered = u_b.u > 1e-3 * u_b.u.max()
+    assert covered.mean() > 0.9
+    np.testing.assert_allclose(u_b2.u[covered] / u_b.u[covered], 100.0, rtol=0.03)  # phi keeps it a bit below
+    assert np.all(scorer.uncertainty(world.map, low_b, world.view_a, INTR).roi == 0)  # no TSDF: no ROI
+    up = scorer.uncertainty(world.map, world.h_train, world.view_up, INTR, world.tsdf)
+    assert not up.u.any() and not up.roi.any()  # nothing rendered there
+    rrf = scorer.fisherrf_uncertainty(world.map, world.view_b, INTR, [*world.train, world.view_b])
+    assert rrf.shape == (48, 64) and np.all(np.isfinite(rrf)) and rrf.min() >= 0 and rrf.max() > 0
+    assert not scorer.fisherrf_uncertainty(SurfelMap.empty(), world.view_b, INTR, world.train).any()
+
+
+def test_depth_error_ause_of_uncertainty_maps(world: World) -> None:
+    scorer = NBVScorer()
+    T = look_at(np.array([0.8, 0.5, 1.2]), np.array([2.0, 0.2, 0.9]), UP)
+    with torch.no_grad():
+        pred = render_map(world.map, T, INTR).expected_depth().numpy()
+    gt = world.renderer.render_depth(T, INTR)
+    err = np.abs(pred - gt)
+    assert depth_error_ause(err, pred, gt)["ause"] == pytest.approx(0.0, abs=1e-12)  # the oracle itself
+    rng = np.random.default_rng(0)
+    assert depth_error_ause(rng.random(err.shape), pred, gt)["ause"] > 0.0
+    u = scorer.uncertainty(world.map, world.h_train, T, INTR).u
+    res = depth_error_ause(torch.tensor(u), pred, gt)
+    assert np.isfinite(res["ause"]) and res["ause"] >= 0.0
+    with pytest.raises(InputError, match="no pixel"):
+        depth_error_ause(u, np.zeros_like(pred), gt)
+    with pytest.raises(InputError, match="shapes"):
+        depth_error_ause(u[:-1], pred, gt)
