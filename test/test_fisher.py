@@ -1,0 +1,151 @@
+"""Exact diagonal Fisher against brute-force per-pixel autograd of the reference renderer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from roigsf_ros import render_reference
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.errors import InputError
+from roigsf_ros.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, fisher_diag, fisher_per_surfel
+from roigsf_ros.render import camera_tensors, numba_available
+from roigsf_ros.surfels import SurfelMap
+
+F64 = torch.float64
+BACKENDS = ["torch", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="no numba"))]
+INTR = Intrinsics(14, 11, 11.0, 11.5, 6.5, 5.0)
+
+
+def scene(seed: int, n: int = 10, sh_rest: bool = True) -> SurfelMap:
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=F64) * 0.4
+    means[:, 2] += 2.0
+    return SurfelMap(
+        means=means,
+        quats=torch.randn(n, 4, generator=g, dtype=F64),
+        log_scales=torch.log(torch.rand(n, 2, generator=g, dtype=F64) * 0.3 + 0.05),
+        opacity_logits=torch.randn(n, generator=g, dtype=F64) * 1.5,
+        sh_dc=torch.randn(n, 3, generator=g, dtype=F64),
+        sh_rest=torch.randn(n, 3, 3, generator=g, dtype=F64) * 0.3 if sh_rest else None,
+    )
+
+
+def pose(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=3) * 0.1
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + K + K @ K / 2  # close to a rotation; orthonormalise
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = u @ vt
+    T[:3, 3] = rng.normal(size=3) * 0.05
+    return T
+
+
+def brute_force(m: SurfelMap, T_wc, outputs, params, weights=None, background=None) -> dict[str, torch.Tensor]:
+    """One backward pass per pixel and channel through the dense reference renderer."""
+    m = m.clone().requires_grad_()
+    viewmat, K = camera_tensors(T_wc, INTR, dtype=F64)
+    cam = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    cols = m.colors(m.means - cam if m.sh_rest is not None else None)
+    out = render_reference.rasterize_surfels(
+        m.means, m.quats, m.scales(), m.opacities(), cols, viewmat, K, INTR.width, INTR.height, background=background
+    )
+    chans = {
+        "color": [out.features[..., c] for c in range(3)],
+        "depth": [out.depth],
+        "alpha": [out.alpha],
+        "normal": [out.normal[..., c] for c in range(3)],
+    }
+    tensors = [getattr(m, k) for k in params]
+    fisher = [torch.zeros_like(t) for t in tensors]
+    for name in outputs:
+        for ch in chans[name]:
+            flat = ch.reshape(-1)
+            for i in range(flat.numel()):
+                grads = torch.autograd.grad(flat[i], tensors, retain_graph=True, allow_unused=True)
+                wgt = 1.0 if weights is None else float(weights.reshape(-1)[i])
+                for f, g in zip(fisher, grads, strict=True):
+                    if g is not None:
+                        f += wgt * g * g
+    return dict(zip(params, fisher, strict=True))
+
+
+def assert_close(a: dict, b: dict, rtol: float = 1e-10) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        scale = b[k].abs().max()
+        if scale == 0:  # e.g. colour parameters for alpha / normal outputs
+            assert torch.all(a[k] == 0), k
+            continue
+        assert (a[k] - b[k]).abs().max() <= rtol * scale, (k, ((a[k] - b[k]).abs().max() / scale).item())
+
+
+@pytest.mark.parametrize(
+    ("seed", "outputs"),
+    [(0, ("color", "depth")), (1, ("alpha", "normal")), (2, ("color", "depth", "alpha", "normal"))],
+)
+def test_exact_against_brute_force(seed: int, outputs) -> None:
+    m = scene(seed)
+    T = pose(seed)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64) if seed == 0 else None
+    expected = brute_force(m, T, outputs, ALL_PARAMS, background=bg)
+    for backend in ("torch", "numba") if numba_available() else ("torch",):
+        got = fisher_diag(m, T, INTR, outputs=outputs, params=ALL_PARAMS, background=bg, backend=backend)
+        assert_close(got, expected)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_roi_weights_and_geometric_subset(backend: str) -> None:
+    m = scene(3, sh_rest=False)
+    T = pose(3)
+    w = torch.rand(INTR.height, INTR.width, generator=torch.Generator().manual_seed(0), dtype=F64)
+    w[:, : INTR.width // 2] = 0  # an ROI on the right half
+    got = fisher_diag(m, T, INTR, outputs=("color", "depth"), pixel_weights=w, backend=backend)
+    assert list(got) == list(GEOMETRIC_PARAMS)
+    assert_close(got, brute_force(m, T, ("color", "depth"), GEOMETRIC_PARAMS, weights=w))
+    full = fisher_diag(m, T, INTR, outputs=("color", "depth"), params=ALL_PARAMS, pixel_weights=w, backend=backend)
+    for k in GEOMETRIC_PARAMS:
+        assert torch.allclose(full[k], got[k], rtol=1e-12, atol=0)
+    doubled = fisher_diag(m, T, INTR, outputs=("color", "depth"), pixel_weights=2 * w.numpy(), backend=backend)
+    assert all(torch.allclose(doubled[k], 2 * got[k], rtol=1e-12, atol=0) for k in got)
+    zero = fisher_diag(m, T, INTR, pixel_weights=torch.zeros_like(w), backend=backend)
+    assert all(torch.all(v == 0) for v in zero.values())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_invisible_surfels_get_zero(backend: str) -> None:
+    m = scene(4, n=8)
+    m.means[0] = torch.tensor([0.0, 0.0, -2.0], dtype=F64)  # behind the camera
+    m.means[1] = torch.tensor([30.0, 0.0, 2.0], dtype=F64)  # off to the side
+    m.opacity_logits[2] = -10.0  # too transparent to reach alpha 1/255
+    got = fisher_diag(m, np.eye(4), INTR, outputs=("color", "depth"), params=ALL_PARAMS, backend=backend)
+    per = fisher_per_surfel(got)
+    assert per.shape == (8,)
+    assert torch.all(per[:3] == 0) and torch.all(per[3:] >= 0) and per[3:].sum() > 0
+    assert torch.allclose(per, sum(v.reshape(8, -1).sum(-1) for v in got.values()))
+    empty = fisher_diag(SurfelMap.empty(dtype=F64), np.eye(4), INTR, backend=backend)
+    assert all(v.shape[0] == 0 for v in empty.values())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_float32_close_to_float64(backend: str) -> None:
+    m = scene(5)
+    T = pose(5)
+    a = fisher_diag(m, T, INTR, params=ALL_PARAMS, backend="torch")
+    b = fisher_diag(m.to(dtype=torch.float32), T, INTR, params=ALL_PARAMS, backend=backend)
+    assert all(v.dtype == torch.float32 for v in b.values())
+    for k in a:
+        assert torch.allclose(b[k].double(), a[k], rtol=1e-3, atol=1e-4 * a[k].abs().max()), k
+
+
+def test_bad_arguments() -> None:
+    m = scene(0, n=3)
+    with pytest.raises(InputError, match="outputs"):
+        fisher_diag(m, np.eye(4), INTR, outputs=("colour",))
+    with pytest.raises(InputError, match="params"):
+        fisher_diag(m, np.eye(4), INTR, params=("nope",))
+    with pytest.raises(InputError, match="pixel_weights"):
+        fisher_diag(m, np.eye(4), INTR, pixel_weights=np.ones((3, 3)))

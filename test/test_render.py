@@ -1,0 +1,321 @@
+"""2DGS rendering: the fast renderer against the dense reference (values and gradients), analytic cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from roigsf_ros import render, render_reference
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.render import camera_tensors, render_map
+from roigsf_ros.surfels import SurfelMap, rotmat_to_quat
+
+OUTPUTS = ("features", "alpha", "depth", "median_depth", "normal", "distortion")
+F64 = torch.float64
+
+
+def random_scene(kind: str, seed: int, n: int = 24, width: int = 20, height: int = 15, dtype=F64):
+    """Random tiny scenes: ``mixed`` overlapping surfels, ``opaque`` stacks (early stop), ``behind``
+    (surfels behind / straddling the camera), ``grazing`` (planes nearly along the view rays)."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.4
+    means[:, 2] += 2.0
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.rand(n, 2, generator=g, dtype=dtype) * 0.3 + 0.05
+    opac = torch.rand(n, generator=g, dtype=dtype) * 0.9 + 0.05
+    feats = torch.rand(n, 4, generator=g, dtype=dtype)
+    if kind == "opaque":
+        opac = torch.full((n,), 0.995, dtype=dtype)
+        means[:, :2] *= 0.3
+    elif kind == "behind":
+        means[: n // 2, 2] = torch.linspace(-1.0, 0.5, n // 2, dtype=dtype)
+        scales[: n // 2] *= 3
+    elif kind == "grazing":
+        # Normals nearly perpendicular to the ray to the centre: rotate the tangent plane to contain it.
+        d = means / means.norm(dim=-1, keepdim=True)
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=dtype).expand_as(d)
+        tu = torch.linalg.cross(up, d, dim=-1)
+        tu = tu / tu.norm(dim=-1, keepdim=True)
+        nrm = torch.linalg.cross(tu, d, dim=-1)
+        nrm = nrm + 0.05 * torch.randn(n, 3, generator=g, dtype=dtype)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+        tv = torch.linalg.cross(nrm, tu, dim=-1)
+        tv = tv / tv.norm(dim=-1, keepdim=True)
+        tu = torch.linalg.cross(tv, nrm, dim=-1)
+        quats = rotmat_to_quat(torch.stack([tu, tv, nrm], -1))
+    f = 18.0
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f * 1.1, (height - 1) / 2], [0, 0, 1]], dtype=dtype)
+    c, s = math.cos(0.1), math.sin(0.1)
+    T_wc = torch.tensor([[c, 0, s, 0.05], [0, 1, 0, -0.02], [-s, 0, c, 0.03], [0, 0, 0, 1]], dtype=dtype)
+    viewmat = torch.linalg.inv(T_wc)
+    return [means, quats, scales, opac, feats], viewmat, K, width, height
+
+
+NEEDS_NUMBA = pytest.mark.skipif(not render.numba_available(), reason="numba is not installed")
+BACKENDS = ["torch", pytest.param("numba", marks=NEEDS_NUMBA)]
+
+
+def fast(backend: str):
+    """The fast renderer with a fixed backend."""
+    return lambda *a, **k: render.rasterize_surfels(*a, backend=backend, **k)
+
+
+def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", **kw):
+    """Values and input gradients of a random linear loss over all outputs, from both renderers."""
+    results = []
+    for fn in (fast(backend), render_reference.rasterize_surfels):
+        leaves = [t.clone().requires_grad_() for t in tensors]
+        out = fn(*leaves, viewmat, K, width, height, **kw)
+        g = torch.Generator().manual_seed(weights_seed)
+        probes = {k: torch.randn(getattr(out, k).shape, generator=g, dtype=F64) for k in OUTPUTS}
+        loss = sum((getattr(out, k) * probes[k]).sum() for k in OUTPUTS)
+        loss.backward()
+        results.append((out, [leaf.grad for leaf in leaves]))
+    return results
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("kind", ["mixed", "opaque", "behind", "grazing"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fast_matches_reference(kind: str, seed: int, backend: str) -> None:
+    tensors, viewmat, K, w, h = random_scene(kind, seed)
+    bg = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=F64)
+    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, background=bg, backend=backend)
+    assert ref.n_contrib.sum() > 0
+    for k in OUTPUTS:
+        a, b = getattr(fast, k), getattr(ref, k)
+        assert torch.isfinite(a).all()
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
+    assert torch.equal(fast.n_contrib, ref.n_contrib)
+    assert torch.equal(fast.visible, ref.visible)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
+        assert torch.isfinite(a).all()
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+
+
+def test_opaque_scene_exercises_the_early_stop() -> None:
+    tensors, viewmat, K, w, h = random_scene("opaque", 0)
+    out = render_reference.rasterize_surfels(*tensors, viewmat, K, w, h)
+    assert (out.alpha > 1 - 1e-3).any()  # some pixels saturated
+    assert int(out.n_contrib.max()) < int((out.n_contrib > 0).sum())  # and stopped early
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("tile_size", [1, 3, 8])
+def test_tile_size_does_not_change_the_result(tile_size: int, backend: str) -> None:
+    tensors, viewmat, K, w, h = random_scene("mixed", 4, n=40)
+    a = render.rasterize_surfels(*tensors, viewmat, K, w, h, backend="torch")
+    b = render.rasterize_surfels(*tensors, viewmat, K, w, h, tile_size=tile_size, backend=backend)
+    for k in OUTPUTS:
+        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_float32_close_to_float64_reference(backend: str) -> None:
+    tensors, viewmat, K, w, h = random_scene("mixed", 5)
+    ref = render_reference.rasterize_surfels(*tensors, viewmat, K, w, h)
+    f32 = [t.float().requires_grad_() for t in tensors]
+    out = render.rasterize_surfels(*f32, viewmat.float(), K.float(), w, h, backend=backend)
+    for k in OUTPUTS:
+        assert getattr(out, k).dtype == torch.float32
+        assert torch.allclose(getattr(out, k).double(), getattr(ref, k), atol=2e-4), k
+    (out.features.sum() + out.depth.sum()).backward()
+    assert all(t.grad is not None and t.grad.dtype == torch.float32 and torch.isfinite(t.grad).all() for t in f32)
+
+
+def test_reference_gradients_match_finite_differences() -> None:
+    tensors, viewmat, K, w, h = random_scene("mixed", 7, n=4, width=8, height=6)
+    g = torch.Generator().manual_seed(1)
+    probes = {k: torch.randn(10_000, generator=g, dtype=F64) for k in OUTPUTS}
+
+    def f(*inputs):
+        out = render_reference.rasterize_surfels(*inputs, viewmat, K, w, h)
+        return sum((getattr(out, k).reshape(-1) * probes[k][: getattr(out, k).numel()]).sum() for k in OUTPUTS)
+
+    leaves = [t.clone().requires_grad_() for t in tensors]
+    assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def fronto_surfel(z: float, opacity: float, color, x: float = 0.0, y: float = 0.0, s: float = 0.3):
+    return (
+        torch.tensor([[x, y, z]], dtype=F64),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64),  # identity: normal +z (away from the camera)
+        torch.tensor([[s, s]], dtype=F64),
+        torch.tensor([opacity], dtype=F64),
+        torch.tensor([color], dtype=F64),
+    )
+
+
+def camera(width: int = 21, height: int = 17, f: float = 20.0):
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], dtype=F64)
+    return torch.eye(4, dtype=F64), K, width, height
+
+
+RENDERERS = [
+    pytest.param(fast("torch"), id="torch"),
+    pytest.param(fast("numba"), id="numba", marks=NEEDS_NUMBA),
+    pytest.param(render_reference.rasterize_surfels, id="reference"),
+]
+
+
+@pytest.mark.parametrize("fn", RENDERERS)
+def test_fronto_parallel_opaque_surfel(fn) -> None:
+    viewmat, K, w, h = camera()
+    bg = torch.tensor([0.5, 0.5, 0.5], dtype=F64)
+    out = fn(*fronto_surfel(2.0, 0.999, [0.2, 0.4, 0.8]), viewmat, K, w, h, background=bg)
+    cy, cx = h // 2, w // 2
+    a = 0.99  # alpha is clamped to 0.99
+    assert out.alpha[cy, cx].item() == pytest.approx(a)
+    assert out.depth[cy, cx].item() == pytest.approx(2.0 * a)
+    assert out.expected_depth()[cy, cx].item() == pytest.approx(2.0)
+    assert out.median_depth[cy, cx].item() == pytest.approx(2.0)
+    assert out.normal[cy, cx].tolist() == pytest.approx([0.0, 0.0, -a])  # faces the camera (camera frame)
+    assert out.features[cy, cx].tolist() == pytest.approx([0.2 * a + 0.005, 0.4 * a + 0.005, 0.8 * a + 0.005])
+    assert out.distortion[cy, cx].item() == pytest.approx(0.0)
+    # 4 px right of the centre the ray hits the plane 0.4 m off-centre: alpha = o exp(-(0.4 / 0.3)^2 / 2).
+    expected = 0.999 * math.exp(-0.5 * ((4.0 / 20.0 * 2.0) / 0.3) ** 2)
+    assert out.alpha[cy, cx + 4].item() == pytest.approx(expected, rel=1e-9)
+    assert out.features[0, 0].tolist() == pytest.approx(bg.tolist())  # far corner: background only
+
+
+@pytest.mark.parametrize("fn", RENDERERS)
+@pytest.mark.parametrize(("front_opacity", "median"), [(0.6, 2.0), (0.4, 3.0)])
+def test_median_and_expected_depth_two_layers(fn, front_opacity: float, median: float) -> None:
+    viewmat, K, w, h = camera()
+    a = fronto_surfel(2.0, front_opacity, [1.0, 0.0, 0.0])
+    b = fronto_surfel(3.0, 0.9, [0.0, 1.0, 0.0])
+    out = fn(*[torch.cat([u, v]) for u, v in zip(b, a, strict=True)], viewmat, K, w, h)  # input order irrelevant
+    cy, cx = h // 2, w // 2
+    w1, w2 = front_opacity, (1 - front_opacity) * 0.9
+    assert out.median_depth[cy, cx].item() == pytest.approx(median)
+    assert out.expected_depth()[cy, cx].item() == pytest.approx((2 * w1 + 3 * w2) / (w1 + w2))
+    assert out.features[cy, cx].tolist() == pytest.approx([w1, w2, 0.0])
+    m = lambda d: 100.0 / (100.0 - 0.2) * (1 - 0.2 / d)  # noqa: E731 - 2DGS's NDC-like distortion depth
+    assert out.distortion[cy, cx].item() == pytest.approx(w1 * w2 * (m(3.0) - m(2.0)) ** 2)
+
+
+@pytest.mark.parametrize("fn", RENDERERS)
+def test_empty_and_fully_culled_maps(fn) -> None:
+    viewmat, K, w, h = camera()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
+    empty = [t[:0].clone().requires_grad_() for t in fronto_surfel(2.0, 0.5, [1.0, 1.0, 1.0])]
+    behind = [t.clone().requires_grad_() for t in fronto_surfel(-2.0, 0.9, [1.0, 1.0, 1.0])]
+    for inputs in (empty, behind):
+        out = fn(*inputs, viewmat, K, w, h, background=bg)
+        assert torch.equal(out.features, bg.expand(h, w, 3))
+        assert torch.all(out.alpha == 0) and torch.all(out.depth == 0) and torch.all(out.n_contrib == 0)
+        assert all(torch.isfinite(getattr(out, k)).all() for k in OUTPUTS)
+        assert torch.all(out.expected_depth() == 0)
+        sum(getattr(out, k).sum() for k in OUTPUTS).backward()  # still differentiable
+        assert all(t.grad is not None and torch.all(t.grad == 0) for t in inputs)
+
+
+def test_render_map_uses_colours_and_pose() -> None:
+    g = torch.Generator().manual_seed(0)
+    n = 30
+    m = SurfelMap(
+        means=torch.randn(n, 3, generator=g, dtype=F64) * 0.5 + torch.tensor([0.0, 0.0, 3.0], dtype=F64),
+        quats=torch.randn(n, 4, generator=g, dtype=F64),
+        log_scales=torch.full((n, 2), math.log(0.2), dtype=F64),
+        opacity_logits=torch.randn(n, generator=g, dtype=F64),
+        sh_dc=torch.randn(n, 3, generator=g, dtype=F64),
+        sh_rest=torch.randn(n, 3, 3, generator=g, dtype=F64) * 0.2,
+    )
+    intr = Intrinsics(24, 18, 20.0, 20.0, 11.5, 8.5)
+    T_wc = np.eye(4)
+    T_wc[:3, 3] = [0.1, -0.2, 0.3]
+    out = render_map(m, T_wc, intr)
+    viewmat, K = camera_tensors(T_wc, intr, dtype=F64)
+    assert torch.allclose(viewmat @ torch.as_tensor(T_wc), torch.eye(4, dtype=F64))
+    cols = m.colors(m.means - torch.tensor([0.1, -0.2, 0.3], dtype=F64))
+    ref = render_reference.rasterize_surfels(m.means, m.quats, m.scales(), m.opacities(), cols, viewmat, K, 24, 18)
+    assert torch.allclose(out.color, ref.features, atol=1e-12)
+    assert torch.allclose(out.normal_world(viewmat), ref.normal, atol=1e-12)  # identity rotation
+    assert out.visible.any()
+
+
+def test_input_validation() -> None:
+    tensors, viewmat, K, w, h = random_scene("mixed", 0, n=3)
+    with pytest.raises(ValueError, match="quats"):
+        render.rasterize_surfels(tensors[0], tensors[1][:, :3], *tensors[2:], viewmat, K, w, h)
+    with pytest.raises(ValueError, match="near"):
+        render.rasterize_surfels(*tensors, viewmat, K, w, h, near=0.0)
+    with pytest.raises(ValueError, match="backend"):
+        render.rasterize_surfels(*tensors, viewmat, K, w, h, backend="cuda")
+
+
+@NEEDS_NUMBA
+def test_numba_and_torch_pixel_boxes_agree() -> None:
+    for kind, seed in (("mixed", 0), ("behind", 1), ("grazing", 2)):
+        tensors, viewmat, K, w, h = random_scene(kind, seed, n=60)
+        a = render.project_surfels(*tensors[:4], viewmat, K, w, h, backend="torch")
+        b = render.project_surfels(*tensors[:4], viewmat, K, w, h, backend="numba")
+        assert torch.equal(a.keep, b.keep)
+        assert torch.equal(a.rect[a.keep], b.rect[b.keep])
+
+
+def test_benchmark_room_scene_renders_a_closed_room() -> None:
+    from roigsf_ros.benchmarks.render import room_camera, room_scene
+
+    m = room_scene(3000, seed=1)
+    T_wc, intr = room_camera(40, 30)
+    out = render_map(m, T_wc, intr)
+    assert out.alpha.min() > 0.2 and out.n_contrib.float().mean() > 5
+    d = out.expected_depth()
+    assert 0.5 < float(d.median()) < 4.0
+
+
+@NEEDS_NUMBA
+def test_numba_and_torch_select_the_same_pairs() -> None:
+    tensors, viewmat, K, w, h = random_scene("opaque", 3, n=50)
+    proj = render.project_surfels(*tensors[:4], viewmat, K, w, h)
+    a = render.select_pairs(proj, w, h, backend="torch")
+    b = render.select_pairs(proj, w, h, backend="numba")
+    assert len(a) > 0
+    for k in ("surf", "pix", "start", "offsets"):
+        assert torch.equal(getattr(a, k), getattr(b, k)), k
+
+
+@NEEDS_NUMBA
+def test_concurrent_renders_from_threads() -> None:
+    import threading
+
+    tensors, viewmat, K, w, h = random_scene("mixed", 6, n=40)
+    expected = render.rasterize_surfels(*tensors, viewmat, K, w, h, backend="numba").features
+    results, errors = [], []
+
+    def work() -> None:
+        try:
+            for _ in range(5):
+                leaves = [t.clone().requires_grad_() for t in tensors]
+                out = render.rasterize_surfels(*leaves, viewmat, K, w, h, backend="numba")
+                out.features.sum().backward()
+                results.append(out.features.detach())
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(results) == 15 and all(torch.equal(r, expected) for r in results)
+
+
+@NEEDS_NUMBA
+def test_numba_compact_pair_storage(monkeypatch) -> None:
+    """Past PAIR_BUFFER_LIMIT the forward counts first and stores pairs compactly: same results."""
+    monkeypatch.setattr(render, "PAIR_BUFFER_LIMIT", 0)
+    tensors, viewmat, K, w, h = random_scene("opaque", 1)
+    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, backend="numba")
+    for k in OUTPUTS:
+        assert torch.allclose(getattr(fast, k), getattr(ref, k), rtol=1e-10, atol=1e-10), k
+    for a, b in zip(g_fast, g_ref, strict=True):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max())
+    proj = render.project_surfels(*tensors[:4], viewmat, K, w, h)
+    numba_pairs = render.select_pairs(proj, w, h, backend="numba")
+    assert torch.equal(numba_pairs.surf, render.select_pairs(proj, w, h, backend="torch").surf)
