@@ -12,7 +12,7 @@ import sys
 from roigsf_ros.errors import InputError
 
 # Subcommand modules, in the order `roigsf --help` lists them.
-_COMMAND_MODULES = ("demo", "scene", "bag", "perf")
+_COMMAND_MODULES = ("demo", "scene", "bag", "map", "perf")
 
 
 def build_parser() -> argparse.ArgumentParser:

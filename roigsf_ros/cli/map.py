@@ -1,0 +1,132 @@
+"""``roigsf map``: map a bag or Replica-layout folder offline with a keyframe policy; metrics, mesh, map."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import fields, replace
+from pathlib import Path
+
+from roigsf_ros.errors import InputError
+from roigsf_ros.frames import open_frames
+from roigsf_ros.keyframes import make_policy, policy_names
+from roigsf_ros.mapping import EvalConfig, MapperConfig, run_offline
+
+_SUMMARY_KEYS = (
+    ("frames", "n_frames", "{:d}"),
+    ("keyframes", "n_keyframes", "{:d}"),
+    ("surfels", "map_size", "{:d}"),
+    ("evaluated frames", "n_eval_frames", "{:d}"),
+    ("PSNR (dB)", "psnr", "{:.2f}"),
+    ("SSIM", "ssim", "{:.3f}"),
+    ("depth L1 (cm)", "depth_l1_cm", "{:.2f}"),
+    ("precision @1cm", "precision@1cm", "{:.3f}"),
+    ("recall @1cm", "recall@1cm", "{:.3f}"),
+    ("precision @5cm", "precision@5cm", "{:.3f}"),
+    ("recall @5cm", "recall@5cm", "{:.3f}"),
+    ("F-score @5cm", "fscore@5cm", "{:.3f}"),
+    ("accuracy (cm)", "accuracy_cm", "{:.2f}"),
+    ("completion (cm)", "completion_cm", "{:.2f}"),
+    ("completion ratio <5cm", "completion_ratio_5cm", "{:.3f}"),
+    ("wall time (s)", "wall_s", "{:.1f}"),
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``map`` subcommand."""
+    p = sub.add_parser(
+        "map",
+        help="map a bag or scene folder offline: metrics.json, mesh.ply, map.ply, strip.png",
+        description=__doc__,
+    )
+    p.add_argument("source", metavar="BAG_OR_DIR", help="rosbag2 bag (folder or .mcap) or Replica-layout folder")
+    p.add_argument("--policy", default="gaus-slam", help=f"keyframe policy: {', '.join(policy_names())}")
+    p.add_argument("--out", required=True, type=Path, help="run folder to write (atomically)")
+    p.add_argument("--gt-mesh", type=Path, help="ground-truth mesh (default: the source folder's mesh.ply)")
+    p.add_argument("--width", type=int, help="resize frames to this width (needs --height)")
+    p.add_argument("--height", type=int, help="resize frames to this height (needs --width)")
+    p.add_argument("--stride", type=int, default=1, help="use every S-th frame")
+    p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
+    p.add_argument("--allow-partial", action="store_true", help="accept a traj.txt with more poses than frames")
+    p.add_argument("--iters-per-keyframe", type=int, help="optimiser steps per keyframe")
+    p.add_argument("--final-iters", type=int, help="global refinement steps at the end")
+    p.add_argument("--every-n", type=int, help="N of the every-n policy")
+    p.add_argument("--tau-k", type=float, help="unmapped-pixel fraction of the gaus-slam policy")
+    p.add_argument("--eval-every", type=int, default=1, help="evaluate every K-th non-keyframe")
+    p.add_argument("--no-h-train", action="store_true", help="do not track the training Fisher (faster)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the mapper")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override any MapperConfig field, e.g. --set lr_means=1e-4 (repeatable)",
+    )
+    p.set_defaults(func=run)
+
+
+def _parse_value(name: str, text: str, default: object) -> object:
+    """A config value of ``default``'s type from the command line."""
+    try:
+        if isinstance(default, bool):
+            if text.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                raise ValueError(text)
+            return text.lower() in ("1", "true", "yes")
+        if isinstance(default, tuple):
+            return tuple(v.strip() for v in text.split(",") if v.strip())
+        return type(default)(text)
+    except ValueError:
+        raise InputError(f"--set {name}", f"cannot parse {text!r} as {type(default).__name__}") from None
+
+
+def config_from_args(args: argparse.Namespace) -> MapperConfig:
+    """The MapperConfig of the command line (defaults, then named options, then ``--set``)."""
+    cfg = MapperConfig(seed=args.seed, track_h_train=not args.no_h_train)
+    if args.iters_per_keyframe is not None:
+        cfg = replace(cfg, iters_per_keyframe=args.iters_per_keyframe)
+    if args.final_iters is not None:
+        cfg = replace(cfg, final_iters=args.final_iters)
+    defaults = {f.name: getattr(cfg, f.name) for f in fields(MapperConfig)}
+    for item in args.set:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in defaults:
+            raise InputError(f"--set {item}", "expected NAME=VALUE with NAME a MapperConfig field")
+        cfg = replace(cfg, **{name: _parse_value(name, text.strip(), defaults[name])})
+    return cfg.validate()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the offline mapping loop and print a summary table."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if (args.width is None) != (args.height is None):
+        raise InputError("--width/--height", "give both or neither")
+    size = (args.width, args.height) if args.width is not None else None
+    if args.out.exists() and not args.overwrite:
+        raise FileExistsError(f"{args.out}: already exists (pass --overwrite to replace it)")
+    policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k)
+    cfg = config_from_args(args)
+    source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
+                         allow_partial=args.allow_partial)  # fmt: skip
+    gt_mesh = args.gt_mesh if args.gt_mesh is not None else source.gt_mesh_path
+    metrics = run_offline(
+        source,
+        policy,
+        cfg,
+        args.out,
+        gt_mesh=gt_mesh,
+        eval_config=EvalConfig(eval_every=args.eval_every),
+        progress=not args.no_progress,
+        overwrite=args.overwrite,
+    )
+    print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
+    for label, key, fmt in _SUMMARY_KEYS:
+        value = metrics.get(key)
+        if value is None:
+            continue
+        print(f"  {label:<24} {fmt.format(value)}")
+    if gt_mesh is None:
+        print("  (no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)")
+    return 0

@@ -1,0 +1,282 @@
+"""The mapper on a tiny ray-cast room: accuracy at a held-out pose, h_train, bad input, offline run, CLI."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from roigsf_ros import losses
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.cli import main as cli_main
+from roigsf_ros.errors import InputError
+from roigsf_ros.evaluation import psnr
+from roigsf_ros.frames import open_frames
+from roigsf_ros.keyframes import make_policy
+from roigsf_ros.mapping import EvalConfig, Mapper, MapperConfig, run_offline
+from roigsf_ros.replica import Frame, write_replica
+
+INTR = Intrinsics(width=64, height=48, fx=52.0, fy=52.0, cx=31.5, cy=23.5)
+ROOM_LO, ROOM_HI = np.array([-2.0, -1.5, 0.0]), np.array([2.0, 1.5, 2.5])
+
+
+def room_mesh() -> o3d.geometry.TriangleMesh:
+    """A 4 x 3 x 2.5 m box room with a 0.6 m cube standing on its floor."""
+    room = o3d.geometry.TriangleMesh.create_box(*(ROOM_HI - ROOM_LO)).translate(ROOM_LO)
+    cube = o3d.geometry.TriangleMesh.create_box(0.6, 0.6, 0.6).translate((0.8, -0.3, 0.0))
+    mesh = room + cube
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes) at ``eye`` looking at ``target``."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def ray_cast(mesh: o3d.geometry.TriangleMesh, index: int, T_wc: np.ndarray) -> Frame:
+    """Depth (z, metres) and a smooth procedural texture of the mesh seen from ``T_wc``."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)  # pixel centres at integers
+    d_w = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1) @ T_wc[:3, :3].T
+    rays = np.concatenate([np.broadcast_to(T_wc[:3, 3], d_w.shape), d_w], -1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    hit = np.isfinite(t)
+    p = T_wc[:3, 3] + d_w * np.where(hit, t, 0)[..., None]
+    rgb = 0.5 + 0.35 * np.sin(np.stack([3 * p[..., 0] + 2 * p[..., 2], 4 * p[..., 1] - p[..., 0], 5 * p[..., 2]], -1))
+    return Frame(index=index, rgb=(rgb * 255).astype(np.uint8), depth_m=np.where(hit, t, 0).astype(np.float32),
+                 T_wc=T_wc)  # fmt: skip
+
+
+def trajectory(n: int) -> list[np.ndarray]:
+    """A slow pan from the +x wall over the cube to the +y wall, from near the room centre."""
+    out = []
+    for a in np.linspace(-0.35, 1.25, n):
+        eye = np.array([-0.6, -0.4, 1.4]) + 0.1 * np.array([np.cos(a), np.sin(a), 0.0])
+        out.append(look_at(eye, eye + np.array([np.cos(a), np.sin(a), -0.35])))
+    return out
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    mesh = room_mesh()
+    return [ray_cast(mesh, i, T) for i, T in enumerate(trajectory(7))]
+
+
+def small_config(**kw: object) -> MapperConfig:
+    base = dict(iters_per_keyframe=25, seed=3, mesh_voxel_size_m=0.04, mesh_sdf_trunc_m=0.12)
+    return MapperConfig(**(base | kw))
+
+
+def eval_at(mapper: Mapper, frame: Frame) -> tuple[float, float]:
+    """PSNR (dB) and depth L1 (m) of the map at a frame's pose."""
+    out = mapper.render(frame.T_wc)
+    d = out.expected_depth().numpy()
+    valid = frame.depth_m > 0
+    return psnr(out.color.clamp(0, 1).numpy(), frame.rgb), float(np.abs(d - frame.depth_m)[valid].mean())
+
+
+def test_mapping_fits_a_held_out_view_and_tracks_h_train(frames: list[Frame]) -> None:
+    train, held_out = frames[0::2], frames[3]
+    seeded = Mapper(INTR, small_config(track_h_train=False))
+    for f in train:
+        assert seeded.add_keyframe(f, optimise=False)
+    mapper = Mapper(INTR, small_config())
+    for f in train:
+        assert mapper.add_keyframe(f)
+        # h_train follows the surfel set through every densify/prune.
+        for k, h in mapper.h_train.items():
+            assert h.shape == getattr(mapper.map, k).shape
+    assert mapper.keyframe_ids == [0, 2, 4, 6]
+    psnr0, _ = eval_at(seeded, held_out)
+    psnr1, dl1_1 = eval_at(mapper, held_out)
+    assert dl1_1 < 0.03, f"held-out depth L1 {dl1_1:.4f} m"
+    assert psnr1 > psnr0 + 1.0, f"PSNR {psnr0:.2f} -> {psnr1:.2f}"
+    assert psnr1 > 22.0
+    stats = mapper.stats
+    assert stats.keyframes_added == 4 and stats.steps == 4 * 25 and stats.steps_skipped_nonfinite == 0
+
+    # Surfels the training views see carry information; the Fisher is finite and non-negative.
+    assert set(mapper.h_train) == {"means", "quats", "log_scales", "opacity_logits", "sh_dc"}
+    seen = torch.zeros(mapper.n_surfels, dtype=torch.bool)
+    for kf in mapper.keyframes:
+        seen |= mapper.render(kf.T_wc).visible
+    per_surfel = sum(h.reshape(mapper.n_surfels, -1).sum(-1) for h in mapper.h_train.values())
+    assert all(bool(torch.isfinite(h).all()) and bool((h >= 0).all()) for h in mapper.h_train.values())
+    assert float((per_surfel[seen] > 0).float().mean()) > 0.95
+    assert float(per_surfel[~seen].abs().sum()) == 0.0 or float((per_surfel[~seen] > 0).float().mean()) < 0.5
+    recomputed = mapper.recompute_h_train()
+    assert all(recomputed[k].shape == getattr(mapper.map, k).shape for k in recomputed)
+    assert float(recomputed["means"].sum()) > 0
+
+    # Pruning keeps h_train aligned.
+    with torch.no_grad():
+        mapper.map.opacity_logits[:10] = -20.0
+    n_before = mapper.n_surfels
+    assert mapper.prune() >= 10
+    assert mapper.n_surfels <= n_before - 10
+    assert all(h.shape[0] == mapper.n_surfels for h in mapper.h_train.values())
+
+
+def test_bad_input_is_masked_skipped_or_refused(frames: list[Frame], caplog: pytest.LogCaptureFixture) -> None:
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=3))
+    f0 = frames[0]
+    # An empty map renders nothing, meshes to nothing and optimises to a no-op.
+    assert mapper.render_alpha(f0.T_wc).max() == 0.0
+    assert float(mapper.render(f0.T_wc).alpha.max()) == 0.0
+    assert mapper.optimise(3) == {}
+    assert len(mapper.mesh(poses=[f0.T_wc]).triangles) == 0
+
+    caplog.set_level(logging.WARNING, logger="roigsf_ros.mapping")
+    nan_depth = Frame(index=10, rgb=f0.rgb, depth_m=np.full_like(f0.depth_m, np.nan), T_wc=f0.T_wc)
+    zero_depth = Frame(index=11, rgb=f0.rgb, depth_m=np.zeros_like(f0.depth_m), T_wc=f0.T_wc)
+    far_depth = Frame(index=12, rgb=f0.rgb, depth_m=np.full_like(f0.depth_m, 1e4), T_wc=f0.T_wc)
+    for bad in (nan_depth, zero_depth, far_depth):
+        assert not mapper.add_keyframe(bad)
+    assert mapper.stats.frames_skipped_no_depth == 3 and mapper.n_surfels == 0 and not mapper.keyframes
+    assert mapper.stats.invalid_depth_pixels == 3 * INTR.width * INTR.height
+    assert "no valid depth" in caplog.text
+
+    # Partly broken depth: the bad pixels are masked and counted, the map stays finite.
+    depth = f0.depth_m.copy()
+    depth[:10] = np.nan
+    depth[10:14] = 0.0
+    depth[14:16] = -1.0
+    depth[16:18] = np.inf
+    partial = Frame(index=13, rgb=f0.rgb, depth_m=depth, T_wc=f0.T_wc)
+    assert mapper.add_keyframe(partial)
+    assert mapper.stats.invalid_depth_pixels == 3 * INTR.width * INTR.height + 18 * INTR.width
+    assert all(bool(torch.isfinite(t).all()) for t in mapper.map.parameters())
+
+    # Not a rigid transform / wrong image size: a clear InputError, nothing added.
+    n = mapper.n_surfels
+    sheared = f0.T_wc.copy()
+    sheared[0, 1] += 0.3
+    with pytest.raises(InputError, match="rigid"):
+        mapper.add_keyframe(Frame(index=14, rgb=f0.rgb, depth_m=f0.depth_m, T_wc=sheared))
+    nan_pose = f0.T_wc.copy()
+    nan_pose[0, 3] = np.nan
+    with pytest.raises(InputError, match="non-finite"):
+        mapper.add_keyframe(Frame(index=15, rgb=f0.rgb, depth_m=f0.depth_m, T_wc=nan_pose))
+    with pytest.raises(InputError, match="shape"):
+        mapper.add_keyframe(Frame(index=16, rgb=f0.rgb[:20], depth_m=f0.depth_m[:20], T_wc=f0.T_wc))
+    with pytest.raises(InputError, match="rigid"):
+        mapper.render(sheared)
+    assert mapper.n_surfels == n
+
+    # A step whose loss is not finite is skipped and counted; no NaN reaches the map.
+    before = {k: t.clone() for k, t in mapper.map.named_parameters().items()}
+    real_loss = mapper.keyframe_loss
+    mapper.keyframe_loss = lambda out, kf: (real_loss(out, kf)[0] * float("nan"), {})
+    mapper.optimise(2)
+    mapper.keyframe_loss = real_loss
+    assert mapper.stats.steps_skipped_nonfinite == 2
+    assert all(torch.equal(before[k], t) for k, t in mapper.map.named_parameters().items())
+
+    # Non-finite surfels (e.g. a corrupted load) are removed by pruning and counted.
+    with torch.no_grad():
+        mapper.map.means[0, 0] = float("nan")
+    mapper.prune()
+    assert mapper.stats.surfels_removed_nonfinite == 1
+    assert all(bool(torch.isfinite(t).all()) for t in mapper.map.parameters())
+
+
+def test_losses_basics() -> None:
+    torch.manual_seed(0)
+    img = torch.rand(20, 24, 3)
+    assert float(losses.ssim(img, img)) == pytest.approx(1.0, abs=1e-5)
+    assert float(losses.ssim(img, torch.rand(20, 24, 3))) < 0.2
+    assert float(losses.colour_loss(img, img)) == pytest.approx(0.0, abs=1e-5)
+    # Normals of a fronto-parallel plane face the camera (-z); a tilted plane's normal matches.
+    plane = torch.full((INTR.height, INTR.width), 2.0)
+    n = losses.depth_to_normal_cam(plane, INTR)
+    assert torch.allclose(n[1:-1, 1:-1], torch.tensor([0.0, 0.0, -1.0]).expand(46, 62, 3), atol=1e-5)
+    valid = torch.zeros_like(plane, dtype=torch.bool)
+    valid[5:10] = True
+    assert float(losses.depth_l1(plane + 0.1, plane, valid)) == pytest.approx(0.1, abs=1e-6)
+    assert float(losses.depth_l1(plane, plane, torch.zeros_like(valid))) == 0.0
+
+
+def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_path) -> None:
+    class FrameList:  # the FrameSource protocol: intrinsics, len, re-iterable frames
+        intrinsics = INTR
+
+        def __len__(self) -> int:
+            return len(frames)
+
+        def __iter__(self):
+            return iter(frames)
+
+    gt = tmp_path / "gt.ply"
+    o3d.io.write_triangle_mesh(str(gt), room_mesh())
+    out = tmp_path / "run"
+    metrics = run_offline(
+        FrameList(),
+        make_policy("every-n", n=2),
+        small_config(iters_per_keyframe=8, final_iters=4),
+        out,
+        gt_mesh=gt,
+        eval_config=EvalConfig(mesh_samples=20_000, strip_frames=2),
+        progress=False,
+    )
+    for name in ("metrics.json", "mesh.ply", "map.ply", "strip.png", "keyframes.json"):
+        assert (out / name).is_file(), name
+    on_disk = json.loads((out / "metrics.json").read_text())
+    required = [
+        "psnr", "ssim", "depth_l1_m", "n_frames", "n_keyframes", "keyframe_ids", "wall_s", "map_size",
+        "n_eval_frames", "precision@1cm", "recall@1cm", "fscore@1cm", "precision@5cm", "recall@5cm",
+        "fscore@5cm", "accuracy_cm", "completion_cm", "completion_ratio_5cm", "gt_culling",
+    ]  # fmt: skip
+    assert not [k for k in required if k not in on_disk]
+    assert on_disk["n_frames"] == 7 and on_disk["keyframe_ids"] == [0, 2, 4, 6] and on_disk["n_keyframes"] == 4
+    assert on_disk["n_eval_frames"] == 3  # the non-keyframes 1, 3, 5
+    assert on_disk["map_size"] == metrics["map_size"] > 0
+    assert on_disk["psnr"] > 20 and on_disk["depth_l1_m"] < 0.05
+    assert on_disk["precision@5cm"] > 0.8 and on_disk["recall@5cm"] > 0.8
+    assert math.isfinite(on_disk["wall_s"])
+    with pytest.raises(FileExistsError):
+        run_offline(FrameList(), make_policy("all"), small_config(), out, progress=False)
+
+    loaded = Mapper.load(out)
+    assert loaded.n_surfels == metrics["map_size"]
+    assert loaded.loaded_keyframe_ids == [0, 2, 4, 6]
+    assert loaded.config.iters_per_keyframe == 8
+    a = loaded.render(frames[3].T_wc).alpha
+    assert float(a.mean()) > 0.9
+
+
+def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -> None:
+    scene = tmp_path / "scene"
+    write_replica(scene, INTR, frames[:4])
+    o3d.io.write_triangle_mesh(str(scene / "mesh.ply"), room_mesh())
+    src = open_frames(scene, stride=2)
+    assert len(src) == 2 and src.gt_mesh_path == scene / "mesh.ply" and len(list(src)) == 2
+    run = tmp_path / "run"
+    rc = cli_main(["map", str(scene), "--policy", "every-n", "--every-n", "1", "--out", str(run),
+                   "--width", "32", "--height", "24", "--iters-per-keyframe", "2", "--no-progress",
+                   "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15"])  # fmt: skip
+    assert rc == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["n_keyframes"] == 4 and "precision@5cm" in metrics  # GT mesh found beside the frames
+    assert metrics["config"]["mesh_voxel_size_m"] == 0.05
+    assert "keyframes" in capsys.readouterr().out
+
+    assert cli_main(["map", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")]) == 2
+    assert cli_main(["map", str(scene), "--out", str(run)]) == 2  # exists, no --overwrite
+    assert cli_main(["map", str(scene), "--out", str(tmp_path / "r3"), "--policy", "nope"]) == 2
+    assert cli_main(["map", str(scene), "--out", str(tmp_path / "r4"), "--set", "lr_means=abc"]) == 2
+    assert "error" in capsys.readouterr().err
+    assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
