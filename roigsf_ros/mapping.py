@@ -31,6 +31,7 @@ from roigsf_ros.camera import Intrinsics, check_pose
 from roigsf_ros.errors import InputError
 from roigsf_ros.fileio import atomic_dir, write_json
 from roigsf_ros.fisher import fisher_diag
+from roigsf_ros.frames import FrameSequence
 from roigsf_ros.keyframes import KeyframePolicy
 from roigsf_ros.render import RenderOutput, render_map
 from roigsf_ros.replica import Frame
@@ -110,9 +111,8 @@ class MapperConfig:
     track_h_train: bool = True
     """Keep the running diagonal Fisher of the training views."""
     h_train_lazy: bool = True
-    """Compute new keyframes' Fisher when ``h_train`` is next read (under the map of that moment),
-    not right after their optimisation: identical when it is read after every keyframe, as NBV
-    policies do, and free for runs that never read it."""
+    """Add new keyframes' Fisher when ``h_train`` is next read (same result when read after every
+    keyframe, as NBV policies do; free for runs that never read it); False: right after each one."""
     fisher_outputs: tuple[str, ...] = ("color", "depth")
     """Rendered outputs whose Fisher makes up ``h_train`` (see roigsf_ros.fisher)."""
     fisher_params: tuple[str, ...] = ("means", "quats", "log_scales", "opacity_logits", "sh_dc")
@@ -284,6 +284,10 @@ class Mapper:
         self.stats = MapperStats()
         self._h_train: dict[str, Tensor] = {}
         self._fisher_pending: list[Keyframe] = []
+        self.loaded_keyframe_ids: list[int] = []
+        """Keyframe ids of a map read by :meth:`load` (its images are not stored, so not keyframes here)."""
+        self.loaded_keyframe_poses = np.zeros((0, 4, 4))
+        """Keyframe poses [K, 4, 4] of a map read by :meth:`load`."""
         self._rng = np.random.default_rng(self.config.seed)
         self._adam = _SparseAdam(self.config.learning_rates())
         self._version = 0  # bumped whenever the map changes (invalidates the render cache)
@@ -510,19 +514,19 @@ class Mapper:
 
     # ----------------------------------------------------------------------------- optimising
     def _pick_views(self, newest: int | None) -> list[int]:
+        """Keyframes of one step: per slot the newest (``newest_keyframe_prob``) or a random past one."""
         cfg = self.config
         k = len(self.keyframes)
         lo = max(0, k - cfg.keyframe_window) if cfg.keyframe_window else 0
-        pool = list(range(lo, k))
+        others = [i for i in range(lo, k) if i != newest]
         picked: list[int] = []
         for _ in range(min(cfg.views_per_iteration, k)):
-            if newest is not None and newest not in picked and self._rng.random() < cfg.newest_keyframe_prob:
-                picked.append(newest)
-                continue
-            rest = [i for i in pool if i not in picked and i != newest] or [i for i in pool if i not in picked]
-            if not rest:
-                rest = [i for i in range(k) if i not in picked]
-            picked.append(int(rest[self._rng.integers(len(rest))]))
+            left = [i for i in others if i not in picked]
+            can_newest = newest is not None and newest not in picked
+            if can_newest and (not left or self._rng.random() < cfg.newest_keyframe_prob):
+                picked.append(int(newest))
+            elif left:
+                picked.append(left[int(self._rng.integers(len(left)))])
         return picked
 
     def keyframe_loss(self, out: RenderOutput, kf: Keyframe) -> tuple[Tensor, dict[str, float]]:
@@ -661,9 +665,11 @@ class Mapper:
 
     # ---------------------------------------------------------------------------------- mesh
     def mesh(self, poses: Iterable[np.ndarray] | None = None) -> o3d.geometry.TriangleMesh:
-        """TSDF fusion + marching cubes of rendered depth at ``poses`` (default: the keyframe poses)."""
+        """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: keyframe or loaded poses)."""
         cfg = self.config
-        poses = list(self.keyframe_poses if poses is None else poses)
+        if poses is None:
+            poses = self.keyframe_poses if self.keyframes else self.loaded_keyframe_poses
+        poses = list(poses)
 
         def frames() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]:
             for T in poses:
@@ -761,7 +767,7 @@ def _strip_pick(n: int, k: int) -> set[int]:
 
 
 def run_offline(
-    source: Any,
+    source: FrameSequence,
     policy: KeyframePolicy,
     config: MapperConfig | None,
     out_dir: str | Path,
@@ -770,7 +776,7 @@ def run_offline(
     progress: bool = True,
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Map a whole :class:`roigsf_ros.frames.FrameSource` offline and write the run into ``out_dir``.
+    """Map a whole frame sequence (e.g. :func:`roigsf_ros.frames.open_frames`) offline into ``out_dir``.
 
     Files (written atomically): ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json`` and
     ``strip.png`` (input vs rendered colour and depth of a few evaluated frames). Image metrics are
@@ -894,7 +900,7 @@ def run_offline(
         metrics["gt_mesh"] = str(gt_path)
         metrics["gt_culling"] = (
             "GT samples culled to those seen (in image, in range, unoccluded) from the poses of all "
-            "evaluated frames before recall/completion; precision/accuracy use the whole GT mesh"
+            "frames of the run before recall/completion; precision/accuracy use the whole GT mesh"
             if cull
             else "none: recall/completion against the whole GT mesh"
         )

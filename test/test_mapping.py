@@ -12,14 +12,15 @@ import pytest
 import torch
 
 from roigsf_ros import losses
+from roigsf_ros.bags import write_bag
 from roigsf_ros.camera import Intrinsics
 from roigsf_ros.cli import main as cli_main
 from roigsf_ros.errors import InputError
 from roigsf_ros.evaluation import psnr
-from roigsf_ros.frames import open_frames
+from roigsf_ros.frames import open_frames, resize_frame
 from roigsf_ros.keyframes import make_policy
 from roigsf_ros.mapping import EvalConfig, Mapper, MapperConfig, run_offline
-from roigsf_ros.replica import Frame, write_replica
+from roigsf_ros.replica import Frame, ReplicaSequence, write_replica
 
 INTR = Intrinsics(width=64, height=48, fx=52.0, fy=52.0, cx=31.5, cy=23.5)
 ROOM_LO, ROOM_HI = np.array([-2.0, -1.5, 0.0]), np.array([2.0, 1.5, 2.5])
@@ -77,7 +78,7 @@ def frames() -> list[Frame]:
 
 
 def small_config(**kw: object) -> MapperConfig:
-    base = dict(iters_per_keyframe=25, seed=3, mesh_voxel_size_m=0.04, mesh_sdf_trunc_m=0.12)
+    base = dict(iters_per_keyframe=20, seed=3, mesh_voxel_size_m=0.04, mesh_sdf_trunc_m=0.12)
     return MapperConfig(**(base | kw))
 
 
@@ -97,6 +98,7 @@ def test_mapping_fits_a_held_out_view_and_tracks_h_train(frames: list[Frame]) ->
     mapper = Mapper(INTR, small_config())
     for f in train:
         assert mapper.add_keyframe(f)
+        assert len(mapper._fisher_pending) == 1  # lazy: computed when h_train is next read
         # h_train follows the surfel set through every densify/prune.
         for k, h in mapper.h_train.items():
             assert h.shape == getattr(mapper.map, k).shape
@@ -107,7 +109,8 @@ def test_mapping_fits_a_held_out_view_and_tracks_h_train(frames: list[Frame]) ->
     assert psnr1 > psnr0 + 1.0, f"PSNR {psnr0:.2f} -> {psnr1:.2f}"
     assert psnr1 > 22.0
     stats = mapper.stats
-    assert stats.keyframes_added == 4 and stats.steps == 4 * 25 and stats.steps_skipped_nonfinite == 0
+    assert stats.keyframes_added == 4 and stats.steps == 4 * 20 and stats.steps_skipped_nonfinite == 0
+    assert not mapper._fisher_pending
 
     # Surfels the training views see carry information; the Fisher is finite and non-negative.
     assert set(mapper.h_train) == {"means", "quats", "log_scales", "opacity_logits", "sh_dc"}
@@ -194,6 +197,21 @@ def test_bad_input_is_masked_skipped_or_refused(frames: list[Frame], caplog: pyt
     assert all(bool(torch.isfinite(t).all()) for t in mapper.map.parameters())
 
 
+def test_view_sampling() -> None:
+    cfg = MapperConfig(views_per_iteration=3, newest_keyframe_prob=0.5, keyframe_window=4, seed=1)
+    mapper = Mapper(INTR, cfg)
+    mapper.keyframes = [None] * 10  # only the count matters to the sampler
+    draws = [mapper._pick_views(newest=9) for _ in range(300)]
+    assert all(len(d) == 3 and len(set(d)) == 3 and set(d) <= {6, 7, 8, 9} for d in draws)
+    assert 0.7 < np.mean([9 in d for d in draws]) < 0.95  # 1 - 0.5^3 minus draws that ran out of others
+    mapper.keyframes = [None]
+    assert mapper._pick_views(newest=0) == [0]
+    uniform = Mapper(INTR, MapperConfig(views_per_iteration=1, seed=2))
+    uniform.keyframes = [None] * 5
+    counts = np.bincount([uniform._pick_views(newest=None)[0] for _ in range(500)], minlength=5)
+    assert counts.min() > 60  # every keyframe gets drawn
+
+
 def test_losses_basics() -> None:
     torch.manual_seed(0)
     img = torch.rand(20, 24, 3)
@@ -226,7 +244,7 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     metrics = run_offline(
         FrameList(),
         make_policy("every-n", n=2),
-        small_config(iters_per_keyframe=8, final_iters=4),
+        small_config(iters_per_keyframe=8, final_iters=4, weight_distortion=100.0),
         out,
         gt_mesh=gt,
         eval_config=EvalConfig(mesh_samples=20_000, strip_frames=2),
@@ -253,9 +271,10 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     loaded = Mapper.load(out)
     assert loaded.n_surfels == metrics["map_size"]
     assert loaded.loaded_keyframe_ids == [0, 2, 4, 6]
-    assert loaded.config.iters_per_keyframe == 8
+    assert loaded.config.iters_per_keyframe == 8 and loaded.config.weight_distortion == 100.0
     a = loaded.render(frames[3].T_wc).alpha
     assert float(a.mean()) > 0.9
+    assert len(loaded.mesh().triangles) > 100  # meshed at the saved keyframe poses
 
 
 def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -> None:
@@ -280,3 +299,34 @@ def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -
     assert cli_main(["map", str(scene), "--out", str(tmp_path / "r4"), "--set", "lr_means=abc"]) == 2
     assert "error" in capsys.readouterr().err
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
+
+
+def test_resize_keeps_pixel_centres_aligned() -> None:
+    src = Intrinsics(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)
+    dst = src.resized(16, 12)  # factor 3: destination pixel j is centred on source pixel 3j + 1
+    depth = np.tile(np.arange(48, dtype=np.float32), (36, 1)) + 100 * np.arange(36, dtype=np.float32)[:, None]
+    frame = Frame(index=0, rgb=np.zeros((36, 48, 3), np.uint8), depth_m=depth, T_wc=np.eye(4))
+    out = resize_frame(frame, dst)
+    jj, ii = np.meshgrid(np.arange(16), np.arange(12))
+    np.testing.assert_array_equal(out.depth_m, depth[3 * ii + 1, 3 * jj + 1])
+    assert dst.cx == pytest.approx((src.cx - 1) / 3)  # the same point: source centre 1 -> destination 0
+
+
+def test_open_frames_from_a_bag(frames: list[Frame], tmp_path) -> None:
+    scene = tmp_path / "scene"
+    write_replica(scene, INTR, frames[:5])
+    bag = tmp_path / "bag"
+    write_bag(ReplicaSequence(scene), bag, progress=False)
+    src = open_frames(bag, size=(32, 24), stride=2, max_frames=2)
+    assert src.kind == "bag" and len(src) == 2 and src.gt_mesh_path is None
+    assert (src.intrinsics.width, src.intrinsics.height) == (32, 24)
+    assert src.intrinsics.fx == pytest.approx(INTR.fx / 2)
+    got = list(src)
+    assert [f.index for f in got] == [0, 2]
+    assert got[1].rgb.shape == (24, 32, 3) and got[1].depth_m.shape == (24, 32)
+    np.testing.assert_allclose(got[1].T_wc, frames[2].T_wc, atol=1e-6)
+    assert len(open_frames(bag)) == 5
+    with pytest.raises(InputError):
+        open_frames(bag, stride=0)
+    with pytest.raises(InputError):
+        open_frames(tmp_path / "nothing-here")
