@@ -431,9 +431,7 @@ class BagReader:
         def where(topic: str) -> str:
             return f"{self.path}:{topic} @ {stamp} ns"
 
-        return assemble_frame(
-            stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where
-        )
+        return assemble_frame(stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where)
 
 
 def assemble_frame(

@@ -26,6 +26,7 @@ from skimage.metrics import structural_similarity
 from roigsf_ros.camera import Intrinsics, check_pose
 from roigsf_ros.errors import InputError
 from roigsf_ros.fileio import atomic_path
+from roigsf_ros.scene import camera_rays
 
 o3c = o3d.core
 
@@ -188,12 +189,10 @@ def raycast_depth(
     scene = (
         mesh_or_scene if isinstance(mesh_or_scene, o3d.t.geometry.RaycastingScene) else raycasting_scene(mesh_or_scene)
     )
-    T = check_pose(T_wc, "T_wc")
-    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-        o3c.Tensor(intr.K, o3c.float64), o3c.Tensor(np.linalg.inv(T), o3c.float64), intr.width, intr.height
-    )
-    # open3d's pinhole rays have camera-frame direction K^-1 (u, v, 1): t_hit is the z-depth.
-    t_hit = scene.cast_rays(rays)["t_hit"].numpy()
+    # The project's pixel convention (integer pixel coordinates are centres; open3d's
+    # create_rays_pinhole samples u + 0.5). Ray directions have unit optical-axis component: t_hit is z-depth.
+    rays = camera_rays(check_pose(T_wc, "T_wc"), intr)
+    t_hit = scene.cast_rays(o3c.Tensor(rays))["t_hit"].numpy()
     return np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)
 
 

@@ -11,28 +11,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
-import cv2
 import numpy as np
 
 from roigsf_ros.bags import BagReader
 from roigsf_ros.camera import Intrinsics
 from roigsf_ros.errors import InputError
-from roigsf_ros.replica import Frame, ReplicaSequence
-
-
-def resize_frame(frame: Frame, intr: Intrinsics) -> Frame:
-    """The frame resized to ``intr``'s size (colour by area averaging, depth by nearest neighbour).
-
-    Depth uses ``INTER_NEAREST_EXACT``, which keeps pixel centres aligned as
-    :meth:`Intrinsics.resized` assumes; plain ``INTER_NEAREST`` samples up to half a source block
-    off (0.4 px at 1200 -> 240, a 4 mm median depth error on Replica).
-    """
-    size = (intr.width, intr.height)
-    if frame.depth_m.shape[::-1] == size:
-        return frame
-    rgb = cv2.resize(frame.rgb, size, interpolation=cv2.INTER_AREA)
-    depth = cv2.resize(frame.depth_m, size, interpolation=cv2.INTER_NEAREST_EXACT)
-    return Frame(index=frame.index, rgb=rgb, depth_m=depth, T_wc=frame.T_wc)
+from roigsf_ros.replica import Frame, ReplicaSequence, resize_frame
 
 
 class FrameSequence(Protocol):
@@ -75,16 +59,14 @@ class ReplicaFrameSource(FrameSource):
     def __init__(
         self, path: Path, size: tuple[int, int] | None, stride: int, max_frames: int | None, allow_partial: bool
     ) -> None:
-        # Frames are read at their native size and resized here (see resize_frame).
-        self.seq = ReplicaSequence(path, allow_partial=allow_partial)
+        self.seq = ReplicaSequence(path, size=size, allow_partial=allow_partial)
         self.ks = list(range(0, len(self.seq), stride))[: max_frames if max_frames is not None else None]
         mesh = self.seq.root / "mesh.ply"
-        intr = self.seq.intrinsics.resized(*size) if size is not None else self.seq.intrinsics
-        super().__init__(Path(path), intr, len(self.ks), mesh if mesh.is_file() else None)
+        super().__init__(Path(path), self.seq.intrinsics, len(self.ks), mesh if mesh.is_file() else None)
 
     def __iter__(self) -> Iterator[Frame]:
         for k in self.ks:
-            yield resize_frame(self.seq.frame(k), self.intrinsics)
+            yield self.seq.frame(k)
 
     def poses(self) -> np.ndarray:
         """All frame poses [N, 4, 4] straight from ``traj.txt`` (no image is read)."""

@@ -40,6 +40,21 @@ class Frame:
     T_wc: np.ndarray  # [4, 4] float64 camera-to-world
 
 
+def resize_frame(frame: Frame, intr: Intrinsics) -> Frame:
+    """The frame resized to ``intr``'s size (colour by area averaging, depth by nearest neighbour).
+
+    Depth uses ``INTER_NEAREST_EXACT``, which keeps pixel centres aligned as
+    :meth:`Intrinsics.resized` assumes; plain ``INTER_NEAREST`` samples up to half a source block
+    off (0.4 px at 1200 -> 240, a 4 mm median depth error on Replica).
+    """
+    size = (intr.width, intr.height)
+    if frame.depth_m.shape[::-1] == size:
+        return frame
+    rgb = cv2.resize(frame.rgb, size, interpolation=cv2.INTER_AREA)
+    depth = cv2.resize(frame.depth_m, size, interpolation=cv2.INTER_NEAREST_EXACT)
+    return Frame(index=frame.index, rgb=rgb, depth_m=depth, T_wc=frame.T_wc)
+
+
 def load_traj(path: str | Path) -> np.ndarray:
     """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid."""
     path = Path(path)
@@ -108,8 +123,9 @@ def find_cam_params(seq_dir: str | Path) -> Path | None:
 class ReplicaSequence:
     """A Replica-layout sequence on disk, read lazily frame by frame.
 
-    ``size`` resizes frames on load (colour with area averaging, depth with nearest neighbour so
-    that no depth is invented across edges) and scales the intrinsics to match.
+    ``size`` resizes frames on load (:func:`resize_frame`: colour with area averaging, depth with
+    pixel-centre-exact nearest neighbour so that no depth is invented across edges) and scales
+    the intrinsics to match.
     ``allow_partial`` accepts a ``traj.txt`` with more poses than frames on disk (a partial
     download, like the 4-frame office0 sample); otherwise the counts must match.
     """
@@ -188,11 +204,7 @@ class ReplicaSequence:
                 self.depth_paths[i],
                 f"image is {w}x{h} but the camera parameters say {self.native.width}x{self.native.height}",
             )
-        size = (self.intrinsics.width, self.intrinsics.height)
-        if size != (w, h):
-            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
-        return Frame(index=i, rgb=rgb, depth_m=depth, T_wc=self.poses[k])
+        return resize_frame(Frame(index=i, rgb=rgb, depth_m=depth, T_wc=self.poses[k]), self.intrinsics)
 
     def __iter__(self) -> Iterator[Frame]:
         for k in range(len(self)):

@@ -116,7 +116,9 @@ class TSDFVolume:
                 raise InputError("rgb", f"shape {color.shape} is not [{intr.height}, {intr.width}, 3]")
             color = color.astype(np.float32) / 255.0 if color.dtype == np.uint8 else color.astype(np.float32)
             color = np.ascontiguousarray(np.clip(color, 0.0, 1.0))
-        K = o3c.Tensor(intr.K, o3c.float64)
+        # open3d looks up pixel floor(u) for a voxel projecting to u, i.e. pixel centres at u + 0.5;
+        # the project's centres are at integer u, so shift the principal point by half a pixel.
+        K = o3c.Tensor(intr.K + np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]), o3c.float64)
         extrinsic = o3c.Tensor(np.linalg.inv(T), o3c.float64)  # world-to-camera
         depth_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth)))
         mult = self._trunc_multiplier

@@ -12,6 +12,8 @@ import pytest
 # ROS hygiene before anything imports rclpy: loopback-only discovery, and a domain id of this run's
 # own so that two test runs on one machine never hear each other (xdist workers get their own).
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+# Passive OpenMP waits, before torch loads (roigsf_ros/__init__.py sets the same default).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 if "ROIGSF_TEST_DOMAIN_ID" not in os.environ:
     os.environ["ROIGSF_TEST_DOMAIN_ID"] = str(random.SystemRandom().randrange(1, 100))
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")

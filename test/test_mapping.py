@@ -17,10 +17,10 @@ from roigsf_ros.camera import Intrinsics
 from roigsf_ros.cli import main as cli_main
 from roigsf_ros.errors import InputError
 from roigsf_ros.evaluation import psnr
-from roigsf_ros.frames import open_frames, resize_frame
+from roigsf_ros.frames import open_frames
 from roigsf_ros.keyframes import make_policy
 from roigsf_ros.mapping import EvalConfig, Mapper, MapperConfig, run_offline
-from roigsf_ros.replica import Frame, ReplicaSequence, write_replica
+from roigsf_ros.replica import Frame, ReplicaSequence, resize_frame, write_replica
 
 INTR = Intrinsics(width=64, height=48, fx=52.0, fy=52.0, cx=31.5, cy=23.5)
 ROOM_LO, ROOM_HI = np.array([-2.0, -1.5, 0.0]), np.array([2.0, 1.5, 2.5])

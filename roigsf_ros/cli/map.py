@@ -2,13 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
-# OpenMP threads that spin after each torch op starve numba's kernel threads on a 2-core machine
-# (measured 3-4x slower mapping under load). It only takes effect before torch loads its OpenMP
-# runtime, so it is set here, before the mapper's imports, unless the user chose a policy.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 import argparse
 import logging
 from dataclasses import fields, replace

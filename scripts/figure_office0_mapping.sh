@@ -1,0 +1,14 @@
+#!/usr/bin/env bash
+# The mapping figure of the README: office0 re-rendered at 240x136 along every 10th pose (200 frames),
+# mapped with the gaus-slam keyframe rule. Needs the Replica sample in ../shared/data (not redistributable).
+# Writes runs/office0_240/ (the scene) and runs/office0_gaus_slam/ (metrics.json, mesh.ply, map.ply, strip.png).
+set -euo pipefail
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/setup.sh
+source "$REPO/scripts/setup.sh"
+DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
+[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
+cd "$REPO"
+roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
+    --out runs/office0_240 --width 240 --height 136 --stride 10 --overwrite
+roigsf map runs/office0_240 --policy gaus-slam --out runs/office0_gaus_slam --overwrite --no-progress
