@@ -114,6 +114,21 @@ class BagFrameSource(FrameSource):
                 yield resize_frame(frame, self.intrinsics)
 
 
+class MemoryFrameSource(FrameSource):
+    """Frames already in memory (e.g. received over ROS 2), in arrival order."""
+
+    kind = "memory"
+
+    def __init__(self, frames: list[Frame], intrinsics: Intrinsics, origin: str, gt_mesh_path: Path | None = None):
+        if not frames:
+            raise InputError(origin, "no frames")
+        super().__init__(Path(origin), intrinsics, len(frames), gt_mesh_path)
+        self.frames = frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        return iter(self.frames)
+
+
 def _is_bag(path: Path) -> bool:
     if path.is_file():
         return path.suffix == ".mcap"

@@ -122,3 +122,21 @@ def test_demo_replay_delivers_every_frame(tmp_path: Path) -> None:
     for got, want in zip(out["frames"], seq, strict=True):
         np.testing.assert_array_equal(got.depth_m, want.depth_m)
         np.testing.assert_allclose(got.T_wc, want.T_wc, atol=1e-12)
+
+
+def test_demo_command_replays_and_maps(tmp_path: Path) -> None:
+    import json
+
+    from roigsf_ros import bags
+    from roigsf_ros.benchmarks.io import make_synthetic_replica
+    from roigsf_ros.cli import main
+    from roigsf_ros.replica import ReplicaSequence
+
+    make_synthetic_replica(tmp_path / "scene", 32, 24, 4, seed=3)
+    bags.write_bag(ReplicaSequence(tmp_path / "scene"), tmp_path / "bag", progress=False)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(tmp_path / "bag"), "--out", str(run), "--rate", "0", "--gt-mesh", "", "--no-progress"]
+    assert main([*args, "--policy", "every-n"]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["n_frames"] == 4 and metrics["n_keyframes"] >= 1
+    assert (run / "mesh.ply").is_file() and (run / "map.ply").is_file() and (run / "replay.json").is_file()

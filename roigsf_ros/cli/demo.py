@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ from roigsf_ros.bags import BagFrame, bag_info
 from roigsf_ros.fileio import write_json
 
 DEFAULT_BAG = Path("bags/synth_room")
+DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
 
 
 def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: bool = True) -> dict[str, Any]:
@@ -100,11 +102,31 @@ def _run(args: argparse.Namespace) -> int:
         f"  complete frames: {stats['frames']}, rejected: {sum(stats['rejected'].values())}, "
         f"incomplete: {stats['dropped_incomplete']}"
     )
+    if not replay["frames"]:
+        print("no complete frame arrived; nothing to map", file=sys.stderr)
+        return 1
+
+    from roigsf_ros.cli.map import print_summary
+    from roigsf_ros.frames import MemoryFrameSource
+    from roigsf_ros.keyframes import make_policy
+    from roigsf_ros.mapping import MapperConfig, run_offline
+    from roigsf_ros.replica import Frame
+
+    frames = [Frame(index=k, rgb=f.rgb, depth_m=f.depth_m, T_wc=f.T_wc) for k, f in enumerate(replay["frames"])]
+    source = MemoryFrameSource(frames, replay["frames"][0].intrinsics, f"ROS replay of {bag}")
+    gt_mesh = Path(args.gt_mesh) if args.gt_mesh else None
     out = Path(args.out)
+    print(f"\nmapping {len(frames)} received frames with keyframe policy {args.policy}")
+    metrics = run_offline(
+        source, make_policy(args.policy), MapperConfig(), out, gt_mesh=gt_mesh,
+        progress=not args.no_progress, overwrite=True,
+    )  # fmt: skip
     write_json(
         out / "replay.json", {"bag": str(bag), "player": replay["player"], "input": stats, "wall_s": replay["wall_s"]}
     )
-    print(f"wrote {out / 'replay.json'}")
+    print(f"\nactive-mapping demo on {bag} -> {out}")
+    print_summary(metrics)
+    print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, strip.png, replay.json")
     return 0 if stats["frames"] == info["frame_count"] else 1
 
 
@@ -126,6 +148,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="N",
         help="ROS domain id (default: ROS_DOMAIN_ID or 0); discovery stays on localhost",
+    )
+    p.add_argument(
+        "--policy",
+        default="gaus-slam",
+        metavar="P",
+        help="keyframe policy for mapping the received frames (default gaus-slam)",
+    )
+    p.add_argument(
+        "--gt-mesh",
+        default=str(DEFAULT_GT_MESH),
+        metavar="PLY",
+        help=f"ground-truth mesh for the mesh metrics (default {DEFAULT_GT_MESH}; '' for none)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)

@@ -122,11 +122,15 @@ def run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
     )
     print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
-    for label, key, fmt in _SUMMARY_KEYS:
-        value = metrics.get(key)
-        if value is None:
-            continue
-        print(f"  {label:<24} {fmt.format(value)}")
+    print_summary(metrics)
     if gt_mesh is None:
         print("  (no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)")
     return 0
+
+
+def print_summary(metrics: dict) -> None:
+    """The short table of a run's metrics (frames, keyframes, PSNR, mesh precision/recall, wall time)."""
+    for label, key, fmt in _SUMMARY_KEYS:
+        value = metrics.get(key)
+        if value is not None:
+            print(f"  {label:<24} {fmt.format(value)}")
