@@ -13,6 +13,7 @@ import torch
 from torch.nn import functional
 
 from roigsf_ros.camera import Intrinsics
+from roigsf_ros.surfels import depth_to_points
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -80,25 +81,12 @@ def depth_l1(depth_render: torch.Tensor, depth_gt: torch.Tensor, valid: torch.Te
     return ((depth_render - depth_gt).abs() * v).sum() / v.sum().clamp_min(1.0)
 
 
-def depth_to_points_cam(depth_m: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
-    """Back-project a [H, W] depth map to camera-frame points [H, W, 3] (OpenCV axes)."""
-    h, w = depth_m.shape
-    v, u = torch.meshgrid(
-        torch.arange(h, dtype=depth_m.dtype, device=depth_m.device),
-        torch.arange(w, dtype=depth_m.dtype, device=depth_m.device),
-        indexing="ij",
-    )
-    x = (u - intr.cx) / intr.fx * depth_m
-    y = (v - intr.cy) / intr.fy * depth_m
-    return torch.stack([x, y, depth_m], dim=-1)
-
-
 def depth_to_normal_cam(depth_m: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
     """Camera-frame unit normals [H, W, 3] of a depth map by central differences, facing the camera.
 
     Border pixels are zero (as in 2DGS's ``depth_to_normal``), so they drop out of the loss.
     """
-    pts = depth_to_points_cam(depth_m, intr)
+    pts = depth_to_points(depth_m, intr)
     out = torch.zeros_like(pts)
     dx = pts[1:-1, 2:] - pts[1:-1, :-2]
     dy = pts[2:, 1:-1] - pts[:-2, 1:-1]

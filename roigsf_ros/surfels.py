@@ -355,8 +355,8 @@ def _as_tensor(x: object, name: str, dtype: torch.dtype) -> Tensor:
 def depth_to_points(depth_m: Tensor, intr: Intrinsics) -> Tensor:
     """Camera-frame points [H, W, 3] (OpenCV axes, metres) of a depth image [H, W] (pixel centre = index)."""
     h, w = depth_m.shape
-    ys = torch.arange(h, dtype=depth_m.dtype)[:, None]
-    xs = torch.arange(w, dtype=depth_m.dtype)[None, :]
+    ys = torch.arange(h, dtype=depth_m.dtype, device=depth_m.device)[:, None]
+    xs = torch.arange(w, dtype=depth_m.dtype, device=depth_m.device)[None, :]
     x = (xs - intr.cx) / intr.fx * depth_m
     y = (ys - intr.cy) / intr.fy * depth_m
     return torch.stack([x, y, depth_m], dim=-1)
