@@ -53,13 +53,20 @@ def register_policy(name: str) -> Callable[[type[KeyframePolicy]], type[Keyframe
     return deco
 
 
+def _register_nbv_policies() -> None:
+    """Import the NBV window policies (they register themselves; a top-level import would be a cycle)."""
+    import roigsf_ros.nbv_policies  # noqa: F401
+
+
 def policy_names() -> list[str]:
     """Names of every registered policy."""
+    _register_nbv_policies()
     return sorted(_REGISTRY)
 
 
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
     """A policy by registered name; ``None``-valued params are dropped, unknown ones are an InputError."""
+    _register_nbv_policies()
     if name not in _REGISTRY:
         raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
     factory = _REGISTRY[name]

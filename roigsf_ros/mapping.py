@@ -796,7 +796,7 @@ def run_offline(
     mapper = Mapper(source.intrinsics, cfg)
     policy.reset()
     t0 = time.perf_counter()
-    is_keyframe: list[bool] = []
+    frame_ids: list[int | None] = []  # None for a frame skipped for its pose
     poses: list[np.ndarray] = []
     bad_pose = 0
     bar = tqdm(total=len(source), desc="mapping", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -806,20 +806,24 @@ def run_offline(
         except InputError as exc:
             bad_pose += 1
             log.warning("%s; frame skipped", exc)
-            is_keyframe.append(False)
+            frame_ids.append(None)
             poses.append(np.full((4, 4), np.nan))
             bar.update(1)
             continue
         poses.append(T)
-        pick = policy.observe(frame, mapper)
-        added = mapper.add_keyframe(frame) if pick else False
-        is_keyframe.append(added)
+        frame_ids.append(int(frame.index))
+        # A policy may also insert earlier frames itself (the NBV window policies); the mapper's
+        # keyframe ids below are the truth either way.
+        if policy.observe(frame, mapper):
+            mapper.add_keyframe(frame)
         bar.update(1)
         bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)
     bar.close()
     if cfg.final_iters and mapper.keyframes:
         mapper.refine(cfg.final_iters)
     t_map = time.perf_counter() - t0
+    inserted = set(mapper.keyframe_ids)
+    is_keyframe = [fid is not None and fid in inserted for fid in frame_ids]
 
     # Image metrics on non-keyframes, against the final map.
     candidates = [i for i, k in enumerate(is_keyframe) if not k and np.isfinite(poses[i]).all()]
