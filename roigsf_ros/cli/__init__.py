@@ -8,11 +8,27 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 from roigsf_ros.errors import InputError
 
 # Subcommand modules, in the order `roigsf --help` lists them.
 _COMMAND_MODULES = ("demo", "scene", "bag", "map", "perf")
+
+
+def image_size(args: argparse.Namespace) -> tuple[int, int] | None:
+    """(width, height) from ``--width``/``--height``, which come together or not at all."""
+    if (args.width is None) != (args.height is None):
+        raise InputError("--width/--height", "give both or neither")
+    return (args.width, args.height) if args.width is not None else None
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Fail early, before any work, if the output folder ``out`` exists and may not be replaced."""
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
-from roigsf_ros.errors import InputError
+from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.replica import ReplicaSequence
 
 
@@ -74,11 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _from_replica(args: argparse.Namespace) -> int:
-    if (args.width is None) != (args.height is None):
-        raise InputError("--width/--height", "give both or neither")
-    size = (args.width, args.height) if args.width is not None else None
-    if args.out.exists() and not args.overwrite:
-        raise FileExistsError(f"{args.out}: already exists (pass --overwrite to replace it)")
+    size = image_size(args)
+    check_out(args.out, args.overwrite)
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
     n = write_bag(
         seq,

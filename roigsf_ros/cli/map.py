@@ -7,6 +7,7 @@ import logging
 from dataclasses import fields, replace
 from pathlib import Path
 
+from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.errors import InputError
 from roigsf_ros.frames import open_frames
 from roigsf_ros.keyframes import make_policy, policy_names
@@ -101,11 +102,8 @@ def config_from_args(args: argparse.Namespace) -> MapperConfig:
 def run(args: argparse.Namespace) -> int:
     """Run the offline mapping loop and print a summary table."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if (args.width is None) != (args.height is None):
-        raise InputError("--width/--height", "give both or neither")
-    size = (args.width, args.height) if args.width is not None else None
-    if args.out.exists() and not args.overwrite:
-        raise FileExistsError(f"{args.out}: already exists (pass --overwrite to replace it)")
+    size = image_size(args)
+    check_out(args.out, args.overwrite)
     policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k)
     cfg = config_from_args(args)
     source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,

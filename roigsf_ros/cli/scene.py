@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from roigsf_ros.camera import Intrinsics, load_cam_params
+from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.errors import InputError
 from roigsf_ros.replica import load_traj
 
@@ -30,14 +31,6 @@ def synth_intrinsics(width: int, height: int) -> Intrinsics:
     return Intrinsics(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2)
 
 
-def _check_out(out: Path, overwrite: bool) -> None:
-    """Fail early, before any work, if ``out`` exists and may not be replaced."""
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
-
-
 def _check_texture(strength: float) -> None:
     """``--texture-strength`` must be finite and >= 0."""
     if not math.isfinite(strength) or strength < 0:
@@ -49,17 +42,16 @@ def _render(args: argparse.Namespace) -> int:
     from roigsf_ros.scene import load_mesh, render_sequence  # open3d import only when used
 
     out = Path(args.out)
-    _check_out(out, args.overwrite)
+    check_out(out, args.overwrite)
     _check_texture(args.texture_strength)
     if args.stride < 1:
         raise InputError("--stride", f"must be >= 1, got {args.stride}")
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
-    if (args.width is None) != (args.height is None):
-        raise InputError("--width/--height", "give both or neither")
+    size = image_size(args)
     intr = load_cam_params(args.cam)
-    if args.width is not None:
-        intr = intr.resized(args.width, args.height)
+    if size is not None:
+        intr = intr.resized(*size)
     poses = load_traj(args.traj)[:: args.stride]
     if args.max_frames is not None:
         poses = poses[: args.max_frames]
@@ -83,7 +75,7 @@ def _synth(args: argparse.Namespace) -> int:
     from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
 
     out = Path(args.out)
-    _check_out(out, args.overwrite)
+    check_out(out, args.overwrite)
     _check_texture(args.texture_strength)
     if args.frames < 1:
         raise InputError("--frames", f"must be >= 1, got {args.frames}")
