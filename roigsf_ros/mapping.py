@@ -30,7 +30,7 @@ from roigsf_ros import evaluation, losses
 from roigsf_ros.camera import Intrinsics, check_pose
 from roigsf_ros.errors import InputError
 from roigsf_ros.fileio import atomic_dir, write_json
-from roigsf_ros.fisher import fisher_diag
+from roigsf_ros.fisher import fisher_diag, frustum_subset
 from roigsf_ros.frames import FrameSequence
 from roigsf_ros.keyframes import KeyframePolicy
 from roigsf_ros.render import RenderOutput, render_map
@@ -346,30 +346,10 @@ class Mapper:
             out.visible = visible
         return out
 
-    @torch.no_grad()
     def _frustum_subset(self, T: np.ndarray) -> Tensor:
-        """Indices of surfels whose bounding sphere (alpha >= 1/255 reach) meets the view frustum.
-
-        Conservative for the renderer's rules: a surfel reaches at most ``sqrt(2 ln 255) < 3.4``
-        sigma from its centre, and the screen-space fallback at most 2.4 px from its projection.
-        """
-        n = self.n_surfels
-        if n == 0:
-            return torch.zeros(0, dtype=torch.long, device=self.device)
-        R = torch.as_tensor(T[:3, :3], dtype=self.dtype, device=self.device)
-        t = torch.as_tensor(T[:3, 3], dtype=self.dtype, device=self.device)
-        p = (self.map.means.detach() - t) @ R  # camera frame
-        r = 3.4 * self.map.log_scales.detach().max(dim=-1).values.exp()
-        keep = p[:, 2] + r > self.config.near_m
-        it = self.intr
-        margin = 3.0  # pixels: the screen-space fallback's reach plus rounding
-        x, y, z = p.unbind(-1)
-        for coord, c, f, size in ((x, it.cx, it.fx, it.width), (y, it.cy, it.fy, it.height)):
-            a_lo = (-0.5 - margin - c) / f  # side planes coord = a z through the camera centre
-            a_hi = (size - 0.5 + margin - c) / f
-            keep &= (coord - a_lo * z) / math.sqrt(1 + a_lo * a_lo) > -r
-            keep &= (a_hi * z - coord) / math.sqrt(1 + a_hi * a_hi) > -r
-        return keep.nonzero().squeeze(1)
+        """Indices of surfels that can reach the view from ``T`` [4, 4] (conservative: see fisher.frustum_subset)."""
+        viewmat = torch.as_tensor(np.linalg.inv(T), dtype=self.dtype, device=self.device)
+        return frustum_subset(self.map, viewmat, self.intr, near=self.config.near_m, far=math.inf)
 
     def render_alpha(self, T_wc: np.ndarray) -> np.ndarray:
         """Accumulated alpha [H, W] (float32 numpy) of the map seen from ``T_wc``."""

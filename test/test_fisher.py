@@ -9,8 +9,15 @@ import torch
 from roigsf_ros import render_reference
 from roigsf_ros.camera import Intrinsics
 from roigsf_ros.errors import InputError
-from roigsf_ros.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, fisher_diag, fisher_per_surfel
-from roigsf_ros.render import camera_tensors, numba_available
+from roigsf_ros.fisher import (
+    ALL_PARAMS,
+    GEOMETRIC_PARAMS,
+    fisher_diag,
+    fisher_per_surfel,
+    frustum_subset,
+    packed_jacobian,
+)
+from roigsf_ros.render import camera_tensors, numba_available, pair_alpha_depth, project_packed
 from roigsf_ros.surfels import SurfelMap
 
 F64 = torch.float64
@@ -149,3 +156,55 @@ def test_bad_arguments() -> None:
         fisher_diag(m, np.eye(4), INTR, params=("nope",))
     with pytest.raises(InputError, match="pixel_weights"):
         fisher_diag(m, np.eye(4), INTR, pixel_weights=np.ones((3, 3)))
+
+
+def test_packed_jacobian_matches_autograd() -> None:
+    """The closed-form d packed / d theta of the numba path equals autograd through project_packed."""
+    pytest.importorskip("numba")
+    m = scene(6, n=12, sh_rest=False)
+    m.means[0, 2] = 0.1  # centre nearer than the near plane: the centre-pixel rows use z = 1
+    m.quats[1] *= 3.0  # non-unit quaternions are normalised inside the projection
+    viewmat, K = camera_tensors(pose(6), INTR, dtype=F64)
+    pk, jac = packed_jacobian(m, viewmat, K, 0.2, 100.0)
+    leaves = {k: getattr(m, k).clone().requires_grad_() for k in ("means", "quats", "log_scales", "opacity_logits")}
+    packed, _, _ = project_packed(
+        leaves["means"], leaves["quats"], leaves["log_scales"].exp(), leaves["opacity_logits"].sigmoid(),
+        viewmat, K, 0.2, 100.0,
+    )  # fmt: skip
+    np.testing.assert_allclose(pk, packed.detach().T.numpy(), rtol=1e-12, atol=1e-12)
+    cols = 0
+    for k, leaf in leaves.items():
+        width = leaf[0].numel()
+        for row in range(packed.shape[0]):
+            (g,) = torch.autograd.grad(packed[row].sum(), [leaf], retain_graph=True, allow_unused=True)
+            want = np.zeros((len(m), width)) if g is None else g.reshape(len(m), -1).numpy()
+            got = jac[:, cols : cols + width, row]
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * max(1.0, np.abs(want).max()), err_msg=k)
+        cols += width
+
+
+def test_frustum_culling_keeps_every_surfel_that_reaches_a_pixel() -> None:
+    """Culled surfels reach alpha >= 1/255 at no pixel (so they can neither contribute nor stop a pixel)."""
+    g = torch.Generator().manual_seed(7)
+    n = 400
+    m = scene(7, n=n, sh_rest=False)
+    m.means = torch.randn(n, 3, generator=g, dtype=F64) * torch.tensor([3.0, 3.0, 2.0], dtype=F64)
+    m.means[:, 2] += 1.0
+    m.log_scales = torch.log(torch.rand(n, 2, generator=g, dtype=F64) * 0.5 + 0.02)
+    m.opacity_logits = torch.full((n,), 5.0, dtype=F64)  # nearly opaque: the largest reach
+    T = pose(7)
+    viewmat, K = camera_tensors(T, INTR, dtype=F64)
+    keep = torch.zeros(n, dtype=torch.bool)
+    keep[frustum_subset(m, viewmat, INTR, 0.2, 100.0)] = True
+    proj = project_packed(m.means, m.quats, m.scales(), m.opacities(), viewmat, K, 0.2, 100.0)[0]
+    ys, xs = torch.meshgrid(torch.arange(INTR.height, dtype=F64), torch.arange(INTR.width, dtype=F64), indexing="ij")
+    rows = [r[:, None] for r in proj.unbind(0)]
+    alpha, depth, pz = pair_alpha_depth(rows, xs.reshape(1, -1), ys.reshape(1, -1))
+    reaches = ((alpha >= 1 / 255) & (depth >= 0.2) & (pz != 0) & (proj[10][:, None] > 0.2)).any(1)
+    assert reaches.sum() > 10 and (~keep).sum() > n / 4  # both sets are non-trivial here
+    assert not bool((reaches & ~keep).any())
+    # The culled surfels get exactly zero; both backends (which cull alike) agree.
+    got = fisher_diag(m, T, INTR, outputs=("color", "depth"), backend="torch")
+    assert all(torch.all(v[~keep] == 0) for v in got.values())
+    if numba_available():
+        assert_close(fisher_diag(m, T, INTR, outputs=("color", "depth"), backend="numba"), got, rtol=1e-9)

@@ -188,6 +188,49 @@ def test_roi_of_a_fused_box_matches_its_silhouette() -> None:
     assert (seen[:, 0] > 0.45).sum() > 50 and (seen[:, 1] > 0.45).sum() > 50 and (seen[:, 2] > 0.45).sum() > 50
 
 
+def _views_equal(a: object, b: object) -> None:
+    np.testing.assert_array_equal(a.index, b.index)
+    for f in ("u_px", "v_px", "z_m", "cos_incidence", "footprint_px"):
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-12, atol=1e-12, err_msg=f)
+    if len(a) == 0:
+        return
+    oa, ob = np.lexsort(a.splat[:2]), np.lexsort(b.splat[:2])  # same entries, possibly in another order
+    for x, y in zip(a.splat, b.splat, strict=True):
+        np.testing.assert_allclose(x[oa], y[ob], rtol=1e-12, atol=1e-14)
+
+
+def test_numba_visibility_equals_the_numpy_reference() -> None:
+    pytest.importorskip("numba")
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((-0.5, -0.5, -0.5))
+    scene = raycasting_scene(box)
+    intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
+    vol = TSDFVolume(voxel_size_m=0.04)
+    for k in range(4):
+        a = 2 * np.pi * k / 4 + 0.3
+        T = look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 1.0 if k % 2 else -1.0]), np.zeros(3), UP)
+        vol.integrate(raycast_depth(scene, T, intr), T, intr)
+    vox = vol.surface_voxels()
+    occluded = cat_voxels(plane_voxels(1.0, (-0.2, 0.2), (-0.2, 0.2)), plane_voxels(2.0, (-1.0, 1.0), (-1.0, 1.0)))
+    cases = [
+        (vox, look_at(np.array([2.2, 1.0, 0.8]), np.zeros(3), UP), intr),  # oblique, ~1 px footprints
+        (vox, look_at(np.array([0.9, 0.3, 0.6]), np.zeros(3), UP), intr),  # close: wide splats, capped ones
+        (vox, look_at(np.array([3.0, 0.0, 0.0]), np.array([6.0, 0.0, 0.0]), UP), intr),  # looking away: empty
+        (occluded, EYE, INTR),  # a near patch hides part of a far plane
+    ]
+    for voxels, T, cam in cases:
+        ref = voxel_visibility(voxels, T, cam, 0.04, CFG, backend="numpy")
+        fast = voxel_visibility(voxels, T, cam, 0.04, CFG, backend="numba")
+        _views_equal(fast, ref)
+        w_ref = view_roi(voxels, 0.04, T, cam, CFG, view=ref).weights
+        np.testing.assert_allclose(view_roi(voxels, 0.04, T, cam, CFG).weights, w_ref, rtol=1e-12, atol=1e-15)
+    close = voxel_visibility(vox, cases[1][1], intr, 0.04, CFG)
+    assert len(close) > 100 and close.footprint_px.max() > 2.0  # the wide-splat branch was exercised
+    hidden = voxel_visibility(occluded, EYE, INTR, 0.04, CFG)
+    assert 0 < len(hidden) < len(occluded.centres_m)
+    with pytest.raises(InputError, match="backend"):
+        voxel_visibility(vox, EYE, intr, 0.04, CFG, backend="cuda")
+
+
 # ---------------------------------------------------------------------------------- texture
 def _patch_map(rng: np.random.Generator, x0: float, noisy: bool) -> SurfelMap:
     g = np.stack(np.meshgrid(np.arange(0, 0.4, 0.01), np.arange(0, 0.4, 0.01), indexing="ij"), -1).reshape(-1, 2)

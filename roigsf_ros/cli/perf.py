@@ -6,7 +6,7 @@ import argparse
 import importlib
 
 # Benchmark modules under roigsf_ros.benchmarks; each exposes add_arguments(parser) and run(args).
-_BENCHMARKS = ("io", "render")
+_BENCHMARKS = ("io", "render", "nbv")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
