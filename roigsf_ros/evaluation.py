@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.stats import spearmanr
 from skimage.metrics import structural_similarity
 
 from roigsf_ros.camera import Intrinsics, check_pose
@@ -357,18 +358,26 @@ def to_json_safe(obj: Any) -> Any:
 # Uncertainty calibration
 
 
-def ause(uncertainty: Any, abs_error: Any, n_ratios: int = 100, max_ratio: float = 0.999) -> dict[str, Any]:
+def ause(
+    uncertainty: Any, abs_error: Any, n_ratios: int = 100, max_ratio: float = 0.999, random_seed: int = 0
+) -> dict[str, Any]:
     """Area under the sparsification error curve (FisherRF's definition), lower is better.
 
     For removal ratios ``linspace(0, max_ratio, n_ratios)`` keep the ``int((1 - r) n)`` samples with the
     smallest error (oracle) or the smallest uncertainty and take their mean error; both curves are divided
     by their joint maximum and ``ause`` is the trapezoidal area of (uncertainty - oracle). Non-finite pairs
     are dropped. Returns ``ause``, ``ause_raw`` (the same area before normalisation, in error units),
-    ``ratios``, ``curve_oracle`` and ``curve_uncertainty`` (normalised).
+    ``ause_random_raw`` (``ause_raw`` of a uniform-random ordering of the same samples, permutation seeded
+    by ``random_seed``: the no-information baseline), ``spearman_rho`` (Spearman rank correlation of
+    uncertainty and error, NaN when either is constant), ``n`` (samples used), ``ratios``,
+    ``curve_oracle`` and ``curve_uncertainty`` (normalised).
 
-    Caveat of the joint-max normalisation: an ordering that is worse than random (e.g. reversed) has a
-    large curve maximum that shrinks its normalised area, so with heavy-tailed errors it can score below
-    a random ordering; ``ause_raw`` has no such inversion. Compare methods on the same error maps.
+    Caveat of the joint-max normalisation (FisherRF's and Bayes' Rays' code): an ordering worse than
+    random (e.g. reversed) keeps the largest errors longest, so its curve rises far above the mean error;
+    dividing by that peak shrinks its area, and with heavy-tailed errors an anti-correlated map can score
+    a *lower* (better-looking) ``ause`` than an informative one. ``ause_raw`` has no such inversion;
+    read it against ``ause_random_raw`` (an informative map is below it). ``spearman_rho`` weighs all
+    samples alike while AUSE is driven by the largest errors, so with a small |rho| the two can disagree.
     """
     unc = _to_numpy(uncertainty, "uncertainty").astype(np.float64).reshape(-1)
     err = _to_numpy(abs_error, "abs_error").astype(np.float64).reshape(-1)
@@ -396,12 +405,18 @@ def ause(uncertainty: Any, abs_error: Any, n_ratios: int = 100, max_ratio: float
     oracle = curve(np.argsort(err, kind="stable"))
     by_unc = curve(np.argsort(unc, kind="stable"))
     raw = float(np.trapezoid(by_unc - oracle, ratios))
+    random_raw = float(np.trapezoid(curve(np.random.default_rng(int(random_seed)).permutation(n)) - oracle, ratios))
+    # a constant ranks nothing: NaN (scipy would warn)
+    rho = float(spearmanr(unc, err).statistic) if np.ptp(unc) > 0 and np.ptp(err) > 0 else float("nan")
     peak = max(float(oracle.max()), float(by_unc.max()))
     if peak > 0:
         oracle, by_unc = oracle / peak, by_unc / peak
     return {
         "ause": float(np.trapezoid(by_unc - oracle, ratios)),
         "ause_raw": raw,
+        "ause_random_raw": random_raw,
+        "spearman_rho": rho,
+        "n": int(n),
         "ratios": ratios,
         "curve_oracle": oracle,
         "curve_uncertainty": by_unc,

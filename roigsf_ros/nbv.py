@@ -270,10 +270,17 @@ def depth_error_ause(
     depth_pred_m: np.ndarray | Tensor,
     depth_gt_m: np.ndarray | Tensor,
     n_ratios: int = 100,
+    random_seed: int = 0,
 ) -> dict:
     """AUSE (:func:`roigsf_ros.evaluation.ause`) of an uncertainty map [H, W] against |depth_pred - depth_gt|.
 
-    Only pixels where both depths are finite and > 0 count; no such pixel raises InputError.
+    Only pixels where both depths are finite and > 0 count; no such pixel raises InputError. Keys:
+    ``ause`` (normalised by the joint curve maximum, as FisherRF / Bayes' Rays report it), ``ause_raw``
+    (metres), ``ause_random_raw`` (metres, a uniform-random pixel ordering seeded by ``random_seed``),
+    ``spearman_rho`` (uncertainty vs |depth error|), ``n`` (pixels), and the curves. Report the raw
+    numbers too: the normalisation rewards maps that rank pixels backwards (their curve peaks far above
+    the mean error and the division shrinks their area), so a map with a low ``ause`` but ``ause_raw``
+    above ``ause_random_raw`` and ``spearman_rho`` < 0 is worse than no information.
     """
     u, dp, dg = (np.asarray(t.detach().cpu() if isinstance(t, Tensor) else t, dtype=np.float64) for t in
                  (uncertainty, depth_pred_m, depth_gt_m))  # fmt: skip
@@ -282,7 +289,7 @@ def depth_error_ause(
     ok = np.isfinite(dp) & np.isfinite(dg) & (dp > 0) & (dg > 0) & np.isfinite(u)
     if not ok.any():
         raise InputError("depth", "no pixel with a valid predicted and ground-truth depth")
-    return ause(u[ok], np.abs(dp[ok] - dg[ok]), n_ratios=n_ratios)
+    return ause(u[ok], np.abs(dp[ok] - dg[ok]), n_ratios=n_ratios, random_seed=random_seed)
 
 
 @dataclass
@@ -304,7 +311,8 @@ class NBVResult:
     ``ranking`` [M]: best first, flagged candidates last, ties by index; ``flagged`` [M]: candidates that
     see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
     degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
-    ``n_visible_voxels``; ``timings_s``: seconds per phase.
+    ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi``,
+    ``close_front``, ``fisher``; ``roi_close_front`` their ROI sum) and process CPU seconds (``<phase>_cpu``).
     """
 
     mode: str
@@ -486,8 +494,9 @@ class NBVScorer:
         poses = _as_pose_list(train_poses, "train_poses", allow_empty=True)
         m = len(cands)
         timings: dict[str, float] = {}
+        cpu: dict[str, float] = {}
         reasons: list[str] = []
-        t0 = time.perf_counter()
+        t0 = _clock()
         surfel_map = surfel_map if surfel_map is not None else SurfelMap.empty()
         need_fisher = mode != "close-front"
         need_voxels = mode != "fisherrf"
@@ -512,9 +521,9 @@ class NBVScorer:
         if vox is not None and mode in ("roi-gsurfisher", "close-front"):
             mem = close_front_memory or CloseFrontMemory.from_poses(vox, poses, intr, voxel_size, cfg)
             w_f = mem.fused_weight(vox)
-        timings["setup"] = time.perf_counter() - t0
+        timings["setup"], cpu["setup"] = map(float, _since(t0))
 
-        t0 = time.perf_counter()
+        t0 = _clock()
         h = None
         if need_fisher and not empty_map:
             if mode == "fisherrf":
@@ -523,7 +532,7 @@ class NBVScorer:
                 params = [p for p in cfg.fisher_params if p != "sh_rest" or surfel_map.sh_rest is not None]
             h = h_train if h_train is not None else self.train_fisher(surfel_map, poses, intr, mode)
             _check_h_train(h, surfel_map, params)
-        timings["h_train"] = time.perf_counter() - t0
+        timings["h_train"], cpu["h_train"] = map(float, _since(t0))
 
         ds = cfg.fisher_downsample
         intr_f = downsampled(intr, ds)
@@ -533,17 +542,19 @@ class NBVScorer:
         mass = np.zeros(m)
         n_vox = np.zeros(m, dtype=np.int64)
         flagged = np.zeros(m, dtype=bool)
-        t_roi = t_fisher = 0.0
+        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
         for i, T in enumerate(cands):
-            t0 = time.perf_counter()
+            t0 = _clock()
             roi = None
             if vox is not None:
                 roi = view_roi(vox, voxel_size, T, intr, cfg, textured)
                 n_vox[i], n_pix[i], mass[i] = len(roi.view), roi.n_pixels, roi.mass
-                if w_f is not None:
-                    cf[i] = close_front_gain(roi.view, w_f)
-            t_roi += time.perf_counter() - t0
-            t0 = time.perf_counter()
+            t1 = _clock()
+            acc["roi"] += np.subtract(t1, t0)
+            if roi is not None and w_f is not None:
+                cf[i] = close_front_gain(roi.view, w_f)
+            acc["close_front"] += _since(t1)
+            t0 = _clock()
             if h is not None:
                 if mode == "fisherrf":
                     w = None
@@ -559,13 +570,15 @@ class NBVScorer:
                     f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
                                     pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
                     fisher[i] = information_gain(f, h, cfg.phi)
-            t_fisher += time.perf_counter() - t0
+            acc["fisher"] += _since(t0)
             if need_voxels:
                 flagged[i] = n_vox[i] == 0
             elif h is None:
                 flagged[i] = True
-        timings["roi_close_front"] = t_roi
-        timings["fisher"] = t_fisher
+        for k, (wall, proc) in acc.items():
+            timings[k], cpu[k] = float(wall), float(proc)
+        timings["roi_close_front"] = timings["roi"] + timings["close_front"]
+        timings |= {f"{k}_cpu": v for k, v in cpu.items()}
 
         if mode == "roi-gsurfisher":
             fused = fuse_scores(fisher, cf, cfg.epsilon, cfg.delta)
@@ -593,6 +606,16 @@ class NBVScorer:
             reason="; ".join(reasons),
             timings_s=timings,
         )
+
+
+def _clock() -> tuple[float, float]:
+    """(wall, process CPU) seconds now."""
+    return time.perf_counter(), time.process_time()
+
+
+def _since(t0: tuple[float, float]) -> np.ndarray:
+    """(wall, process CPU) seconds elapsed since ``t0``."""
+    return np.subtract(_clock(), t0)
 
 
 def _check_h_train(h_train: dict[str, Tensor], surfel_map: SurfelMap, params: Sequence[str]) -> None:

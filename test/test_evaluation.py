@@ -231,6 +231,27 @@ def test_ause_perfect_random_reversed() -> None:
         ause(err[:10], err)
 
 
+def test_ause_normalisation_rewards_a_reversed_ranking() -> None:
+    """Heavy-tailed errors: the reversed map's normalised AUSE beats random; raw AUSE and rho expose it."""
+    rng = np.random.default_rng(1)
+    err = rng.lognormal(0.0, 1.0, 20_000)
+    informative = ause(err * np.exp(rng.normal(0, 0.5, err.size)), err)
+    random = ause(rng.random(err.size), err)
+    reversed_ = ause(-err, err)
+    assert reversed_["ause"] < 0.5 * random["ause"]  # the inversion the normalisation causes
+    assert reversed_["ause_raw"] > 2.0 * reversed_["ause_random_raw"]
+    assert reversed_["spearman_rho"] == pytest.approx(-1.0)
+    assert informative["ause_raw"] < 0.2 * informative["ause_random_raw"] and informative["spearman_rho"] > 0.8
+    # the seeded random baseline: the same for every map of the same errors, near an actual random map's
+    assert random["ause_random_raw"] == informative["ause_random_raw"] == reversed_["ause_random_raw"]
+    assert random["ause_raw"] == pytest.approx(random["ause_random_raw"], rel=0.15)
+    assert abs(random["spearman_rho"]) < 0.05
+    assert ause(-err, err, random_seed=1)["ause_random_raw"] != reversed_["ause_random_raw"]
+    assert reversed_["n"] == err.size
+    flat = ause(np.zeros(err.size), err)
+    assert np.isnan(flat["spearman_rho"]) and np.isfinite(flat["ause_raw"])
+
+
 # ---------------------------------------------------------------------------------------------- strip
 
 

@@ -341,7 +341,46 @@ def test_depth_error_ause_of_uncertainty_maps(world: World) -> None:
     u = scorer.uncertainty(world.map, world.h_train, T, INTR).u
     res = depth_error_ause(torch.tensor(u), pred, gt)
     assert np.isfinite(res["ause"]) and res["ause"] >= 0.0
+    ok = (pred > 0) & (gt > 0)
+    assert res["n"] == int(ok.sum()) and -1.0 <= res["spearman_rho"] <= 1.0
+    assert res["ause_random_raw"] == depth_error_ause(-u, pred, gt)["ause_random_raw"] > 0.0  # same pixels, seed 0
+    back = depth_error_ause(-err, pred, gt)  # the oracle reversed: worse than random in raw AUSE, rho = -1
+    assert back["ause_raw"] > back["ause_random_raw"] and back["spearman_rho"] == pytest.approx(-1.0)
     with pytest.raises(InputError, match="no pixel"):
         depth_error_ause(u, np.zeros_like(pred), gt)
     with pytest.raises(InputError, match="shapes"):
         depth_error_ause(u[:-1], pred, gt)
+
+
+# ------------------------------------------------------------------------------------ benchmark
+def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from roigsf_ros.cli import main
+    from roigsf_ros.render import numba_available, set_numba_threads
+
+    out = tmp_path / "nbv.json"
+    args = ["perf", "nbv", "--repeats", "1", "--threads", "1", "--surfels", "1500", "--width", "40", "--height", "30"]
+    try:
+        assert main([*args, "--candidates", "4", "--voxel-size", "0.1", "--out", str(out)]) == 0
+    finally:  # back to numba's default thread count (the benchmark set 1)
+        if numba_available():
+            import numba
+
+            set_numba_threads(numba.config.NUMBA_NUM_THREADS)
+    data = json.loads(out.read_text())
+    assert data["benchmark"] == "nbv" and data["surfels"] == 1500 and data["surface_voxels"] > 100
+    assert data["environment"]["threads"] == 1 and data["environment"]["torch"] == torch.__version__
+    rows = {(r["mode"], r["fisher_downsample"]) for r in data["rows"]}
+    assert rows == {(m, d) for m in ("roi-gsurfisher", "fisherrf") for d in (1, 2)}
+    for r in data["rows"]:
+        assert r["n_candidates"] == 4 and r["n_flagged"] == 0  # every candidate in the room sees surface
+        assert r["train_fwd_bwd_ms"] > 0 and r["fisher_ms"] > 0 and r["score_s"] > 0
+        parts = r["roi_ms"] + r["close_front_ms"] + r["fisher_ms"]
+        assert r["candidate_ms"] == pytest.approx(parts, rel=1e-9)  # one repeat: the median is the sum
+        if r["mode"] == "roi-gsurfisher":
+            assert r["roi_ms"] > 0 and r["phases_s"]["roi"] > 0
+        else:
+            assert r["roi_ms"] < 0.05 * r["fisher_ms"]  # FisherRF has no ROI: only loop overhead
+    assert "ratio" in capsys.readouterr().out
+    assert main([*args, "--candidates", "0"]) == 2  # bad input: one-line error

@@ -13,7 +13,7 @@ from pathlib import Path
 from roigsf_ros.errors import InputError
 
 # Subcommand modules, in the order `roigsf --help` lists them.
-_COMMAND_MODULES = ("demo", "scene", "bag", "map", "perf")
+_COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "perf")
 
 
 def image_size(args: argparse.Namespace) -> tuple[int, int] | None:

@@ -1,0 +1,138 @@
+"""``roigsf bench``: run NBV / keyframe policies on identical inputs and seeds; tables and plots.
+
+Stream setting: each policy maps the sequence in trajectory order (``roigsf map``'s loop). Pool
+setting: FisherRF's "v20seq1" active reconstruction (:mod:`roigsf_ros.pool`). Writes
+``runs/<policy>/seed<k>/``, ``results.json``, ``results.md``, ``quality_vs_views.png``,
+``chosen_views.png`` and ``uncertainty_<policy>.png`` into ``--out``. With ``--rescore-ause``,
+recompute the AUSE study of an existing ``--out`` from its saved runs (no training) and rewrite its
+results (``--scene`` overrides the scene path stored in results.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
+
+from roigsf_ros.bench import BenchConfig, parse_policies, rescore_ause, run_bench
+from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.cli.map import _parse_value
+from roigsf_ros.errors import InputError
+from roigsf_ros.mapping import MapperConfig
+from roigsf_ros.pool import PoolConfig
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``bench`` subcommand."""
+    p = sub.add_parser("bench", help="benchmark keyframe / NBV policies (stream or pool setting)", description=__doc__)
+    p.add_argument("--scene", type=Path, metavar="DIR_OR_BAG", help="scene folder or rosbag2 bag (required)")
+    p.add_argument("--setting", choices=("stream", "pool"), help="stream (SLAM order) or pool (required)")
+    p.add_argument(
+        "--policies",
+        help="comma-separated policies, each name[:key=value...], e.g. gaus-slam,roi-gsurfisher:window=12 (required)",
+    )
+    p.add_argument(
+        "--rescore-ause",
+        action="store_true",
+        help="recompute the AUSE study of the finished bench in --out from its saved maps (no training); "
+        "rewrites results.json, results.md and the plots",
+    )
+    p.add_argument("--seeds", type=int, default=1, help="run seeds 0..N-1 (default 1)")
+    p.add_argument("--gt-mesh", type=Path, help="ground-truth mesh (default: the scene folder's mesh.ply)")
+    p.add_argument("--width", type=int, help="resize frames to this width (needs --height)")
+    p.add_argument("--height", type=int, help="resize frames to this height (needs --width)")
+    p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")
+    p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
+    p.add_argument("--eval-every", type=int, default=1, help="stream: evaluate every K-th non-keyframe")
+    p.add_argument("--uncertainty-views", type=int, help="held-out views per run for AUSE (0: none; default 6, "
+                   "with --rescore-ause: the bench's)")  # fmt: skip
+    p.add_argument("--uncertainty-maps", type=int, help="of those, views drawn per policy (default 3)")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder's results")
+    p.add_argument("--no-progress", action="store_true", help="no per-run progress lines")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override a MapperConfig field for every run, e.g. --set iters_per_keyframe=20 (repeatable)",
+    )
+    p.add_argument(
+        "--pool-set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override a PoolConfig field, e.g. --pool-set n_views=20 --pool-set pool_stride=2 (repeatable)",
+    )
+    p.set_defaults(func=run)
+
+
+def _overrides(items: list[str], defaults: dict[str, Any], flag: str, skip: tuple[str, ...] = ()) -> dict[str, Any]:
+    """{name: value} from NAME=VALUE items, typed like ``defaults``; unknown names are an InputError."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in defaults or name in skip:
+            raise InputError(f"{flag} {item}", f"expected NAME=VALUE with NAME one of {', '.join(sorted(defaults))}")
+        default = defaults[name]
+        if isinstance(default, tuple) and default and isinstance(default[0], int | float):
+            try:
+                out[name] = tuple(type(default[0])(v) for v in text.split(",") if v.strip())
+            except ValueError:
+                raise InputError(f"{flag} {name}", f"cannot parse {text!r} as numbers") from None
+        else:
+            out[name] = _parse_value(name, text.strip(), default)
+    return out
+
+
+def config_from_args(args: argparse.Namespace) -> BenchConfig:
+    """The :class:`BenchConfig` of the command line (validated)."""
+    policies = parse_policies(args.policies, args.setting)
+    mdefaults = {f.name: getattr(MapperConfig(), f.name) for f in fields(MapperConfig)}
+    mapper = replace(MapperConfig(), **_overrides(args.set, mdefaults, "--set", skip=("seed",))).validate()
+    pdefaults = {f.name: getattr(PoolConfig(), f.name) for f in fields(PoolConfig)}
+    pool = replace(PoolConfig(), **_overrides(args.pool_set, pdefaults, "--pool-set",
+                                              skip=("seed", "policy", "policy_params")))  # fmt: skip
+    return BenchConfig(
+        scene=args.scene,
+        setting=args.setting,
+        policies=policies,
+        seeds=args.seeds,
+        gt_mesh=args.gt_mesh,
+        size=image_size(args),
+        stride=args.stride,
+        max_frames=args.max_frames,
+        mapper=mapper,
+        pool=pool,
+        eval_every=args.eval_every,
+        uncertainty_views=6 if args.uncertainty_views is None else args.uncertainty_views,
+        uncertainty_maps=3 if args.uncertainty_maps is None else args.uncertainty_maps,
+    ).validate()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark and print the results table."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.rescore_ause:
+        given = [f for f, v in (("--setting", args.setting), ("--policies", args.policies)) if v is not None]
+        if given:
+            raise InputError(" ".join(given), "not used with --rescore-ause (the bench's own are rescored)")
+        rescore_ause(args.out, scene=args.scene, uncertainty_views=args.uncertainty_views,
+                     uncertainty_maps=args.uncertainty_maps, progress=not args.no_progress)  # fmt: skip
+        print((args.out / "results.md").read_text())
+        return 0
+    missing = [f for f, v in (("--scene", args.scene), ("--setting", args.setting), ("--policies", args.policies))
+               if v is None]  # fmt: skip
+    if missing:
+        raise InputError(" ".join(missing), "required (unless --rescore-ause)")
+    check_out(args.out, args.overwrite)
+    cfg = config_from_args(args)
+    command = "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
+    run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command)
+    print((args.out / "results.md").read_text())
+    return 0

@@ -1,0 +1,221 @@
+"""`roigsf bench`: policy specs, bad input, the uncertainty maps, and small pool / stream benchmarks end to end."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from roigsf_ros.bench import (
+    BenchConfig,
+    PolicySpec,
+    fisherrf_uncertainty_maps,
+    parse_policies,
+    parse_value,
+    rescore_ause,
+    uncertainty_study,
+)
+from roigsf_ros.bench_report import AUSE_CAVEAT, TABLE_COLUMNS, cell, parse_markdown_table
+from roigsf_ros.cli import main
+from roigsf_ros.cli.scene import synth_intrinsics
+from roigsf_ros.errors import InputError
+from roigsf_ros.frames import open_frames
+from roigsf_ros.mapping import Mapper, MapperConfig
+from roigsf_ros.nbv import NBVScorer
+from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+
+MAPPER_SET = ["--set", "densify_stride=2", "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15",
+              "--set", "iters_per_keyframe=2"]  # fmt: skip
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread() -> Iterator[None]:
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A `roigsf scene synth`-style folder: 24 frames of the synthetic room at 48x36 with its mesh.ply."""
+    out = tmp_path_factory.mktemp("bench") / "room"
+    render_sequence(synth_room(0), synth_trajectory(0, 24), synth_intrinsics(48, 36), out, progress=False)
+    return out
+
+
+def test_parse_policies() -> None:
+    specs = parse_policies("gaus-slam, roi-gsurfisher:window=12:epsilon=0.5,random", "stream")
+    assert [s.label for s in specs] == ["gaus-slam", "roi-gsurfisher:window=12:epsilon=0.5", "random"]
+    assert specs[1] == PolicySpec("roi-gsurfisher", {"window": 12, "epsilon": 0.5}, specs[1].label)
+    assert parse_value("true") is True and parse_value("3") == 3 and parse_value("x") == "x"
+    with pytest.raises(InputError, match="unknown policy 'nope'"):
+        parse_policies("random,nope", "pool")
+    with pytest.raises(InputError, match="stream-only"):
+        parse_policies("random,gaus-slam", "pool")
+    with pytest.raises(InputError, match="stream-only"):
+        parse_policies("every-n:n=3", "pool")
+    with pytest.raises(InputError, match="takes no parameter"):
+        parse_policies("fisherrf:windows=3", "pool")
+    with pytest.raises(InputError, match="expected name:key=value"):
+        parse_policies("fisherrf:window", "pool")
+    with pytest.raises(InputError, match="given twice"):
+        parse_policies("random,random", "pool")
+    with pytest.raises(InputError, match="setting"):
+        parse_policies("random", "batch")
+
+
+def test_bench_config_errors(scene: Path, tmp_path: Path) -> None:
+    specs = parse_policies("random", "pool")
+    with pytest.raises(InputError, match="seeds"):
+        BenchConfig(scene=scene, setting="pool", policies=specs, seeds=0).validate()
+    with pytest.raises(InputError, match="ground-truth mesh not found"):
+        BenchConfig(scene=scene, setting="pool", policies=specs, gt_mesh=tmp_path / "x.ply").validate()
+    with pytest.raises(InputError, match="no such"):
+        BenchConfig(scene=tmp_path / "none", setting="pool", policies=specs).validate()
+    with pytest.raises(InputError, match="stream-only"):
+        BenchConfig(scene=scene, setting="pool", policies=[PolicySpec("all")]).validate()
+
+
+def test_cli_bad_input(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["bench", "--scene", str(scene), "--setting", "pool", "--out", str(tmp_path / "o")]
+    for extra, msg in (
+        (["--policies", "roi-gsurfisher,bogus"], "unknown policy 'bogus'"),
+        (["--policies", "gaus-slam"], "stream-only"),
+        (["--policies", "random", "--seeds", "0"], "--seeds"),
+        (["--policies", "random", "--gt-mesh", str(tmp_path / "m.ply")], "ground-truth mesh not found"),
+        (["--policies", "random", "--set", "nope=1"], "--set nope=1"),
+        (["--policies", "random", "--pool-set", "seed=1"], "--pool-set seed=1"),
+    ):
+        assert main(base + extra) == 2
+        assert msg in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_fisherrf_maps_match_scorer(scene: Path) -> None:
+    src = open_frames(scene)
+    frames = list(src)
+    mapper = Mapper(src.intrinsics, MapperConfig(densify_stride=3, iters_per_keyframe=2))
+    for f in frames[:3]:
+        mapper.add_keyframe(f)
+    scorer = NBVScorer()
+    train = mapper.keyframe_poses
+    evals = [frames[5].T_wc, frames[9].T_wc]
+    fast = fisherrf_uncertainty_maps(scorer, mapper.map, train, evals, src.intrinsics)
+    for T, u in zip(evals, fast, strict=True):
+        ref = scorer.fisherrf_uncertainty(mapper.map, T, src.intrinsics, [*train, T])
+        assert u.max() > 0 and np.allclose(u, ref, rtol=1e-6, atol=1e-9 * ref.max())
+    study = uncertainty_study(mapper, train, [frames[5], frames[9]], n_maps=1, scorer=scorer)
+    assert len(study.per_view) == 2 and len(study.maps) == 1
+    assert all(0 <= v["ause_eq17"] <= 1 and 0 <= v["ause_fisherrf"] <= 1 for v in study.per_view)
+    assert study.means()["ause_eq17"] == pytest.approx(np.mean([v["ause_eq17"] for v in study.per_view]))
+    for v in study.per_view:  # raw AUSE in metres, one random baseline per view, rank correlations
+        assert v["ause_raw_random"] > 0 and v["n_pixels"] > 0
+        assert -1 <= v["rho_eq17"] <= 1 and -1 <= v["rho_fisherrf"] <= 1
+    means = study.means()
+    assert means["ause_raw_random_cm"] == pytest.approx(100 * np.mean([v["ause_raw_random"] for v in study.per_view]))
+
+
+def check_md_matches_json(out: Path) -> dict:
+    res = json.loads((out / "results.json").read_text())
+    md = (out / "results.md").read_text()
+    assert AUSE_CAVEAT in md
+    table = parse_markdown_table(md)
+    assert list(table) == [p["label"] for p in res["policies"]]
+    for label, row in table.items():
+        for header, key, fmt in TABLE_COLUMNS:
+            assert row[header] == cell(res["summary"][label], key, fmt)
+    return res
+
+
+def test_pool_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pool"
+    argv = ["bench", "--scene", str(scene), "--setting", "pool", "--policies", "close-front,random", "--seeds", "2",
+            "--out", str(out), "--no-progress", "--uncertainty-views", "2", "--uncertainty-maps", "1",
+            "--pool-set", "n_views=6", "--pool-set", "initial_iters=4", "--pool-set", "iters_per_view=2",
+            "--pool-set", "mesh_checkpoints=4,6", "--pool-set", "mesh_samples=3000", *MAPPER_SET]  # fmt: skip
+    assert main(argv) == 0
+    for name in ("results.json", "results.md", "quality_vs_views.png", "chosen_views.png",
+                 "uncertainty_close-front.png", "uncertainty_random.png"):  # fmt: skip
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    res = check_md_matches_json(out)
+    assert res["setting"] == "pool" and res["seeds"] == [0, 1] and res["pool_config"]["n_views"] == 6
+    runs = res["runs"]
+    assert len(runs) == 4 and {(r["label"], r["seed"]) for r in runs} == {(p, s) for p in ("close-front", "random")
+                                                                         for s in (0, 1)}  # fmt: skip
+    for r in runs:
+        m = json.loads((out / r["dir"] / "metrics.json").read_text())
+        assert m["chosen_positions"] == r["metrics"]["chosen_positions"] and m["config"]["seed"] == r["seed"]
+        assert not set(m["chosen_positions"]) & set(m["test_positions"])
+        assert r["metrics"]["ause_eq17"] is not None and r["metrics"]["ause_fisherrf"] is not None
+    for label in ("close-front", "random"):
+        vals = [r["metrics"]["recall@5cm"] for r in runs if r["label"] == label]
+        s = res["summary"][label]["recall@5cm"]
+        assert s["mean"] == pytest.approx(np.mean(vals)) and s["std"] == pytest.approx(np.std(vals)) and s["n"] == 2
+        curve = res["curves"][label]
+        assert [c["n_views"] for c in curve] == [4, 5, 6] and "recall@5cm" in curve[0] and "recall@5cm" in curve[2]
+    # close-front ignores the seed beyond the mapper's; random's picks depend on it
+    picks = {(r["label"], r["seed"]): r["metrics"]["chosen_positions"] for r in runs}
+    assert picks[("random", 0)] != picks[("random", 1)]
+    assert main(argv) == 2  # --out exists
+    check_rescore(out, res)
+
+
+def check_rescore(out: Path, res: dict) -> None:
+    """`--rescore-ause` from the saved runs reproduces the study bit for bit and replaces stale numbers."""
+    stale = json.loads((out / "results.json").read_text())
+    for r in stale["runs"]:  # an older results.json: wrong normalised AUSE, no raw / random / rho numbers
+        r["metrics"]["ause_eq17"] = 99.0
+        r["uncertainty_per_view"] = [{"frame": v["frame"], "ause_eq17": 99.0} for v in r["uncertainty_per_view"]]
+        for key in ("ause_raw_random", "rho_eq17", "rho_fisherrf", "ause_raw_eq17_cm"):
+            r["metrics"].pop(key, None)
+    stale.pop("uncertainty_maps")
+    (out / "results.json").write_text(json.dumps(stale))
+    (out / "results.md").write_text("stale")
+    assert main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 0
+    new = check_md_matches_json(out)
+    assert new["ause_rescore"]["wall_s"] > 0 and new["uncertainty_maps"] == 3
+    for a, b in zip(res["runs"], new["runs"], strict=True):
+        assert a["dir"] == b["dir"] and a["uncertainty_per_view"] == b["uncertainty_per_view"]
+        assert a["metrics"] == b["metrics"]
+    assert new["summary"] == res["summary"]
+    assert (out / "uncertainty_random.png").stat().st_size > 0
+
+
+def test_rescore_bad_input(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--rescore-ause", "--out", str(tmp_path)]) == 2
+    assert "results.json: not found" in capsys.readouterr().err
+    assert main(["bench", "--rescore-ause", "--policies", "random", "--out", str(tmp_path)]) == 2
+    assert "not used with --rescore-ause" in capsys.readouterr().err
+    assert main(["bench", "--out", str(tmp_path / "x")]) == 2
+    assert "--scene --setting --policies: required" in capsys.readouterr().err
+    (tmp_path / "results.json").write_text(json.dumps({"setting": "pool", "scene": str(scene)}))
+    with pytest.raises(InputError, match="missing field"):
+        rescore_ause(tmp_path)
+
+
+def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "stream"
+    policies = "every-n:n=6,random:window=6"
+    argv = ["bench", "--scene", str(scene), "--setting", "stream", "--policies", policies, "--out", str(out),
+            "--no-progress", "--uncertainty-views", "2", "--max-frames", "14", *MAPPER_SET]  # fmt: skip
+    assert main(argv) == 0
+    res = check_md_matches_json(out)
+    assert res["n_frames"] == 14 and res["curves"] is None
+    every = next(r for r in res["runs"] if r["label"] == "every-n:n=6")
+    assert every["metrics"]["keyframe_ids"] == [0, 6, 12] and every["chosen_positions"] == [0, 6, 12]
+    assert res["summary"]["every-n:n=6"]["n_keyframes"]["mean"] == 3
+    assert (out / "chosen_views.png").is_file() and (out / "uncertainty_every-n_n_6.png").is_file()
+    rescored = rescore_ause(out, progress=False)
+    assert [r["uncertainty_per_view"] for r in rescored["runs"]] == [r["uncertainty_per_view"] for r in res["runs"]]
+    # the saved map folder must be the run's: other keyframes are refused
+    kf_path = out / every["dir"] / "keyframes.json"
+    kf = json.loads(kf_path.read_text())
+    kf["keyframe_ids"] = [0, 6, 13]
+    kf_path.write_text(json.dumps(kf))
+    with pytest.raises(InputError, match="keyframes differ"):
+        rescore_ause(out, progress=False)
