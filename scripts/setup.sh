@@ -9,7 +9,7 @@ VENV="${ROIGSF_VENV:-$REPO/.venv}"
 log() { printf '[setup] %s\n' "$*" >&2; }
 
 # 1. Debian packages: open3d needs libusb-1.0 at import time.
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then  # no -q: an early exit SIGPIPEs ldconfig under pipefail
     log "installing Debian package libusb-1.0-0 (open3d needs it)"
     SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
     $SUDO apt-get update -qq
