@@ -26,6 +26,10 @@ setup(
         "console_scripts": [
             "roigsf = roigsf_ros.cli:main",
             "bag_player = roigsf_ros.nodes.bag_player:main",
+            "mapper = roigsf_ros.nodes.mapper:main",
+            "nbv_planner = roigsf_ros.nodes.nbv_planner:main",
+            "keyframe_selector = roigsf_ros.nodes.keyframe_selector:main",
+            "active_mapping = roigsf_ros.nodes.active_mapping:main",
         ],
     },
 )

@@ -1,0 +1,62 @@
+"""Launch the mapper, NBV planner and keyframe selector as three processes (the map travels on /roigsf/map).
+
+    ros2 launch roigsf_ros active_mapping_nodes.launch.py bag:=bags/synth_room
+
+Same topics and parameters as active_mapping.launch.py; use it to run the nodes on different
+machines or to restart one of them alone (a restarted mapper resumes with ``load_map``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ament_index_python.packages import get_package_share_directory
+from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch_ros.actions import Node
+
+from launch import LaunchDescription
+
+
+def generate_launch_description() -> LaunchDescription:
+    """``mapper``, ``nbv_planner`` and ``keyframe_selector`` processes, plus ``bag_player`` when ``bag`` is given."""
+    config = Path(get_package_share_directory("roigsf_ros")) / "config"
+    bag, rate, policy = LaunchConfiguration("bag"), LaunchConfiguration("rate"), LaunchConfiguration("policy")
+    load_map = LaunchConfiguration("load_map")
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("bag", default_value="", description="bag to play ('' = none: live camera)"),
+            DeclareLaunchArgument("rate", default_value="1.0", description="playback rate factor"),
+            DeclareLaunchArgument("policy", default_value="roi-gsurfisher", description="keyframe policy"),
+            DeclareLaunchArgument("load_map", default_value="", description="saved map for the mapper to resume"),
+            Node(
+                package="roigsf_ros",
+                executable="mapper",
+                name="mapper",
+                output="screen",
+                parameters=[str(config / "mapper.yaml"), {"load_map": load_map}],
+            ),
+            Node(
+                package="roigsf_ros",
+                executable="nbv_planner",
+                name="nbv_planner",
+                output="screen",
+                parameters=[str(config / "nbv.yaml")],
+            ),
+            Node(
+                package="roigsf_ros",
+                executable="keyframe_selector",
+                name="keyframe_selector",
+                output="screen",
+                parameters=[str(config / "keyframe_selector.yaml"), {"policy": policy}],
+            ),
+            Node(
+                package="roigsf_ros",
+                executable="bag_player",
+                output="screen",
+                parameters=[str(config / "bag_player.yaml"), {"bag": bag, "rate": rate}],
+                condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
+            ),
+        ]
+    )

@@ -1,0 +1,151 @@
+"""``active_mapping``: the mapper, NBV planner and keyframe selector in one process, sharing one map.
+
+The three nodes run on one multi-threaded executor and share a :class:`SharedMapper` object (no
+serialisation: the planner and the selector read snapshots of the very map the mapper optimises).
+Topics and services are the same as when the nodes run as separate processes, so tools and the bag
+player see no difference. Parameters go to each node by its name, e.g. with a params file that has
+``mapper:``, ``nbv_planner:`` and ``keyframe_selector:`` sections (config/*.yaml), or ``-p`` for a
+name only one node declares::
+
+    active_mapping --ros-args --params-file config/mapper.yaml -p policy:=gaus-slam
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import threading
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
+from roigsf_ros.nodes.mapper import MapperNode
+from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+from roigsf_ros.nodes.node_params import BAD_PARAMETER_ERRORS
+from roigsf_ros.nodes.shared_map import SharedMapper
+
+NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
+
+
+def _as_parameters(values: dict[str, Any] | None) -> list[Parameter] | None:
+    """``{name: value}`` as rclpy Parameters (tuples become lists)."""
+    if not values:
+        return None
+    return [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in values.items()]
+
+
+class ActiveMapping:
+    """The three nodes of one process with their shared map and executor.
+
+    ``params``: ``{"mapper": {...}, "nbv_planner": {...}, "keyframe_selector": {...}}`` overrides
+    (params files and ``--ros-args`` given to the context apply as well). :meth:`start` spins the
+    executor in a thread; :meth:`shutdown` stops it, joins every thread and destroys the nodes.
+    """
+
+    def __init__(
+        self, context: Context | None = None, params: dict[str, dict[str, Any]] | None = None, threads: int = 4
+    ) -> None:
+        params = params or {}
+        unknown = sorted(set(params) - set(NODE_NAMES))
+        if unknown:
+            raise ValueError(f"unknown node name(s) {', '.join(unknown)}; expected {', '.join(NODE_NAMES)}")
+        self.context = context
+        self.shared = SharedMapper()
+        self.nodes: list[Node] = []
+        try:
+            self.mapper = MapperNode(
+                context=context, parameter_overrides=_as_parameters(params.get("mapper")), shared=self.shared
+            )
+            self.nodes.append(self.mapper)
+            self.planner = NBVPlannerNode(
+                context=context, parameter_overrides=_as_parameters(params.get("nbv_planner")), shared=self.shared
+            )
+            self.nodes.append(self.planner)
+            self.selector = KeyframeSelectorNode(
+                context=context,
+                parameter_overrides=_as_parameters(params.get("keyframe_selector")),
+                shared=self.shared,
+            )
+            self.nodes.append(self.selector)
+        except BaseException:
+            for node in self.nodes:
+                node.destroy_node()
+            raise
+        self.executor = MultiThreadedExecutor(num_threads=threads, context=context)
+        for node in self.nodes:
+            self.executor.add_node(node)
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> ActiveMapping:
+        """Spin the executor in a background thread; returns self."""
+        self._thread = threading.Thread(target=self._spin, name="active_mapping_executor", daemon=True)
+        self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        with contextlib.suppress(ExternalShutdownException):
+            self.executor.spin()
+
+    def spin_until_shutdown(self) -> None:
+        """Spin in this thread until the context shuts down or Ctrl-C."""
+        ok = self.context.ok if self.context is not None else rclpy.ok
+        try:
+            while ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+
+    def status(self) -> dict[str, Any]:
+        """The three nodes' status dicts."""
+        return {
+            "mapper": self.mapper.status(),
+            "nbv_planner": self.planner.status(),
+            "selector": self.selector.status(),
+        }
+
+    def shutdown(self) -> None:
+        """Stop the executor, join its thread and the mapper's worker, destroy the nodes (idempotent)."""
+        for node in self.nodes:  # long service work gives up at once (see MapperNode.stop)
+            stop = getattr(node, "stop", None)
+            if callable(stop):
+                stop()
+        self.executor.shutdown()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        for node in self.nodes:
+            node.destroy_node()
+        self.nodes = []
+
+    def __enter__(self) -> ActiveMapping:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``active_mapping``: run the three nodes until Ctrl-C; exit 2 on a bad parameter."""
+    rclpy.init(args=sys.argv if args is None else args)
+    try:
+        system = ActiveMapping()
+    except BAD_PARAMETER_ERRORS as exc:
+        hint = " (a float parameter needs a decimal point, e.g. 1.0)" if "expecting type 'DOUBLE'" in str(exc) else ""
+        print(f"active_mapping: error: {exc}{hint}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        system.spin_until_shutdown()
+    finally:
+        system.shutdown()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

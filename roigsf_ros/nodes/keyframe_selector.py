@@ -1,0 +1,351 @@
+"""``keyframe_selector`` node: picks keyframes from the incoming frames and names them on ``/roigsf/keyframe``.
+
+The first frame is always a keyframe. Then, by ``policy``:
+
+- ``roi-gsurfisher``, ``roi-fisher``, ``close-front``, ``fisherrf`` (the planner policies): the stream
+  setting of :class:`roigsf_ros.nbv_policies.StreamNBVPolicy`. The node keeps the last ``window``
+  frames that are not keyframes; every ``trigger_every`` frames (0 = ``window``) it sends their poses
+  to the planner's service (asynchronously: ``call_async`` and a timer that checks the answer, never a
+  blocking call in a callback) and names the winner. When the planner is not available, answers
+  ``success: false`` or does not answer within ``planner_timeout_s``, the window is decided by
+  ``fallback_policy`` instead (logged "planner ... did not answer ...: fallback ..."); the next window
+  asks the planner again, so the selector resumes using it as soon as it answers.
+- ``random`` (a seeded pick from the window, as the library's stream baseline), ``every-n``
+  (``every_n``), ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the
+  mapper's ``/roigsf/map``) and ``all`` decide alone with the library's policies.
+
+The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
+the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
+planner calls, failures, timeouts and fallbacks.
+
+    keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.task import Future
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+
+from roigsf_interfaces.srv import GetNextBestView
+from roigsf_ros.bags import BagFrame
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.errors import InputError
+from roigsf_ros.keyframes import KeyframePolicy, make_policy
+from roigsf_ros.mapping import Mapper
+from roigsf_ros.nbv import MODES
+from roigsf_ros.nodes.bag_player import reliable_qos
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
+from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
+from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_topic_params, frame_of, latched_qos
+from roigsf_ros.nodes.node_params import check_positive, declare, run_nodes
+from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
+from roigsf_ros.replica import Frame
+from roigsf_ros.surfels import SurfelMap
+
+PLANNER_POLICIES = MODES
+"""Policies whose keyframes the NBV planner chooses (its score modes)."""
+ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all")
+"""Policies that decide without the planner (the baselines, and the fallbacks)."""
+PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
+
+
+class _KeyframeSink:
+    """Stands in for the Mapper of the library's stream policies: records the frames they insert."""
+
+    def __init__(self) -> None:
+        self.keyframes: list[Frame] = []
+        self.inserted: list[Frame] = []
+
+    def add_keyframe(self, frame: Frame) -> bool:
+        """Record ``frame`` (the policy's winner) for publication."""
+        self.inserted.append(frame)
+        return True
+
+
+class KeyframeSelectorNode(Node):
+    """The keyframe selector; see the module docstring. ``shared`` given: gaus-slam reads the in-process map."""
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        parameter_overrides: list[Parameter] | None = None,
+        shared: SharedMapper | None = None,
+        node_name: str = "keyframe_selector",
+    ) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        try:
+            self._setup(shared)
+        except BaseException:
+            super().destroy_node()
+            raise
+
+    # ------------------------------------------------------------------------------ set-up
+    def _setup(self, shared: SharedMapper | None) -> None:
+        names = (*PLANNER_POLICIES, *ALONE_POLICIES)
+        self.policy = str(declare(self, "policy", "roi-gsurfisher", f"keyframe policy: {', '.join(names)}"))
+        self.window = int(declare(self, "window", 8, "candidate frames kept (the most recent non-keyframes)"))
+        trigger = int(declare(self, "trigger_every", 0, "frames between two selections (0 = window)"))
+        self.seed = int(declare(self, "seed", 0, "seed of the random pick (policy or fallback random)"))
+        self.every_n = int(declare(self, "every_n", 5, "every-n: every n-th frame is a keyframe"))
+        self.tau_k = float(declare(self, "tau_k", 0.01, "gaus-slam: keyframe when this fraction renders unmapped"))
+        self.alpha_threshold = float(declare(self, "alpha_threshold", 0.5, "gaus-slam: alpha below this is unmapped"))
+        self.service_name = str(declare(self, "planner_service", PLANNER_SERVICE, "the planner's service"))
+        self.timeout_s = float(declare(self, "planner_timeout_s", 10.0, "seconds to wait for the planner's answer"))
+        self.fallback = str(declare(self, "fallback_policy", "random", "decides when the planner does not answer"))
+        topics = camera_topic_params(self)
+        keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
+        map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
+        self.frame_id = str(declare(self, "frame_id", "map", "frame of the published poses"))
+        qos_depth = int(declare(self, "qos_depth", 100, "keep-last depth of the camera subscriptions"))
+        status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
+        if self.policy not in names:
+            raise InputError("parameter 'policy'", f"unknown policy '{self.policy}' (choose from {', '.join(names)})")
+        if self.fallback not in ALONE_POLICIES:
+            choices = ", ".join(ALONE_POLICIES)
+            raise InputError("parameter 'fallback_policy'", f"'{self.fallback}' must decide alone: one of {choices}")
+        check_positive("window", self.window)
+        check_positive("trigger_every", trigger, allow_zero=True)
+        check_positive("planner_timeout_s", self.timeout_s)
+        check_positive("qos_depth", qos_depth)
+        check_positive("status_rate_hz", status_hz, allow_zero=True)
+        self.trigger_every = trigger or self.window
+        self.uses_planner = self.policy in PLANNER_POLICIES
+        self._alone = self._make_alone(self.policy) if not self.uses_planner else None
+        self._fallback = self._make_alone(self.fallback)
+        self._fallback_rng = np.random.default_rng(self.seed)
+
+        self.shared = shared
+        self._lock = threading.RLock()
+        self._cloud: PointCloud2 | None = None
+        self._cloud_version = 0
+        self._view: tuple[int, Mapper] | None = None
+        self._buffer: deque[Frame] = deque(maxlen=self.window)
+        self._since_trigger = 0
+        self._seen = 0
+        self._request: tuple[Future, list[Frame], float] | None = None
+        self._request_intr: Intrinsics | None = None
+        self._planner_down = False
+        self.keyframe_ids: list[int] = []
+        """Stamps (ns) of the keyframes published, in order."""
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "fallbacks"), 0
+        )
+
+        inputs = MutuallyExclusiveCallbackGroup()
+        planner = MutuallyExclusiveCallbackGroup()
+        self.camera = CameraInput(self, self._on_frame, reliable_qos(qos_depth), topics, callback_group=inputs)
+        self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
+        self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
+        self._client = self.create_client(GetNextBestView, self.service_name, callback_group=planner)
+        self.create_timer(0.05, self._check_request, callback_group=planner)
+        if status_hz > 0:
+            self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
+        if shared is None and "gaus-slam" in (self.policy, self.fallback):
+            self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
+        how = f"asking {self.service_name} (fallback {self.fallback})" if self.uses_planner else "deciding alone"
+        self.get_logger().info(f"policy {self.policy}: {how}; keyframes on {keyframe_topic}")
+
+    def _make_alone(self, name: str) -> KeyframePolicy:
+        params: dict[str, Any] = {
+            "random": {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed},
+            "every-n": {"n": self.every_n},
+            "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
+            "all": {},
+        }[name]
+        return make_policy(name, **params)
+
+    # ------------------------------------------------------------------------------ map (gaus-slam)
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._lock:
+            self._cloud = msg
+            self._cloud_version += 1
+
+    def _map_view(self, intr: Intrinsics) -> Mapper:
+        """A Mapper holding the current map to render (an empty one before any map arrives)."""
+        if self.shared is not None:
+            snap = self.shared.snapshot(with_h_train=False)
+            if snap is None:
+                return view_mapper(SurfelMap.empty(), intr)
+            with self._lock:
+                if self._view is None or self._view[0] != snap.version:
+                    self._view = (snap.version, view_mapper(snap.surfel_map, snap.intrinsics, snap.config))
+                return self._view[1]
+        with self._lock:
+            if self._view is None or self._view[0] != self._cloud_version:
+                surfels = SurfelMap.empty()
+                if self._cloud is not None:
+                    try:
+                        surfels = cloud_to_surfel_map(self._cloud)
+                    except InputError as exc:
+                        self.get_logger().warning(f"ignored map: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+                self._view = (self._cloud_version, view_mapper(surfels, intr))
+            return self._view[1]
+
+    # ------------------------------------------------------------------------------ frames
+    def _on_frame(self, bf: BagFrame) -> None:
+        frame = frame_of(bf)
+        with self._lock:
+            first = self._seen == 0
+            self._seen += 1
+            if not self.uses_planner:
+                self._decide_alone(self._alone, [frame], bf.intrinsics, force_first=first)
+                return
+            if first:
+                self._publish(frame)
+                return
+            self._buffer.append(frame)
+            self._since_trigger += 1
+            if self._since_trigger < self.trigger_every:
+                return
+            self._since_trigger = 0
+            candidates = list(self._buffer)
+        self._ask_planner(candidates, bf.intrinsics)
+
+    def _decide_alone(
+        self, policy: KeyframePolicy, frames: list[Frame], intr: Intrinsics, force_first: bool = False
+    ) -> None:
+        """Run a library policy over ``frames`` and publish what it picks."""
+        for frame in frames:
+            if policy.name == "random":
+                sink = _KeyframeSink()
+                picked = policy.observe(frame, sink)  # type: ignore[arg-type]  # the sink stands in for a Mapper
+                chosen = ([frame] if picked or force_first else []) + sink.inserted
+            else:
+                view = self._map_view(intr) if policy.name == "gaus-slam" else None
+                picked = policy.observe(frame, view)  # type: ignore[arg-type]  # only gaus-slam reads the map
+                chosen = [frame] if picked or force_first else []
+            force_first = False
+            for f in chosen:
+                self._publish(f)
+
+    # ------------------------------------------------------------------------------ planner
+    def _ask_planner(self, candidates: list[Frame], intr: Intrinsics) -> None:
+        with self._lock:
+            if self._request is not None:
+                self._fall_back(candidates, intr, "is still busy with the previous window")
+                return
+            if not self._client.service_is_ready():
+                self._fall_back(candidates, intr, "is not available")
+                return
+            req = GetNextBestView.Request(mode=self.policy, top_k=0)
+            req.candidates = poses_to_array([f.T_wc for f in candidates], self.get_clock().now().nanoseconds)
+            req.candidates.header.frame_id = self.frame_id
+            self.counters["planner_calls"] += 1
+            self._request = (self._client.call_async(req), candidates, time.monotonic())
+            self._request_intr = intr
+
+    def _check_request(self) -> None:
+        """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed."""
+        with self._lock:
+            if self._request is None:
+                return
+            future, candidates, t_sent = self._request
+            intr = self._request_intr
+            if future.done():
+                self._request = None
+                res = future.result() if future.exception() is None else None
+                if res is None or not res.success:
+                    self.counters["planner_failures"] += 1
+                    why = "no answer" if res is None else res.message
+                    self._fall_back(candidates, intr, f"answered success=false ({why})")
+                    return
+                if not 0 <= res.best_index < len(candidates):
+                    self.counters["planner_failures"] += 1
+                    self._fall_back(candidates, intr, f"answered an invalid best_index {res.best_index}")
+                    return
+                self.counters["planner_answers"] += 1
+                if self._planner_down:
+                    self._planner_down = False
+                    self.get_logger().info(f"planner {self.service_name} answers again: using it")
+                winner = candidates[res.best_index]
+                self._drop_from_window(winner)
+                self._publish(winner)
+            elif time.monotonic() - t_sent > self.timeout_s:
+                self._request = None
+                self._client.remove_pending_request(future)
+                future.cancel()
+                self.counters["planner_timeouts"] += 1
+                self._fall_back(candidates, intr, f"did not answer within {self.timeout_s:g} s")
+
+    def _fall_back(self, candidates: list[Frame], intr: Intrinsics, why: str) -> None:
+        """Decide a window with ``fallback_policy`` (call with the lock held); logs the first of a run of them."""
+        self.counters["fallbacks"] += 1
+        msg = f"planner {self.service_name} {why}: fallback {self.fallback}"
+        if not self._planner_down:
+            self.get_logger().warning(msg)
+        else:
+            self.get_logger().warning(msg, throttle_duration_sec=WARN_THROTTLE_S)
+        self._planner_down = True
+        if self.fallback == "random":
+            winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
+            self._drop_from_window(winner)
+            self._publish(winner)
+            return
+        for f in candidates:
+            self._drop_from_window(f)
+        self._decide_alone(self._fallback, candidates, intr)
+
+    def _drop_from_window(self, frame: Frame) -> None:
+        """Remove ``frame`` (by identity: frames hold arrays) from the candidate window if it is still there."""
+        for i, f in enumerate(self._buffer):
+            if f is frame:
+                del self._buffer[i]
+                return
+
+    # ------------------------------------------------------------------------------ outputs
+    def _publish(self, frame: Frame) -> None:
+        self.keyframe_ids.append(int(frame.index))
+        self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
+
+    def status(self) -> dict[str, Any]:
+        """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""
+        cam = self.camera.stats()
+        with self._lock:
+            return {
+                "policy": self.policy,
+                "frames": cam["frames"],
+                "frames_rejected": cam["rejected"],
+                "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "keyframes_published": len(self.keyframe_ids),
+                "keyframe_ids": list(self.keyframe_ids),
+                "window": [f.index for f in self._buffer],
+                "planner_pending": self._request is not None,
+                **self.counters,
+            }
+
+    def publish_status(self) -> None:
+        """Publish :meth:`status` as JSON on ``~/status``."""
+        self._status_pub.publish(String(data=json.dumps(self.status())))
+
+    def destroy_node(self) -> None:
+        """Drop a planner request still in flight, then destroy the node."""
+        with self._lock:
+            if self._request is not None:
+                self._client.remove_pending_request(self._request[0])
+                self._request[0].cancel()
+                self._request = None
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``keyframe_selector``: run until Ctrl-C; exit 2 on a bad parameter."""
+    return run_nodes("keyframe_selector", lambda: [KeyframeSelectorNode()], args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

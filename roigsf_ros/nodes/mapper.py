@@ -1,0 +1,543 @@
+"""``mapper`` node: builds the surfel map from the keyframes the selector names, in a background thread.
+
+Subscribes to the camera topics (:class:`~roigsf_ros.nodes.camera_input.CameraInput`) and keeps the
+most recent ``frame_buffer_size`` frames by stamp; a ``geometry_msgs/PoseStamped`` on ``keyframe_topic``
+names a frame by its header stamp, and that frame joins a bounded queue of keyframes to insert. A
+keyframe whose frame has not arrived yet waits up to ``keyframe_wait_s``; one whose frame was evicted
+or never received is counted and warned about. A worker thread inserts each keyframe
+(:meth:`Mapper.add_keyframe`: densify, then ``iters_per_keyframe`` steps), then spends up to
+``idle_iters_per_keyframe`` further steps over random keyframes while no keyframe waits, always in
+slices of ``optimise_slice_iters`` steps under the shared lock, so readers never wait long.
+
+Keyframe ids are the frames' header stamps in nanoseconds: unique across processes and restarts.
+
+Outputs: the map as ``sensor_msgs/PointCloud2`` (:mod:`~roigsf_ros.nodes.map_msgs` layout, transient
+local, at most ``map_publish_rate_hz``) and the keyframe poses as ``geometry_msgs/PoseArray`` (same
+QoS); ``~/status`` (``std_msgs/String`` JSON counters); services ``~/save_map``, ``~/load_map``
+(``roigsf_interfaces/srv/SaveMap``, ``LoadMap``) and ``~/publish_mesh`` (``std_srvs/Trigger``: the
+mesh, decimated to at most ``mesh_marker_max_triangles``, as a ``visualization_msgs/Marker`` on
+``~/mesh``, sent as serialized bytes built in bulk). ``load_map`` at start resumes a saved map.
+With ``map_with_h_train`` the cloud also carries the mapper's running training Fisher (``htrain_``
+fields), so a planner in another process scores like an in-process one, with no Fisher pass of its own.
+
+Long service work (the mesh) runs in a helper thread that the callback waits for while watching
+:meth:`MapperNode.stop` and the context, so Ctrl-C never waits for it (a callback still running
+in the executor's thread pool would hold the process at exit).
+
+    mapper --ros-args --params-file config/mapper.yaml -p iters_per_keyframe:=20
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker
+
+from roigsf_interfaces.srv import LoadMap, SaveMap
+from roigsf_ros.bags import BagFrame, CameraTopics, stamp_to_ns
+from roigsf_ros.errors import InputError
+from roigsf_ros.mapping import MapperConfig
+from roigsf_ros.nodes.bag_player import reliable_qos
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
+from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
+from roigsf_ros.nodes.node_params import check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
+from roigsf_ros.replica import Frame
+
+KEYFRAME_TOPIC = "/roigsf/keyframe"
+MAP_TOPIC = "/roigsf/map"
+KEYFRAME_POSES_TOPIC = "/roigsf/keyframe_poses"
+MISSING_AFTER_NEWER_FRAMES = 3
+"""A keyframe waiting for its frame is given up once this many newer frames arrived (or after keyframe_wait_s)."""
+
+
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Reliable, transient-local, keep-last ``depth``: a late joiner gets the latest map at once."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+def camera_topic_params(node: Node) -> CameraTopics:
+    """Declare ``color_topic``, ``depth_topic``, ``camera_info_topic``, ``pose_topic``; the topics they name."""
+    d = CameraTopics()
+    return CameraTopics(
+        color=declare(node, "color_topic", d.color, "colour image topic (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8)"),
+        depth=declare(node, "depth_topic", d.depth, "depth image topic (sensor_msgs/Image 32FC1 m or 16UC1 mm)"),
+        camera_info=declare(node, "camera_info_topic", d.camera_info, "camera info topic (sensor_msgs/CameraInfo)"),
+        pose=declare(node, "pose_topic", d.pose, "camera pose topic (geometry_msgs/PoseStamped, optical frame)"),
+    )
+
+
+def frame_of(bf: BagFrame) -> Frame:
+    """The library frame of a received camera frame; its index is the stamp in nanoseconds."""
+    return Frame(index=int(bf.stamp_ns), rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc)
+
+
+class MapperNode(Node):
+    """The mapper; see the module docstring. ``shared`` given: map into that in-process SharedMapper."""
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        parameter_overrides: list[Parameter] | None = None,
+        shared: SharedMapper | None = None,
+        node_name: str = "mapper",
+    ) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        self._thread: threading.Thread | None = None
+        try:
+            self._setup(shared)
+        except BaseException:
+            super().destroy_node()
+            raise
+
+    # ------------------------------------------------------------------------------ set-up
+    def _setup(self, shared: SharedMapper | None) -> None:
+        self.config = MapperConfig(**declare_config(self, MapperConfig)).validate()
+        topics = camera_topic_params(self)
+        keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes to insert (PoseStamped, stamp)")
+        map_topic = declare(self, "map_topic", MAP_TOPIC, "map output (PointCloud2, transient local)")
+        poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "keyframe poses (PoseArray)")
+        self.frame_id = declare(self, "frame_id", "map", "frame of the map, its cloud and the keyframe poses")
+        self.buffer_size = int(declare(self, "frame_buffer_size", 64, "recent frames kept to match keyframes"))
+        self.max_pending = int(declare(self, "max_pending_keyframes", 16, "bound of the queue of keyframes"))
+        self.wait_s = float(
+            declare(self, "keyframe_wait_s", 10.0, "seconds a keyframe waits for its frame (unless a newer one came)")
+        )
+        self.slice_iters = int(declare(self, "optimise_slice_iters", 2, "optimiser steps per hold of the map lock"))
+        self.idle_iters = int(
+            declare(self, "idle_iters_per_keyframe", 10, "extra steps over random keyframes per keyframe, when idle")
+        )
+        publish_hz = float(declare(self, "map_publish_rate_hz", 1.0, "map cloud publications per second at most"))
+        status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
+        qos_depth = int(declare(self, "qos_depth", 100, "keep-last depth of the camera and keyframe subscriptions"))
+        load_dir = str(declare(self, "load_map", "", "saved map folder to resume from at start ('' = none)"))
+        self.autosave_dir = str(declare(self, "autosave_dir", "", "folder the map is saved to ('' = never)"))
+        self.autosave_every = int(declare(self, "autosave_every", 0, "save to autosave_dir every this many keyframes"))
+        self.mesh_max_triangles = int(
+            declare(self, "mesh_marker_max_triangles", 100000, "~/mesh marker decimated to at most this many triangles")
+        )
+        self.map_with_h_train = bool(
+            declare(self, "map_with_h_train", True, "map cloud carries the running training Fisher (htrain_)")
+        )
+        for name, value in (("frame_buffer_size", self.buffer_size), ("max_pending_keyframes", self.max_pending)):
+            check_positive(name, value)
+        check_positive("optimise_slice_iters", self.slice_iters)
+        check_positive("qos_depth", qos_depth)
+        for name, value in (("keyframe_wait_s", self.wait_s), ("idle_iters_per_keyframe", self.idle_iters)):
+            check_positive(name, value, allow_zero=True)
+        check_positive("map_publish_rate_hz", publish_hz, allow_zero=True)
+        check_positive("status_rate_hz", status_hz, allow_zero=True)
+        check_positive("autosave_every", self.autosave_every, allow_zero=True)
+        check_positive("mesh_marker_max_triangles", self.mesh_max_triangles, allow_zero=True)
+
+        self.in_process = shared is not None
+        if shared is None:
+            shared = SharedMapper(self.config)
+        elif shared.mapper is None:
+            shared.config = self.config
+        self.shared = shared
+        if load_dir:
+            loaded = shared.load(load_dir)
+            self.get_logger().info(
+                f"resumed map {load_dir}: {len(loaded.loaded_keyframe_ids)} keyframes, {loaded.n_surfels} surfels"
+            )
+
+        self._lock = threading.Lock()  # node state below (not the map: that is shared.lock)
+        self._wake = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._frames: OrderedDict[int, Frame] = OrderedDict()
+        self._pending: deque[Frame] = deque()
+        self._waiting: dict[int, list[float]] = {}  # stamp -> [time received, newer frames seen since]
+        self._queued_ids: set[int] = set(shared.keyframe_ids())
+        self._idle_left = 0
+        self._busy = False
+        with shared.lock:
+            self._intr = None if shared.mapper is None else shared.mapper.intr
+        self.counters: dict[str, int] = dict.fromkeys(
+            (
+                "keyframe_msgs",
+                "keyframes_inserted",
+                "keyframes_missing",
+                "keyframes_dropped_overflow",
+                "keyframes_duplicate",
+                "keyframes_failed",
+                "frames_evicted",
+                "frames_bad_intrinsics",
+                "map_publishes",
+                "autosaves",
+            ),
+            0,
+        )
+
+        inputs = MutuallyExclusiveCallbackGroup()
+        keyframes = MutuallyExclusiveCallbackGroup()
+        outputs = MutuallyExclusiveCallbackGroup()
+        services = MutuallyExclusiveCallbackGroup()
+        self.camera = CameraInput(self, self._on_frame, reliable_qos(qos_depth), topics, callback_group=inputs)
+        self.create_subscription(
+            PoseStamped, keyframe_topic, self._on_keyframe, reliable_qos(qos_depth), callback_group=keyframes
+        )
+        self._map_pub = self.create_publisher(PointCloud2, map_topic, latched_qos())
+        self._poses_pub = self.create_publisher(PoseArray, poses_topic, latched_qos())
+        self._mesh_pub = self.create_publisher(Marker, "~/mesh", latched_qos())
+        self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
+        self._published_version = -1
+        if publish_hz > 0:
+            self.create_timer(1.0 / publish_hz, self.publish_map, callback_group=outputs)
+        if status_hz > 0:
+            self.create_timer(1.0 / status_hz, self.publish_status, callback_group=outputs)
+        self.create_timer(0.1, self._expire_waiting, callback_group=keyframes)
+        self.create_service(SaveMap, "~/save_map", self._on_save, callback_group=services)
+        self.create_service(LoadMap, "~/load_map", self._on_load, callback_group=services)
+        self.create_service(Trigger, "~/publish_mesh", self._on_mesh, callback_group=services)
+        self._thread = threading.Thread(target=self._work, name=f"{self.get_name()}_worker", daemon=True)
+        self._thread.start()
+        self.get_logger().info(
+            f"mapping keyframes named on {keyframe_topic} from {topics.color}; map on {map_topic} "
+            f"({'shared in-process' if self.in_process else 'own'} map)"
+        )
+
+    # ------------------------------------------------------------------------------ inputs
+    def _on_frame(self, bf: BagFrame) -> None:
+        # Never wait for the map lock here (the worker holds it for whole insertions): the intrinsics are
+        # checked against a node-local copy; only the very first frame creates the map.
+        try:
+            intr = self._intr
+            if intr is None:
+                self._intr = self.shared.ensure(bf.intrinsics).intr
+            elif not same_camera(intr, bf.intrinsics):
+                raise InputError("camera_info", f"intrinsics {bf.intrinsics} differ from the map's {intr}")
+        except InputError as exc:
+            with self._lock:
+                self.counters["frames_bad_intrinsics"] += 1
+            self.get_logger().warning(f"dropped frame {bf.stamp_ns}: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        frame = frame_of(bf)
+        with self._wake:
+            self._frames[frame.index] = frame
+            while len(self._frames) > self.buffer_size:
+                self._frames.popitem(last=False)
+                self.counters["frames_evicted"] += 1
+            if self._waiting.pop(frame.index, None) is not None:
+                self._enqueue(frame)
+            # A keyframe whose frame has not come while MISSING_AFTER_NEWER_FRAMES newer frames did is missing
+            # (frames complete in stamp order up to a little reordering between the four topics).
+            missing = []
+            for s, entry in self._waiting.items():
+                if s < frame.index:
+                    entry[1] += 1
+                    if entry[1] >= MISSING_AFTER_NEWER_FRAMES:
+                        missing.append(s)
+            for s in missing:
+                del self._waiting[s]
+            self.counters["keyframes_missing"] += len(missing)
+        if missing:
+            self.get_logger().warning(
+                f"{len(missing)} keyframe(s) dropped: a newer frame arrived but not theirs",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+
+    def _on_keyframe(self, msg: PoseStamped) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        warn = None
+        with self._wake:
+            self.counters["keyframe_msgs"] += 1
+            if stamp in self._queued_ids or stamp in self._waiting:
+                self.counters["keyframes_duplicate"] += 1
+            elif stamp in self._frames:
+                self._enqueue(self._frames[stamp])
+            elif not self._frames or stamp > next(reversed(self._frames)):
+                if len(self._waiting) >= self.max_pending:
+                    self.counters["keyframes_dropped_overflow"] += 1
+                    warn = f"keyframe {stamp}: too many keyframes wait for their frames; dropped"
+                else:
+                    self._waiting[stamp] = [time.monotonic(), 0]
+            else:
+                self.counters["keyframes_missing"] += 1
+                warn = f"keyframe {stamp}: its frame was never received or already left the buffer; dropped"
+        if warn:
+            self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _enqueue(self, frame: Frame) -> None:
+        """Queue a keyframe for the worker (call with ``self._wake`` held); drops the oldest when full."""
+        self._queued_ids.add(frame.index)
+        self._pending.append(frame)
+        if len(self._pending) > self.max_pending:
+            old = self._pending.popleft()
+            self._queued_ids.discard(old.index)
+            self.counters["keyframes_dropped_overflow"] += 1
+            self.get_logger().warning(
+                f"keyframe queue full ({self.max_pending}): dropped keyframe {old.index}",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+        self._wake.notify()
+
+    def _expire_waiting(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            expired = [s for s, (t, _) in self._waiting.items() if now - t > self.wait_s]
+            for s in expired:
+                del self._waiting[s]
+            self.counters["keyframes_missing"] += len(expired)
+        if expired:
+            self.get_logger().warning(
+                f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+
+    # ------------------------------------------------------------------------------ worker
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            with self._wake:
+                if not self._pending and self._idle_left <= 0:
+                    self._busy = False
+                    self._wake.wait(0.5)
+                frame = self._pending.popleft() if self._pending else None
+                self._busy = frame is not None or self._idle_left > 0
+            try:
+                if frame is not None:
+                    self._insert(frame)
+                elif self._idle_left > 0:
+                    n = min(self.slice_iters, self._idle_left)
+                    self._idle_left -= n
+                    with self.shared.lock:
+                        m = self.shared.mapper
+                        if m is not None and m.keyframes:
+                            m.optimise(n, newest=None)
+                            self.shared.touch()
+                    self.shared.yield_to_readers()
+            except Exception as exc:  # keep mapping: one bad keyframe must not stop the node
+                with self._lock:
+                    self.counters["keyframes_failed"] += 1
+                self.get_logger().error(f"mapping step failed: {exc}")
+
+    def _insert(self, frame: Frame) -> None:
+        self.shared.yield_to_readers()
+        with self.shared.lock:
+            m = self.shared.mapper
+            if m is None:
+                return
+            try:
+                ok = m.add_keyframe(frame, optimise=False)
+            except InputError as exc:
+                ok = False
+                self.get_logger().warning(f"keyframe {frame.index} not inserted: {exc}")
+            self.shared.touch()
+            newest = len(m.keyframes) - 1
+        if not ok:
+            with self._lock:
+                self.counters["keyframes_failed"] += 1
+            return
+        left = self.config.iters_per_keyframe
+        while left > 0 and not self._stop.is_set():
+            n = min(self.slice_iters, left)
+            with self.shared.lock:
+                if self.shared.mapper is not m:  # a map was loaded meanwhile
+                    return
+                m.optimise(n, newest=newest)
+                self.shared.touch()
+            left -= n
+            self.shared.yield_to_readers()
+        with self.shared.lock:
+            if self.shared.mapper is m and len(m.keyframes) % self.config.prune_every == 0:
+                m.prune()
+                self.shared.touch()
+            if self.shared.mapper is m and m.config.track_h_train:
+                m.h_train  # noqa: B018 - adds the new keyframe's Fisher now, so that snapshots only clone
+            n_kf = len(m.keyframes) + len(m.loaded_keyframe_ids)
+        with self._lock:
+            self.counters["keyframes_inserted"] += 1
+            self._idle_left += self.idle_iters
+        if self.autosave_dir and self.autosave_every and n_kf % self.autosave_every == 0:
+            self.save(self.autosave_dir, overwrite=True)
+            with self._lock:
+                self.counters["autosaves"] += 1
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until no keyframe is queued or waiting and the worker is idle; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if not self._pending and not self._waiting and not self._busy:
+                    return True
+            time.sleep(0.02)
+        return False
+
+    # ------------------------------------------------------------------------------ outputs
+    def publish_map(self, force: bool = False) -> bool:
+        """Publish the map cloud and keyframe poses if the map changed since the last time; True if published."""
+        if not force and self.shared.version == self._published_version:
+            return False
+        snap = self.shared.snapshot(with_h_train=self.map_with_h_train)
+        if snap is None:
+            return False
+        stamp = self.get_clock().now().nanoseconds
+        outputs = snap.config.fisher_outputs
+        self._map_pub.publish(surfel_map_to_cloud(snap.surfel_map, stamp, self.frame_id, snap.h_train, outputs))
+        self._poses_pub.publish(poses_to_array(snap.keyframe_poses, stamp, self.frame_id))
+        self._published_version = snap.version
+        with self._lock:
+            self.counters["map_publishes"] += 1
+        return True
+
+    def status(self) -> dict[str, Any]:
+        """Counters: frames, keyframes (ids are stamps in ns), queue sizes, drops by reason, map size."""
+        snap_ids = self.shared.keyframe_ids()
+        with self.shared.lock:
+            m = self.shared.mapper
+            surfels = 0 if m is None else m.n_surfels
+            stats = {} if m is None else dict(vars(m.stats))
+        cam = self.camera.stats()
+        with self._lock:
+            return {
+                "frames_received": cam["frames"],
+                "frames_rejected": cam["rejected"],
+                "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "keyframes": len(snap_ids),
+                "keyframe_ids": snap_ids,
+                "surfels": surfels,
+                "pending_keyframes": len(self._pending),
+                "waiting_keyframes": len(self._waiting),
+                "buffered_frames": len(self._frames),
+                "map_version": self.shared.version,
+                **self.counters,
+                "mapper_stats": stats,
+            }
+
+    def publish_status(self) -> None:
+        """Publish :meth:`status` as JSON on ``~/status``."""
+        self._status_pub.publish(String(data=json.dumps(self.status())))
+
+    def save(self, directory: str, with_mesh: bool = False, overwrite: bool = False) -> tuple[int, int]:
+        """Save the map (atomically) into ``directory``; returns (keyframes, surfels)."""
+        snap = self.shared.save(directory, with_mesh=with_mesh, overwrite=overwrite)
+        return len(snap.keyframe_ids), snap.n_surfels
+
+    def _on_save(self, req: SaveMap.Request, res: SaveMap.Response) -> SaveMap.Response:
+        try:
+            if not req.directory:
+                raise InputError("directory", "no folder given")
+            res.keyframes, res.surfels = self.save(req.directory, req.with_mesh, req.overwrite)
+            res.success = True
+            res.message = f"saved {res.keyframes} keyframes, {res.surfels} surfels to {req.directory}"
+            self.get_logger().info(res.message)
+        except (InputError, OSError) as exc:
+            res.success, res.message = False, str(exc)
+            self.get_logger().warning(f"save_map failed: {exc}")
+        return res
+
+    def _on_load(self, req: LoadMap.Request, res: LoadMap.Response) -> LoadMap.Response:
+        try:
+            if not req.directory:
+                raise InputError("directory", "no folder given")
+            with self.shared.lock:
+                current = self.shared.mapper.intr if self.shared.mapper is not None else None
+            loaded = self.shared.load(Path(req.directory), expect_intr=current)
+            self._intr = loaded.intr
+            with self._lock:
+                self._queued_ids = set(self.shared.keyframe_ids())
+            res.success = True
+            res.keyframes, res.surfels = len(loaded.loaded_keyframe_ids), loaded.n_surfels
+            res.message = f"loaded {res.keyframes} keyframes, {res.surfels} surfels from {req.directory}"
+            self.get_logger().info(res.message)
+        except (InputError, OSError, ValueError, KeyError) as exc:
+            res.success, res.message = False, str(exc)
+            self.get_logger().warning(f"load_map failed: {exc}")
+        return res
+
+    def _on_mesh(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        try:
+            res.message = self._run_interruptible(self.publish_mesh)
+            res.success = True
+        except InputError as exc:
+            res.success, res.message = False, str(exc)
+        return res
+
+    def publish_mesh(self) -> str:
+        """Build the TSDF mesh, decimate it for display and publish it on ``~/mesh``; returns what was sent."""
+        mesh, snap = self.shared.mesh()
+        n_full = len(mesh.triangles)
+        mesh = decimate_mesh(mesh, self.mesh_max_triangles)
+        colours = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+        stamp = self.get_clock().now().nanoseconds
+        self._mesh_pub.publish(
+            mesh_marker_cdr(np.asarray(mesh.vertices), np.asarray(mesh.triangles), colours, stamp, self.frame_id)
+        )
+        shown = f"{len(mesh.triangles)} of {n_full}" if len(mesh.triangles) < n_full else f"{n_full}"
+        return (
+            f"mesh of {len(snap.keyframe_ids)} keyframes: {len(mesh.vertices)} vertices, "
+            f"{shown} triangles on {self.resolve_topic_name('~/mesh')}"
+        )
+
+    def _run_interruptible(self, work: Callable[[], str], poll_s: float = 0.1) -> str:
+        """Run ``work`` in a daemon thread and wait for it, giving up (InputError) when the node stops."""
+        box: dict[str, Any] = {}
+
+        def target() -> None:
+            try:
+                box["value"] = work()
+            except BaseException as exc:  # handed to the waiting callback
+                box["error"] = exc
+
+        thread = threading.Thread(target=target, name=f"{self.get_name()}_service_work", daemon=True)
+        thread.start()
+        while thread.is_alive():
+            thread.join(poll_s)
+            if self._stop.is_set() or not self.context.ok():
+                raise InputError("service", "the node is shutting down; request abandoned")
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    # ------------------------------------------------------------------------------ teardown
+    def stop(self) -> None:
+        """Ask the worker and any long service work to stop (returns at once; destroy_node joins the worker)."""
+        self._stop.set()
+        with self._wake:
+            self._wake.notify_all()
+
+    def destroy_node(self) -> None:
+        """Stop and join the worker thread, then destroy the node."""
+        self._stop_worker()
+        super().destroy_node()
+
+    def _stop_worker(self) -> None:
+        if self._thread is None:
+            return
+        self._stop.set()
+        with self._wake:
+            self._wake.notify_all()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``mapper``: run until Ctrl-C; exit 2 on a bad parameter."""
+    return run_nodes("mapper", lambda: [MapperNode()], args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

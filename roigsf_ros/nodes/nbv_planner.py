@@ -1,0 +1,539 @@
+"""``nbv_planner`` node: scores candidate views against the current map on request (ROI-GSurFisher and ablations).
+
+Holds the map: with ``shared`` (in-process) it snapshots the SharedMapper; otherwise it reads the
+mapper's ``/roigsf/map`` cloud, ``/roigsf/keyframe_poses`` and the camera info (intrinsics). It keeps
+the scoring TSDF, fused (as in the paper and :class:`roigsf_ros.nbv_policies.StreamNBVPolicy`) from the
+map's rendered depth at each keyframe pose, incrementally: each keyframe is fused once, when first
+seen (a timer every ``tsdf_sync_period_s`` and every request); a keyframe set that is no longer an
+extension of the fused one (a loaded map) rebuilds it. What the scorer derives from the TSDF alone, its
+near-surface voxels and the close-front memory W_f over the fused poses (exact: every pose on the
+current voxels), is kept with it and rebuilt only when a keyframe is fused, not at every request: with a
+loaded map (the whole room, 20+ keyframes) it was ~2/3 of the scorer's set-up, 1-4 s per request.
+The timer also brings H_train up to date between requests, so the one-time catch-up of a loaded map
+(its keyframes' Fisher: the mapper has no images of them) starts at load, not at the first request.
+
+H_train: the mapper's running training Fisher when it fits the mode (in-process: from the snapshot;
+from another process: the ``htrain_`` fields of the map cloud), as the mapper keeps it: each
+keyframe's Fisher is added once, at insertion, under the map of that moment; densified surfels start
+at zero, pruned ones drop out. Otherwise (FisherRF's parameters, ``sigma_p`` != 1, a loaded map whose
+keyframes the mapper has no images of) :class:`TrainFisherCache` keeps the same approximation here:
+the Fisher of each keyframe pose not seen before is added under the current map, the rows carried
+over to the current surfels (:func:`match_surfels`); recomputed from scratch only when the keyframe
+set is not an extension of the one summed (a loaded map) or every ``h_train_refresh_every`` new poses.
+
+Requests older than ``max_request_age_s`` (their ``candidates.header.stamp``; 0 = unstamped, always
+served) are refused before scoring, "stale request": the selector has given up on them by then, and
+scoring them would only delay the next window's request.
+
+Service ``~/get_next_best_view`` (``roigsf_interfaces/srv/GetNextBestView``) runs in a callback group of
+its own, so a multi-threaded executor keeps serving the node's other callbacks while it scores. It
+answers ``success: false`` with a reason for an empty candidate list, an unknown mode or frame, a bad
+pose (non-unit quaternion, NaN), or a map that is not ready; scores are always finite. After each
+success it publishes ``~/best_view`` (PoseStamped), ``~/candidate_scores`` (MarkerArray: an arrow per
+candidate coloured by its fused score, best in green and larger, and its score as text) and
+``~/uncertainty`` (32FC1 Image: Eq. 17's pixel uncertainty of the chosen view).
+
+    nbv_planner --ros-args --params-file config/nbv.yaml -p mode:=roi-fisher
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import torch
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from visualization_msgs.msg import Marker, MarkerArray
+
+from roigsf_interfaces.srv import GetNextBestView
+from roigsf_ros.bags import CameraTopics, camera_info_to_intrinsics, stamp_to_ns
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.close_front import CloseFrontMemory
+from roigsf_ros.errors import InputError
+from roigsf_ros.mapping import DEPTH_MODES, MapperConfig
+from roigsf_ros.nbv import MODES, NBVConfig, NBVResult, NBVScorer
+from roigsf_ros.nodes.bag_player import reliable_qos
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S
+from roigsf_ros.nodes.map_msgs import (
+    array_to_poses,
+    cloud_h_train,
+    cloud_to_surfel_map,
+    header,
+    matrix_to_pose,
+    pose_stamped,
+)
+from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_TOPIC, latched_qos
+from roigsf_ros.nodes.node_params import check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
+from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.tsdf import SurfaceVoxels, TSDFVolume
+
+_MAPPER_DEFAULTS = MapperConfig()
+
+
+def match_surfels(old_means: np.ndarray, new_means: np.ndarray, tol_m: float) -> np.ndarray:
+    """For each surfel of a newer map, the row of the older map it continues (-1: a surfel added since).
+
+    The Mapper keeps surviving surfels in order and appends new ones, so the longest common prefix
+    (centres within ``tol_m``) is matched as is; each later surfel takes the nearest older one within
+    ``tol_m`` not taken yet (optimisation moves centres by far less than the surfel spacing).
+    """
+    from scipy.spatial import cKDTree
+
+    old_means = np.asarray(old_means, dtype=np.float64).reshape(-1, 3)
+    new_means = np.asarray(new_means, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(new_means), -1, dtype=np.int64)
+    k = min(len(old_means), len(new_means))
+    close = np.linalg.norm(old_means[:k] - new_means[:k], axis=1) <= tol_m
+    prefix = k if bool(close.all()) else int(np.argmin(close))
+    out[:prefix] = np.arange(prefix)
+    rest_old = old_means[prefix:]
+    if prefix == len(new_means) or len(rest_old) == 0:
+        return out
+    dist, idx = cKDTree(rest_old).query(new_means[prefix:], k=1, distance_upper_bound=tol_m)
+    hit = np.flatnonzero(np.isfinite(dist))
+    _, first = np.unique(idx[hit], return_index=True)  # one older surfel continues at most one newer
+    hit = hit[first]
+    out[prefix + hit] = prefix + idx[hit]
+    return out
+
+
+def carry_rows(h: dict[str, torch.Tensor], rows: np.ndarray) -> dict[str, torch.Tensor]:
+    """``h`` re-indexed to a newer map: row i = h[rows[i]], zeros where rows[i] == -1."""
+    sel = torch.as_tensor(rows)
+    keep = sel >= 0
+    out = {}
+    for name, t in h.items():
+        new = t.new_zeros((len(rows), *t.shape[1:]))
+        new[keep] = t[sel[keep]]
+        out[name] = new
+    return out
+
+
+class TrainFisherCache:
+    """H_train over a growing set of keyframe poses, kept across map versions (see the module docstring).
+
+    One entry per Fisher kind (``fisherrf`` or the ROI modes'): pose keys summed, the sum, and the
+    surfel centres it is aligned with. ROS-free; not thread-safe (the planner calls it from one group).
+    """
+
+    def __init__(self, config: NBVConfig, match_tol_m: float = 0.01, refresh_every: int = 0) -> None:
+        self.config = config
+        self.match_tol_m = match_tol_m
+        self.refresh_every = refresh_every
+        self._entries: dict[str, tuple[list[bytes], dict[str, torch.Tensor], np.ndarray, int]] = {}
+        self.full_computations = 0
+        self.poses_added = 0
+
+    def get(self, surfel_map: SurfelMap, poses: np.ndarray, intr: Intrinsics, mode: str) -> dict[str, torch.Tensor]:
+        """H_train of ``mode`` for ``poses`` under ``surfel_map`` (incremental where the poses extend the last)."""
+        kind = "fisherrf" if mode == "fisherrf" else "fisher"
+        keys = [np.ascontiguousarray(T, dtype=np.float64).tobytes() for T in poses]
+        means = surfel_map.means.detach().cpu().numpy().astype(np.float64)
+        scorer = NBVScorer(self.config)
+        entry = self._entries.get(kind)
+        stale = entry is not None and self.refresh_every > 0 and entry[3] >= self.refresh_every
+        if entry is None or keys[: len(entry[0])] != entry[0] or stale:
+            h = scorer.train_fisher(surfel_map, poses, intr, mode)
+            self.full_computations += 1
+            self._entries[kind] = (keys, h, means, 0)
+            return h
+        old_keys, h, old_means, added = entry
+        if len(old_means) != len(means) or not np.array_equal(old_means, means):
+            h = carry_rows(h, match_surfels(old_means, means, self.match_tol_m))
+        if len(keys) > len(old_keys):
+            new = scorer.train_fisher(surfel_map, np.asarray(poses)[len(old_keys) :], intr, mode)
+            h = {k: h[k] + new[k] for k in h}
+            self.poses_added += len(keys) - len(old_keys)
+            added += len(keys) - len(old_keys)
+        self._entries[kind] = (keys, h, means, added)
+        return h
+
+
+class PreparedScorer(NBVScorer):
+    """An :class:`NBVScorer` that takes the near-surface voxels of one TSDF as already extracted."""
+
+    def __init__(self, config: NBVConfig, tsdf: TSDFVolume | None, voxels: SurfaceVoxels | None) -> None:
+        super().__init__(config)
+        self._tsdf = tsdf
+        self._voxels = voxels
+
+    def surface(self, tsdf: TSDFVolume | None) -> SurfaceVoxels | None:
+        """The prepared voxels for the prepared TSDF (same config), else extracted as usual."""
+        if tsdf is not None and tsdf is self._tsdf and self._voxels is not None:
+            return self._voxels
+        return super().surface(tsdf)
+
+
+class NBVPlannerNode(Node):
+    """The NBV planner; see the module docstring. ``shared`` given: score the in-process map."""
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        parameter_overrides: list[Parameter] | None = None,
+        shared: SharedMapper | None = None,
+        node_name: str = "nbv_planner",
+    ) -> None:
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        try:
+            self._setup(shared)
+        except BaseException:
+            super().destroy_node()
+            raise
+
+    # ------------------------------------------------------------------------------ set-up
+    def _setup(self, shared: SharedMapper | None) -> None:
+        self.nbv = NBVConfig(**declare_config(self, NBVConfig))
+        d = _MAPPER_DEFAULTS
+        self.voxel_size_m = float(declare(self, "voxel_size_m", d.mesh_voxel_size_m, "voxel of the scoring TSDF (m)"))
+        self.sdf_trunc_m = float(declare(self, "sdf_trunc_m", d.mesh_sdf_trunc_m, "truncation of the scoring TSDF (m)"))
+        self.min_alpha = float(
+            declare(self, "min_alpha", d.mesh_min_alpha, "rendered depth is fused where alpha >= this")
+        )
+        self.render_depth = str(declare(self, "render_depth", d.mesh_depth, "rendered depth fused: median or expected"))
+        self.max_depth_m = float(declare(self, "max_depth_m", d.max_depth_m, "depth range of the scoring TSDF (m)"))
+        self.render_near_m = float(declare(self, "render_near_m", d.near_m, "near plane of the renders (topic mode)"))
+        map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud of the mapper (used without a shared map)")
+        poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "keyframe poses (PoseArray)")
+        info_topic = declare(
+            self, "camera_info_topic", CameraTopics().camera_info, "camera info (intrinsics, topic mode)"
+        )
+        self.frame_id = str(declare(self, "frame_id", "map", "frame of candidate poses and outputs"))
+        sync_s = float(declare(self, "tsdf_sync_period_s", 1.0, "seconds between TSDF updates (0 = at requests only)"))
+        self.publish_uncertainty = bool(declare(self, "publish_uncertainty", True, "publish Eq. 17 of the best view"))
+        self.max_request_age_s = float(
+            declare(self, "max_request_age_s", 10.0, "refuse requests stamped longer ago than this (0 = no limit)")
+        )
+        refresh = int(declare(self, "h_train_refresh_every", 0, "full H_train recompute every this many new poses"))
+        match_tol = float(declare(self, "h_train_match_tol_m", 0.01, "surfel centre drift tolerated when carrying H"))
+        check_positive("max_request_age_s", self.max_request_age_s, allow_zero=True)
+        check_positive("h_train_refresh_every", refresh, allow_zero=True)
+        check_positive("h_train_match_tol_m", match_tol)
+        check_positive("voxel_size_m", self.voxel_size_m)
+        check_positive("max_depth_m", self.max_depth_m)
+        check_positive("render_near_m", self.render_near_m)
+        check_positive("tsdf_sync_period_s", sync_s, allow_zero=True)
+        if self.sdf_trunc_m < self.voxel_size_m:
+            raise InputError("parameter 'sdf_trunc_m'", f"must be >= voxel_size_m ({self.voxel_size_m})")
+        if not 0.0 <= self.min_alpha <= 1.0:
+            raise InputError("parameter 'min_alpha'", f"must be in [0, 1], got {self.min_alpha}")
+        if self.render_depth not in DEPTH_MODES:
+            raise InputError("parameter 'render_depth'", f"must be one of {', '.join(DEPTH_MODES)}")
+
+        self.shared = shared
+        self._lock = threading.Lock()  # topic-mode map state and counters
+        self._cloud: PointCloud2 | None = None
+        self._cloud_version = 0
+        self._poses = np.zeros((0, 4, 4))
+        self._intr: Intrinsics | None = None
+        self._topic_snapshot: MapSnapshot | None = None
+        self._tsdf: TSDFVolume | None = None
+        self._fused: list[bytes] = []
+        self._surface: SurfaceVoxels | None = None  # of self._tsdf as it is now (None: extract again)
+        self._close_front: CloseFrontMemory | None = None  # W_f of self._fused poses on self._surface
+        self.train_fisher_cache = TrainFisherCache(self.nbv, match_tol, refresh)
+        self.last_result: NBVResult | None = None
+        self.counters: dict[str, Any] = dict.fromkeys(
+            ("requests", "answered", "failed", "stale", "bad_map_msgs", "surface_extractions", "close_front_builds"), 0
+        )
+        self.counters["last_scoring_s"] = 0.0
+
+        scoring = MutuallyExclusiveCallbackGroup()
+        inputs = MutuallyExclusiveCallbackGroup()
+        if shared is None:
+            self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
+            self.create_subscription(PoseArray, poses_topic, self._on_poses, latched_qos(), callback_group=inputs)
+            self.create_subscription(CameraInfo, info_topic, self._on_info, reliable_qos(10), callback_group=inputs)
+        self._best_pub = self.create_publisher(PoseStamped, "~/best_view", latched_qos())
+        self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
+        self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())
+        self.create_service(GetNextBestView, "~/get_next_best_view", self._on_request, callback_group=scoring)
+        if sync_s > 0:
+            self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
+        source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic}"
+        self.get_logger().info(f"scoring ({self.nbv.mode}) against {source}")
+
+    # ------------------------------------------------------------------------------ topic inputs
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._lock:
+            self._cloud = msg
+            self._cloud_version += 1
+
+    def _on_poses(self, msg: PoseArray) -> None:
+        try:
+            poses = array_to_poses(msg, "keyframe poses")
+        except InputError as exc:
+            with self._lock:
+                self.counters["bad_map_msgs"] += 1
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        with self._lock:
+            self._poses = poses
+            self._cloud_version += 1
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            intr = camera_info_to_intrinsics(msg)
+        except InputError as exc:
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        with self._lock:
+            self._intr = intr
+
+    # ------------------------------------------------------------------------------ map and TSDF
+    def snapshot(self) -> MapSnapshot | None:
+        """The map to score: a shared snapshot, or one built from the latest cloud/poses/intrinsics."""
+        if self.shared is not None:
+            return self.shared.snapshot()
+        with self._lock:
+            cloud, poses, intr, version = self._cloud, self._poses, self._intr, self._cloud_version
+            cached = self._topic_snapshot
+        if cloud is None or intr is None:
+            return None
+        if cached is not None and cached.version == version:
+            return cached
+        try:
+            surfels = cloud_to_surfel_map(cloud)
+            carried = cloud_h_train(cloud)
+        except InputError as exc:
+            with self._lock:
+                self.counters["bad_map_msgs"] += 1
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return None
+        cfg = MapperConfig(near_m=self.render_near_m, max_depth_m=self.max_depth_m, track_h_train=False)
+        h = None
+        if carried is not None:
+            cfg = replace(cfg, fisher_outputs=carried[0])
+            h = carried[1]
+        snap = MapSnapshot(surfels, h, list(range(len(poses))), poses, intr, cfg, version)
+        with self._lock:
+            self._topic_snapshot = snap
+        return snap
+
+    def sync_tsdf(self, snap: MapSnapshot) -> tuple[TSDFVolume | None, int]:
+        """Fuse the rendered depth at every keyframe pose not fused yet; returns (TSDF, frames fused now)."""
+        keys = [T.tobytes() for T in snap.keyframe_poses]
+        if self._tsdf is None or keys[: len(self._fused)] != self._fused:
+            self._tsdf = None
+            self._fused = []
+            self._surface = self._close_front = None
+        new = range(len(self._fused), len(keys))
+        if not new or snap.n_surfels == 0:
+            return self._tsdf, 0
+        if self._tsdf is None:
+            self._tsdf = TSDFVolume(self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m)
+        view = view_mapper(snap.surfel_map, snap.intrinsics, snap.config)
+        for i in new:
+            T = snap.keyframe_poses[i]
+            out = view.render(T)
+            depth = view.render_depth(out, self.render_depth)
+            depth = torch.where(out.alpha >= self.min_alpha, depth, 0.0).cpu().numpy().astype(np.float32)
+            rgb = (out.color.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+            self._tsdf.integrate(depth, T, snap.intrinsics, rgb)
+            self._fused.append(keys[i])
+            self._surface = self._close_front = None
+        return self._tsdf, len(new)
+
+    def tsdf_products(
+        self, snap: MapSnapshot, close_front: bool
+    ) -> tuple[SurfaceVoxels | None, CloseFrontMemory | None]:
+        """Near-surface voxels of the current TSDF and (``close_front``) W_f of its fused poses, built once per TSDF.
+
+        Call after :meth:`sync_tsdf` with the same snapshot: the fused poses are then ``snap.keyframe_poses``.
+        """
+        if self._tsdf is None:
+            return None, None
+        if self._surface is None:
+            self._surface = NBVScorer(self.nbv).surface(self._tsdf)
+            with self._lock:
+                self.counters["surface_extractions"] += 1
+        if close_front and self._close_front is None and len(self._surface.centres_m) > 0:
+            self._close_front = CloseFrontMemory.from_poses(
+                self._surface, snap.keyframe_poses, snap.intrinsics, self._tsdf.voxel_size_m, self.nbv
+            )
+            with self._lock:
+                self.counters["close_front_builds"] += 1
+        return self._surface, self._close_front
+
+    def _sync_timer(self) -> None:
+        """Between requests: fuse new keyframes, rebuild what derives from the TSDF, bring H_train up to date."""
+        snap = self.snapshot()
+        if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
+            return
+        mode = self.nbv.mode
+        try:
+            self.sync_tsdf(snap)
+            if mode != "fisherrf":
+                self.tsdf_products(snap, close_front=mode in ("roi-gsurfisher", "close-front"))
+            if mode != "close-front":
+                self.h_train(snap, mode)
+        except InputError as exc:
+            self.get_logger().warning(f"map update failed: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def h_train(self, snap: MapSnapshot, mode: str) -> dict[str, torch.Tensor] | None:
+        """Training Fisher for ``mode``: the mapper's running one when it fits, else :class:`TrainFisherCache`'s."""
+        cfg = self.nbv
+        if (
+            snap.h_train is not None
+            and mode != "fisherrf"
+            and cfg.sigma_p == 1.0
+            and tuple(snap.config.fisher_outputs) == tuple(cfg.fisher_outputs)
+            and all(p in snap.h_train for p in cfg.fisher_params if p != "sh_rest")
+        ):
+            return snap.h_train
+        return self.train_fisher_cache.get(snap.surfel_map, snap.keyframe_poses, snap.intrinsics, mode)
+
+    # ------------------------------------------------------------------------------ service
+    def _on_request(self, req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        t0 = time.perf_counter()
+        with self._lock:
+            self.counters["requests"] += 1
+        try:
+            result, snap, cands = self.score_request(req)
+        except InputError as exc:
+            res.success, res.message, res.best_index = False, str(exc), -1
+            with self._lock:
+                self.counters["failed"] += 1
+                self.counters["stale"] += int(exc.where == "candidates.header.stamp")
+            self.get_logger().warning(f"get_next_best_view: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return res
+        stamp = self.get_clock().now().nanoseconds
+        best = int(result.best_index)
+        res.success = True
+        res.message = result.reason or f"scored {len(cands)} candidates ({result.mode})"
+        res.best_index = best
+        res.best_pose = pose_stamped(cands[best], stamp, self.frame_id)
+        res.top_k_indices = [int(i) for i in result.top_k]
+        res.fused_scores = [float(v) for v in result.fused]
+        res.fisher_scores = [float(v) for v in result.fisher]
+        res.close_front_scores = [float(v) for v in result.close_front]
+        self.last_result = result
+        self._best_pub.publish(res.best_pose)
+        self._markers_pub.publish(self.score_markers(cands, result, stamp))
+        if self.publish_uncertainty:
+            self._publish_uncertainty(snap, result.mode, cands[best], stamp)
+        with self._lock:
+            self.counters["answered"] += 1
+            self.counters["last_scoring_s"] = time.perf_counter() - t0
+        return res
+
+    def score_request(self, req: GetNextBestView.Request) -> tuple[NBVResult, MapSnapshot, np.ndarray]:
+        """Validate a request and score it; InputError with the reason for every refusal."""
+        mode = req.mode or self.nbv.mode
+        if mode not in MODES:
+            raise InputError("mode", f"unknown score mode '{mode}' (choose from {', '.join(MODES)})")
+        if not req.candidates.poses:
+            raise InputError("candidates", "empty candidate list")
+        frame = req.candidates.header.frame_id
+        if frame and frame != self.frame_id:
+            raise InputError("candidates.header.frame_id", f"'{frame}' is not the map frame '{self.frame_id}'")
+        cands = array_to_poses(req.candidates, "candidates")
+        self._check_age(req)
+        snap = self.snapshot()
+        if snap is None:
+            raise InputError("map", "not ready: no map yet (no frame, map or camera info received)")
+        if len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
+            k, n = len(snap.keyframe_poses), snap.n_surfels
+            raise InputError("map", f"not ready: {k} keyframes, {n} surfels")
+        tsdf, _ = self.sync_tsdf(snap)
+        voxels, close_front = None, None
+        if mode != "fisherrf":
+            voxels, close_front = self.tsdf_products(snap, close_front=mode in ("roi-gsurfisher", "close-front"))
+        h = self.h_train(snap, mode) if mode != "close-front" else None
+        self._check_age(req)  # the map work above may have taken a while (it is kept for the next request)
+        top_k = int(req.top_k) if req.top_k > 0 else len(cands)
+        scorer = PreparedScorer(replace(self.nbv, mode=mode, top_k=top_k), tsdf, voxels)
+        result = scorer.score(
+            snap.surfel_map,
+            h,
+            tsdf if mode != "fisherrf" else None,
+            snap.keyframe_poses,
+            cands,
+            snap.intrinsics,
+            mode=mode,
+            close_front_memory=close_front,
+        )
+        return result, snap, cands
+
+    def _check_age(self, req: GetNextBestView.Request) -> None:
+        """InputError "stale request" when the candidates' stamp is older than ``max_request_age_s``."""
+        stamp_ns = stamp_to_ns(req.candidates.header.stamp)
+        if stamp_ns <= 0 or self.max_request_age_s <= 0:
+            return
+        age_s = (self.get_clock().now().nanoseconds - stamp_ns) * 1e-9
+        if age_s > self.max_request_age_s:
+            raise InputError(
+                "candidates.header.stamp",
+                f"stale request: sent {age_s:.1f} s ago (max_request_age_s {self.max_request_age_s:g}); not scored",
+            )
+
+    def score_markers(self, cands: np.ndarray, result: NBVResult, stamp_ns: int) -> MarkerArray:
+        """An arrow per candidate (optical axis) coloured red (worst) to green (best), and its fused score as text."""
+        f = result.fused
+        span = float(f.max() - f.min()) if len(f) else 0.0
+        out = MarkerArray()
+        clear = Marker(header=header(stamp_ns, self.frame_id), action=Marker.DELETEALL)
+        out.markers.append(clear)
+        for i, T in enumerate(cands):
+            s = (float(f[i]) - float(f.min())) / span if span > 0 else 1.0
+            best = i == result.best_index
+            arrow = Marker(header=header(stamp_ns, self.frame_id), ns="nbv_candidates", id=i, type=Marker.ARROW)
+            arrow.pose = matrix_to_pose(T @ _Z_TO_X)
+            arrow.scale.x, arrow.scale.y, arrow.scale.z = (0.3, 0.04, 0.04) if best else (0.2, 0.02, 0.02)
+            arrow.color.r, arrow.color.g, arrow.color.b, arrow.color.a = 1.0 - s, s, 0.0, 1.0
+            text = Marker(header=header(stamp_ns, self.frame_id), ns="nbv_scores", id=i, type=Marker.TEXT_VIEW_FACING)
+            text.pose = matrix_to_pose(T)
+            text.pose.position.z += 0.1
+            text.scale.z = 0.05
+            text.color.r = text.color.g = text.color.b = text.color.a = 1.0
+            text.text = f"{i}: {float(f[i]):+.2f}"
+            out.markers += [arrow, text]
+        return out
+
+    def _publish_uncertainty(self, snap: MapSnapshot, mode: str, T_wc: np.ndarray, stamp_ns: int) -> None:
+        try:
+            h = self.h_train(snap, mode) if mode != "fisherrf" else self.h_train(snap, "roi-fisher")
+            u = NBVScorer(self.nbv).uncertainty(snap.surfel_map, h or {}, T_wc, snap.intrinsics, None).u
+        except InputError as exc:
+            self.get_logger().warning(f"no uncertainty image: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        img = Image(header=header(stamp_ns, "camera_color_optical_frame"))
+        img.height, img.width = u.shape
+        img.encoding, img.is_bigendian, img.step = "32FC1", 0, 4 * u.shape[1]
+        img.data = np.ascontiguousarray(u, dtype="<f4").tobytes()
+        self._uncertainty_pub.publish(img)
+
+    def status(self) -> dict[str, Any]:
+        """Counters: requests, answered, failed (of which stale), last scoring time, TSDF work, H_train work."""
+        with self._lock:
+            c = self.train_fisher_cache
+            return {
+                **self.counters,
+                "tsdf_frames": len(self._fused),
+                "h_train_full": c.full_computations,
+                "h_train_poses_added": c.poses_added,
+            }
+
+
+_Z_TO_X = np.array([[0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+"""Rotation taking a marker's x axis (RViz arrows point along x) onto the camera's optical z axis."""
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``nbv_planner``: serve until Ctrl-C; exit 2 on a bad parameter."""
+    return run_nodes("nbv_planner", lambda: [NBVPlannerNode()], args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""Parameter and spinning helpers shared by the roigsf nodes.
+
+A method config dataclass (MapperConfig, NBVConfig) becomes one ROS parameter per field with the
+same name and default (its attribute docstring as the description), so ``--ros-args -p`` and
+``--params-file`` reach every tunable; :func:`run_nodes` is the console scripts' spin loop.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import inspect
+import itertools
+import sys
+import textwrap
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+
+from roigsf_ros.errors import InputError
+
+BAD_PARAMETER_ERRORS = (InputError, InvalidParameterTypeException, InvalidParameterValueException, ValueError)
+"""Exceptions a node constructor raises for a bad parameter value (reported, exit code 2)."""
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The attribute docstrings of a dataclass's fields (first sentence), read from its source."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError, SyntaxError):
+        return {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    docs: dict[str, str] = {}
+    for prev, node in itertools.pairwise(body):
+        if (
+            isinstance(prev, ast.AnnAssign)
+            and isinstance(prev.target, ast.Name)
+            and isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            docs[prev.target.id] = " ".join(node.value.value.split())
+    return docs
+
+
+def declare(node: Node, name: str, default: Any, description: str) -> Any:
+    """Declare one parameter with a default and a description; returns its (possibly overridden) value."""
+    value = list(default) if isinstance(default, tuple) else default
+    return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
+
+
+def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str, Any]:
+    """Declare every field of the dataclass ``cls`` as a parameter (default = the field's); returns name -> value.
+
+    Arrays come back as tuples, as the dataclasses hold them.
+    """
+    docs = field_docs(cls)
+    defaults = cls()
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        value = declare(node, f.name, getattr(defaults, f.name), docs.get(f.name, f"{cls.__name__}.{f.name}"))
+        out[f.name] = tuple(value) if isinstance(value, list | tuple) else value
+    return out
+
+
+def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
+    """``value`` if it is > 0 (or >= 0), else an InputError naming parameter ``name``."""
+    ok = value >= 0 if allow_zero else value > 0
+    if not ok or value != value:
+        raise InputError(f"parameter '{name}'", f"must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+    return value
+
+
+def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | None = None, threads: int = 4) -> int:
+    """Console-script body: init, build the nodes, spin them on a multi-threaded executor until Ctrl-C.
+
+    Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters are bad (the message names the parameter).
+    Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on SIGINT, see the notes).
+    """
+    rclpy.init(args=sys.argv if args is None else args)
+    nodes: list[Node] = []
+    executor: MultiThreadedExecutor | None = None
+    try:  # Ctrl-C may come at any point, also while the nodes or the executor are being built
+        try:
+            nodes = build()
+        except BAD_PARAMETER_ERRORS as exc:
+            float_hint = "expecting type 'DOUBLE'" in str(exc)
+            hint = " (a float parameter needs a decimal point, e.g. 1.0)" if float_hint else ""
+            print(f"{program}: error: {exc}{hint}", file=sys.stderr)
+            return 2
+        executor = MultiThreadedExecutor(num_threads=threads)
+        for node in nodes:
+            executor.add_node(node)
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        for node in nodes:  # long service work gives up at once (see MapperNode.stop)
+            stop = getattr(node, "stop", None)
+            if callable(stop):
+                stop()
+        if executor is not None:
+            executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+__all__ = ["BAD_PARAMETER_ERRORS", "check_positive", "declare", "declare_config", "field_docs", "run_nodes"]

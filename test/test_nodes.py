@@ -1,0 +1,660 @@
+"""The ROS 2 nodes in-process: NBV service vs offline scoring, refusals, bad input, parameters, replay, save/load."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("rclpy")
+pytest.importorskip("roigsf_interfaces")
+
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.srv import GetParameters
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker
+
+from roigsf_interfaces.srv import GetNextBestView, LoadMap, SaveMap
+from roigsf_ros import bags
+from roigsf_ros.camera import Intrinsics
+from roigsf_ros.errors import InputError
+from roigsf_ros.keyframes import make_policy
+from roigsf_ros.mapping import Mapper, MapperConfig
+from roigsf_ros.nbv import NBVConfig, NBVScorer
+from roigsf_ros.nodes.active_mapping import ActiveMapping
+from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
+from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
+from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
+from roigsf_ros.nodes.mapper import MapperNode, latched_qos
+from roigsf_ros.nodes.nbv_planner import NBVPlannerNode, TrainFisherCache, carry_rows, match_surfels
+from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
+from roigsf_ros.replica import Frame, ReplicaSequence
+from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+
+pytestmark = pytest.mark.ros
+REPO = Path(__file__).resolve().parents[1]
+INTR = Intrinsics(width=64, height=48, fx=40.0, fy=40.0, cx=31.5, cy=23.5)
+N_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Frame], Path]:
+    """12 frames of a synthetic room at 64x48 (rendered from its mesh), and the same as a 10 Hz bag."""
+    root = tmp_path_factory.mktemp("nodes")
+    render_sequence(synth_room(3), synth_trajectory(3, N_FRAMES), INTR, root / "scene", progress=False)
+    bags.write_bag(ReplicaSequence(root / "scene"), root / "bag", progress=False)
+    return list(ReplicaSequence(root / "scene")), root / "bag"
+
+
+@pytest.fixture(scope="module")
+def mapped(scene: tuple[list[Frame], Path]) -> Mapper:
+    """A small map of keyframes 0, 4 and 8 (3 steps each), built offline with the library."""
+    mapper = Mapper(INTR, MapperConfig(iters_per_keyframe=3))
+    for i in (0, 4, 8):
+        assert mapper.add_keyframe(scene[0][i])
+    return mapper
+
+
+def _shared(mapper: Mapper) -> SharedMapper:
+    shared = SharedMapper(mapper.config)
+    shared.mapper = mapper
+    return shared
+
+
+@contextmanager
+def _spinning(ctx: Any, *nodes: Node) -> Iterator[MultiThreadedExecutor]:
+    """Spin ``nodes`` on a multi-threaded executor in a thread; shut down, join and destroy on exit."""
+    executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+    for node in nodes:
+        executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, name="test_executor")
+    thread.start()
+    try:
+        yield executor
+    finally:
+        executor.shutdown()
+        thread.join(timeout=30)
+        assert not thread.is_alive()
+        for node in nodes:
+            node.destroy_node()
+
+
+def _wait(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def _call(client: Any, req: Any, timeout_s: float = 60.0) -> Any:
+    assert client.wait_for_service(timeout_sec=10.0), f"service {client.srv_name} not available"
+    future = client.call_async(req)
+    _wait(future.done, timeout_s, f"an answer from {client.srv_name}")
+    return future.result()
+
+
+def _request(poses: np.ndarray | list[np.ndarray], frame_id: str = "map", mode: str = "") -> GetNextBestView.Request:
+    req = GetNextBestView.Request(top_k=3, mode=mode)
+    req.candidates = poses_to_array(poses, 0, frame_id)
+    return req
+
+
+# ---------------------------------------------------------------------------------------- planner
+def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    frames, _ = scene
+    cands = [frames[i].T_wc for i in (1, 2, 5, 10, 11)]
+    # The library's own path: the stream policy's TSDF of rendered depth at the keyframes, its scorer.
+    policy = make_policy("roi-gsurfisher")
+    policy.sync_tsdf(mapped)
+    offline = policy.scorer.score(mapped.map, mapped.h_train, policy.tsdf, mapped.keyframe_poses, cands, INTR)
+
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    client_node = Node("nbv_test_client", context=ros_context)
+    best_poses: list[PoseStamped] = []
+    client_node.create_subscription(PoseStamped, "/nbv_planner/best_view", best_poses.append, latched_qos())
+    images: list[Image] = []
+    client_node.create_subscription(Image, "/nbv_planner/uncertainty", images.append, latched_qos())
+    client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    with _spinning(ros_context, planner, client_node):
+        res = _call(client, _request(cands))
+        _wait(lambda: bool(best_poses) and bool(images), 10.0, "best view and uncertainty image")
+    assert res.success, res.message
+    assert res.best_index == offline.best_index
+    assert list(res.top_k_indices) == offline.ranking[:3].tolist()
+    np.testing.assert_allclose(res.fused_scores, offline.fused, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(res.fisher_scores, offline.fisher, rtol=1e-6)
+    np.testing.assert_allclose(res.close_front_scores, offline.close_front, rtol=1e-6)
+    assert np.ptp(offline.fused) > 0.5  # the candidates really differ: a ranking to agree on
+    best = best_poses[-1].pose.position
+    np.testing.assert_allclose([best.x, best.y, best.z], cands[offline.best_index][:3, 3], atol=1e-9)
+    u = np.frombuffer(bytes(images[-1].data), "<f4").reshape(INTR.height, INTR.width)
+    assert images[-1].encoding == "32FC1" and np.isfinite(u).all() and u.max() > 0
+
+
+def test_service_refuses_with_a_reason(ros_context: Any, scene: Any) -> None:
+    frames, _ = scene
+    shared = SharedMapper()
+    planner = NBVPlannerNode(context=ros_context, shared=shared)
+    client_node = Node("nbv_test_client2", context=ros_context)
+    client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    poses = [frames[1].T_wc, frames[2].T_wc]
+    with _spinning(ros_context, planner, client_node):
+        no_map = _call(client, _request(poses))
+        shared.ensure(INTR)  # a map object with no keyframe yet
+        empty_map = _call(client, _request(poses))
+        shared.mapper.add_keyframe(frames[0])
+        empty_list = _call(client, _request([]))
+        bad = _request(poses)
+        bad.candidates.poses[1].orientation.w += 0.3
+        bad_quat = _call(client, bad)
+        wrong_frame = _call(client, _request(poses, frame_id="odom"))
+        wrong_mode = _call(client, _request(poses, mode="best"))
+        ok = _call(client, _request(poses, mode="close-front"))
+    for res, reason in (
+        (no_map, "map: not ready: no map yet"),
+        (empty_map, "map: not ready: 0 keyframes, 0 surfels"),
+        (empty_list, "empty candidate list"),
+        (bad_quat, "candidates[1]"),
+        (wrong_frame, "'odom' is not the map frame"),
+        (wrong_mode, "unknown score mode 'best'"),
+    ):
+        assert not res.success and reason in res.message and res.best_index == -1
+        assert not res.fused_scores
+    assert ok.success and all(np.isfinite(ok.fused_scores)) and len(ok.close_front_scores) == 2
+    assert planner.status()["failed"] == 6 and planner.status()["answered"] == 1
+
+
+def test_scoring_does_not_block_the_executor(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    frames, _ = scene
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    release = threading.Event()
+    started = threading.Event()
+    score = planner.score_request
+
+    def held_score(req: Any) -> Any:  # holds the scoring callback until the test saw other callbacks run
+        started.set()
+        assert release.wait(30.0)
+        return score(req)
+
+    planner.score_request = held_score  # type: ignore[method-assign]
+    client_node = Node("nbv_test_client3", context=ros_context)
+    nbv = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    params = client_node.create_client(GetParameters, "/nbv_planner/get_parameters")
+    with _spinning(ros_context, planner, client_node):
+        assert nbv.wait_for_service(timeout_sec=10.0) and params.wait_for_service(timeout_sec=10.0)
+        pending = nbv.call_async(_request([frames[1].T_wc, frames[2].T_wc]))
+        assert started.wait(10.0)
+        answer = _call(params, GetParameters.Request(names=["mode", "epsilon"]), timeout_s=10.0)
+        assert not pending.done()  # the planner node answered while its scoring callback was running
+        release.set()
+        _wait(pending.done, 60.0, "the NBV answer")
+    assert [v.string_value for v in answer.values[:1]] == ["roi-gsurfisher"] and answer.values[1].double_value == 0.4
+    assert pending.result().success
+
+
+# ---------------------------------------------------------------------------------------- camera input
+def _frame_msgs(frame: Frame, stamp_ns: int, *, encoding: str = "32FC1", width: int = INTR.width) -> dict[str, Any]:
+    t = bags.CameraTopics()
+    color = Image(header=header(stamp_ns, "cam"), height=INTR.height, width=INTR.width, encoding="rgb8")
+    color.step, color.data = 3 * INTR.width, np.ascontiguousarray(frame.rgb).tobytes()
+    depth_m = np.zeros((INTR.height, width), np.float32)
+    depth_m[:, : min(width, INTR.width)] = frame.depth_m[:, :width]
+    depth = Image(header=header(stamp_ns, "cam"), height=INTR.height, width=width, encoding=encoding)
+    depth.step, depth.data = 4 * width, depth_m.tobytes()
+    info = CameraInfo(header=header(stamp_ns, "cam"), height=INTR.height, width=INTR.width)
+    info.k = INTR.K.reshape(-1).tolist()
+    return {t.color: color, t.depth: depth, t.camera_info: info, t.pose: pose_stamped(frame.T_wc, stamp_ns)}
+
+
+class _Camera:
+    """Publishes frames on the camera topics (reliable, as the bag player)."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.node = Node("test_camera", context=ctx)
+        types = {"color": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped}
+        t = bags.CameraTopics()
+        self.pubs = {
+            getattr(t, k): self.node.create_publisher(v, getattr(t, k), reliable_qos(100)) for k, v in types.items()
+        }
+        self.keyframes = self.node.create_publisher(PoseStamped, "/roigsf/keyframe", reliable_qos(100))
+
+    def wait_for(self, n_subscribers: int = 1) -> None:
+        _wait(lambda: all(p.get_subscription_count() >= n_subscribers for p in self.pubs.values()), 10, "subscribers")
+
+    def publish(self, msgs: dict[str, Any], skip: tuple[str, ...] = ()) -> None:
+        for topic, msg in msgs.items():
+            if topic not in skip:
+                self.pubs[topic].publish(msg)
+
+
+def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: Any) -> None:
+    frames, _ = scene
+    t = bags.CameraTopics()
+    mapper = MapperNode(context=ros_context, parameter_overrides=[Parameter("iters_per_keyframe", value=1)])
+    cam = _Camera(ros_context)
+    with _spinning(ros_context, mapper, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1_000, encoding="8UC1"))  # unsupported encoding
+        cam.publish(_frame_msgs(frames[0], 2_000, width=INTR.width - 2))  # size mismatch with camera_info
+        nan_pose = _frame_msgs(frames[0], 3_000)
+        nan_pose[t.pose].pose.orientation.x = float("nan")
+        cam.publish(nan_pose)
+        cam.publish(_frame_msgs(frames[0], 4_000), skip=(t.color,))  # depth without colour
+        cam.publish(_frame_msgs(frames[1], 5_000))  # good
+        _wait(lambda: mapper.status()["frames_received"] == 1, 10.0, "the good frame")
+        cam.keyframes.publish(pose_stamped(frames[1].T_wc, 5_000))
+        cam.keyframes.publish(pose_stamped(frames[1].T_wc, 4_000))  # its frame never completed: missing
+        _wait(lambda: mapper.status()["keyframes"] == 1, 30.0, "the keyframe")
+        _wait(lambda: mapper.status()["keyframes_missing"] == 1, 10.0, "the missing keyframe counted")
+        status = mapper.status()
+    rejected = status["frames_rejected"]
+    assert sum(rejected.values()) == 3, rejected
+    assert any("unsupported depth encoding" in r for r in rejected)
+    assert any("sizes disagree" in r for r in rejected)
+    assert any("quaternion" in r for r in rejected)
+    assert mapper.camera.stats()["pending"] == 1  # the colourless stamp waits, bounded
+    assert status["keyframe_ids"] == [5_000] and status["surfels"] > 0 and status["keyframes_failed"] == 0
+
+
+# ---------------------------------------------------------------------------------------- selector
+def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scene: Any) -> None:
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value="roi-fisher"),
+        Parameter("window", value=2),
+        Parameter("planner_service", value="/test_planner/nbv"),
+        Parameter("planner_timeout_s", value=0.3),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    published: list[int] = []
+    cam.node.create_subscription(
+        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+    )
+    mode = {"answer": True}
+    seen: list[str] = []
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        seen.append(req.mode)
+        if not mode["answer"]:
+            time.sleep(1.0)  # longer than planner_timeout_s
+        res.success, res.best_index = True, 1
+        return res
+
+    def window(k: int) -> None:  # frames 2k+1, 2k+2 fill one window of 2
+        for i in (2 * k + 1, 2 * k + 2):
+            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
+
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
+        window(0)  # no planner yet: fallback (random)
+        _wait(lambda: selector.status()["fallbacks"] == 1 and len(published) == 2, 10.0, "a fallback keyframe")
+        planner = Node("test_planner", context=ros_context)
+        planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
+        ex2 = MultiThreadedExecutor(num_threads=2, context=ros_context)
+        ex2.add_node(planner)
+        spin2 = threading.Thread(target=ex2.spin)
+        spin2.start()
+        try:
+            _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+            window(1)  # answered: the planner's pick (index 1 = frame 4, stamp 5000)
+            _wait(lambda: selector.status()["planner_answers"] == 1, 10.0, "the planner's answer")
+            mode["answer"] = False
+            window(2)  # the planner is too slow: timeout, fallback
+            _wait(lambda: selector.status()["planner_timeouts"] == 1, 10.0, "a timeout")
+            time.sleep(0.8)  # let the slow call end
+            mode["answer"] = True
+            window(3)  # and back to the planner
+            _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "the planner again")
+            _wait(lambda: len(published) == 5, 10.0, "five keyframes")
+        finally:
+            ex2.shutdown()
+            spin2.join()
+            planner.destroy_node()
+        status = selector.status()
+    assert published[0] == 1000 and published[2] == 5000 and published[4] == 9000
+    assert published[1] in (2000, 3000) and published[3] in (6000, 7000)
+    assert status["fallbacks"] == 2 and status["planner_calls"] == 3 and seen[0] == "roi-fisher"
+    assert status["keyframe_ids"] == published
+
+
+def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
+    mapper = MapperNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("iters_per_keyframe", value=3),
+            Parameter("mesh_depth", value="expected"),
+            Parameter("fisher_outputs", value=["depth"]),
+        ],
+    )
+    planner = NBVPlannerNode(
+        context=ros_context, parameter_overrides=[Parameter("mode", value="fisherrf"), Parameter("epsilon", value=0.7)]
+    )
+    selector = KeyframeSelectorNode(
+        context=ros_context, parameter_overrides=[Parameter("policy", value="gaus-slam"), Parameter("tau_k", value=0.2)]
+    )
+    try:
+        assert mapper.config.iters_per_keyframe == 3 and mapper.config.mesh_depth == "expected"
+        assert mapper.config.fisher_outputs == ("depth",) and mapper.shared.config == mapper.config
+        assert planner.nbv.mode == "fisherrf" and planner.nbv.epsilon == 0.7
+        assert not selector.uses_planner and selector._alone.params() == {"tau_k": 0.2, "alpha_threshold": 0.5}
+    finally:
+        for node in (mapper, planner, selector):
+            node.destroy_node()
+    with pytest.raises(InputError, match="unknown policy 'nope'"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="nope")])
+    with pytest.raises(InputError, match="fallback_policy"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("fallback_policy", value="fisherrf")])
+    with pytest.raises(InputError, match=r"mapper\.near_m"):
+        MapperNode(context=ros_context, parameter_overrides=[Parameter("near_m", value=-1.0)])
+    with pytest.raises(InputError, match="mode"):
+        NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("mode", value="best")])
+
+
+def _console(module: str, *ros_args: str) -> subprocess.Popen[str]:
+    env = dict(os.environ)
+    assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    cmd = [sys.executable, "-m", module, "--ros-args", *ros_args]
+    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
+    params = tmp_path / "selector.yaml"
+    params.write_text("keyframe_selector:\n  ros__parameters:\n    policy: every-n\n    every_n: 4\n")
+    proc = _console(
+        "roigsf_ros.nodes.keyframe_selector", "--params-file", str(params), "-p", "policy:=gaus-slam", "-p", "window:=3"
+    )
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout or []), daemon=True)
+    reader.start()
+    try:
+        _wait(lambda: any("policy gaus-slam: deciding alone" in x for x in lines), 60.0, "the node's start-up line")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+        reader.join(timeout=10)
+    assert rc == 0, "".join(lines)
+    bad = _console("roigsf_ros.nodes.keyframe_selector", "-p", "policy:=nope")
+    out, _ = bad.communicate(timeout=60)
+    assert bad.returncode == 2 and "parameter 'policy'" in out and "unknown policy 'nope'" in out
+
+
+# ---------------------------------------------------------------------------------------- whole system
+def test_active_mapping_replay_gives_keyframes_map_and_mesh(ros_context: Any, scene: Any, tmp_path: Path) -> None:
+    _, bag = scene
+    system = ActiveMapping(
+        ros_context,
+        {
+            "mapper": {"iters_per_keyframe": 3, "idle_iters_per_keyframe": 2, "map_publish_rate_hz": 5.0},
+            "keyframe_selector": {"policy": "roi-gsurfisher", "window": 4, "planner_timeout_s": 60.0},
+        },
+    )
+    player = BagPlayer(
+        context=ros_context,
+        parameter_overrides=[Parameter("bag", value=str(bag)), Parameter("rate", value=0.5)],
+    )
+    late = Node("late_joiner", context=ros_context)
+    clouds: list[PointCloud2] = []
+    meshes: list[Marker] = []
+    system.executor.add_node(player)
+    system.executor.add_node(late)
+    system.start()
+    try:
+        assert player.wait(60.0) and player.error is None
+        _wait(lambda: system.selector.status()["frames"] == N_FRAMES, 20.0, "every frame at the selector")
+        _wait(lambda: not system.selector.status()["planner_pending"], 60.0, "the last planner answer")
+        _wait(lambda: system.mapper.wait_idle(0.1) and system.mapper.status()["frames_received"] == N_FRAMES, 60, "map")
+        # A late joiner still gets the map (transient local), and the mesh on request.
+        late.create_subscription(PointCloud2, "/roigsf/map", clouds.append, latched_qos())
+        late.create_subscription(Marker, "/mapper/mesh", meshes.append, latched_qos())
+        system.mapper.publish_map(force=True)
+        mesh_res = _call(late.create_client(Trigger, "/mapper/publish_mesh"), Trigger.Request())
+        _wait(lambda: bool(clouds) and bool(meshes), 10.0, "map cloud and mesh marker")
+        save = SaveMap.Request(directory=str(tmp_path / "saved"), with_mesh=True)
+        save_res = _call(late.create_client(SaveMap, "/mapper/save_map"), save)
+        status = system.status()
+    finally:
+        system.executor.remove_node(player)
+        system.executor.remove_node(late)
+        system.shutdown()
+        player.destroy_node()
+        late.destroy_node()
+    sel, mapper = status["selector"], status["mapper"]
+    # 12 frames, windows of 4 after the first: the first frame + one keyframe per full window.
+    assert sel["keyframe_ids"][0] == bags.frame_stamp_ns(0, bags.DEFAULT_RATE_HZ)
+    assert len(sel["keyframe_ids"]) == 3 and sel["planner_calls"] == 2
+    assert sel["planner_answers"] + sel["fallbacks"] == 2 and status["nbv_planner"]["answered"] >= 1
+    assert mapper["keyframe_ids"] == sel["keyframe_ids"] and mapper["keyframes_missing"] == 0
+    assert len(cloud_to_surfel_map(clouds[-1])) == mapper["surfels"] > 0
+    assert mesh_res.success and len(meshes[-1].points) > 0 and len(meshes[-1].points) % 3 == 0
+    assert save_res.success and save_res.keyframes == 3, save_res.message
+    assert read_keyframe_ids(tmp_path / "saved") == sel["keyframe_ids"]
+    assert (tmp_path / "saved" / "mesh.ply").stat().st_size > 0
+
+
+def test_saved_map_is_resumed_by_a_new_mapper(ros_context: Any, scene: Any, mapped: Mapper, tmp_path: Path) -> None:
+    frames, _ = scene
+    first = MapperNode(context=ros_context, shared=_shared(mapped), node_name="mapper_a")
+    client_node = Node("save_client", context=ros_context)
+    save = client_node.create_client(SaveMap, "/mapper_a/save_map")
+    with _spinning(ros_context, first, client_node):
+        res = _call(save, SaveMap.Request(directory=str(tmp_path / "map")))
+        again = _call(save, SaveMap.Request(directory=str(tmp_path / "map")))  # exists, no overwrite
+    assert res.success and res.keyframes == 3 and res.surfels == mapped.n_surfels
+    assert not again.success and "already exists" in again.message
+    # A restarted mapper resumes from the saved folder and keeps its keyframes; new ones go on top.
+    second = MapperNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("load_map", value=str(tmp_path / "map")),
+            Parameter("iters_per_keyframe", value=1),
+        ],
+        node_name="mapper_b",
+    )
+    cam = _Camera(ros_context)
+    load = cam.node.create_client(LoadMap, "/mapper_b/load_map")
+    with _spinning(ros_context, second, cam.node):
+        assert second.status()["keyframe_ids"] == [0, 4, 8] and second.status()["surfels"] == mapped.n_surfels
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[6], 6))
+        _wait(lambda: second.status()["frames_received"] == 1, 10.0, "a frame")
+        cam.keyframes.publish(pose_stamped(frames[6].T_wc, 6))
+        _wait(lambda: second.status()["keyframes"] == 4, 30.0, "the new keyframe")
+        bad = _call(load, LoadMap.Request(directory=str(tmp_path / "nothing")))
+        status = second.status()
+    assert status["keyframe_ids"] == [0, 4, 8, 6]
+    assert not bad.success and "not found" in bad.message
+
+
+# ---------------------------------------------------------------------------------------- planner load (bug 3)
+def test_stale_requests_are_refused_before_any_map_work(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    frames, _ = scene
+    planner = NBVPlannerNode(
+        context=ros_context, shared=_shared(mapped), parameter_overrides=[Parameter("max_request_age_s", value=2.0)]
+    )
+    try:
+        now = planner.get_clock().now().nanoseconds
+        old = _request([frames[1].T_wc, frames[2].T_wc])
+        old.candidates.header = header(now - 5_000_000_000, "map")  # sent 5 s ago: the selector gave up
+        res = planner._on_request(old, GetNextBestView.Response())
+        assert not res.success and "stale request: sent 5." in res.message and "max_request_age_s 2" in res.message
+        assert planner.status()["stale"] == 1 and planner.status()["tsdf_frames"] == 0  # refused before any work
+        fresh = _request([frames[1].T_wc, frames[2].T_wc])
+        fresh.candidates.header = header(planner.get_clock().now().nanoseconds, "map")
+        assert planner._on_request(fresh, GetNextBestView.Response()).success
+        unstamped = planner._on_request(_request([frames[1].T_wc]), GetNextBestView.Response())  # stamp 0: served
+        assert unstamped.success and planner.status()["answered"] == 2
+    finally:
+        planner.destroy_node()
+
+
+def test_match_surfels_follows_prune_and_append() -> None:
+    rng = np.random.default_rng(0)
+    old = rng.uniform(-2, 2, size=(500, 3))
+    keep = np.ones(500, bool)
+    keep[[3, 7, 8]] = False
+    keep[100:180] = False  # a whole region pruned
+    new = np.concatenate([old[keep] + rng.normal(scale=1e-4, size=(keep.sum(), 3)), rng.uniform(-2, 2, (40, 3))])
+    rows = match_surfels(old, new, tol_m=0.005)
+    np.testing.assert_array_equal(rows[: keep.sum()], np.flatnonzero(keep))
+    assert (rows[keep.sum() :] == -1).sum() >= 38  # appended surfels start from zero (bar a chance neighbour)
+    h = {"means": torch.arange(1500.0).reshape(500, 3)}
+    carried = carry_rows(h, rows)["means"]
+    assert torch.equal(carried[: keep.sum()], h["means"][torch.as_tensor(np.flatnonzero(keep))])
+
+
+def test_train_fisher_cache_adds_only_new_poses(scene: Any) -> None:
+    """The planner's own H_train: a keyframe set that extends the last one costs one Fisher pass per new pose."""
+    frames, _ = scene
+    mapper = Mapper(INTR, MapperConfig(iters_per_keyframe=2, track_h_train=False))
+    for i in (0, 4):
+        assert mapper.add_keyframe(frames[i])
+    cache = TrainFisherCache(NBVConfig())
+    map_a, poses_a = mapper.map.detach().clone(), mapper.keyframe_poses
+    h_a = cache.get(map_a, poses_a, INTR, "fisherrf")
+    assert cache.full_computations == 1 and cache.poses_added == 0
+    assert mapper.add_keyframe(frames[8])  # densify (surfels appended), optimise, prune
+    map_b, poses_b = mapper.map.detach().clone(), mapper.keyframe_poses
+    h_b = cache.get(map_b, poses_b, INTR, "fisherrf")
+    assert cache.full_computations == 1 and cache.poses_added == 1
+    rows = match_surfels(map_a.means.numpy(), map_b.means.numpy(), 0.01)
+    assert (rows >= 0).sum() > 0.8 * min(len(map_a), len(map_b))
+    new = NBVScorer(NBVConfig()).train_fisher(map_b, poses_b[2:], INTR, "fisherrf")
+    for k, h in carry_rows(h_a, rows).items():
+        torch.testing.assert_close(h_b[k], h + new[k])
+    assert cache.get(map_b, poses_b, INTR, "fisherrf") is h_b  # nothing new: no pass at all
+    cache.get(map_b, poses_b[::-1].copy(), INTR, "fisherrf")  # not an extension: from scratch
+    assert cache.full_computations == 2
+
+
+def test_planner_from_topics_uses_the_mappers_fisher_like_in_process(
+    ros_context: Any, scene: Any, mapped: Mapper
+) -> None:
+    """Topic mode: the cloud's htrain_ fields make the scores those of the in-process planner, no Fisher pass."""
+    frames, _ = scene
+    cands = [frames[i].T_wc for i in (1, 5, 10)]
+    shared = NBVPlannerNode(context=ros_context, shared=_shared(mapped), node_name="nbv_shared")
+    remote = NBVPlannerNode(context=ros_context, node_name="nbv_remote")
+    try:
+        expected = shared._on_request(_request(cands), GetNextBestView.Response())
+        cloud = surfel_map_to_cloud(mapped.map, 1, "map", mapped.h_train, mapped.config.fisher_outputs)
+        info = CameraInfo(header=header(1, "cam"), height=INTR.height, width=INTR.width)
+        info.k = INTR.K.reshape(-1).tolist()
+        remote._on_cloud(cloud)
+        remote._on_poses(poses_to_array(mapped.keyframe_poses, 1))
+        remote._on_info(info)
+        got = remote._on_request(_request(cands), GetNextBestView.Response())
+    finally:
+        shared.destroy_node()
+        remote.destroy_node()
+    assert expected.success and got.success, got.message
+    assert got.best_index == expected.best_index
+    np.testing.assert_allclose(got.fused_scores, expected.fused_scores, rtol=1e-5, atol=1e-8)
+    assert remote.status()["h_train_full"] == 0 and remote.status()["h_train_poses_added"] == 0
+
+
+# ---------------------------------------------------------------------------------------- mesh service (bug 2)
+def test_decimate_mesh_bounds_the_triangles() -> None:
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=60)
+    sphere.vertex_colors = o3d.utility.Vector3dVector(np.full((len(sphere.vertices), 3), 0.25))
+    small = decimate_mesh(sphere, 1000)
+    assert 250 < len(small.triangles) <= 1000 < len(sphere.triangles)
+    np.testing.assert_allclose(np.asarray(small.vertex_colors), 0.25)
+    assert decimate_mesh(sphere, 0) is sphere
+
+
+def test_mesh_service_decimates_and_never_holds_shutdown(ros_context: Any, mapped: Mapper) -> None:
+    mapper = MapperNode(
+        context=ros_context,
+        shared=_shared(mapped),
+        parameter_overrides=[Parameter("mesh_marker_max_triangles", value=500)],
+    )
+    client_node = Node("mesh_client", context=ros_context)
+    meshes: list[Marker] = []
+    client_node.create_subscription(Marker, "/mapper/mesh", meshes.append, latched_qos())
+    client = client_node.create_client(Trigger, "/mapper/publish_mesh")
+    release = threading.Event()
+    with _spinning(ros_context, mapper, client_node):
+        res = _call(client, Trigger.Request())
+        _wait(lambda: bool(meshes), 10.0, "the mesh marker")
+        mapper.publish_mesh = lambda: str(release.wait(60.0))  # type: ignore[method-assign] - a mesh that takes long
+        pending = client.call_async(Trigger.Request())
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        mapper.stop()  # what Ctrl-C does first (run_nodes, ActiveMapping.shutdown)
+        _wait(pending.done, 5.0, "the abandoned mesh request")
+        waited_s = time.monotonic() - t0
+        release.set()
+    assert res.success and " of " in res.message, res.message  # "N of M triangles": decimated
+    assert 0 < len(meshes[-1].points) <= 3 * 500 and len(meshes[-1].colors) in (0, len(meshes[-1].points))
+    assert not pending.result().success and "shutting down" in pending.result().message and waited_s < 2.0
+
+
+def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
+    ros_context: Any, scene: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    """A loaded map (no keyframe images, so no mapper H_train): one catch-up, then only new keyframes cost work.
+
+    Before the fix every request re-extracted the TSDF's surface and rebuilt W_f over all keyframe poses
+    (with a loaded room map ~2/3 of the scorer's set-up: 1-4 s a request, past the selector's timeout).
+    """
+    frames, _ = scene
+    mapped.save(tmp_path / "map")
+    shared = SharedMapper(MapperConfig(iters_per_keyframe=1))
+    shared.load(tmp_path / "map")
+    planner = NBVPlannerNode(
+        context=ros_context, shared=shared, parameter_overrides=[Parameter("tsdf_sync_period_s", value=0.0)]
+    )
+    try:
+        snap = shared.snapshot()
+        assert snap is not None and snap.h_train is None  # the mapper has no Fisher of loaded keyframes
+        planner._sync_timer()  # the catch-up, as the timer does it before any request
+        caught_up = planner.status()
+        assert caught_up["tsdf_frames"] == 3 and caught_up["h_train_full"] == 1
+        assert caught_up["surface_extractions"] == 1 and caught_up["close_front_builds"] == 1
+        cands = [frames[i].T_wc for i in (2, 6, 10)]
+        answers = [planner._on_request(_request(cands), GetNextBestView.Response()) for _ in range(2)]
+        assert all(a.success for a in answers) and planner.status() == {
+            **caught_up,
+            "requests": 2,
+            "answered": 2,
+            "last_scoring_s": planner.status()["last_scoring_s"],
+        }  # no map work at all in the requests
+        # The cached products score exactly as the library does from scratch with the same inputs.
+        scorer = NBVScorer(replace(NBVConfig(), top_k=3))
+        h = scorer.train_fisher(snap.surfel_map, snap.keyframe_poses, INTR, "roi-gsurfisher")
+        want = scorer.score(snap.surfel_map, h, planner._tsdf, snap.keyframe_poses, cands, INTR)
+        np.testing.assert_allclose(answers[1].fused_scores, want.fused, rtol=1e-6, atol=1e-9)
+        assert answers[1].best_index == want.best_index
+        # A new keyframe on top: its TSDF frame, one surface/W_f rebuild, one Fisher pass; no full recompute.
+        with shared.lock:
+            assert shared.mapper.add_keyframe(frames[11], optimise=False)
+            shared.touch()
+        assert planner._on_request(_request(cands), GetNextBestView.Response()).success
+        after = planner.status()
+        assert after["tsdf_frames"] == 4 and after["h_train_full"] == 1 and after["h_train_poses_added"] == 1
+        assert after["surface_extractions"] == 2 and after["close_front_builds"] == 2
+    finally:
+        planner.destroy_node()
