@@ -1,7 +1,17 @@
-"""``roigsf demo``: the main job on the shipped bag: replay it over ROS 2 and map what arrives.
+"""``roigsf demo``: the main job: active mapping of the shipped bag over ROS 2, with a report.
 
-The bag is played by the ``bag_player`` node and received by a camera-input node in the same
-process (loopback DDS), so the demo exercises the same topics and conversions as a live robot.
+One process: the bag player node and the three nodes of ``active_mapping`` (mapper, NBV planner, keyframe
+selector: :class:`~roigsf_ros.nodes.active_mapping.ActiveMapping`, sharing one map) on one executor. The
+frames still travel as ROS messages on the camera topics, but player and subscribers share one DDS
+participant, so they match at once: with the player in a process of its own the first frames were lost
+to discovery on a loaded machine (4 of 150 with a 1 s start delay). The player's timing does not matter
+to the result (the nodes go by the messages' stamps), and the report reads the final map directly.
+
+At the end of the stream the mapper finishes its queue, the map gets ``--final-iters`` refinement
+steps over all keyframes, and the run folder receives (atomically) ``metrics.json``, ``mesh.ply``,
+``map.ply`` + ``keyframes.json``, ``strip.png`` (input vs rendered colour and depth of non-keyframes),
+``plot.png`` (trajectory with keyframes, next to the strip) and ``replay.json`` (player and node
+counters). Ctrl-C stops the player and the nodes cleanly and writes nothing.
 """
 
 from __future__ import annotations
@@ -9,24 +19,59 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from roigsf_ros.bags import BagFrame, bag_info
-from roigsf_ros.fileio import write_json
+from roigsf_ros.errors import InputError
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+    from roigsf_ros.mapping import EvalConfig, Mapper
+    from roigsf_ros.nodes.active_mapping import ActiveMapping
 
 DEFAULT_BAG = Path("bags/synth_room")
 DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
+DEFAULT_RATE = 0.25
+"""Playback rate of the demo: a window of 8 frames every 3.2 s, about what one planner call (ROI, Fisher of 8
+candidates, the chosen view's uncertainty) takes at 160x120 on 2 cores; a window that comes while the planner
+is still busy is decided by the fallback policy and counted."""
+DEFAULT_FINAL_ITERS = 150
+"""Refinement steps over all keyframes after the stream (the mapper's ``final_iters`` for offline runs)."""
+DEFAULT_POLICY = "roi-gsurfisher"
+
+SUMMARY_ROWS = (
+    ("frames", "n_frames", "{:d}"),
+    ("keyframes", "n_keyframes", "{:d}"),
+    ("surfels", "map_size", "{:d}"),
+    ("PSNR non-keyframes (dB)", "psnr", "{:.2f}"),
+    ("SSIM non-keyframes", "ssim", "{:.3f}"),
+    ("depth L1 (cm)", "depth_l1_cm", "{:.2f}"),
+    ("precision @5cm", "precision@5cm", "{:.3f}"),
+    ("recall @5cm", "recall@5cm", "{:.3f}"),
+    ("planner answers/calls", "planner", "{}"),
+    ("fallbacks", "fallbacks", "{:d}"),
+    ("dropped frames", "dropped_frames", "{:d}"),
+    ("wall time (s)", "wall_s", "{:.1f}"),
+)
+"""The demo's table: label, metrics key, format."""
 
 
+# ------------------------------------------------------------------------------------ ROS replay (plain)
 def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Play ``bag`` with a :class:`BagPlayer` and collect the complete frames a subscriber receives.
 
     Returns ``{"frames": [BagFrame], "player": summary, "input": counters, "wall_s": s}``. The
-    executor is shut down and its thread joined before returning.
+    executor is shut down and its thread joined before returning. (A check of the transport alone;
+    the demo itself maps with the nodes.)
     """
+    import threading
+
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
@@ -85,63 +130,420 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
     }
 
 
+# ------------------------------------------------------------------------------------ evaluation
+def evaluate_map(
+    mapper: Mapper,
+    frames: Sequence[BagFrame],
+    gt_mesh: Path | None,
+    eval_config: EvalConfig | None = None,
+) -> tuple[dict[str, Any], list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], o3d.geometry.TriangleMesh]:
+    """Image metrics on the frames that are not keyframes, mesh metrics against ``gt_mesh``, strip rows, mesh.
+
+    ``frames`` are the recorded frames (the bag); a frame is a keyframe when its stamp is one of the
+    mapper's keyframe ids (the mapper node names keyframes by stamp). Recall is against the GT culled
+    to what the bag's poses observe, as in :func:`roigsf_ros.mapping.run_offline`.
+    """
+    from roigsf_ros import evaluation
+    from roigsf_ros.mapping import EvalConfig, _strip_pick
+
+    ev = eval_config or EvalConfig()
+    cfg = mapper.config
+    keyframe_ids = {int(i) for i in mapper.keyframe_ids}
+    others = [f for f in frames if f.stamp_ns not in keyframe_ids][:: ev.eval_every]
+    strip_pick = {others[j].stamp_ns for j in _strip_pick(len(others), ev.strip_frames)}
+    psnrs, ssims, dl1s = [], [], []
+    rows = []
+    for f in others:
+        out = mapper.render(f.T_wc)
+        rgb = out.color.clamp(0, 1).cpu().numpy()
+        depth = mapper.render_depth(out, cfg.eval_depth).cpu().numpy()
+        psnrs.append(evaluation.psnr(rgb, f.rgb))
+        ssims.append(evaluation.ssim(rgb, f.rgb))
+        gt_depth = np.where(mapper.valid_depth_mask(f.depth_m), f.depth_m, 0.0)
+        if gt_depth.any():
+            dl1s.append(evaluation.depth_l1(depth, gt_depth))
+        if f.stamp_ns in strip_pick:
+            rows.append((f.rgb, rgb, gt_depth, depth))
+    mesh = mapper.mesh()
+    metrics: dict[str, Any] = {
+        "n_frames": len(frames),
+        "n_keyframes": len(keyframe_ids),
+        "keyframe_ids": sorted(keyframe_ids),
+        "keyframes_in_bag": sum(f.stamp_ns in keyframe_ids for f in frames),
+        "map_size": mapper.n_surfels,
+        "n_eval_frames": len(psnrs),
+        "eval_on": "non-keyframes",
+        "psnr": float(np.mean(psnrs)) if psnrs else None,
+        "ssim": float(np.mean(ssims)) if ssims else None,
+        "depth_l1_cm": float(np.mean(dl1s)) * 100.0 if dl1s else None,
+        "eval_depth": cfg.eval_depth,
+        "mesh_vertices": len(mesh.vertices),
+        "mesh_triangles": len(mesh.triangles),
+    }
+    if gt_mesh is not None:
+        poses = np.stack([f.T_wc for f in frames])
+        metrics |= evaluation.mesh_metrics(
+            mesh,
+            gt_mesh,
+            taus_m=ev.mesh_taus_m,
+            n_samples=ev.mesh_samples,
+            seed=ev.seed,
+            observed_poses=poses if ev.cull_gt_to_observed else None,
+            intr=frames[0].intrinsics if ev.cull_gt_to_observed else None,
+            cull_max_depth_m=cfg.max_depth_m,
+        )
+        metrics["gt_mesh"] = str(gt_mesh)
+    return metrics, rows, mesh
+
+
+def save_plot(
+    path: Path,
+    poses: np.ndarray,
+    is_keyframe: np.ndarray,
+    strip_rgb: np.ndarray | None,
+    gt_points: np.ndarray | None = None,
+    title: str = "",
+) -> None:
+    """Write a PNG: the trajectory seen from above with its keyframes (numbered, with view directions), and the strip.
+
+    ``poses`` [N, 4, 4] camera-to-world in stream order, ``is_keyframe`` [N] bool, ``strip_rgb`` the
+    comparison strip [H, W, 3] uint8 (input vs render), ``gt_points`` [M, 3] for a faint floor plan.
+    The view plane is the two world axes along which the camera moved most.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from roigsf_ros.fileio import atomic_path
+
+    xyz = poses[:, :3, 3]
+    a, b = np.sort(np.argsort(xyz.std(axis=0))[-2:])
+    names = "xyz"
+    fig, axes = plt.subplots(
+        1,
+        2 if strip_rgb is not None else 1,
+        figsize=(14, 6),
+        gridspec_kw={"width_ratios": [1, 1.3]} if strip_rgb is not None else None,
+    )
+    ax = axes[0] if strip_rgb is not None else axes
+    if gt_points is not None and len(gt_points):
+        c = 3 - a - b  # the axis looked along: keep a band at the cameras' height, a floor plan
+        gt_points = gt_points[np.abs(gt_points[:, c] - np.median(xyz[:, c])) < 0.4]
+        ax.scatter(gt_points[:, a], gt_points[:, b], s=0.2, c="0.8", rasterized=True, label="ground truth")
+    ax.plot(xyz[:, a], xyz[:, b], "-", color="tab:blue", lw=1, label=f"trajectory ({len(xyz)} frames)")
+    ax.plot(xyz[0, a], xyz[0, b], "o", color="tab:blue", ms=5)
+    kf = np.flatnonzero(is_keyframe)
+    scale = 0.25 * max(np.ptp(xyz[:, a]), np.ptp(xyz[:, b]), 1e-3)
+    view = poses[kf, :3, 2]  # optical axis
+    ax.quiver(xyz[kf, a], xyz[kf, b], view[:, a], view[:, b], color="tab:red", angles="xy", scale_units="xy",
+              scale=1.0 / scale, width=0.004)  # fmt: skip
+    ax.scatter(xyz[kf, a], xyz[kf, b], c="tab:red", s=25, zorder=3, label=f"keyframes ({len(kf)})")
+    for n, i in enumerate(kf):
+        ax.annotate(str(n), (xyz[i, a], xyz[i, b]), textcoords="offset points", xytext=(3, 3), fontsize=7)
+    ax.set_xlabel(f"{names[a]} (m)")
+    ax.set_ylabel(f"{names[b]} (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("trajectory and keyframes (from above)")
+    if strip_rgb is not None:
+        axes[1].imshow(strip_rgb)
+        axes[1].set_axis_off()
+        axes[1].set_title("non-keyframes: input | render | depth input | depth render")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """The demo's short table (rows of :data:`SUMMARY_ROWS` that have a value)."""
+    lines = []
+    for label, key, fmt in SUMMARY_ROWS:
+        value = metrics.get(key)
+        if value is not None:
+            lines.append(f"  {label:<26} {fmt.format(value)}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------ the run
+def _ros_value(text: str) -> Any:
+    """A ``--set`` value as YAML would read it (1 -> int, 1.0 -> float, true -> bool, [a, b] -> list)."""
+    import yaml
+
+    return yaml.safe_load(text)
+
+
+def parse_sets(items: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """``NODE.NAME=VALUE`` strings as ``{node: {name: value}}`` (NODE: mapper, nbv_planner, keyframe_selector)."""
+    from roigsf_ros.nodes.active_mapping import NODE_NAMES
+
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        node, dot, name = key.partition(".")
+        if not sep or not dot or not name:
+            raise InputError("--set", f"'{item}' is not NODE.NAME=VALUE")
+        if node not in NODE_NAMES:
+            raise InputError("--set", f"'{item}': unknown node '{node}' (one of {', '.join(NODE_NAMES)})")
+        out.setdefault(node, {})[name] = _ros_value(value)
+    return out
+
+
+class _Progress:
+    """One status line: frames received, keyframes, surfels, planner answers/calls, fallbacks, queue."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self._last_print = 0.0
+
+    @staticmethod
+    def line(status: dict[str, Any], total: int) -> str:
+        m, s = status["mapper"], status["selector"]
+        planner = f"planner {s['planner_answers']}/{s['planner_calls']}" if s["policy"] != "gaus-slam" else "no planner"
+        return (
+            f"frames {s['frames']:>4}/{total}  keyframes {m['keyframes']:>3} (queued {m['pending_keyframes']})  "
+            f"surfels {m['surfels'] / 1000:6.1f}k  {planner}, fallbacks {s['fallbacks']}"
+        )
+
+    def update(self, status: dict[str, Any], final: bool = False) -> None:
+        if not self.enabled:
+            return
+        text = self.line(status, self.total)
+        if self.tty:
+            print(f"\r{text}", end="\n" if final else "", file=sys.stderr, flush=True)
+        elif final or time.monotonic() - self._last_print >= 10.0:
+            print(text, file=sys.stderr, flush=True)
+            self._last_print = time.monotonic()
+
+
+def run_demo(
+    bag: Path,
+    out: Path,
+    policy: str = DEFAULT_POLICY,
+    rate: float = DEFAULT_RATE,
+    final_iters: int = DEFAULT_FINAL_ITERS,
+    gt_mesh: Path | None = DEFAULT_GT_MESH,
+    domain_id: int | None = None,
+    params: dict[str, dict[str, Any]] | None = None,
+    params_file: Path | None = None,
+    progress: bool = True,
+    drain_timeout_s: float = 120.0,
+) -> dict[str, Any]:
+    """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
+
+    Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
+    """
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros import evaluation
+    from roigsf_ros.bags import read_bag_frames
+    from roigsf_ros.fileio import atomic_dir, write_json
+    from roigsf_ros.mapping import config_to_dict
+    from roigsf_ros.nodes.active_mapping import ActiveMapping
+    from roigsf_ros.nodes.bag_player import BagPlayer
+    from roigsf_ros.nodes.shared_map import save_snapshot
+
+    t0 = time.perf_counter()
+    frames, skipped = read_bag_frames(bag)  # the recorded frames: what the map is evaluated against
+    if not frames:
+        raise InputError(bag, "no complete frame in the bag")
+    if gt_mesh is not None and not gt_mesh.is_file():
+        raise InputError(gt_mesh, "ground-truth mesh not found")
+    node_params = {k: dict(v) for k, v in (params or {}).items()}
+    node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if domain_id is None:
+        domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    init_args = ["roigsf_demo", "--ros-args", "--params-file", str(params_file)] if params_file else None
+    context = rclpy.Context()
+    rclpy.init(args=init_args, context=context, domain_id=domain_id)
+    system: ActiveMapping | None = None
+    player: BagPlayer | None = None
+    try:
+        system = ActiveMapping(context=context, params=node_params)
+        player = BagPlayer(
+            context=context,
+            parameter_overrides=[
+                Parameter("bag", value=str(bag)),
+                Parameter("rate", value=float(rate)),
+                Parameter("start_delay_s", value=0.5),
+                Parameter("progress_period_s", value=0.0),
+            ],
+        )
+        system.executor.add_node(player)
+        system.start()
+        bar = _Progress(len(frames), progress)
+        t_stream = time.perf_counter()
+        while not player.wait(0.25):
+            bar.update(system.status())
+        if player.error is not None:
+            raise RuntimeError(f"bag player failed: {player.error}")
+        # The stream is over: let the selector see the last frames and the mapper insert every keyframe it
+        # named (its idle optimisation is not waited for: the refinement below does that work).
+        deadline = time.monotonic() + drain_timeout_s
+        settled_since, last = time.monotonic(), None
+        while time.monotonic() < deadline:
+            st = system.status()
+            bar.update(st)
+            sel, mp = st["selector"], st["mapper"]
+            key = (sel["frames"], sel["keyframes_published"], mp["keyframe_msgs"])
+            if key != last:
+                settled_since, last = time.monotonic(), key
+            handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
+            handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
+            busy = sel["planner_pending"] or mp["pending_keyframes"] or mp["waiting_keyframes"]
+            busy = busy or handled < mp["keyframe_msgs"] or mp["keyframe_msgs"] < sel["keyframes_published"]
+            # Done when nothing moved for a while: 1 s once every frame is in, 5 s if some never came.
+            quiet_s = 1.0 if sel["frames"] >= len(frames) else 5.0
+            if not busy and time.monotonic() - settled_since > quiet_s:
+                break
+            time.sleep(0.1)
+        t_stream = time.perf_counter() - t_stream
+        status = system.status()
+        bar.update(status, final=True)
+        player_summary = player.summary()
+    finally:  # also on Ctrl-C: stop playback, the executor and every node thread, then the context
+        if system is not None and player is not None:
+            system.executor.remove_node(player)
+        if player is not None:
+            player.destroy_node()
+        if system is not None:
+            system.shutdown()
+        context.try_shutdown()
+
+    mapper = system.shared.mapper
+    if mapper is None or not mapper.keyframes:
+        raise RuntimeError(f"no keyframe was mapped (is the bag's camera stream complete?); node status: {status}")
+    t_refine = time.perf_counter()
+    if final_iters > 0:
+        tty = progress and sys.stderr.isatty()
+        step = max(1, final_iters // 20)
+        for done in range(0, final_iters, step):
+            mapper.optimise(min(step, final_iters - done), newest=None)
+            if tty:
+                print(
+                    f"\rrefining the map: {min(done + step, final_iters)}/{final_iters} steps", end="", file=sys.stderr
+                )
+        mapper.prune()
+        if progress:
+            end = f"refined the map: {final_iters} steps over {len(mapper.keyframes)} keyframes"
+            print(f"\r{end}" if tty else end, file=sys.stderr)
+    t_refine = time.perf_counter() - t_refine
+
+    metrics, rows, mesh = evaluate_map(mapper, frames, gt_mesh)
+    sel = status["selector"]
+    metrics |= {
+        "policy": policy,
+        "bag": str(bag),
+        "rate": rate,
+        "frames_received": sel["frames"],
+        "dropped_frames": len(frames) - sel["frames"],  # recorded but not received complete and valid
+        "bag_incomplete_stamps": skipped,
+        "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
+        "planner_calls": sel["planner_calls"],
+        "planner_answers": sel["planner_answers"],
+        "fallbacks": sel["fallbacks"],
+        "keyframes_published": sel["keyframes_published"],
+        "stream_s": t_stream,
+        "final_iters": final_iters,
+        "refine_s": t_refine,
+        "mapper_config": config_to_dict(mapper.config),
+    }
+    poses = np.stack([f.T_wc for f in frames])
+    is_kf = np.array([f.stamp_ns in set(mapper.keyframe_ids) for f in frames])
+    gt_points = None
+    if gt_mesh is not None:
+        gt_points = evaluation.sample_surface(evaluation.as_legacy_mesh(gt_mesh, "gt_mesh"), 20_000, 0)
+    import open3d as o3d
+
+    with atomic_dir(out, overwrite=True) as tmp:
+        save_snapshot(system.shared.snapshot(with_h_train=False), tmp)  # map.ply + keyframes.json
+        if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
+            raise OSError(f"{out / 'mesh.ply'}: open3d could not write the mesh")
+        strip = evaluation.save_comparison_strip(tmp / "strip.png", rows) if rows else None
+        save_plot(tmp / "plot.png", poses, is_kf, strip, gt_points, title=f"{bag.name}: policy {policy}")
+        write_json(tmp / "replay.json", evaluation.to_json_safe({"player": player_summary, "status": status}))
+        metrics["wall_s"] = time.perf_counter() - t0
+        write_json(tmp / "metrics.json", evaluation.to_json_safe(metrics))
+    return metrics
+
+
 def _run(args: argparse.Namespace) -> int:
     bag = Path(args.bag)
     info = bag_info(bag)  # validates the bag before anything runs
-    print(
-        f"bag {bag}: {info['frame_count']} frames of {info['width']}x{info['height']}, "
-        f"depth {info['depth_encoding']}, {info['duration_s']:.1f} s"
-    )
-    replay = replay_bag(bag, args.rate, args.domain_id, progress=not args.no_progress)
-    stats = replay["input"]
-    print(f"\nreplayed over ROS 2 in {replay['wall_s']:.1f} s (rate x{args.rate:g}):")
-    print(f"  {'topic':<28}{'in bag':>8}{'received':>10}")
-    for topic, meta in sorted(info["topics"].items()):
-        print(f"  {topic:<28}{meta['count']:>8}{stats['received'].get(topic, 0):>10}")
-    print(
-        f"  complete frames: {stats['frames']}, rejected: {sum(stats['rejected'].values())}, "
-        f"incomplete: {stats['dropped_incomplete']}"
-    )
-    if not replay["frames"]:
-        print("no complete frame arrived; nothing to map", file=sys.stderr)
-        return 1
-
-    from roigsf_ros.cli.map import print_summary
-    from roigsf_ros.frames import MemoryFrameSource
-    from roigsf_ros.keyframes import make_policy
-    from roigsf_ros.mapping import MapperConfig, run_offline
-    from roigsf_ros.replica import Frame
-
-    frames = [Frame(index=k, rgb=f.rgb, depth_m=f.depth_m, T_wc=f.T_wc) for k, f in enumerate(replay["frames"])]
-    source = MemoryFrameSource(frames, replay["frames"][0].intrinsics, f"ROS replay of {bag}")
-    gt_mesh = Path(args.gt_mesh) if args.gt_mesh else None
     out = Path(args.out)
-    print(f"\nmapping {len(frames)} received frames with keyframe policy {args.policy}")
-    metrics = run_offline(
-        source, make_policy(args.policy), MapperConfig(), out, gt_mesh=gt_mesh,
-        progress=not args.no_progress, overwrite=True,
-    )  # fmt: skip
-    write_json(
-        out / "replay.json", {"bag": str(bag), "player": replay["player"], "input": stats, "wall_s": replay["wall_s"]}
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    print(
+        f"bag {bag}: {info['frame_count']} frames of {info['width']}x{info['height']}, depth "
+        f"{info['depth_encoding']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping "
+        f"(policy {args.policy}), then {args.final_iters} refinement steps"
     )
-    print(f"\nactive-mapping demo on {bag} -> {out}")
-    print_summary(metrics)
-    print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, strip.png, replay.json")
-    return 0 if stats["frames"] == info["frame_count"] else 1
+    metrics = run_demo(
+        bag,
+        out,
+        policy=args.policy,
+        rate=args.rate,
+        final_iters=args.final_iters,
+        gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None,
+        domain_id=args.domain_id,
+        params=parse_sets(args.set),
+        params_file=Path(args.params_file) if args.params_file else None,
+        progress=not args.no_progress,
+    )
+    print(f"\nactive-mapping demo on {bag} (policy {args.policy}) -> {out}")
+    print(format_table(metrics))
+    print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, plot.png, strip.png, replay.json")
+    return 0 if metrics["frames_received"] == info["frame_count"] else 1
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``demo`` subcommand."""
-    p = sub.add_parser("demo", help="the main job: replay the shipped bag over ROS 2 and map it", description=__doc__)
+    p = sub.add_parser(
+        "demo",
+        help="the main job: active mapping of the shipped bag over ROS 2 (player + active_mapping), with a report",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--bag", default=str(DEFAULT_BAG), metavar="BAG", help=f"bag to replay (default {DEFAULT_BAG})")
-    p.add_argument("--out", default="runs/demo", metavar="RUN", help="run folder for results (default runs/demo)")
+    p.add_argument(
+        "--out", default="runs/demo", metavar="RUN", help="run folder, replaced when done (default runs/demo)"
+    )
+    p.add_argument(
+        "--policy",
+        default=DEFAULT_POLICY,
+        metavar="P",
+        help=f"keyframe selector policy (default {DEFAULT_POLICY}; also roi-fisher, close-front, fisherrf, "
+        "random, gaus-slam, every-n, all)",
+    )
     p.add_argument(
         "--rate",
         type=float,
-        default=1.0,
+        default=DEFAULT_RATE,
         metavar="X",
-        help="playback rate factor; 1.0 real time, <= 0 as fast as possible (default 1.0)",
+        help=f"playback rate factor; 1.0 real time, <= 0 as fast as possible (default {DEFAULT_RATE})",
     )
+    p.add_argument(
+        "--final-iters",
+        type=int,
+        default=DEFAULT_FINAL_ITERS,
+        metavar="N",
+        help=f"refinement steps over all keyframes after the stream (default {DEFAULT_FINAL_ITERS})",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NODE.NAME=VALUE",
+        help="a node parameter, e.g. mapper.iters_per_keyframe=20 or keyframe_selector.window=6 (repeatable)",
+    )
+    p.add_argument("--params-file", default=None, metavar="YAML", help="ROS params file for the nodes (config/*.yaml)")
     p.add_argument(
         "--domain-id",
         type=int,
@@ -150,16 +552,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ROS domain id (default: ROS_DOMAIN_ID or 0); discovery stays on localhost",
     )
     p.add_argument(
-        "--policy",
-        default="gaus-slam",
-        metavar="P",
-        help="keyframe policy for mapping the received frames (default gaus-slam)",
-    )
-    p.add_argument(
         "--gt-mesh",
         default=str(DEFAULT_GT_MESH),
         metavar="PLY",
         help=f"ground-truth mesh for the mesh metrics (default {DEFAULT_GT_MESH}; '' for none)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-progress", action="store_true", help="no progress display")
     p.set_defaults(func=_run)
