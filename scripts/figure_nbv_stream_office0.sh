@@ -6,7 +6,8 @@
 # ../shared/data (not redistributable).
 # Writes runs/office0_240_s5/ (the scene, reused when present) and runs/bench_stream_office0/
 # (results.json, results.md, quality_vs_views.png, chosen_views.png, uncertainty_*.png, runs/).
-# Measured wall time (2026-11-21, 2 cores shared with other jobs): 1832 s.
+# Measured wall time (2026-11-21, 2 cores shared with other jobs): 1832 s, and 841 s for the ablations
+# (runs/bench_stream_office0_ablation/).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
@@ -24,3 +25,9 @@ roigsf bench --scene runs/office0_240_s5 --setting stream \
     --policies "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW" --seeds "$SEEDS" \
     --uncertainty-views 0 \
     --out runs/bench_stream_office0 --overwrite
+# The ablations of the README's stream table (the method's two terms alone), unless ABLATION=0.
+if [ "${ABLATION:-1}" != 0 ]; then
+    roigsf bench --scene runs/office0_240_s5 --setting stream \
+        --policies "roi-fisher:window=$WINDOW,close-front:window=$WINDOW" --seeds "$SEEDS" \
+        --uncertainty-views 0 --out runs/bench_stream_office0_ablation --overwrite
+fi
