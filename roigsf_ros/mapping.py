@@ -644,6 +644,22 @@ class Mapper:
         return self.h_train
 
     # ---------------------------------------------------------------------------------- mesh
+    def rendered_rgbd(
+        self, T_wc: np.ndarray, depth_mode: str | None = None, min_alpha: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The map's own RGB-D at ``T_wc``, as TSDF fusion takes it: depth_m [H, W] float32, rgb [H, W, 3] uint8.
+
+        Depth is the ``depth_mode`` depth (default ``mesh_depth``), 0 where the accumulated alpha is below
+        ``min_alpha`` (default ``mesh_min_alpha``): the mesh and the NBV scoring TSDF fuse exactly this.
+        """
+        cfg = self.config
+        out = self.render(T_wc)
+        depth = self.render_depth(out, cfg.mesh_depth if depth_mode is None else depth_mode)
+        lo = cfg.mesh_min_alpha if min_alpha is None else float(min_alpha)
+        depth = torch.where(out.alpha >= lo, depth, 0.0).cpu().numpy().astype(np.float32)
+        rgb = (out.color.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        return depth, rgb
+
     def mesh(self, poses: Iterable[np.ndarray] | None = None) -> o3d.geometry.TriangleMesh:
         """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: keyframe or loaded poses)."""
         cfg = self.config
@@ -653,11 +669,8 @@ class Mapper:
 
         def frames() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]:
             for T in poses:
-                out = self.render(T)
-                depth = self.render_depth(out, cfg.mesh_depth)
-                depth = torch.where(out.alpha >= cfg.mesh_min_alpha, depth, 0.0).cpu().numpy()
-                rgb = (out.color.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-                yield depth.astype(np.float32), T, rgb
+                depth, rgb = self.rendered_rgbd(T)
+                yield depth, T, rgb
 
         return tsdf_mesh_from_depths(
             frames(),

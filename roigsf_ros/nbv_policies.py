@@ -153,10 +153,7 @@ class StreamNBVPolicy(KeyframePolicy):
         n = 0
         while self._n_fused < len(mapper.keyframes):
             T = mapper.keyframes[self._n_fused].T_wc
-            out = mapper.render(T)
-            depth = mapper.render_depth(out, cfg.mesh_depth)
-            depth = torch.where(out.alpha >= min_alpha, depth, 0.0).cpu().numpy().astype(np.float32)
-            rgb = (out.color.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+            depth, rgb = mapper.rendered_rgbd(T, min_alpha=min_alpha)
             self.tsdf.integrate(depth, T, mapper.intr, rgb)
             self._n_fused += 1
             n += 1

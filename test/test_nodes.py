@@ -38,12 +38,13 @@ from roigsf_ros.errors import InputError
 from roigsf_ros.keyframes import make_policy
 from roigsf_ros.mapping import Mapper, MapperConfig
 from roigsf_ros.nbv import NBVConfig, NBVScorer
+from roigsf_ros.nbv_cache import TrainFisherCache, carry_rows, match_surfels
 from roigsf_ros.nodes.active_mapping import ActiveMapping
 from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.mapper import MapperNode, latched_qos
-from roigsf_ros.nodes.nbv_planner import NBVPlannerNode, TrainFisherCache, carry_rows, match_surfels
+from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
 from roigsf_ros.replica import Frame, ReplicaSequence
 from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
