@@ -45,6 +45,7 @@ from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.mapper import MapperNode, latched_qos
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+from roigsf_ros.nodes.node_params import BackgroundSpin
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
 from roigsf_ros.replica import Frame, ReplicaSequence
 from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
@@ -85,14 +86,11 @@ def _spinning(ctx: Any, *nodes: Node) -> Iterator[MultiThreadedExecutor]:
     executor = MultiThreadedExecutor(num_threads=4, context=ctx)
     for node in nodes:
         executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, name="test_executor")
-    thread.start()
+    spin = BackgroundSpin(executor, "test_executor").start()
     try:
         yield executor
     finally:
-        executor.shutdown()
-        thread.join(timeout=30)
-        assert not thread.is_alive()
+        spin.stop()
         for node in nodes:
             node.destroy_node()
 
@@ -313,8 +311,7 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
         planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
         ex2 = MultiThreadedExecutor(num_threads=2, context=ros_context)
         ex2.add_node(planner)
-        spin2 = threading.Thread(target=ex2.spin)
-        spin2.start()
+        spin2 = BackgroundSpin(ex2, "test_planner_executor").start()
         try:
             _wait(selector._client.service_is_ready, 10.0, "the stub planner")
             window(1)  # answered: the planner's pick (index 1 = frame 4, stamp 5000)
@@ -328,8 +325,7 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
             _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "the planner again")
             _wait(lambda: len(published) == 5, 10.0, "five keyframes")
         finally:
-            ex2.shutdown()
-            spin2.join()
+            spin2.stop()
             planner.destroy_node()
         status = selector.status()
     assert published[0] == 1000 and published[2] == 5000 and published[4] == 9000

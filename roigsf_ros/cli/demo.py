@@ -80,6 +80,7 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
 
     from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
     from roigsf_ros.nodes.camera_input import CameraInput
+    from roigsf_ros.nodes.node_params import BackgroundSpin
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     context = rclpy.Context()
@@ -105,8 +106,7 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
     )
     executor.add_node(listener)
     executor.add_node(player)
-    spin = threading.Thread(target=executor.spin, name="demo_executor", daemon=True)
-    spin.start()
+    spin = BackgroundSpin(executor, "demo_executor").start()
     try:
         with tqdm(total=player.total_per_loop, desc="replay", unit="msg", disable=not progress) as bar:
             while not player.wait(0.2):
@@ -117,8 +117,7 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
         while time.monotonic() < deadline and camera.stats()["frames"] + camera.dropped_incomplete < expected:
             time.sleep(0.05)
     finally:
-        executor.shutdown()
-        spin.join()
+        spin.stop()
         player.destroy_node()
         listener.destroy_node()
         context.try_shutdown()

@@ -12,9 +12,7 @@ name only one node declares::
 
 from __future__ import annotations
 
-import contextlib
 import sys
-import threading
 from typing import Any
 
 import rclpy
@@ -26,7 +24,7 @@ from rclpy.parameter import Parameter
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BAD_PARAMETER_ERRORS
+from roigsf_ros.nodes.node_params import BAD_PARAMETER_ERRORS, BackgroundSpin, init_ros, shutdown_executor
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
@@ -79,17 +77,12 @@ class ActiveMapping:
         self.executor = MultiThreadedExecutor(num_threads=threads, context=context)
         for node in self.nodes:
             self.executor.add_node(node)
-        self._thread: threading.Thread | None = None
+        self._spin: BackgroundSpin | None = None
 
     def start(self) -> ActiveMapping:
         """Spin the executor in a background thread; returns self."""
-        self._thread = threading.Thread(target=self._spin, name="active_mapping_executor", daemon=True)
-        self._thread.start()
+        self._spin = BackgroundSpin(self.executor, "active_mapping_executor").start()
         return self
-
-    def _spin(self) -> None:
-        with contextlib.suppress(ExternalShutdownException):
-            self.executor.spin()
 
     def spin_until_shutdown(self) -> None:
         """Spin in this thread until the context shuts down or Ctrl-C."""
@@ -114,10 +107,10 @@ class ActiveMapping:
             stop = getattr(node, "stop", None)
             if callable(stop):
                 stop()
-        self.executor.shutdown()
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
+        if self._spin is not None:
+            self._spin.stop()
+        else:
+            shutdown_executor(self.executor)
         for node in self.nodes:
             node.destroy_node()
         self.nodes = []
@@ -131,18 +124,22 @@ class ActiveMapping:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``active_mapping``: run the three nodes until Ctrl-C; exit 2 on a bad parameter."""
-    rclpy.init(args=sys.argv if args is None else args)
-    try:
-        system = ActiveMapping()
-    except BAD_PARAMETER_ERRORS as exc:
-        hint = " (a float parameter needs a decimal point, e.g. 1.0)" if "expecting type 'DOUBLE'" in str(exc) else ""
-        print(f"active_mapping: error: {exc}{hint}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
+    init_ros(args)
+    system: ActiveMapping | None = None
+    try:  # Ctrl-C may also come while the nodes are being built
+        try:
+            system = ActiveMapping()
+        except BAD_PARAMETER_ERRORS as exc:
+            float_hint = "expecting type 'DOUBLE'" in str(exc)
+            hint = " (a float parameter needs a decimal point, e.g. 1.0)" if float_hint else ""
+            print(f"active_mapping: error: {exc}{hint}", file=sys.stderr)
+            return 2
         system.spin_until_shutdown()
+    except KeyboardInterrupt:
+        pass
     finally:
-        system.shutdown()
+        if system is not None:
+            system.shutdown()
         rclpy.try_shutdown()
     return 0
 

@@ -33,6 +33,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from roigsf_ros.bags import open_any_reader
 from roigsf_ros.errors import InputError
+from roigsf_ros.nodes.node_params import init_ros
 
 
 def message_class(type_name: str, where: str = "message type") -> type:
@@ -272,7 +273,7 @@ class BagPlayer(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``bag_player``: play, then exit 0 (also on Ctrl-C), 2 on bad input, 1 if playback failed."""
-    rclpy.init(args=sys.argv if args is None else args)
+    init_ros(args)
     try:
         node = BagPlayer()
     except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:

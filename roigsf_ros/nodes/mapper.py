@@ -405,13 +405,14 @@ class MapperNode(Node):
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes (ids are stamps in ns), queue sizes, drops by reason, map size."""
-        snap_ids = self.shared.keyframe_ids()
-        with self.shared.lock:
+        cam = self.camera.stats()
+        # One read under the map lock, counters taken inside it: the worker counts an insertion only after
+        # adding its keyframe, so ``keyframes`` is the loaded ones + ``keyframes_inserted`` (+1 in insertion).
+        with self.shared.reading(), self._lock:
             m = self.shared.mapper
+            snap_ids = self.shared.keyframe_ids()
             surfels = 0 if m is None else m.n_surfels
             stats = {} if m is None else dict(vars(m.stats))
-        cam = self.camera.stats()
-        with self._lock:
             return {
                 "frames_received": cam["frames"],
                 "frames_rejected": cam["rejected"],
@@ -457,8 +458,9 @@ class MapperNode(Node):
                 current = self.shared.mapper.intr if self.shared.mapper is not None else None
             loaded = self.shared.load(Path(req.directory), expect_intr=current)
             self._intr = loaded.intr
+            ids = set(self.shared.keyframe_ids())  # map lock first, then node lock (as status does)
             with self._lock:
-                self._queued_ids = set(self.shared.keyframe_ids())
+                self._queued_ids = ids
             res.success = True
             res.keyframes, res.surfels = len(loaded.loaded_keyframe_ids), loaded.n_surfels
             res.message = f"loaded {res.keyframes} keyframes, {res.surfels} surfels from {req.directory}"

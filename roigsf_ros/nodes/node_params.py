@@ -2,26 +2,33 @@
 
 A method config dataclass (MapperConfig, NBVConfig) becomes one ROS parameter per field with the
 same name and default (its attribute docstring as the description), so ``--ros-args -p`` and
-``--params-file`` reach every tunable; :func:`run_nodes` is the console scripts' spin loop.
+``--params-file`` reach every tunable; :func:`init_ros` and :func:`run_nodes` are the console scripts'
+start and spin loop.
 """
 
 from __future__ import annotations
 
 import ast
+import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import inspect
 import itertools
+import os
+import signal
 import sys
 import textwrap
+import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 from roigsf_ros.errors import InputError
 
@@ -80,13 +87,86 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     return value
 
 
+def init_ros(args: list[str] | None = None) -> None:
+    """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
+
+    rclpy's own handlers shut the context down inside the signal handler, under the executor's feet:
+    callbacks still running then fail ("publisher's context is invalid", printed by rclpy as "exception
+    was never retrieved") and a ``spin_once`` in progress raised RCLError (exit 1 with a traceback, 2 of 3
+    Ctrl-Cs of a mapping ``active_mapping``). Here the script's ``finally`` stops the executor, destroys the
+    nodes and shuts the context down last. A second signal during that clean-up exits at once (128 + signal).
+    """
+    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    signal.signal(signal.SIGINT, _exit_now)
+    signal.signal(signal.SIGTERM, _exit_now)
+    raise KeyboardInterrupt
+
+
+def _exit_now(signum: int, frame: object) -> None:
+    print(f"interrupted again (signal {signum}): exiting without clean-up", file=sys.stderr)
+    os._exit(128 + signum)
+
+
+def shutdown_executor(executor: Executor) -> None:
+    """Wait for the callbacks ``executor``'s threads still run, then shut it down; call once nothing spins it.
+
+    The Jazzy wheel's ``Executor.shutdown`` does not wait (its ``_work_tracker.wait`` sits behind a test
+    that is always false) and ``MultiThreadedExecutor`` leaves its thread pool running (ros2/rclpy#1309,
+    newer than the wheel): a service callback still scoring then published through a destroyed node, and
+    a queued handler triggered the destroyed guard condition (both printed "exception was never
+    retrieved"). Nodes with long callbacks offer ``stop()`` to cut them short; call it first.
+    """
+    pool = getattr(executor, "_executor", None)
+    if isinstance(pool, concurrent.futures.ThreadPoolExecutor):
+        pool.shutdown(wait=True)
+    executor.shutdown()
+
+
+class BackgroundSpin:
+    """Spin an executor in a thread (``spin_once`` until :meth:`stop`), then drain and shut it down.
+
+    ``executor.shutdown()`` from another thread while ``spin()`` runs destroys the guard condition under
+    handlers still queued (see :func:`shutdown_executor`); stopping the loop first avoids that.
+    """
+
+    def __init__(self, executor: Executor, name: str) -> None:
+        self.executor = executor
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, name=name, daemon=True)
+
+    def _spin(self) -> None:
+        context = self.executor.context
+        with contextlib.suppress(ExternalShutdownException):
+            while not self._stop.is_set() and context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+
+    def start(self) -> BackgroundSpin:
+        """Start spinning; returns self."""
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Stop spinning, join the thread, wait for running callbacks, shut the executor down (idempotent)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise RuntimeError(f"{self._thread.name}: executor thread did not stop within {timeout_s:g} s")
+        shutdown_executor(self.executor)
+
+
 def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | None = None, threads: int = 4) -> int:
     """Console-script body: init, build the nodes, spin them on a multi-threaded executor until Ctrl-C.
 
     Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters are bad (the message names the parameter).
     Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on SIGINT, see the notes).
     """
-    rclpy.init(args=sys.argv if args is None else args)
+    init_ros(args)
     nodes: list[Node] = []
     executor: MultiThreadedExecutor | None = None
     try:  # Ctrl-C may come at any point, also while the nodes or the executor are being built
@@ -110,11 +190,21 @@ def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | N
             if callable(stop):
                 stop()
         if executor is not None:
-            executor.shutdown()
+            shutdown_executor(executor)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
 
 
-__all__ = ["BAD_PARAMETER_ERRORS", "check_positive", "declare", "declare_config", "field_docs", "run_nodes"]
+__all__ = [
+    "BAD_PARAMETER_ERRORS",
+    "BackgroundSpin",
+    "check_positive",
+    "declare",
+    "declare_config",
+    "field_docs",
+    "init_ros",
+    "run_nodes",
+    "shutdown_executor",
+]
