@@ -707,7 +707,6 @@ def test_four_times_real_time_bounded_queues_counted_drops_flat_memory(
                 elif samples[-1][0] > 120.0:
                     pytest.fail(f"warm-up: {warmup_keyframes} keyframes not inserted in 120 s\n{ps.logs()}")
             time.sleep(0.5)
-        elapsed = time.monotonic() - t0
         player.stop()
         time.sleep(0.5)  # a last status after the stream ended
         statuses = watch.history("mapper")
@@ -717,14 +716,17 @@ def test_four_times_real_time_bounded_queues_counted_drops_flat_memory(
     print(f"mapper {dict(m, keyframe_ids=len(m['keyframe_ids']))}\nselector {dict(s, keyframe_ids=None)}")
     from roigsf_ros.nodes.shared_map import read_keyframe_ids
 
-    # Messages lost while the process is saturated leave incomplete stamps, counted (a frame whose messages
-    # straggle in after its stamp was given up counts again); complete frames never exceed what was sent.
+    # Every frame sent is accounted for: received whole, given up incomplete (some of its messages lost;
+    # one whose messages straggle in after its stamp was given up counts again) or estimated missed from
+    # the stamp gaps (all its messages lost: not reported by the middleware). Not exact: losses before a
+    # stream's period is known or at a loop's wrap-around are not seen, hence 90 %.
     stopped = re.search(r"stopped after (\d+) messages", player.log())
     assert stopped, player.log()
     sent_frames = int(stopped.group(1)) // 4
     for counts in (s, m):
         received = counts["frames"] if counts is s else counts["frames_received"]
-        assert received <= sent_frames and 10 * elapsed < received + counts["frames_dropped_incomplete"]
+        lost = counts["frames_dropped_incomplete"] + counts["frames_missed_estimate"]
+        assert received <= sent_frames and 0.9 * sent_frames <= received + lost, (received, lost, sent_frames)
     for st in statuses:
         assert st["pending_keyframes"] <= FAST_BOUNDS["max_pending_keyframes"]
         assert st["waiting_keyframes"] <= FAST_BOUNDS["max_pending_keyframes"]

@@ -3,7 +3,10 @@
 Messages are converted with the library's converters (:mod:`roigsf_ros.bags`) and matched with
 :class:`roigsf_ros.sync.StampMatcher`. Bad messages (unsupported encoding, size mismatch with the
 camera info, NaN pose, ...) are dropped with a throttled warning and counted by reason; frames that
-never complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows.
+never complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows;
+frames that never arrived at all (every message overwritten in a full middleware queue, which the
+middleware does not report) are estimated from gaps in each topic's stamps
+(:class:`roigsf_ros.sync.StampGapCounter`).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from roigsf_ros.bags import BagFrame, CameraTopics, assemble_frame, stamp_to_ns
 from roigsf_ros.errors import InputError
-from roigsf_ros.sync import StampMatcher
+from roigsf_ros.sync import StampGapCounter, StampMatcher
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
@@ -48,6 +51,7 @@ class CameraInput:
         """Frames dropped because a message was bad, by reason."""
         self.frames = 0
         self._matcher: StampMatcher[Any] = StampMatcher(self.topics.types(), max_pending)
+        self._gaps = {topic: StampGapCounter() for topic in self.topics.types()}
         self._lock = threading.Lock()
         t = self.topics
         for topic, msg_type in ((t.color, Image), (t.depth, Image), (t.camera_info, CameraInfo), (t.pose, PoseStamped)):
@@ -59,14 +63,22 @@ class CameraInput:
         return self._matcher.dropped
 
     def stats(self) -> dict[str, Any]:
-        """Counters for reports: messages per topic, frames, rejected by reason, incomplete dropped."""
+        """Counters for reports: messages per topic, frames, rejected by reason, incomplete dropped, missed.
+
+        ``missed_estimate``: messages per topic estimated lost before they arrived (stamp gaps);
+        ``frames_missed_estimate``: frames none of whose messages arrived, the least of those (a frame
+        missing on some topics only is counted in ``dropped_incomplete`` instead).
+        """
         with self._lock:
+            missed = {topic: g.missed for topic, g in self._gaps.items()}
             return {
                 "received": dict(self.received),
                 "frames": self.frames,
                 "rejected": dict(self.rejected),
                 "dropped_incomplete": self._matcher.dropped,
                 "pending": self._matcher.pending,
+                "missed_estimate": missed,
+                "frames_missed_estimate": min(missed.values()),
             }
 
     def _callback_for(self, topic: str) -> Callable[[Any], None]:
@@ -79,6 +91,7 @@ class CameraInput:
         stamp = stamp_to_ns(msg.header.stamp)
         with self._lock:
             self.received[topic] += 1
+            self._gaps[topic].add(stamp)
             parts = self._matcher.add(stamp, topic, msg)
         if parts is None:
             return

@@ -321,6 +321,7 @@ class KeyframeSelectorNode(Node):
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframe_ids": list(self.keyframe_ids),
                 "window": [f.index for f in self._buffer],

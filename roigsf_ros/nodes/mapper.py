@@ -417,6 +417,7 @@ class MapperNode(Node):
                 "frames_received": cam["frames"],
                 "frames_rejected": cam["rejected"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes": len(snap_ids),
                 "keyframe_ids": snap_ids,
                 "surfels": surfels,
