@@ -675,17 +675,18 @@ def test_four_times_real_time_bounded_queues_counted_drops_flat_memory(
 ):
     """The bag looped at 4x (40 frames/s of 160x120, a keyframe named every 2 frames): more than the mapper can take.
 
-    Queues stay within their bounds, frames and keyframes dropped are counted in the status (every keyframe
-    named is inserted, queued or counted), and the node's memory stays flat: after the warm-up it may not
-    grow by ``max_growth_mib`` (100) within ``measure_s`` (30 s), whereas keeping the 4x input without bound
-    would grow it by about 7.7 MB/s (40 frames/s x 96 kB x 2 subscribers), 230 MB in 30 s (115 MB if only one
-    subscriber kept them). The warm-up lasts ``warmup_s`` and until ``warmup_keyframes`` were inserted
-    under the stream: the first optimisations over new views raise the allocator's high-water mark in steps
-    (by 200-300 MB here, slower on a loaded machine, where a warm-up of seconds alone left a step in the
-    measurement). Measured after it: 0-40 MB. The mapper starts from ``fast_map`` (the room already
-    mapped), so the map does not grow during the test; the selector picks at random and the planner stays
-    idle (its working set grows with the map, not with the input rate, and its overload path, busy ->
-    fallback, is covered above); glibc settings: :data:`MALLOC_ENV`.
+    Queues stay within their bounds, frames and keyframes dropped are counted in the status (every frame
+    sent and every keyframe named is accounted for), and the node's memory stays flat: after the warm-up
+    it may not grow by ``max_growth_mib`` (100) within ``measure_s`` (30 s), whereas keeping the 4x input
+    without bound would grow it by about 7.7 MB/s (40 frames/s x 96 kB x 2 subscribers), 230 MB in 30 s
+    (115 MB if only one subscriber kept them). The warm-up lasts ``warmup_s`` and until
+    ``warmup_keyframes`` were inserted under the stream: the first optimisations over new views raise the
+    allocator's high-water mark in steps (by about 300 MB here; later on a loaded machine, where a warm-up
+    of 8 s alone left a step of 190 MB in the measurement). Measured after it: 0-23 MB (three runs, one
+    beside a busy-looping process). The mapper starts from ``fast_map`` (the room already mapped), so the
+    map does not grow during the test; the selector picks at random and the planner stays idle (its
+    working set grows with the map, not with the input rate, and its overload path, busy -> fallback, is
+    covered above); glibc settings: :data:`MALLOC_ENV`.
     """
     warmup_s, warmup_keyframes, measure_s, max_growth_mib = 8.0, 3, 30.0, 100.0
     watch.clear()
