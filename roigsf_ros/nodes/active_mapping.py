@@ -15,16 +15,15 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BAD_PARAMETER_ERRORS, BackgroundSpin, init_ros, shutdown_executor
+from roigsf_ros.nodes.node_params import BackgroundSpin, run_nodes, shutdown_executor
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
@@ -37,43 +36,51 @@ def _as_parameters(values: dict[str, Any] | None) -> list[Parameter] | None:
     return [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in values.items()]
 
 
-class ActiveMapping:
-    """The three nodes of one process with their shared map and executor.
+def build_nodes(
+    context: Context | None = None, params: dict[str, dict[str, Any]] | None = None
+) -> tuple[MapperNode, NBVPlannerNode, KeyframeSelectorNode]:
+    """The mapper, planner and selector sharing one :class:`SharedMapper` (the ones built are destroyed on error).
 
     ``params``: ``{"mapper": {...}, "nbv_planner": {...}, "keyframe_selector": {...}}`` overrides
-    (params files and ``--ros-args`` given to the context apply as well). :meth:`start` spins the
-    executor in a thread; :meth:`shutdown` stops it, joins every thread and destroys the nodes.
+    (params files and ``--ros-args`` given to the context apply as well).
+    """
+    params = params or {}
+    unknown = sorted(set(params) - set(NODE_NAMES))
+    if unknown:
+        raise ValueError(f"unknown node name(s) {', '.join(unknown)}; expected {', '.join(NODE_NAMES)}")
+    shared = SharedMapper()
+    built: list[Node] = []
+    try:
+        mapper = MapperNode(context=context, parameter_overrides=_as_parameters(params.get("mapper")), shared=shared)
+        built.append(mapper)
+        planner = NBVPlannerNode(
+            context=context, parameter_overrides=_as_parameters(params.get("nbv_planner")), shared=shared
+        )
+        built.append(planner)
+        selector = KeyframeSelectorNode(
+            context=context, parameter_overrides=_as_parameters(params.get("keyframe_selector")), shared=shared
+        )
+    except BaseException:
+        for node in built:
+            node.destroy_node()
+        raise
+    return mapper, planner, selector
+
+
+class ActiveMapping:
+    """The three nodes of one process (:func:`build_nodes`) with their shared map and executor.
+
+    :meth:`start` spins the executor in a thread; :meth:`shutdown` stops it, joins every thread and
+    destroys the nodes.
     """
 
     def __init__(
         self, context: Context | None = None, params: dict[str, dict[str, Any]] | None = None, threads: int = 4
     ) -> None:
-        params = params or {}
-        unknown = sorted(set(params) - set(NODE_NAMES))
-        if unknown:
-            raise ValueError(f"unknown node name(s) {', '.join(unknown)}; expected {', '.join(NODE_NAMES)}")
         self.context = context
-        self.shared = SharedMapper()
-        self.nodes: list[Node] = []
-        try:
-            self.mapper = MapperNode(
-                context=context, parameter_overrides=_as_parameters(params.get("mapper")), shared=self.shared
-            )
-            self.nodes.append(self.mapper)
-            self.planner = NBVPlannerNode(
-                context=context, parameter_overrides=_as_parameters(params.get("nbv_planner")), shared=self.shared
-            )
-            self.nodes.append(self.planner)
-            self.selector = KeyframeSelectorNode(
-                context=context,
-                parameter_overrides=_as_parameters(params.get("keyframe_selector")),
-                shared=self.shared,
-            )
-            self.nodes.append(self.selector)
-        except BaseException:
-            for node in self.nodes:
-                node.destroy_node()
-            raise
+        self.mapper, self.planner, self.selector = build_nodes(context, params)
+        self.shared = self.mapper.shared
+        self.nodes: list[Node] = [self.mapper, self.planner, self.selector]
         self.executor = MultiThreadedExecutor(num_threads=threads, context=context)
         for node in self.nodes:
             self.executor.add_node(node)
@@ -83,15 +90,6 @@ class ActiveMapping:
         """Spin the executor in a background thread; returns self."""
         self._spin = BackgroundSpin(self.executor, "active_mapping_executor").start()
         return self
-
-    def spin_until_shutdown(self) -> None:
-        """Spin in this thread until the context shuts down or Ctrl-C."""
-        ok = self.context.ok if self.context is not None else rclpy.ok
-        try:
-            while ok():
-                self.executor.spin_once(timeout_sec=0.1)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
 
     def status(self) -> dict[str, Any]:
         """The three nodes' status dicts."""
@@ -124,24 +122,7 @@ class ActiveMapping:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``active_mapping``: run the three nodes until Ctrl-C; exit 2 on a bad parameter."""
-    init_ros(args)
-    system: ActiveMapping | None = None
-    try:  # Ctrl-C may also come while the nodes are being built
-        try:
-            system = ActiveMapping()
-        except BAD_PARAMETER_ERRORS as exc:
-            float_hint = "expecting type 'DOUBLE'" in str(exc)
-            hint = " (a float parameter needs a decimal point, e.g. 1.0)" if float_hint else ""
-            print(f"active_mapping: error: {exc}{hint}", file=sys.stderr)
-            return 2
-        system.spin_until_shutdown()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        if system is not None:
-            system.shutdown()
-        rclpy.try_shutdown()
-    return 0
+    return run_nodes("active_mapping", lambda: list(build_nodes()), args)
 
 
 if __name__ == "__main__":
