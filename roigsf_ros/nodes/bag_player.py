@@ -287,7 +287,9 @@ def main(args: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if not node.done:  # interrupted; the context may be shut down already, so no rosout logging
+        interrupted = not node.done
+        node.stop()  # join the playback thread first: the count is then final (it may publish one more)
+        if interrupted:  # printed, not logged: the line that tools and tests read
             print(f"bag_player: stopped after {node.published} messages", file=sys.stderr)
         node.destroy_node()
         rclpy.try_shutdown()
