@@ -45,7 +45,7 @@ from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.mapper import MapperNode, latched_qos
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BackgroundSpin
+from roigsf_ros.nodes.node_params import GIL_SWITCH_INTERVAL_S, BackgroundSpin, reduce_gil_switch_interval
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
 from roigsf_ros.replica import Frame, ReplicaSequence
 from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
@@ -394,6 +394,26 @@ def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
     bad = _console("roigsf_ros.nodes.keyframe_selector", "-p", "policy:=nope")
     out, _ = bad.communicate(timeout=60)
     assert bad.returncode == 2 and "parameter 'policy'" in out and "unknown policy 'nope'" in out
+
+
+def test_gil_switch_interval_is_lowered_never_raised(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Node processes run at a 0.5 ms switch interval (see GIL_SWITCH_INTERVAL_S); the variable overrides it."""
+    before = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.005)
+        monkeypatch.delenv("ROIGSF_GIL_SWITCH_INTERVAL_S", raising=False)
+        assert reduce_gil_switch_interval() == pytest.approx(GIL_SWITCH_INTERVAL_S)
+        monkeypatch.setenv("ROIGSF_GIL_SWITCH_INTERVAL_S", "0.002")
+        assert reduce_gil_switch_interval() == pytest.approx(GIL_SWITCH_INTERVAL_S)  # never raised
+        sys.setswitchinterval(0.005)
+        assert reduce_gil_switch_interval() == pytest.approx(0.002)
+        monkeypatch.setenv("ROIGSF_GIL_SWITCH_INTERVAL_S", "0")
+        assert reduce_gil_switch_interval() == pytest.approx(0.002)  # 0: left as it is
+        monkeypatch.setenv("ROIGSF_GIL_SWITCH_INTERVAL_S", "fast")
+        with pytest.raises(InputError, match=r"ROIGSF_GIL_SWITCH_INTERVAL_S.*'fast'"):
+            reduce_gil_switch_interval()
+    finally:
+        sys.setswitchinterval(before)
 
 
 # ---------------------------------------------------------------------------------------- whole system

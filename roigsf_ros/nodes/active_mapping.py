@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BackgroundSpin, run_nodes, shutdown_executor
+from roigsf_ros.nodes.node_params import BackgroundSpin, reduce_gil_switch_interval, run_nodes, shutdown_executor
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
@@ -87,7 +87,12 @@ class ActiveMapping:
         self._spin: BackgroundSpin | None = None
 
     def start(self) -> ActiveMapping:
-        """Spin the executor in a background thread; returns self."""
+        """Spin the executor in a background thread; returns self.
+
+        Lowers the process's thread switch interval, as the console scripts do (see
+        :func:`~roigsf_ros.nodes.node_params.reduce_gil_switch_interval`).
+        """
+        reduce_gil_switch_interval()
         self._spin = BackgroundSpin(self.executor, "active_mapping_executor").start()
         return self
 
