@@ -414,6 +414,11 @@ def test_gil_switch_interval_is_lowered_never_raised(monkeypatch: pytest.MonkeyP
             reduce_gil_switch_interval()
     finally:
         sys.setswitchinterval(before)
+    env = dict(os.environ, ROIGSF_GIL_SWITCH_INTERVAL_S="fast", PYTHONPATH=str(REPO))
+    bad = subprocess.run(
+        [sys.executable, "-m", "roigsf_ros.nodes.bag_player"], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode == 2 and "bag_player: error: ROIGSF_GIL_SWITCH_INTERVAL_S" in bad.stderr, bad.stderr
 
 
 # ---------------------------------------------------------------------------------------- whole system

@@ -273,7 +273,11 @@ class BagPlayer(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``bag_player``: play, then exit 0 (also on Ctrl-C), 2 on bad input, 1 if playback failed."""
-    init_ros(args)
+    try:
+        init_ros(args)
+    except InputError as exc:  # a bad ROIGSF_GIL_SWITCH_INTERVAL_S
+        print(f"bag_player: error: {exc}", file=sys.stderr)
+        return 2
     try:
         node = BagPlayer()
     except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:

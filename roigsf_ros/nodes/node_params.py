@@ -187,10 +187,15 @@ class BackgroundSpin:
 def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | None = None, threads: int = 4) -> int:
     """Console-script body: init, build the nodes, spin them on a multi-threaded executor until Ctrl-C.
 
-    Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters are bad (the message names the parameter).
-    Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on SIGINT, see the notes).
+    Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters (or ``ROIGSF_GIL_SWITCH_INTERVAL_S``) are bad,
+    the message naming them. Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on
+    SIGINT, see the notes).
     """
-    init_ros(args)
+    try:
+        init_ros(args)
+    except InputError as exc:
+        print(f"{program}: error: {exc}", file=sys.stderr)
+        return 2
     nodes: list[Node] = []
     executor: MultiThreadedExecutor | None = None
     try:  # Ctrl-C may come at any point, also while the nodes or the executor are being built
