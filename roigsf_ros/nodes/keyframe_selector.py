@@ -33,9 +33,6 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.context import Context
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
@@ -51,7 +48,7 @@ from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_topic_params, frame_of, latched_qos
-from roigsf_ros.nodes.node_params import check_positive, declare, run_nodes
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.replica import Frame
 from roigsf_ros.surfels import SurfelMap
@@ -76,23 +73,10 @@ class _KeyframeSink:
         return True
 
 
-class KeyframeSelectorNode(Node):
+class KeyframeSelectorNode(SystemNode):
     """The keyframe selector; see the module docstring. ``shared`` given: gaus-slam reads the in-process map."""
 
-    def __init__(
-        self,
-        *,
-        context: Context | None = None,
-        parameter_overrides: list[Parameter] | None = None,
-        shared: SharedMapper | None = None,
-        node_name: str = "keyframe_selector",
-    ) -> None:
-        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
-        try:
-            self._setup(shared)
-        except BaseException:
-            super().destroy_node()
-            raise
+    default_name = "keyframe_selector"
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:

@@ -41,9 +41,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.context import Context
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
@@ -57,7 +55,7 @@ from roigsf_ros.mapping import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
-from roigsf_ros.nodes.node_params import check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
 from roigsf_ros.replica import Frame
 
@@ -94,24 +92,11 @@ def frame_of(bf: BagFrame) -> Frame:
     return Frame(index=int(bf.stamp_ns), rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc)
 
 
-class MapperNode(Node):
+class MapperNode(SystemNode):
     """The mapper; see the module docstring. ``shared`` given: map into that in-process SharedMapper."""
 
-    def __init__(
-        self,
-        *,
-        context: Context | None = None,
-        parameter_overrides: list[Parameter] | None = None,
-        shared: SharedMapper | None = None,
-        node_name: str = "mapper",
-    ) -> None:
-        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
-        self._thread: threading.Thread | None = None
-        try:
-            self._setup(shared)
-        except BaseException:
-            super().destroy_node()
-            raise
+    default_name = "mapper"
+    _thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:

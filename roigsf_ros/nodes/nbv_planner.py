@@ -48,9 +48,6 @@ import numpy as np
 import torch
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.context import Context
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -73,30 +70,17 @@ from roigsf_ros.nodes.map_msgs import (
     pose_stamped,
 )
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_TOPIC, latched_qos
-from roigsf_ros.nodes.node_params import check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
 from roigsf_ros.tsdf import SurfaceVoxels, TSDFVolume
 
 _MAPPER_DEFAULTS = MapperConfig()
 
 
-class NBVPlannerNode(Node):
+class NBVPlannerNode(SystemNode):
     """The NBV planner; see the module docstring. ``shared`` given: score the in-process map."""
 
-    def __init__(
-        self,
-        *,
-        context: Context | None = None,
-        parameter_overrides: list[Parameter] | None = None,
-        shared: SharedMapper | None = None,
-        node_name: str = "nbv_planner",
-    ) -> None:
-        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
-        try:
-            self._setup(shared)
-        except BaseException:
-            super().destroy_node()
-            raise
+    default_name = "nbv_planner"
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:

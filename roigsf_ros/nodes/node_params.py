@@ -21,7 +21,7 @@ import sys
 import textwrap
 import threading
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -31,6 +31,12 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from roigsf_ros.errors import InputError
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros.nodes.shared_map import SharedMapper
 
 BAD_PARAMETER_ERRORS = (InputError, InvalidParameterTypeException, InvalidParameterValueException, ValueError)
 """Exceptions a node constructor raises for a bad parameter value (reported, exit code 2)."""
@@ -77,6 +83,34 @@ def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str,
         value = declare(node, f.name, getattr(defaults, f.name), docs.get(f.name, f"{cls.__name__}.{f.name}"))
         out[f.name] = tuple(value) if isinstance(value, list | tuple) else value
     return out
+
+
+class SystemNode(Node):
+    """A node of the active-mapping system; ``shared``: the in-process map (None: the node runs on its own).
+
+    Subclasses set :attr:`default_name` and build everything in :meth:`_setup`. A set-up that raises
+    destroys the half-built node (rclpy's part only: a subclass's ``destroy_node`` expects a whole node).
+    """
+
+    default_name = ""
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        parameter_overrides: list[Parameter] | None = None,
+        shared: SharedMapper | None = None,
+        node_name: str | None = None,
+    ) -> None:
+        super().__init__(node_name or self.default_name, context=context, parameter_overrides=parameter_overrides)
+        try:
+            self._setup(shared)
+        except BaseException:
+            Node.destroy_node(self)
+            raise
+
+    def _setup(self, shared: SharedMapper | None) -> None:
+        raise NotImplementedError
 
 
 def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
@@ -229,6 +263,7 @@ def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | N
 __all__ = [
     "BAD_PARAMETER_ERRORS",
     "BackgroundSpin",
+    "SystemNode",
     "check_positive",
     "declare",
     "declare_config",
