@@ -42,3 +42,17 @@ def ros_context() -> Iterator[object]:
         yield ctx
     finally:
         ctx.try_shutdown()
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread() -> Iterator[None]:
+    """One torch thread for a module (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``).
+
+    On a shared 2-core machine OpenMP's spinning threads can make small passes 10-50x slower.
+    """
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

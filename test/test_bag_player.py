@@ -20,11 +20,11 @@ pytest.importorskip("rclpy")
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from roigsf_ros import bags
-from roigsf_ros.benchmarks.io import make_synthetic_replica
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data import bags
+from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.nodes.bag_player import BagPlayer, message_class, reliable_qos
-from roigsf_ros.replica import ReplicaSequence
+from roigsf_ros.perf.io import make_synthetic_replica
 
 pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]

@@ -14,11 +14,11 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from roigsf_ros import bags
-from roigsf_ros.benchmarks.io import make_synthetic_replica
 from roigsf_ros.cli import main as cli_main
-from roigsf_ros.errors import InputError
-from roigsf_ros.replica import ReplicaSequence
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data import bags
+from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.perf.io import make_synthetic_replica
 
 W, H, N = 64, 48, 5
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
-from roigsf_ros.bench import (
+from roigsf_ros.cli import main
+from roigsf_ros.cli.scene import synth_intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.experiments.bench import (
     BenchConfig,
     PolicySpec,
     fisherrf_uncertainty_maps,
@@ -19,25 +22,15 @@ from roigsf_ros.bench import (
     rescore_ause,
     uncertainty_study,
 )
-from roigsf_ros.bench_report import AUSE_CAVEAT, TABLE_COLUMNS, cell, parse_markdown_table
-from roigsf_ros.cli import main
-from roigsf_ros.cli.scene import synth_intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.frames import open_frames
-from roigsf_ros.mapping import Mapper, MapperConfig
-from roigsf_ros.nbv import NBVScorer
-from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.experiments.report import AUSE_CAVEAT, TABLE_COLUMNS, cell, parse_markdown_table
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.nbv.scorer import NBVScorer
 
 MAPPER_SET = ["--set", "densify_stride=2", "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15",
               "--set", "iters_per_keyframe=2"]  # fmt: skip
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from roigsf_ros.bags import BagFrame, CameraTopics
 from roigsf_ros.cli.demo import replay_bag
+from roigsf_ros.data.bags import BagFrame, CameraTopics
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import CameraInput
 
@@ -112,9 +112,9 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
 
 
 def test_demo_replay_delivers_every_frame(tmp_path: Path) -> None:
-    from roigsf_ros import bags
-    from roigsf_ros.benchmarks.io import make_synthetic_replica
-    from roigsf_ros.replica import ReplicaSequence
+    from roigsf_ros.data import bags
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.perf.io import make_synthetic_replica
 
     make_synthetic_replica(tmp_path / "scene", 16, 12, 6, seed=2)
     bags.write_bag(ReplicaSequence(tmp_path / "scene"), tmp_path / "bag", progress=False)
@@ -132,10 +132,10 @@ def test_demo_replay_delivers_every_frame(tmp_path: Path) -> None:
 def test_demo_command_replays_and_maps(tmp_path: Path) -> None:
     import json
 
-    from roigsf_ros import bags
-    from roigsf_ros.benchmarks.io import make_synthetic_replica
     from roigsf_ros.cli import main
-    from roigsf_ros.replica import ReplicaSequence
+    from roigsf_ros.data import bags
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.perf.io import make_synthetic_replica
 
     make_synthetic_replica(tmp_path / "scene", 32, 24, 4, seed=3)
     bags.write_bag(ReplicaSequence(tmp_path / "scene"), tmp_path / "bag", progress=False)

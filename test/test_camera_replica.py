@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from roigsf_ros.camera import (
+from roigsf_ros.core.camera import (
     Intrinsics,
     check_pose,
     load_cam_params,
@@ -18,8 +18,9 @@ from roigsf_ros.camera import (
     pose_from_position_quat,
     quat_xyzw_to_matrix,
 )
-from roigsf_ros.errors import InputError
-from roigsf_ros.replica import Frame, ReplicaSequence, load_traj, write_replica
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.replica import ReplicaSequence, load_traj, write_replica
 
 INTR = Intrinsics(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.close_front import CloseFrontMemory, close_front_gain, observation_weight, voxel_keys
-from roigsf_ros.errors import InputError
-from roigsf_ros.nbv import NBVConfig
-from roigsf_ros.roi import voxel_visibility
-from roigsf_ros.scene import look_at
-from roigsf_ros.tsdf import SurfaceVoxels
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import look_at
+from roigsf_ros.mapping.tsdf import SurfaceVoxels
+from roigsf_ros.nbv.close_front import CloseFrontMemory, close_front_gain, observation_weight, voxel_keys
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.roi import voxel_visibility
 
 CFG = NBVConfig()
 INTR = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roigsf_ros.mapping import MapperConfig
-from roigsf_ros.nbv import NBVConfig
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.nbv.config import NBVConfig
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 

@@ -12,9 +12,9 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.evaluation import (
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.evaluation.metrics import (
     ause,
     depth_l1,
     gt_visible_mask,

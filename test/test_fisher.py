@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from roigsf_ros import render_reference
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.fisher import (
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.render import reference as render_reference
+from roigsf_ros.render.fisher import (
     ALL_PARAMS,
     GEOMETRIC_PARAMS,
     fisher_diag,
@@ -17,8 +17,9 @@ from roigsf_ros.fisher import (
     frustum_subset,
     packed_jacobian,
 )
-from roigsf_ros.render import camera_tensors, numba_available, pair_alpha_depth, project_packed
-from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.render.numba_setup import numba_available
+from roigsf_ros.render.rasterize import camera_tensors, pair_alpha_depth, project_packed
+from roigsf_ros.render.surfels import SurfelMap
 
 F64 = torch.float64
 BACKENDS = ["torch", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="no numba"))]

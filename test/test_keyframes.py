@@ -6,11 +6,12 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.keyframes import GausSlam, KeyframePolicy, make_policy, policy_names, register_policy
-from roigsf_ros.mapping import Mapper, MapperConfig
-from roigsf_ros.replica import Frame
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names, register_policy
+from roigsf_ros.policies.rules import GausSlam
 
 INTR = Intrinsics(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)
 
@@ -61,8 +62,8 @@ def test_registry_and_errors() -> None:
 
     @register_policy("test-odd")
     class Odd(KeyframePolicy):
-        def observe(self, frame: Frame, mapper: Mapper) -> bool:
-            return frame.index % 2 == 1
+        def observe(self, frame: Frame, mapper: Mapper) -> list[Frame]:
+            return [frame] if frame.index % 2 == 1 else []
 
     assert "test-odd" in policy_names() and make_policy("test-odd").name == "test-odd"
     with pytest.raises(ValueError, match="twice"):

@@ -10,7 +10,8 @@ pytest.importorskip("rclpy")
 
 from sensor_msgs.msg import PointField
 
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import synth_trajectory
 from roigsf_ros.nodes.map_msgs import (
     BASE_FIELDS,
     RGB_FIELD,
@@ -24,8 +25,7 @@ from roigsf_ros.nodes.map_msgs import (
     poses_to_array,
     surfel_map_to_cloud,
 )
-from roigsf_ros.scene import synth_trajectory
-from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.render.surfels import SurfelMap
 
 
 def _random_map(n: int, sh_degree: int, seed: int = 0) -> SurfelMap:

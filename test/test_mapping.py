@@ -11,16 +11,18 @@ import open3d as o3d
 import pytest
 import torch
 
-from roigsf_ros import losses
-from roigsf_ros.bags import write_bag
-from roigsf_ros.camera import Intrinsics
 from roigsf_ros.cli import main as cli_main
-from roigsf_ros.errors import InputError
-from roigsf_ros.evaluation import psnr
-from roigsf_ros.frames import open_frames
-from roigsf_ros.keyframes import make_policy
-from roigsf_ros.mapping import EvalConfig, Mapper, MapperConfig, run_offline
-from roigsf_ros.replica import Frame, ReplicaSequence, resize_frame, write_replica
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame, resize_frame
+from roigsf_ros.data.bags import write_bag
+from roigsf_ros.data.replica import ReplicaSequence, write_replica
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.evaluation.metrics import psnr
+from roigsf_ros.experiments.offline import EvalConfig, run_offline
+from roigsf_ros.mapping import losses
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.policies.base import make_policy
 
 INTR = Intrinsics(width=64, height=48, fx=52.0, fy=52.0, cx=31.5, cy=23.5)
 ROOM_LO, ROOM_HI = np.array([-2.0, -1.5, 0.0]), np.array([2.0, 1.5, 2.5])
@@ -143,7 +145,7 @@ def test_bad_input_is_masked_skipped_or_refused(frames: list[Frame], caplog: pyt
     assert mapper.optimise(3) == {}
     assert len(mapper.mesh(poses=[f0.T_wc]).triangles) == 0
 
-    caplog.set_level(logging.WARNING, logger="roigsf_ros.mapping")
+    caplog.set_level(logging.WARNING, logger="roigsf_ros.mapping.mapper")
     nan_depth = Frame(index=10, rgb=f0.rgb, depth_m=np.full_like(f0.depth_m, np.nan), T_wc=f0.T_wc)
     zero_depth = Frame(index=11, rgb=f0.rgb, depth_m=np.zeros_like(f0.depth_m), T_wc=f0.T_wc)
     far_depth = Frame(index=12, rgb=f0.rgb, depth_m=np.full_like(f0.depth_m, 1e4), T_wc=f0.T_wc)

@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import open3d as o3d
 import pytest
 import torch
 
-from roigsf_ros.camera import Intrinsics, matrix_to_quat_xyzw
-from roigsf_ros.close_front import CloseFrontMemory
-from roigsf_ros.errors import InputError
-from roigsf_ros.evaluation import raycast_depth, raycasting_scene
-from roigsf_ros.fisher import GEOMETRIC_PARAMS
-from roigsf_ros.nbv import (
-    NBVConfig,
+from roigsf_ros.core.camera import Intrinsics, matrix_to_quat_xyzw
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import MeshRenderer, look_at
+from roigsf_ros.evaluation.metrics import raycast_depth, raycasting_scene
+from roigsf_ros.mapping.tsdf import TSDFVolume
+from roigsf_ros.nbv.close_front import CloseFrontMemory
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.scorer import (
     NBVScorer,
     block_mean,
     depth_error_ause,
@@ -24,23 +23,16 @@ from roigsf_ros.nbv import (
     rank_candidates,
     zscore,
 )
-from roigsf_ros.render import camera_tensors, render_map
-from roigsf_ros.render_reference import rasterize_surfels as reference_rasterize
-from roigsf_ros.scene import MeshRenderer, look_at
-from roigsf_ros.surfels import SH_C0, SurfelMap, rotmat_to_quat, surfels_from_rgbd
-from roigsf_ros.tsdf import TSDFVolume
+from roigsf_ros.render.fisher import GEOMETRIC_PARAMS
+from roigsf_ros.render.rasterize import camera_tensors, render_map
+from roigsf_ros.render.reference import rasterize_surfels as reference_rasterize
+from roigsf_ros.render.surfels import SH_C0, SurfelMap, rotmat_to_quat, surfels_from_rgbd
 
 UP = np.array([0.0, 0.0, 1.0])
 INTR = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    """One torch thread: on a shared 2-core machine OpenMP's spinning threads can make passes 10-50x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ----------------------------------------------------------------------------- fusion, ranking
@@ -357,7 +349,7 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
     import json
 
     from roigsf_ros.cli import main
-    from roigsf_ros.render import numba_available, set_numba_threads
+    from roigsf_ros.render.numba_setup import numba_available, set_numba_threads
 
     out = tmp_path / "nbv.json"
     args = ["perf", "nbv", "--repeats", "1", "--threads", "1", "--surfels", "1500", "--width", "40", "--height", "30"]

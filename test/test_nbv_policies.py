@@ -2,21 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import open3d as o3d
 import pytest
-import torch
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.keyframes import make_policy, policy_names
-from roigsf_ros.mapping import Mapper, MapperConfig
-from roigsf_ros.nbv import NBVScorer
-from roigsf_ros.nbv_policies import STREAM_POLICIES, StreamNBVPolicy
-from roigsf_ros.replica import Frame
-from roigsf_ros.scene import MeshRenderer, look_at
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.scene import MeshRenderer, look_at
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.nbv.scorer import NBVScorer
+from roigsf_ros.policies.base import make_policy, policy_names
+from roigsf_ros.policies.stream import STREAM_POLICIES, StreamNBVPolicy
 
 INTR = Intrinsics(width=48, height=36, fx=40.0, fy=40.0, cx=23.5, cy=17.5)
 UP = np.array([0.0, 0.0, 1.0])
@@ -24,12 +21,7 @@ WINDOW = 4
 N_FRAMES = 12
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
@@ -52,14 +44,14 @@ def mapper_config() -> MapperConfig:
 
 
 def run_stream(policy: StreamNBVPolicy, frames: list[Frame], check=None) -> Mapper:
-    """What run_offline does per frame: observe, insert when True; ``check(policy, mapper, k)`` before each."""
+    """What run_offline does per frame: observe, insert what it names; ``check(policy, mapper, k)`` before each."""
     mapper = Mapper(INTR, mapper_config())
     policy.reset()
     for k, frame in enumerate(frames):
         if check is not None:
             check(policy, mapper, k)
-        if policy.observe(frame, mapper):
-            mapper.add_keyframe(frame)
+        for keyframe in policy.observe(frame, mapper):
+            mapper.add_keyframe(keyframe)
     return mapper
 
 

@@ -32,13 +32,16 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from roigsf_interfaces.srv import GetNextBestView, LoadMap, SaveMap
-from roigsf_ros import bags
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.keyframes import make_policy
-from roigsf_ros.mapping import Mapper, MapperConfig
-from roigsf_ros.nbv import NBVConfig, NBVScorer
-from roigsf_ros.nbv_cache import TrainFisherCache, carry_rows, match_surfels
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data import bags
+from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.scorer import NBVScorer
+from roigsf_ros.nbv.state import TrainFisherCache, carry_rows, match_surfels
 from roigsf_ros.nodes.active_mapping import ActiveMapping
 from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
@@ -47,8 +50,7 @@ from roigsf_ros.nodes.mapper import MapperNode, latched_qos
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
 from roigsf_ros.nodes.node_params import GIL_SWITCH_INTERVAL_S, BackgroundSpin, reduce_gil_switch_interval
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
-from roigsf_ros.replica import Frame, ReplicaSequence
-from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.policies.base import make_policy
 
 pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]
@@ -123,7 +125,8 @@ def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped
     # The library's own path: the stream policy's TSDF of rendered depth at the keyframes, its scorer.
     policy = make_policy("roi-gsurfisher")
     policy.sync_tsdf(mapped)
-    offline = policy.scorer.score(mapped.map, mapped.h_train, policy.tsdf, mapped.keyframe_poses, cands, INTR)
+    scorer = NBVScorer(policy.config)
+    offline = scorer.score(mapped.map, mapped.h_train, policy.tsdf, mapped.keyframe_poses, cands, INTR)
 
     planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
     client_node = Node("nbv_test_client", context=ros_context)
@@ -667,7 +670,7 @@ def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
         # The cached products score exactly as the library does from scratch with the same inputs.
         scorer = NBVScorer(replace(NBVConfig(), top_k=3))
         h = scorer.train_fisher(snap.surfel_map, snap.keyframe_poses, INTR, "roi-gsurfisher")
-        want = scorer.score(snap.surfel_map, h, planner._tsdf, snap.keyframe_poses, cands, INTR)
+        want = scorer.score(snap.surfel_map, h, planner.state.tsdf, snap.keyframe_poses, cands, INTR)
         np.testing.assert_allclose(answers[1].fused_scores, want.fused, rtol=1e-6, atol=1e-9)
         assert answers[1].best_index == want.best_index
         # A new keyframe on top: its TSDF frame, one surface/W_f rebuild, one Fisher pass; no full recompute.

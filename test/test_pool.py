@@ -2,32 +2,26 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
 
 from roigsf_ros.cli.scene import synth_intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.frames import MemoryFrameSource
-from roigsf_ros.mapping import MapperConfig
-from roigsf_ros.nbv import NBVConfig, NBVScorer
-from roigsf_ros.pool import PoolConfig, farthest_point_views, pose_only, run_pool, split_pool
-from roigsf_ros.replica import Frame
-from roigsf_ros.scene import MeshRenderer, synth_room, synth_trajectory
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.scene import MeshRenderer, synth_room, synth_trajectory
+from roigsf_ros.data.sources import MemoryFrameSource
+from roigsf_ros.experiments.pool import PoolConfig, farthest_point_views, pose_only, run_pool, split_pool
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.scorer import NBVScorer
 
 INTR = synth_intrinsics(48, 36)
 N_FRAMES = 32
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from roigsf_ros import render, render_reference
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.render import camera_tensors, render_map
-from roigsf_ros.surfels import SurfelMap, rotmat_to_quat
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.render import rasterize as render
+from roigsf_ros.render import reference as render_reference
+from roigsf_ros.render.numba_setup import numba_available
+from roigsf_ros.render.rasterize import camera_tensors, render_map
+from roigsf_ros.render.surfels import SurfelMap, rotmat_to_quat
 
 OUTPUTS = ("features", "alpha", "depth", "median_depth", "normal", "distortion")
 F64 = torch.float64
@@ -54,7 +56,7 @@ def random_scene(kind: str, seed: int, n: int = 24, width: int = 20, height: int
     return [means, quats, scales, opac, feats], viewmat, K, width, height
 
 
-NEEDS_NUMBA = pytest.mark.skipif(not render.numba_available(), reason="numba is not installed")
+NEEDS_NUMBA = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 BACKENDS = ["torch", pytest.param("numba", marks=NEEDS_NUMBA)]
 
 
@@ -258,7 +260,7 @@ def test_numba_and_torch_pixel_boxes_agree() -> None:
 
 
 def test_benchmark_room_scene_renders_a_closed_room() -> None:
-    from roigsf_ros.benchmarks.render import room_camera, room_scene
+    from roigsf_ros.perf.render import room_camera, room_scene
 
     m = room_scene(3000, seed=1)
     T_wc, intr = room_camera(40, 30)

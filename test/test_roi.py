@@ -8,11 +8,13 @@ import open3d as o3d
 import pytest
 import torch
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.evaluation import raycast_depth, raycasting_scene
-from roigsf_ros.nbv import NBVConfig
-from roigsf_ros.roi import (
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import look_at
+from roigsf_ros.evaluation.metrics import raycast_depth, raycasting_scene
+from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.roi import (
     coverage_weight,
     footprint_weight,
     incidence_weight,
@@ -21,9 +23,7 @@ from roigsf_ros.roi import (
     voxel_visibility,
     voxel_weight,
 )
-from roigsf_ros.scene import look_at
-from roigsf_ros.surfels import SH_C0, SurfelMap
-from roigsf_ros.tsdf import SurfaceVoxels, TSDFVolume
+from roigsf_ros.render.surfels import SH_C0, SurfelMap
 
 CFG = NBVConfig()
 INTR = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)

@@ -11,13 +11,13 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from roigsf_ros import scene
-from roigsf_ros.camera import Intrinsics, check_pose, load_cam_params
 from roigsf_ros.cli import build_parser, main
 from roigsf_ros.cli.scene import synth_intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.replica import MAX_DEPTH_M, ReplicaSequence, load_traj
-from roigsf_ros.scene import (
+from roigsf_ros.core.camera import Intrinsics, check_pose, load_cam_params
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data import scene
+from roigsf_ros.data.replica import MAX_DEPTH_M, ReplicaSequence, load_traj
+from roigsf_ros.data.scene import (
     REPLICA_PIXEL_OFFSET,
     ROOM_MAX,
     ROOM_MIN,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.surfels import SH_C0, SurfelMap, quat_to_rotmat, rotmat_to_quat, surfels_from_rgbd
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.render.surfels import SH_C0, SurfelMap, quat_to_rotmat, rotmat_to_quat, surfels_from_rgbd
 
 # The vertex properties hbb1/2d-gaussian-splatting writes (construct_list_of_attributes, SH degree 1).
 FIELDS_2DGS_DEG1 = [

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from roigsf_ros.sync import StampGapCounter, StampMatcher
+from roigsf_ros.data.sync import StampGapCounter, StampMatcher
 
 
 def test_completes_in_any_arrival_order() -> None:

@@ -44,10 +44,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from roigsf_ros import bags
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.replica import ReplicaSequence
-from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.data import bags
+from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]
@@ -648,8 +648,8 @@ def fast_map(bag_fast: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     (the planner's working set grows with the map). Its keyframe ids are the frames' stamps 1000 s earlier,
     so the replayed frames are new keyframes to the mapper.
     """
-    from roigsf_ros.mapping import Mapper, MapperConfig
-    from roigsf_ros.replica import Frame
+    from roigsf_ros.core.frame import Frame
+    from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 
     frames, _ = bags.read_bag_frames(bag_fast)
     mapper = Mapper(frames[0].intrinsics, MapperConfig(iters_per_keyframe=1))

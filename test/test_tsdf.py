@@ -9,11 +9,11 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from roigsf_ros.camera import Intrinsics, load_cam_params
-from roigsf_ros.errors import InputError
-from roigsf_ros.evaluation import mesh_metrics, raycast_depth, raycasting_scene
-from roigsf_ros.replica import load_traj
-from roigsf_ros.tsdf import TSDFVolume, tsdf_mesh_from_depths
+from roigsf_ros.core.camera import Intrinsics, load_cam_params
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.replica import load_traj
+from roigsf_ros.evaluation.metrics import mesh_metrics, raycast_depth, raycasting_scene
+from roigsf_ros.mapping.tsdf import TSDFVolume, tsdf_mesh_from_depths
 
 INTR = Intrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
 

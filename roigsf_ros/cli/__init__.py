@@ -10,7 +10,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
 
 # Subcommand modules, in the order `roigsf --help` lists them.
 _COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "perf")

@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.replica import ReplicaSequence
+from roigsf_ros.data.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
+from roigsf_ros.data.replica import ReplicaSequence
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -93,7 +93,7 @@ def _from_replica(args: argparse.Namespace) -> int:
 
 
 def format_info(info: dict[str, Any]) -> str:
-    """A readable multi-line summary of :func:`roigsf_ros.bags.bag_info`'s dictionary."""
+    """A readable multi-line summary of :func:`roigsf_ros.data.bags.bag_info`'s dictionary."""
     lines = [f"bag:          {info['path']}"]
     if info["start_ns"] is not None:
         lines.append(

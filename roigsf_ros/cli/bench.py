@@ -1,7 +1,7 @@
 """``roigsf bench``: run NBV / keyframe policies on identical inputs and seeds; tables and plots.
 
 Stream setting: each policy maps the sequence in trajectory order (``roigsf map``'s loop). Pool
-setting: FisherRF's "v20seq1" active reconstruction (:mod:`roigsf_ros.pool`). Writes
+setting: FisherRF's "v20seq1" active reconstruction (:mod:`roigsf_ros.experiments.pool`). Writes
 ``runs/<policy>/seed<k>/``, ``results.json``, ``results.md``, ``quality_vs_views.png``,
 ``chosen_views.png`` and ``uncertainty_<policy>.png`` into ``--out``. With ``--rescore-ause``,
 recompute the AUSE study of an existing ``--out`` from its saved runs (no training) and rewrite its
@@ -18,12 +18,12 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.bench import BenchConfig, parse_policies, rescore_ause, run_bench
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.cli.map import _parse_value
-from roigsf_ros.errors import InputError
-from roigsf_ros.mapping import MapperConfig
-from roigsf_ros.pool import PoolConfig
+from roigsf_ros.cli.map import parse_set_value
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.experiments.bench import BenchConfig, parse_policies, rescore_ause, run_bench
+from roigsf_ros.experiments.pool import PoolConfig
+from roigsf_ros.mapping.mapper import MapperConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -86,7 +86,7 @@ def _overrides(items: list[str], defaults: dict[str, Any], flag: str, skip: tupl
             except ValueError:
                 raise InputError(f"{flag} {name}", f"cannot parse {text!r} as numbers") from None
         else:
-            out[name] = _parse_value(name, text.strip(), default)
+            out[name] = parse_set_value(name, text.strip(), default)
     return out
 
 
@@ -94,7 +94,7 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
     """The :class:`BenchConfig` of the command line (validated)."""
     policies = parse_policies(args.policies, args.setting)
     mdefaults = {f.name: getattr(MapperConfig(), f.name) for f in fields(MapperConfig)}
-    mapper = replace(MapperConfig(), **_overrides(args.set, mdefaults, "--set", skip=("seed",))).validate()
+    mapper = replace(MapperConfig(), **_overrides(args.set, mdefaults, "--set", skip=("seed",)))
     pdefaults = {f.name: getattr(PoolConfig(), f.name) for f in fields(PoolConfig)}
     pool = replace(PoolConfig(), **_overrides(args.pool_set, pdefaults, "--pool-set",
                                               skip=("seed", "policy", "policy_params")))  # fmt: skip

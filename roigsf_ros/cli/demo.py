@@ -26,13 +26,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roigsf_ros.bags import BagFrame, bag_info
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import BagFrame, bag_info
 
 if TYPE_CHECKING:
     import open3d as o3d
 
-    from roigsf_ros.mapping import EvalConfig, Mapper
+    from roigsf_ros.experiments.offline import EvalConfig
+    from roigsf_ros.mapping.mapper import Mapper
     from roigsf_ros.nodes.active_mapping import ActiveMapping
 
 DEFAULT_BAG = Path("bags/synth_room")
@@ -140,29 +141,20 @@ def evaluate_map(
 
     ``frames`` are the recorded frames (the bag); a frame is a keyframe when its stamp is one of the
     mapper's keyframe ids (the mapper node names keyframes by stamp). Recall is against the GT culled
-    to what the bag's poses observe, as in :func:`roigsf_ros.mapping.run_offline`.
+    to what the bag's poses observe, as in :func:`roigsf_ros.experiments.offline.run_offline`.
     """
     from roigsf_ros import evaluation
-    from roigsf_ros.mapping import EvalConfig, _strip_pick
+    from roigsf_ros.core.frame import spread_indices
+    from roigsf_ros.experiments.offline import EvalConfig
 
     ev = eval_config or EvalConfig()
     cfg = mapper.config
     keyframe_ids = {int(i) for i in mapper.keyframe_ids}
     others = [f for f in frames if f.stamp_ns not in keyframe_ids][:: ev.eval_every]
-    strip_pick = {others[j].stamp_ns for j in _strip_pick(len(others), ev.strip_frames)}
-    psnrs, ssims, dl1s = [], [], []
-    rows = []
-    for f in others:
-        out = mapper.render(f.T_wc)
-        rgb = out.color.clamp(0, 1).cpu().numpy()
-        depth = mapper.render_depth(out, cfg.eval_depth).cpu().numpy()
-        psnrs.append(evaluation.psnr(rgb, f.rgb))
-        ssims.append(evaluation.ssim(rgb, f.rgb))
-        gt_depth = np.where(mapper.valid_depth_mask(f.depth_m), f.depth_m, 0.0)
-        if gt_depth.any():
-            dl1s.append(evaluation.depth_l1(depth, gt_depth))
-        if f.stamp_ns in strip_pick:
-            rows.append((f.rgb, rgb, gt_depth, depth))
+    images = evaluation.render_metrics(
+        mapper.render_rgb_depth, others, mapper.valid_depth_mask, strip=spread_indices(len(others), ev.strip_frames)
+    )
+    rows = images.strip_rows
     mesh = mapper.mesh()
     metrics: dict[str, Any] = {
         "n_frames": len(frames),
@@ -170,11 +162,8 @@ def evaluate_map(
         "keyframe_ids": sorted(keyframe_ids),
         "keyframes_in_bag": sum(f.stamp_ns in keyframe_ids for f in frames),
         "map_size": mapper.n_surfels,
-        "n_eval_frames": len(psnrs),
+        **{k: v for k, v in images.means().items() if k != "depth_l1_m"},
         "eval_on": "non-keyframes",
-        "psnr": float(np.mean(psnrs)) if psnrs else None,
-        "ssim": float(np.mean(ssims)) if ssims else None,
-        "depth_l1_cm": float(np.mean(dl1s)) * 100.0 if dl1s else None,
         "eval_depth": cfg.eval_depth,
         "mesh_vertices": len(mesh.vertices),
         "mesh_triangles": len(mesh.triangles),
@@ -214,7 +203,7 @@ def save_plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from roigsf_ros.fileio import atomic_path
+    from roigsf_ros.core.fileio import atomic_path
 
     xyz = poses[:, :3, 3]
     a, b = np.sort(np.argsort(xyz.std(axis=0))[-2:])
@@ -341,9 +330,8 @@ def run_demo(
     from rclpy.parameter import Parameter
 
     from roigsf_ros import evaluation
-    from roigsf_ros.bags import read_bag_frames
-    from roigsf_ros.fileio import atomic_dir, write_json
-    from roigsf_ros.mapping import config_to_dict
+    from roigsf_ros.core.fileio import atomic_dir, write_json
+    from roigsf_ros.data.bags import read_bag_frames
     from roigsf_ros.nodes.active_mapping import ActiveMapping
     from roigsf_ros.nodes.bag_player import BagPlayer
     from roigsf_ros.nodes.shared_map import save_snapshot
@@ -452,7 +440,7 @@ def run_demo(
         "stream_s": t_stream,
         "final_iters": final_iters,
         "refine_s": t_refine,
-        "mapper_config": config_to_dict(mapper.config),
+        "mapper_config": mapper.config.to_dict(),
     }
     poses = np.stack([f.T_wc for f in frames])
     is_kf = np.array([f.stamp_ns in set(mapper.keyframe_ids) for f in frames])

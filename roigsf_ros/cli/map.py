@@ -8,10 +8,11 @@ from dataclasses import fields, replace
 from pathlib import Path
 
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.errors import InputError
-from roigsf_ros.frames import open_frames
-from roigsf_ros.keyframes import make_policy, policy_names
-from roigsf_ros.mapping import EvalConfig, MapperConfig, run_offline
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.experiments.offline import EvalConfig, run_offline
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.policies.base import make_policy, policy_names
 
 _SUMMARY_KEYS = (
     ("frames", "n_frames", "{:d}"),
@@ -68,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _parse_value(name: str, text: str, default: object) -> object:
+def parse_set_value(name: str, text: str, default: object) -> object:
     """A config value of ``default``'s type from the command line."""
     try:
         if isinstance(default, bool):
@@ -95,7 +96,7 @@ def config_from_args(args: argparse.Namespace) -> MapperConfig:
         name = name.strip()
         if not sep or name not in defaults:
             raise InputError(f"--set {item}", "expected NAME=VALUE with NAME a MapperConfig field")
-        cfg = replace(cfg, **{name: _parse_value(name, text.strip(), defaults[name])})
+        cfg = replace(cfg, **{name: parse_set_value(name, text.strip(), defaults[name])})
     return cfg.validate()
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-# Benchmark modules under roigsf_ros.benchmarks; each exposes add_arguments(parser) and run(args).
+# Benchmark modules under roigsf_ros.perf; each exposes add_arguments(parser) and run(args).
 _BENCHMARKS = ("io", "render", "nbv")
 
 
@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("perf", help="speed benchmarks (JSON + table)", description=__doc__)
     perf_sub = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True)
     for name in _BENCHMARKS:
-        module = importlib.import_module(f"roigsf_ros.benchmarks.{name}")
+        module = importlib.import_module(f"roigsf_ros.perf.{name}")
         doc = (module.__doc__ or name).strip().splitlines()[0]
         p = perf_sub.add_parser(name, help=doc, description=module.__doc__)
         module.add_arguments(p)

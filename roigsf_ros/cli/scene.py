@@ -12,10 +12,10 @@ import argparse
 import math
 from pathlib import Path
 
-from roigsf_ros.camera import Intrinsics, load_cam_params
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.errors import InputError
-from roigsf_ros.replica import load_traj
+from roigsf_ros.core.camera import Intrinsics, load_cam_params
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.replica import load_traj
 
 SYNTH_WIDTH, SYNTH_HEIGHT = 320, 240
 SYNTH_FOCAL_PER_WIDTH = 0.8
@@ -39,7 +39,7 @@ def _check_texture(strength: float) -> None:
 
 def _render(args: argparse.Namespace) -> int:
     """Handler of ``scene render``."""
-    from roigsf_ros.scene import load_mesh, render_sequence  # open3d import only when used
+    from roigsf_ros.data.scene import load_mesh, render_sequence  # open3d import only when used
 
     out = Path(args.out)
     check_out(out, args.overwrite)
@@ -72,7 +72,7 @@ def _render(args: argparse.Namespace) -> int:
 
 def _synth(args: argparse.Namespace) -> int:
     """Handler of ``scene synth``."""
-    from roigsf_ros.scene import render_sequence, synth_room, synth_trajectory
+    from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 
     out = Path(args.out)
     check_out(out, args.overwrite)

@@ -31,8 +31,8 @@ from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from roigsf_ros.bags import open_any_reader
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import open_any_reader
 from roigsf_ros.nodes.node_params import init_ros
 
 

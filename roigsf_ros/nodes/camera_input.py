@@ -1,12 +1,12 @@
 """Camera input shared by the nodes: four subscriptions matched by stamp into validated frames.
 
-Messages are converted with the library's converters (:mod:`roigsf_ros.bags`) and matched with
-:class:`roigsf_ros.sync.StampMatcher`. Bad messages (unsupported encoding, size mismatch with the
+Messages are converted with the library's converters (:mod:`roigsf_ros.data.bags`) and matched with
+:class:`roigsf_ros.data.sync.StampMatcher`. Bad messages (unsupported encoding, size mismatch with the
 camera info, NaN pose, ...) are dropped with a throttled warning and counted by reason; frames that
 never complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows;
 frames that never arrived at all (every message overwritten in a full middleware queue, which the
 middleware does not report) are estimated from gaps in each topic's stamps
-(:class:`roigsf_ros.sync.StampGapCounter`).
+(:class:`roigsf_ros.data.sync.StampGapCounter`).
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image
 
-from roigsf_ros.bags import BagFrame, CameraTopics, assemble_frame, stamp_to_ns
-from roigsf_ros.errors import InputError
-from roigsf_ros.sync import StampGapCounter, StampMatcher
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import BagFrame, CameraTopics, assemble_frame, stamp_to_ns
+from roigsf_ros.data.sync import StampGapCounter, StampMatcher
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""

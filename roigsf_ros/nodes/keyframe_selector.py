@@ -3,7 +3,7 @@
 The first frame is always a keyframe. Then, by ``policy``:
 
 - ``roi-gsurfisher``, ``roi-fisher``, ``close-front``, ``fisherrf`` (the planner policies): the stream
-  setting of :class:`roigsf_ros.nbv_policies.StreamNBVPolicy`. The node keeps the last ``window``
+  setting of :class:`roigsf_ros.policies.stream.StreamNBVPolicy`. The node keeps the last ``window``
   frames that are not keyframes; every ``trigger_every`` frames (0 = ``window``) it sends their poses
   to the planner's service (asynchronously: ``call_async`` and a timer that checks the answer, never a
   blocking call in a callback) and names the winner. When the planner is not available, answers
@@ -27,7 +27,6 @@ import json
 import sys
 import threading
 import time
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -38,39 +37,27 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
 from roigsf_interfaces.srv import GetNextBestView
-from roigsf_ros.bags import BagFrame
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.keyframes import KeyframePolicy, make_policy
-from roigsf_ros.mapping import Mapper
-from roigsf_ros.nbv import MODES
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.bags import BagFrame
+from roigsf_ros.mapping.mapper import Mapper
+from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_topic_params, frame_of, latched_qos
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
-from roigsf_ros.replica import Frame
-from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.policies.base import KeyframePolicy, make_policy
+from roigsf_ros.policies.stream import CandidateWindow
+from roigsf_ros.render.surfels import SurfelMap
 
 PLANNER_POLICIES = MODES
 """Policies whose keyframes the NBV planner chooses (its score modes)."""
 ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all")
 """Policies that decide without the planner (the baselines, and the fallbacks)."""
 PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
-
-
-class _KeyframeSink:
-    """Stands in for the Mapper of the library's stream policies: records the frames they insert."""
-
-    def __init__(self) -> None:
-        self.keyframes: list[Frame] = []
-        self.inserted: list[Frame] = []
-
-    def add_keyframe(self, frame: Frame) -> bool:
-        """Record ``frame`` (the policy's winner) for publication."""
-        self.inserted.append(frame)
-        return True
 
 
 class KeyframeSelectorNode(SystemNode):
@@ -118,8 +105,7 @@ class KeyframeSelectorNode(SystemNode):
         self._cloud: PointCloud2 | None = None
         self._cloud_version = 0
         self._view: tuple[int, Mapper] | None = None
-        self._buffer: deque[Frame] = deque(maxlen=self.window)
-        self._since_trigger = 0
+        self._window = CandidateWindow(self.window, self.trigger_every)
         self._seen = 0
         self._request: tuple[Future, list[Frame], float] | None = None
         self._request_intr: Intrinsics | None = None
@@ -189,30 +175,23 @@ class KeyframeSelectorNode(SystemNode):
             if not self.uses_planner:
                 self._decide_alone(self._alone, [frame], bf.intrinsics, force_first=first)
                 return
+            candidates, first = self._window.push(frame)  # the library's stream window and trigger
             if first:
                 self._publish(frame)
                 return
-            self._buffer.append(frame)
-            self._since_trigger += 1
-            if self._since_trigger < self.trigger_every:
+            if not candidates:
                 return
-            self._since_trigger = 0
-            candidates = list(self._buffer)
         self._ask_planner(candidates, bf.intrinsics)
 
     def _decide_alone(
         self, policy: KeyframePolicy, frames: list[Frame], intr: Intrinsics, force_first: bool = False
     ) -> None:
-        """Run a library policy over ``frames`` and publish what it picks."""
+        """Run a library policy over ``frames`` and publish the keyframes it names (the first frame always)."""
         for frame in frames:
-            if policy.name == "random":
-                sink = _KeyframeSink()
-                picked = policy.observe(frame, sink)  # type: ignore[arg-type]  # the sink stands in for a Mapper
-                chosen = ([frame] if picked or force_first else []) + sink.inserted
-            else:
-                view = self._map_view(intr) if policy.name == "gaus-slam" else None
-                picked = policy.observe(frame, view)  # type: ignore[arg-type]  # only gaus-slam reads the map
-                chosen = [frame] if picked or force_first else []
+            view = self._map_view(intr) if policy.name == "gaus-slam" else None
+            chosen = policy.observe(frame, view)  # type: ignore[arg-type]  # only gaus-slam reads the map
+            if force_first and not any(f is frame for f in chosen):
+                chosen = [frame, *chosen]
             force_first = False
             for f in chosen:
                 self._publish(f)
@@ -257,7 +236,7 @@ class KeyframeSelectorNode(SystemNode):
                     self._planner_down = False
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
                 winner = candidates[res.best_index]
-                self._drop_from_window(winner)
+                self._window.remove(winner)
                 self._publish(winner)
             elif time.monotonic() - t_sent > self.timeout_s:
                 self._request = None
@@ -277,19 +256,12 @@ class KeyframeSelectorNode(SystemNode):
         self._planner_down = True
         if self.fallback == "random":
             winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
-            self._drop_from_window(winner)
+            self._window.remove(winner)
             self._publish(winner)
             return
         for f in candidates:
-            self._drop_from_window(f)
+            self._window.remove(f)
         self._decide_alone(self._fallback, candidates, intr)
-
-    def _drop_from_window(self, frame: Frame) -> None:
-        """Remove ``frame`` (by identity: frames hold arrays) from the candidate window if it is still there."""
-        for i, f in enumerate(self._buffer):
-            if f is frame:
-                del self._buffer[i]
-                return
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, frame: Frame) -> None:
@@ -308,7 +280,7 @@ class KeyframeSelectorNode(SystemNode):
                 "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframe_ids": list(self.keyframe_ids),
-                "window": [f.index for f in self._buffer],
+                "window": self._window.pending_ids,
                 "planner_pending": self._request is not None,
                 **self.counters,
             }

@@ -1,7 +1,7 @@
 """Surfel maps and keyframe poses as ROS messages: ``sensor_msgs/PointCloud2``, ``PoseArray``, mesh ``Marker``.
 
 The map cloud has one point per surfel with float32 fields (little-endian, packed, ``point_step`` =
-4 x number of fields), all raw 2DGS parameters of :class:`roigsf_ros.surfels.SurfelMap`, so a round
+4 x number of fields), all raw 2DGS parameters of :class:`roigsf_ros.render.surfels.SurfelMap`, so a round
 trip is exact (the map is float32):
 
     x y z                       centre (metres, in ``frame_id``, default "map")
@@ -35,10 +35,10 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
-from roigsf_ros.bags import pose_to_matrix
-from roigsf_ros.camera import matrix_to_quat_xyzw
-from roigsf_ros.errors import InputError
-from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.core.camera import matrix_to_quat_xyzw
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import pose_to_matrix
+from roigsf_ros.render.surfels import SurfelMap
 
 MAP_FRAME_ID = "map"
 """Default frame of the map cloud, keyframe poses and candidate poses."""

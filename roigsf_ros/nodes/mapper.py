@@ -49,15 +49,15 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from roigsf_interfaces.srv import LoadMap, SaveMap
-from roigsf_ros.bags import BagFrame, CameraTopics, stamp_to_ns
-from roigsf_ros.errors import InputError
-from roigsf_ros.mapping import MapperConfig
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.bags import BagFrame, CameraTopics, stamp_to_ns
+from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
-from roigsf_ros.replica import Frame
 
 KEYFRAME_TOPIC = "/roigsf/keyframe"
 MAP_TOPIC = "/roigsf/map"
@@ -100,7 +100,7 @@ class MapperNode(SystemNode):
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:
-        self.config = MapperConfig(**declare_config(self, MapperConfig)).validate()
+        self.config = MapperConfig(**declare_config(self, MapperConfig))
         topics = camera_topic_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes to insert (PoseStamped, stamp)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map output (PointCloud2, transient local)")
@@ -320,39 +320,35 @@ class MapperNode(SystemNode):
                 self.get_logger().error(f"mapping step failed: {exc}")
 
     def _insert(self, frame: Frame) -> None:
+        """Run the library's keyframe schedule, releasing the map lock between its slices (readers never wait long)."""
         self.shared.yield_to_readers()
         with self.shared.lock:
             m = self.shared.mapper
             if m is None:
                 return
-            try:
-                ok = m.add_keyframe(frame, optimise=False)
-            except InputError as exc:
-                ok = False
-                self.get_logger().warning(f"keyframe {frame.index} not inserted: {exc}")
-            self.shared.touch()
-            newest = len(m.keyframes) - 1
-        if not ok:
-            with self._lock:
-                self.counters["keyframes_failed"] += 1
-            return
-        left = self.config.iters_per_keyframe
-        while left > 0 and not self._stop.is_set():
-            n = min(self.slice_iters, left)
+        steps = m.keyframe_schedule(frame, self.slice_iters, flush_fisher=True)  # Fisher now: snapshots only clone
+        ok = False
+        while not self._stop.is_set():
             with self.shared.lock:
                 if self.shared.mapper is not m:  # a map was loaded meanwhile
                     return
-                m.optimise(n, newest=newest)
-                self.shared.touch()
-            left -= n
+                try:
+                    next(steps)
+                except StopIteration as done:
+                    ok = bool(done.value)
+                    break
+                except InputError as exc:
+                    self.get_logger().warning(f"keyframe {frame.index} not inserted: {exc}")
+                    break
+                finally:
+                    self.shared.touch()
+                    n_kf = len(m.keyframes) + len(m.loaded_keyframe_ids)
             self.shared.yield_to_readers()
-        with self.shared.lock:
-            if self.shared.mapper is m and len(m.keyframes) % self.config.prune_every == 0:
-                m.prune()
-                self.shared.touch()
-            if self.shared.mapper is m and m.config.track_h_train:
-                m.h_train  # noqa: B018 - adds the new keyframe's Fisher now, so that snapshots only clone
-            n_kf = len(m.keyframes) + len(m.loaded_keyframe_ids)
+        if not ok:
+            if not self._stop.is_set():
+                with self._lock:
+                    self.counters["keyframes_failed"] += 1
+            return
         with self._lock:
             self.counters["keyframes_inserted"] += 1
             self._idle_left += self.idle_iters

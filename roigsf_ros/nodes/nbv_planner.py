@@ -2,7 +2,7 @@
 
 Holds the map: with ``shared`` (in-process) it snapshots the SharedMapper; otherwise it reads the
 mapper's ``/roigsf/map`` cloud, ``/roigsf/keyframe_poses`` and the camera info (intrinsics). It keeps
-the scoring TSDF, fused (as in the paper and :class:`roigsf_ros.nbv_policies.StreamNBVPolicy`) from the
+the scoring TSDF, fused (as in the paper and :class:`roigsf_ros.policies.stream.StreamNBVPolicy`) from the
 map's rendered depth at each keyframe pose, incrementally: each keyframe is fused once, when first
 seen (a timer every ``tsdf_sync_period_s`` and every request); a keyframe set that is no longer an
 extension of the fused one (a loaded map) rebuilds it. What the scorer derives from the TSDF alone, its
@@ -45,20 +45,19 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-import torch
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from roigsf_interfaces.srv import GetNextBestView
-from roigsf_ros.bags import CameraTopics, camera_info_to_intrinsics, stamp_to_ns
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.close_front import CloseFrontMemory
-from roigsf_ros.errors import InputError
-from roigsf_ros.mapping import DEPTH_MODES, MapperConfig
-from roigsf_ros.nbv import MODES, NBVConfig, NBVResult, NBVScorer
-from roigsf_ros.nbv_cache import PreparedScorer, TrainFisherCache
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import CameraTopics, camera_info_to_intrinsics, stamp_to_ns
+from roigsf_ros.mapping.mapper import DEPTH_MODES, MapperConfig
+from roigsf_ros.nbv.config import MODES, NBVConfig
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
+from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S
 from roigsf_ros.nodes.map_msgs import (
@@ -72,7 +71,6 @@ from roigsf_ros.nodes.map_msgs import (
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_TOPIC, latched_qos
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
-from roigsf_ros.tsdf import SurfaceVoxels, TSDFVolume
 
 _MAPPER_DEFAULTS = MapperConfig()
 
@@ -128,14 +126,13 @@ class NBVPlannerNode(SystemNode):
         self._poses = np.zeros((0, 4, 4))
         self._intr: Intrinsics | None = None
         self._topic_snapshot: MapSnapshot | None = None
-        self._tsdf: TSDFVolume | None = None
-        self._fused: list[bytes] = []
-        self._surface: SurfaceVoxels | None = None  # of self._tsdf as it is now (None: extract again)
-        self._close_front: CloseFrontMemory | None = None  # W_f of self._fused poses on self._surface
-        self.train_fisher_cache = TrainFisherCache(self.nbv, match_tol, refresh)
+        self.state = ScoringState(
+            self.nbv, self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m, True, match_tol, refresh
+        )
+        """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
         self.counters: dict[str, Any] = dict.fromkeys(
-            ("requests", "answered", "failed", "stale", "bad_map_msgs", "surface_extractions", "close_front_builds"), 0
+            ("requests", "answered", "failed", "stale", "bad_map_msgs"), 0
         )
         self.counters["last_scoring_s"] = 0.0
 
@@ -211,75 +208,27 @@ class NBVPlannerNode(SystemNode):
             self._topic_snapshot = snap
         return snap
 
-    def sync_tsdf(self, snap: MapSnapshot) -> tuple[TSDFVolume | None, int]:
-        """Fuse the rendered depth at every keyframe pose not fused yet; returns (TSDF, frames fused now)."""
-        keys = [T.tobytes() for T in snap.keyframe_poses]
-        if self._tsdf is None or keys[: len(self._fused)] != self._fused:
-            self._tsdf = None
-            self._fused = []
-            self._surface = self._close_front = None
-        new = range(len(self._fused), len(keys))
-        if not new or snap.n_surfels == 0:
-            return self._tsdf, 0
-        if self._tsdf is None:
-            self._tsdf = TSDFVolume(self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m)
+    def _render(self, snap: MapSnapshot):
+        """The snapshot's rendered RGB-D at a pose, as the scoring TSDF fuses it."""
         view = view_mapper(snap.surfel_map, snap.intrinsics, snap.config)
-        for i in new:
-            T = snap.keyframe_poses[i]
-            depth, rgb = view.rendered_rgbd(T, self.render_depth, self.min_alpha)
-            self._tsdf.integrate(depth, T, snap.intrinsics, rgb)
-            self._fused.append(keys[i])
-            self._surface = self._close_front = None
-        return self._tsdf, len(new)
+        return lambda T: view.rendered_rgbd(T, self.render_depth, self.min_alpha)
 
-    def tsdf_products(
-        self, snap: MapSnapshot, close_front: bool
-    ) -> tuple[SurfaceVoxels | None, CloseFrontMemory | None]:
-        """Near-surface voxels of the current TSDF and (``close_front``) W_f of its fused poses, built once per TSDF.
-
-        Call after :meth:`sync_tsdf` with the same snapshot: the fused poses are then ``snap.keyframe_poses``.
-        """
-        if self._tsdf is None:
-            return None, None
-        if self._surface is None:
-            self._surface = NBVScorer(self.nbv).surface(self._tsdf)
-            with self._lock:
-                self.counters["surface_extractions"] += 1
-        if close_front and self._close_front is None and len(self._surface.centres_m) > 0:
-            self._close_front = CloseFrontMemory.from_poses(
-                self._surface, snap.keyframe_poses, snap.intrinsics, self._tsdf.voxel_size_m, self.nbv
-            )
-            with self._lock:
-                self.counters["close_front_builds"] += 1
-        return self._surface, self._close_front
+    def _update(self, snap: MapSnapshot, mode: str):
+        """Bring the scoring state up to date with ``snap`` for ``mode`` (TSDF, its products, H_train)."""
+        outputs = tuple(snap.config.fisher_outputs)
+        return self.state.update(
+            snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, snap.intrinsics, self._render(snap), mode
+        )
 
     def _sync_timer(self) -> None:
         """Between requests: fuse new keyframes, rebuild what derives from the TSDF, bring H_train up to date."""
         snap = self.snapshot()
         if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
             return
-        mode = self.nbv.mode
         try:
-            self.sync_tsdf(snap)
-            if mode != "fisherrf":
-                self.tsdf_products(snap, close_front=mode in ("roi-gsurfisher", "close-front"))
-            if mode != "close-front":
-                self.h_train(snap, mode)
+            self._update(snap, self.nbv.mode)
         except InputError as exc:
             self.get_logger().warning(f"map update failed: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
-
-    def h_train(self, snap: MapSnapshot, mode: str) -> dict[str, torch.Tensor] | None:
-        """Training Fisher for ``mode``: the mapper's running one when it fits, else :class:`TrainFisherCache`'s."""
-        cfg = self.nbv
-        if (
-            snap.h_train is not None
-            and mode != "fisherrf"
-            and cfg.sigma_p == 1.0
-            and tuple(snap.config.fisher_outputs) == tuple(cfg.fisher_outputs)
-            and all(p in snap.h_train for p in cfg.fisher_params if p != "sh_rest")
-        ):
-            return snap.h_train
-        return self.train_fisher_cache.get(snap.surfel_map, snap.keyframe_poses, snap.intrinsics, mode)
 
     # ------------------------------------------------------------------------------ service
     def _on_request(self, req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
@@ -333,24 +282,14 @@ class NBVPlannerNode(SystemNode):
         if len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
             k, n = len(snap.keyframe_poses), snap.n_surfels
             raise InputError("map", f"not ready: {k} keyframes, {n} surfels")
-        tsdf, _ = self.sync_tsdf(snap)
-        voxels, close_front = None, None
-        if mode != "fisherrf":
-            voxels, close_front = self.tsdf_products(snap, close_front=mode in ("roi-gsurfisher", "close-front"))
-        h = self.h_train(snap, mode) if mode != "close-front" else None
-        self._check_age(req)  # the map work above may have taken a while (it is kept for the next request)
+        self._update(snap, mode)  # the map work (kept for the next request) may take a while: check the age again
+        self._check_age(req)
         top_k = int(req.top_k) if req.top_k > 0 else len(cands)
-        scorer = PreparedScorer(replace(self.nbv, mode=mode, top_k=top_k), tsdf, voxels)
-        result = scorer.score(
-            snap.surfel_map,
-            h,
-            tsdf if mode != "fisherrf" else None,
-            snap.keyframe_poses,
-            cands,
-            snap.intrinsics,
-            mode=mode,
-            close_front_memory=close_front,
-        )
+        outputs = tuple(snap.config.fisher_outputs)
+        result = self.state.score(
+            snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, cands, snap.intrinsics,
+            self._render(snap), mode=mode, top_k=top_k,
+        )  # fmt: skip
         return result, snap, cands
 
     def _check_age(self, req: GetNextBestView.Request) -> None:
@@ -390,7 +329,9 @@ class NBVPlannerNode(SystemNode):
 
     def _publish_uncertainty(self, snap: MapSnapshot, mode: str, T_wc: np.ndarray, stamp_ns: int) -> None:
         try:
-            h = self.h_train(snap, mode) if mode != "fisherrf" else self.h_train(snap, "roi-fisher")
+            h_mode = mode if mode != "fisherrf" else "roi-fisher"
+            outputs = tuple(snap.config.fisher_outputs)
+            h = self.state.h_train(snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, snap.intrinsics, h_mode)
             u = NBVScorer(self.nbv).uncertainty(snap.surfel_map, h or {}, T_wc, snap.intrinsics, None).u
         except InputError as exc:
             self.get_logger().warning(f"no uncertainty image: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -403,11 +344,14 @@ class NBVPlannerNode(SystemNode):
 
     def status(self) -> dict[str, Any]:
         """Counters: requests, answered, failed (of which stale), last scoring time, TSDF work, H_train work."""
+        st, c = self.state, self.state.train_fisher_cache
+        assert c is not None  # the planner always keeps one
         with self._lock:
-            c = self.train_fisher_cache
             return {
                 **self.counters,
-                "tsdf_frames": len(self._fused),
+                "surface_extractions": st.surface_extractions,
+                "close_front_builds": st.close_front_builds,
+                "tsdf_frames": st.n_fused,
                 "h_train_full": c.full_computations,
                 "h_train_poses_added": c.poses_added,
             }

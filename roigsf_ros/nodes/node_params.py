@@ -30,7 +30,7 @@ from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedEx
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from roigsf_ros.errors import InputError
+from roigsf_ros.core.errors import InputError
 
 if TYPE_CHECKING:
     from rclpy.context import Context

@@ -21,11 +21,11 @@ import numpy as np
 import open3d as o3d
 from torch import Tensor
 
-from roigsf_ros.camera import Intrinsics
-from roigsf_ros.errors import InputError
-from roigsf_ros.fileio import atomic_dir, write_json
-from roigsf_ros.mapping import Mapper, MapperConfig, config_to_dict
-from roigsf_ros.surfels import SurfelMap
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_dir, write_json
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.render.surfels import SurfelMap
 
 
 @dataclass
@@ -70,7 +70,7 @@ class SharedMapper:
     """A :class:`Mapper` plus an ``RLock`` and a version counter; see the module docstring."""
 
     def __init__(self, config: MapperConfig | None = None) -> None:
-        self.config = (config or MapperConfig()).validate()
+        self.config = config or MapperConfig()
         self.lock = threading.RLock()
         """Held by every read and write of :attr:`mapper`; keep each hold short."""
         self.mapper: Mapper | None = None
@@ -230,7 +230,7 @@ def save_snapshot(snap: MapSnapshot, directory: Path, with_mesh: bool = False) -
             "keyframe_ids": [int(i) for i in snap.keyframe_ids],
             "keyframe_poses": [T.tolist() for T in snap.keyframe_poses],
             "intrinsics": asdict(snap.intrinsics),
-            "config": config_to_dict(snap.config),
+            "config": snap.config.to_dict(),
         },
     )
     if with_mesh:

@@ -1,0 +1,24 @@
+"""The lowest layer: errors, atomic file output, the pinhole camera, the Frame type, configs, lazy exports."""
+
+from roigsf_ros.core.exports import lazy_exports
+
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "camera": [
+            "Intrinsics",
+            "REPLICA_DEPTH_SCALE",
+            "check_pose",
+            "load_cam_params",
+            "matrix_to_quat_xyzw",
+            "pose_from_position_quat",
+            "quat_xyzw_to_matrix",
+            "save_cam_params",
+        ],
+        "config": ["Config"],
+        "errors": ["InputError"],
+        "exports": ["lazy_exports"],
+        "fileio": ["atomic_dir", "atomic_path", "write_json"],
+        "frame": ["Frame", "resize_frame", "spread_indices"],
+    },
+)

@@ -1,0 +1,184 @@
+"""Pinhole intrinsics and camera-to-world poses (OpenCV optical axes: x right, y down, z forward).
+
+Poses are 4x4 float64 camera-to-world matrices ``T_wc`` throughout the library, as in Replica's
+``traj.txt``. Quaternions are ``(x, y, z, w)`` as in ``geometry_msgs/Quaternion``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from roigsf_ros.core.errors import InputError
+
+REPLICA_DEPTH_SCALE = 6553.5
+"""Replica (NICE-SLAM layout) stores depth as uint16 with metres = value / 6553.5."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole camera of a ``width`` x ``height`` image; ``depth_scale`` maps uint16 PNG to metres."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_scale: float = REPLICA_DEPTH_SCALE
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name
+        """The 3x3 calibration matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def resized(self, width: int, height: int) -> Intrinsics:
+        """Intrinsics of the same camera with its image resized to ``width`` x ``height``.
+
+        Pixel centres are kept aligned (the convention of ``cv2.resize``): ``c' = (c + 0.5) s - 0.5``.
+        """
+        if width <= 0 or height <= 0:
+            raise InputError("--width/--height", f"image size must be positive, got {width}x{height}")
+        sx, sy = width / self.width, height / self.height
+        return replace(
+            self,
+            width=int(width),
+            height=int(height),
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+        )
+
+    def to_replica_json(self) -> dict:
+        """The ``cam_params.json`` dictionary of the NICE-SLAM Replica layout."""
+        return {
+            "camera": {
+                "w": self.width,
+                "h": self.height,
+                "fx": self.fx,
+                "fy": self.fy,
+                "cx": self.cx,
+                "cy": self.cy,
+                "scale": self.depth_scale,
+            }
+        }
+
+
+def load_cam_params(path: str | Path) -> Intrinsics:
+    """Read a Replica ``cam_params.json`` (``{"camera": {w, h, fx, fy, cx, cy, scale}}``)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "camera parameters file not found") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read camera parameters: {exc}") from None
+    cam = data.get("camera", data) if isinstance(data, dict) else None
+    if not isinstance(cam, dict):
+        raise InputError(path, "expected a JSON object with a 'camera' entry")
+    missing = [k for k in ("w", "h", "fx", "fy", "cx", "cy") if k not in cam]
+    if missing:
+        raise InputError(path, f"missing camera field(s) {', '.join(missing)}")
+    try:
+        intr = Intrinsics(
+            width=int(cam["w"]),
+            height=int(cam["h"]),
+            fx=float(cam["fx"]),
+            fy=float(cam["fy"]),
+            cx=float(cam["cx"]),
+            cy=float(cam["cy"]),
+            depth_scale=float(cam.get("scale", REPLICA_DEPTH_SCALE)),
+        )
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"camera field is not a number: {exc}") from None
+    values = np.array([intr.fx, intr.fy, intr.cx, intr.cy, intr.depth_scale])
+    positive = min(intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale) > 0
+    if not positive or not np.all(np.isfinite(values)):
+        raise InputError(path, f"invalid camera parameters {cam}")
+    return intr
+
+
+def save_cam_params(path: str | Path, intr: Intrinsics) -> None:
+    """Write ``cam_params.json`` in the Replica layout."""
+    Path(path).write_text(json.dumps(intr.to_replica_json(), indent=4) + "\n")
+
+
+def check_pose(T_wc: np.ndarray, where: str, tol: float = 1e-4) -> np.ndarray:
+    """Return ``T_wc`` as float64 [4, 4] if it is a finite rigid transform, else raise InputError.
+
+    ``tol`` bounds ``|R^T R - I|``, ``|det R - 1|`` and the bottom row's deviation from (0, 0, 0, 1).
+    """
+    T = np.asarray(T_wc, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(where, f"pose must be 4x4, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InputError(where, "pose has non-finite values")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > tol or abs(np.linalg.det(R) - 1.0) > tol:
+        raise InputError(where, "pose rotation is not orthonormal with det +1 (not a rigid transform)")
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > tol:
+        raise InputError(where, f"pose bottom row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return T
+
+
+def matrix_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = np.array([0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s])
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = np.array([(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = np.array([(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0 else -q
+
+
+def quat_xyzw_to_matrix(q: np.ndarray, where: str = "quaternion") -> np.ndarray:
+    """3x3 rotation of a quaternion (x, y, z, w); it must be finite and of norm within 1e-3 of 1."""
+    q = np.asarray(q, dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(n - 1.0) > 1e-3:
+        raise InputError(where, f"quaternion {q.tolist()} is not a finite unit quaternion")
+    x, y, z, w = q / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def pose_from_position_quat(position: np.ndarray, quat_xyzw: np.ndarray, where: str = "pose") -> np.ndarray:
+    """4x4 camera-to-world from a position and an (x, y, z, w) quaternion."""
+    p = np.asarray(position, dtype=np.float64)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise InputError(where, f"position {p.tolist()} is not 3 finite numbers")
+    T = np.eye(4)
+    T[:3, :3] = quat_xyzw_to_matrix(quat_xyzw, where)
+    T[:3, 3] = p
+    return T
+
+
+__all__ = [
+    "REPLICA_DEPTH_SCALE",
+    "Intrinsics",
+    "check_pose",
+    "load_cam_params",
+    "matrix_to_quat_xyzw",
+    "pose_from_position_quat",
+    "quat_xyzw_to_matrix",
+    "save_cam_params",
+]

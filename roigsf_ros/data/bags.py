@@ -1,0 +1,553 @@
+"""Replica sequences as ROS 2 bags (rosbag2 folder, MCAP storage) and back, with rosbags only (no rclpy).
+
+One bag frame is four messages that carry the identical header stamp (the bag's record time equals it):
+
+    /camera/color/image_raw   sensor_msgs/msg/Image            rgb8
+    /camera/depth/image_raw   sensor_msgs/msg/Image            32FC1 metres (or 16UC1 millimetres)
+    /camera/camera_info       sensor_msgs/msg/CameraInfo       K, P, R = I, plumb_bob with zero distortion
+    /camera/pose              geometry_msgs/msg/PoseStamped    T_wc of the optical frame in "map"
+
+Images and camera info use frame_id ``camera_color_optical_frame`` (OpenCV axes: x right, y down,
+z forward); the pose is that frame in ``map``, i.e. the ``traj.txt`` matrix as position + xyzw.
+
+The message converters (:func:`image_to_rgb`, :func:`image_to_depth_m`, :func:`camera_info_to_intrinsics`,
+:func:`pose_to_matrix`) accept any object with the message's fields, so rosbags messages and rclpy
+messages both work, and ROS nodes reuse them.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+import numpy as np
+from numpy.typing import DTypeLike
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from tqdm import tqdm
+
+from roigsf_ros.core.camera import Intrinsics, check_pose, matrix_to_quat_xyzw, pose_from_position_quat
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_dir
+from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.sync import StampMatcher
+
+COLOR_TOPIC = "/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/depth/image_raw"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+POSE_TOPIC = "/camera/pose"
+CAMERA_FRAME_ID = "camera_color_optical_frame"
+MAP_FRAME_ID = "map"
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+
+DEPTH_ENCODINGS = ("32FC1", "16UC1")
+"""Depth encodings :func:`write_bag` writes: float metres, or uint16 millimetres (0 = invalid)."""
+COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
+"""Colour encodings :func:`image_to_rgb` reads."""
+
+DEFAULT_RATE_HZ = 10.0
+"""Default frame rate of written bags; the player's ``rate`` factor scales it at playback."""
+DEFAULT_T0_NS = 1_700_000_000 * 10**9
+"""Stamp of frame 0 in written bags (2023-11-14 22:13:20 UTC): fixed, so bags are reproducible."""
+MAX_PENDING_STAMPS = 64
+"""The reader holds at most this many incomplete frames while it waits for their other messages."""
+
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+_QOS_RELIABLE = Qos(
+    history=QosHistory.KEEP_LAST,
+    depth=10,
+    reliability=QosReliability.RELIABLE,
+    durability=QosDurability.VOLATILE,
+    deadline=QosTime(0, 0),
+    lifespan=QosTime(0, 0),
+    liveliness=QosLiveliness.AUTOMATIC,
+    liveliness_lease_duration=QosTime(0, 0),
+    avoid_ros_namespace_conventions=False,
+)
+
+
+@dataclass(frozen=True)
+class CameraTopics:
+    """Topic names of one RGB-D camera with its pose; the defaults are what :func:`write_bag` writes."""
+
+    color: str = COLOR_TOPIC
+    depth: str = DEPTH_TOPIC
+    camera_info: str = CAMERA_INFO_TOPIC
+    pose: str = POSE_TOPIC
+
+    def types(self) -> dict[str, str]:
+        """Topic name -> expected message type."""
+        return {
+            self.color: IMAGE_TYPE,
+            self.depth: IMAGE_TYPE,
+            self.camera_info: CAMERA_INFO_TYPE,
+            self.pose: POSE_TYPE,
+        }
+
+
+@dataclass
+class BagFrame:
+    """One RGB-D frame read back from a bag: four messages matched by header stamp."""
+
+    stamp_ns: int
+    rgb: np.ndarray  # [H, W, 3] uint8
+    depth_m: np.ndarray  # [H, W] float32 metres, 0 where invalid
+    T_wc: np.ndarray  # [4, 4] float64 camera-to-world (optical frame in map)
+    intrinsics: Intrinsics
+
+
+# --------------------------------------------------------------------------------------------
+# Message -> numpy (any object with the message's fields: rosbags or rclpy messages)
+# --------------------------------------------------------------------------------------------
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """Nanoseconds of a ``builtin_interfaces/Time`` (``sec``, ``nanosec``)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _image_array(msg: Any, where: str, dtype: DTypeLike, channels: int) -> np.ndarray:
+    """Pixels of an Image as a fresh [H, W] or [H, W, C] array of ``dtype``, after size/step checks."""
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    dtype = np.dtype(dtype)
+    if height <= 0 or width <= 0:
+        raise InputError(where, f"image size is {width}x{height}")
+    row_bytes = width * channels * dtype.itemsize
+    if step < row_bytes:
+        raise InputError(where, f"step {step} is less than width*channels*bytes = {row_bytes} ({msg.encoding})")
+    data = msg.data
+    if isinstance(data, np.ndarray):
+        buf = data.view(np.uint8).reshape(-1)
+    else:
+        try:
+            buf = np.frombuffer(data, dtype=np.uint8)
+        except TypeError:
+            buf = np.asarray(data, dtype=np.uint8).reshape(-1)
+    if buf.size != step * height:
+        raise InputError(where, f"data has {buf.size} bytes, expected step*height = {step}*{height} = {step * height}")
+    rows = buf.reshape(height, step)[:, :row_bytes]
+    order = ">" if int(msg.is_bigendian) else "<"
+    pixels = np.ascontiguousarray(rows).view(dtype.newbyteorder(order) if dtype.itemsize > 1 else dtype)
+    shape = (height, width, channels) if channels > 1 else (height, width)
+    return pixels.reshape(shape).astype(dtype, copy=True)
+
+
+def image_to_rgb(msg: Any, where: str = COLOR_TOPIC) -> np.ndarray:
+    """A colour ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8) as [H, W, 3] uint8 RGB."""
+    enc = str(msg.encoding)
+    if enc not in COLOR_ENCODINGS:
+        raise InputError(where, f"unsupported colour encoding '{enc}' (supported: {', '.join(COLOR_ENCODINGS)})")
+    px = _image_array(msg, where, np.uint8, 4 if enc.endswith("a8") else 3)
+    if enc.startswith("bgr"):
+        px = px[..., 2::-1]
+    return np.ascontiguousarray(px[..., :3])
+
+
+def image_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
+    """A depth ``sensor_msgs/Image`` (32FC1 metres, 16UC1/mono16 millimetres) as [H, W] float32 metres.
+
+    Invalid depth (0, NaN, inf or negative) becomes 0, the library's convention.
+    """
+    enc = str(msg.encoding)
+    if enc == "32FC1":
+        depth_m = _image_array(msg, where, np.float32, 1)
+        depth_m[~np.isfinite(depth_m) | (depth_m < 0)] = 0.0
+        return depth_m
+    if enc in ("16UC1", "mono16"):
+        return _image_array(msg, where, np.uint16, 1).astype(np.float32) / np.float32(1000.0)
+    raise InputError(where, f"unsupported depth encoding '{enc}' (supported: 32FC1 metres, 16UC1 millimetres)")
+
+
+def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intrinsics:
+    """Pinhole intrinsics from a ``sensor_msgs/CameraInfo`` (its K and width/height; images assumed rectified)."""
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    width, height = int(msg.width), int(msg.height)
+    if k.size != 9 or not np.all(np.isfinite(k)):
+        raise InputError(where, f"K must be 9 finite numbers, got {k.tolist()}")
+    if width <= 0 or height <= 0 or k[0] <= 0 or k[4] <= 0:
+        raise InputError(where, f"invalid camera info: {width}x{height}, fx={k[0]}, fy={k[4]}")
+    return Intrinsics(width=width, height=height, fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]))
+
+
+def pose_to_matrix(msg: Any, where: str = POSE_TOPIC) -> np.ndarray:
+    """[4, 4] float64 T_wc of a ``geometry_msgs/PoseStamped`` (or a bare ``Pose``); must be finite and rigid."""
+    pose = msg.pose if hasattr(msg, "pose") else msg
+    p, q = pose.position, pose.orientation
+    T = pose_from_position_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]), where)
+    return check_pose(T, where)
+
+
+def _header_stamp_ns(rawdata: bytes | memoryview) -> int:
+    """Header stamp of a CDR-serialized message whose first field is ``std_msgs/Header``.
+
+    CDR: 4-byte encapsulation (byte 1 = little-endian flag), then stamp.sec int32, stamp.nanosec uint32.
+    """
+    sec, nanosec = struct.unpack_from("<iI" if rawdata[1] else ">iI", rawdata, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+# --------------------------------------------------------------------------------------------
+# numpy -> messages (rosbags types) and the bag writer
+# --------------------------------------------------------------------------------------------
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    t = _TYPESTORE.types
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def _image_msg(stamp_ns: int, pixels: np.ndarray, encoding: str) -> Any:
+    pixels = np.ascontiguousarray(pixels)
+    height, width = pixels.shape[:2]
+    return _TYPESTORE.types[IMAGE_TYPE](
+        header=_header(stamp_ns, CAMERA_FRAME_ID),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=pixels.nbytes // height,
+        data=pixels.reshape(-1).view(np.uint8),
+    )
+
+
+def depth_to_image_data(depth_m: np.ndarray, encoding: str) -> np.ndarray:
+    """[H, W] depth in the pixel type of ``encoding``: float32 metres (32FC1) or uint16 mm (16UC1).
+
+    For 16UC1, millimetres are rounded; non-finite, non-positive or > 65.535 m depth becomes 0 (invalid).
+    """
+    if encoding == "32FC1":
+        return np.ascontiguousarray(depth_m, dtype=np.float32)
+    if encoding == "16UC1":
+        mm = np.round(np.nan_to_num(depth_m.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0) * 1000.0)
+        return np.where((mm > 0) & (mm <= 65535), mm, 0).astype(np.uint16)
+    raise InputError("depth_encoding", f"'{encoding}' is not one of {', '.join(DEPTH_ENCODINGS)}")
+
+
+def _camera_info_msg(stamp_ns: int, intr: Intrinsics) -> Any:
+    t = _TYPESTORE.types
+    k = intr.K.reshape(-1)
+    p = np.zeros((3, 4))
+    p[:, :3] = intr.K
+    roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return t[CAMERA_INFO_TYPE](
+        header=_header(stamp_ns, CAMERA_FRAME_ID),
+        height=intr.height,
+        width=intr.width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=k,
+        r=np.eye(3).reshape(-1),
+        p=p.reshape(-1),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
+
+
+def _pose_msg(stamp_ns: int, T_wc: np.ndarray) -> Any:
+    t = _TYPESTORE.types
+    x, y, z = (float(v) for v in T_wc[:3, 3])
+    qx, qy, qz, qw = (float(v) for v in matrix_to_quat_xyzw(T_wc[:3, :3]))
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+    return t[POSE_TYPE](header=_header(stamp_ns, MAP_FRAME_ID), pose=pose)
+
+
+def frame_stamp_ns(k: int, rate_hz: float, t0_ns: int = DEFAULT_T0_NS) -> int:
+    """Stamp of the ``k``-th written frame: ``t0 + k / rate_hz`` in integer nanoseconds."""
+    return int(t0_ns) + round(k * 1e9 / rate_hz)
+
+
+def write_bag(
+    seq: ReplicaSequence,
+    out: str | Path,
+    rate_hz: float = DEFAULT_RATE_HZ,
+    depth_encoding: str = "32FC1",
+    stride: int = 1,
+    max_frames: int | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    t0_ns: int = DEFAULT_T0_NS,
+) -> int:
+    """Write every ``stride``-th frame of ``seq`` (at most ``max_frames``) as a rosbag2 MCAP bag folder.
+
+    Returns the number of frames written. The bag appears under ``out`` only once complete.
+    """
+    out = Path(out)
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError("rate_hz", f"must be a positive number of frames per second, got {rate_hz}")
+    if depth_encoding not in DEPTH_ENCODINGS:
+        raise InputError("depth_encoding", f"'{depth_encoding}' is not one of {', '.join(DEPTH_ENCODINGS)}")
+    if stride < 1:
+        raise InputError("stride", f"must be >= 1, got {stride}")
+    if max_frames is not None and max_frames < 1:
+        raise InputError("max_frames", f"must be >= 1, got {max_frames}")
+    ks = list(range(0, len(seq), stride))[:max_frames]
+    intr = seq.intrinsics
+    with atomic_dir(out, overwrite=overwrite) as tmp:
+        # rosbags names the storage file after its folder: write into tmp/<name>, then move it up.
+        staging = tmp / out.name
+        with Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conns = {
+                topic: writer.add_connection(topic, typ, typestore=_TYPESTORE, offered_qos_profiles=[_QOS_RELIABLE])
+                for topic, typ in CameraTopics().types().items()
+            }
+            for n, k in enumerate(tqdm(ks, desc=f"bag {out.name}", unit="frame", disable=not progress)):
+                frame = seq.frame(k)
+                stamp = frame_stamp_ns(n, rate_hz, t0_ns)
+                depth_px = depth_to_image_data(frame.depth_m, depth_encoding)
+                msgs = (
+                    (COLOR_TOPIC, _image_msg(stamp, frame.rgb, "rgb8")),
+                    (DEPTH_TOPIC, _image_msg(stamp, depth_px, depth_encoding)),
+                    (CAMERA_INFO_TOPIC, _camera_info_msg(stamp, intr)),
+                    (POSE_TOPIC, _pose_msg(stamp, frame.T_wc)),
+                )
+                for topic, msg in msgs:
+                    writer.write(conns[topic], stamp, _TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+        for item in staging.iterdir():
+            item.rename(tmp / item.name)
+        staging.rmdir()
+    return len(ks)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+def open_any_reader(path: str | Path) -> AnyReader:
+    """An unopened rosbags ``AnyReader`` of a rosbag2 folder or a bare ``.mcap``; InputError if unreadable."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "bag not found")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) != 1:
+            raise InputError(path, "not a rosbag2 folder (no metadata.yaml) and not holding exactly one .mcap file")
+        path = mcaps[0]
+    try:
+        return AnyReader([path])
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputError(path, f"cannot open bag: {exc}") from None
+
+
+class BagReader:
+    """Frames of an RGB-D bag, four messages matched by identical header stamp (no approximate sync).
+
+    Use as a context manager and iterate :meth:`frames`. A stamp that lacks one of the four
+    messages is skipped and counted in ``skipped_frames`` (also when more than
+    ``MAX_PENDING_STAMPS`` incomplete stamps pile up, the oldest is given up). A missing topic or a
+    topic of the wrong type raises InputError naming the bag and the topic.
+    """
+
+    def __init__(self, path: str | Path, topics: CameraTopics | None = None) -> None:
+        self.path = Path(path)
+        self.topics = topics or CameraTopics()
+        self.skipped_frames = 0
+        self.frames_read = 0
+        self._reader = open_any_reader(self.path)
+        self._open = False
+
+    def __enter__(self) -> Self:
+        try:
+            self._reader.open()
+        except (AnyReaderError, OSError, ValueError) as exc:
+            raise InputError(self.path, f"cannot open bag: {exc}") from None
+        self._open = True
+        try:
+            self._check_topics()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the underlying reader (idempotent)."""
+        if self._open:
+            self._reader.close()
+            self._open = False
+
+    def _check_topics(self) -> None:
+        present = {c.topic: c.msgtype for c in self._reader.connections}
+        for topic, typ in self.topics.types().items():
+            if topic not in present:
+                have = ", ".join(sorted(present)) or "no topics"
+                raise InputError(self.path, f"topic {topic} ({typ}) is missing from the bag (it has {have})")
+            if present[topic] != typ:
+                raise InputError(f"{self.path}:{topic}", f"has type {present[topic]}, expected {typ}")
+
+    def message_count(self) -> int:
+        """Messages on the four camera topics."""
+        wanted = set(self.topics.types())
+        return sum(c.msgcount for c in self._reader.connections if c.topic in wanted)
+
+    def frames(self) -> Iterator[BagFrame]:
+        """Yield complete frames in the order they complete (stamp order for bags from :func:`write_bag`)."""
+        if not self._open:
+            raise RuntimeError("BagReader.frames() needs an open reader: use it in a `with` block")
+        conns = [c for c in self._reader.connections if c.topic in self.topics.types()]
+        matcher: StampMatcher[tuple[Any, bytes]] = StampMatcher(self.topics.types(), MAX_PENDING_STAMPS)
+        for conn, _, raw in self._reader.messages(connections=conns):
+            try:
+                stamp = _header_stamp_ns(raw)
+            except (struct.error, IndexError):
+                raise InputError(f"{self.path}:{conn.topic}", "message too short to hold a header") from None
+            parts = matcher.add(stamp, conn.topic, (conn, raw))
+            self.skipped_frames = matcher.dropped
+            if parts is not None:
+                self.frames_read += 1
+                yield self._convert(stamp, parts)
+        matcher.flush()
+        self.skipped_frames = matcher.dropped
+
+    def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]]) -> BagFrame:
+        t = self.topics
+
+        def msg(topic: str) -> Any:
+            conn, raw = parts[topic]
+            try:
+                return self._reader.deserialize(raw, conn.msgtype)
+            except AnyReaderError as exc:
+                raise InputError(f"{self.path}:{topic}", f"cannot deserialize message at {stamp} ns: {exc}") from None
+
+        def where(topic: str) -> str:
+            return f"{self.path}:{topic} @ {stamp} ns"
+
+        return assemble_frame(stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where)
+
+
+def assemble_frame(
+    stamp_ns: int,
+    color_msg: Any,
+    depth_msg: Any,
+    info_msg: Any,
+    pose_msg: Any,
+    topics: CameraTopics | None = None,
+    where: Callable[[str], str] = str,
+) -> BagFrame:
+    """Convert the four messages of one stamp into a :class:`BagFrame`, checking that sizes agree.
+
+    Shared by the bag reader and the ROS nodes; ``where(topic)`` names the source in errors.
+    """
+    t = topics or CameraTopics()
+    rgb = image_to_rgb(color_msg, where(t.color))
+    depth_m = image_to_depth_m(depth_msg, where(t.depth))
+    intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
+    T_wc = pose_to_matrix(pose_msg, where(t.pose))
+    h, w = depth_m.shape
+    if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
+        raise InputError(
+            where(t.depth),
+            f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
+            f"camera info {intr.width}x{intr.height}",
+        )
+    return BagFrame(stamp_ns=stamp_ns, rgb=rgb, depth_m=depth_m, T_wc=T_wc, intrinsics=intr)
+
+
+def read_bag_frames(path: str | Path, topics: CameraTopics | None = None) -> tuple[list[BagFrame], int]:
+    """All frames of a (small) bag in memory and the number of incomplete stamps skipped."""
+    with BagReader(path, topics) as reader:
+        frames = list(reader.frames())
+        return frames, reader.skipped_frames
+
+
+def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, Any]:
+    """Summary of a bag: topics with types and counts, time span, image size, encodings, frame count.
+
+    Frames are stamps carried by all four camera topics; ``incomplete_stamps`` counts the others.
+    Image fields are None when the bag has no such topic.
+    """
+    t = topics or CameraTopics()
+    reader = open_any_reader(path)
+    try:
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputError(path, f"cannot open bag: {exc}") from None
+    try:
+        conns = reader.connections
+        counts: dict[str, dict[str, Any]] = {}
+        for c in conns:
+            entry = counts.setdefault(c.topic, {"type": c.msgtype, "count": 0})
+            entry["count"] += c.msgcount
+        camera = [c for c in conns if c.topic in t.types() and c.msgtype == t.types()[c.topic]]
+        stamps: dict[int, set[str]] = {}
+        first_msgs: dict[str, Any] = {}
+        first_ns = last_ns = None
+        for conn, ts, raw in reader.messages():
+            first_ns = ts if first_ns is None else min(first_ns, ts)
+            last_ns = ts if last_ns is None else max(last_ns, ts)
+            if conn in camera:
+                stamps.setdefault(_header_stamp_ns(raw), set()).add(conn.topic)
+                if conn.topic not in first_msgs and conn.msgtype == IMAGE_TYPE:
+                    first_msgs[conn.topic] = reader.deserialize(raw, conn.msgtype)
+    finally:
+        reader.close()
+    n_topics = len({c.topic for c in camera})
+    complete = sum(1 for s in stamps.values() if len(s) == 4) if n_topics == 4 else 0
+    color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
+    ref = color if color is not None else depth
+    return {
+        "path": str(path),
+        "topics": counts,
+        "message_count": sum(v["count"] for v in counts.values()),
+        "start_ns": first_ns,
+        "end_ns": last_ns,
+        "duration_s": (last_ns - first_ns) / 1e9 if first_ns is not None else 0.0,
+        "width": int(ref.width) if ref is not None else None,
+        "height": int(ref.height) if ref is not None else None,
+        "color_encoding": str(color.encoding) if color is not None else None,
+        "depth_encoding": str(depth.encoding) if depth is not None else None,
+        "frame_count": complete,
+        "incomplete_stamps": len(stamps) - complete,
+    }
+
+
+__all__ = [
+    "CAMERA_FRAME_ID",
+    "CAMERA_INFO_TOPIC",
+    "CAMERA_INFO_TYPE",
+    "COLOR_ENCODINGS",
+    "COLOR_TOPIC",
+    "DEFAULT_RATE_HZ",
+    "DEFAULT_T0_NS",
+    "DEPTH_ENCODINGS",
+    "DEPTH_TOPIC",
+    "IMAGE_TYPE",
+    "MAP_FRAME_ID",
+    "MAX_PENDING_STAMPS",
+    "POSE_TOPIC",
+    "POSE_TYPE",
+    "BagFrame",
+    "BagReader",
+    "CameraTopics",
+    "assemble_frame",
+    "bag_info",
+    "camera_info_to_intrinsics",
+    "depth_to_image_data",
+    "frame_stamp_ns",
+    "image_to_depth_m",
+    "image_to_rgb",
+    "open_any_reader",
+    "pose_to_matrix",
+    "read_bag_frames",
+    "stamp_to_ns",
+    "write_bag",
+]

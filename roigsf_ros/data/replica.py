@@ -1,0 +1,221 @@
+"""Sequences in the NICE-SLAM Replica layout, as NICE-SLAM, SplaTAM and MonoGS users have them.
+
+Layout (``DIR`` is one scene, e.g. ``Replica/office0``)::
+
+    DIR/results/frame000000.jpg   colour (also .png)
+    DIR/results/depth000000.png   uint16 depth, metres = value / scale
+    DIR/traj.txt                  one row-major 4x4 camera-to-world matrix per line (OpenCV axes)
+    DIR/cam_params.json           {"camera": {w, h, fx, fy, cx, cy, scale}}; the Replica download
+                                  keeps it in the parent folder, which is searched too
+
+``DIR`` may also be the ``results`` folder itself. Frame ``N`` is paired with line ``N`` of
+``traj.txt`` by the number in its file name.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from roigsf_ros.core.camera import Intrinsics, check_pose, load_cam_params, save_cam_params
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame, resize_frame
+
+_FRAME_RE = re.compile(r"^frame(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
+MAX_DEPTH_M = 65535 / 6553.5
+"""Largest depth a Replica uint16 PNG can hold at the standard scale (about 10 m)."""
+
+
+def load_traj(path: str | Path) -> np.ndarray:
+    """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise InputError(path, "trajectory file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read trajectory: {exc}") from None
+    poses = []
+    for lineno, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            values = np.array([float(v) for v in line.split()], dtype=np.float64)
+        except ValueError:
+            raise InputError(f"{path}:{lineno}", "pose line has a value that is not a number") from None
+        if values.size != 16:
+            raise InputError(f"{path}:{lineno}", f"pose line has {values.size} values, expected 16")
+        poses.append(check_pose(values.reshape(4, 4), f"{path}:{lineno}"))
+    if not poses:
+        raise InputError(path, "trajectory is empty")
+    return np.stack(poses)
+
+
+def save_traj(path: str | Path, poses: np.ndarray) -> None:
+    """Write [N, 4, 4] poses as ``traj.txt`` (one row-major matrix per line, full precision)."""
+    with open(path, "w") as f:
+        for T in np.asarray(poses, dtype=np.float64).reshape(-1, 16):
+            f.write(" ".join(f"{v:.18e}" for v in T) + "\n")
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """Colour image as [H, W, 3] uint8 RGB."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(path, "missing or unreadable colour image")
+    if img.dtype != np.uint8:
+        raise InputError(path, f"colour image must be 8-bit, got {img.dtype}")
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
+    """Depth PNG (uint16, metres = value / ``depth_scale``) as [H, W] float32 metres."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(path, "missing or unreadable depth image")
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise InputError(path, f"depth image must be single-channel uint16, got {img.dtype} with shape {img.shape}")
+    return img.astype(np.float32) / np.float32(depth_scale)
+
+
+def find_cam_params(seq_dir: str | Path) -> Path | None:
+    """``cam_params.json`` in the scene folder or its parent (the Replica download keeps it there)."""
+    seq_dir = Path(seq_dir)
+    for cand in (seq_dir / "cam_params.json", seq_dir.parent / "cam_params.json"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+class ReplicaSequence:
+    """A Replica-layout sequence on disk, read lazily frame by frame.
+
+    ``size`` resizes frames on load (:func:`resize_frame`: colour with area averaging, depth with
+    pixel-centre-exact nearest neighbour so that no depth is invented across edges) and scales
+    the intrinsics to match.
+    ``allow_partial`` accepts a ``traj.txt`` with more poses than frames on disk (a partial
+    download, like the 4-frame office0 sample); otherwise the counts must match.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        cam: str | Path | Intrinsics | None = None,
+        size: tuple[int, int] | None = None,
+        allow_partial: bool = False,
+    ) -> None:
+        root = Path(root)
+        if not root.is_dir():
+            raise InputError(root, "scene folder not found")
+        if (root / "results").is_dir():
+            self.root, self.results = root, root / "results"
+        elif any(_FRAME_RE.match(p.name) for p in root.iterdir()):
+            self.root, self.results = root.parent, root
+        else:
+            raise InputError(root, "no 'results/' folder with frameNNNNNN.jpg files (NICE-SLAM Replica layout)")
+
+        if isinstance(cam, Intrinsics):
+            native = cam
+        else:
+            cam_path = Path(cam) if cam is not None else find_cam_params(self.root)
+            if cam_path is None:
+                raise InputError(self.root, "no cam_params.json here or in the parent folder; pass --cam")
+            native = load_cam_params(cam_path)
+
+        self.colour_paths: dict[int, Path] = {}
+        for p in sorted(self.results.iterdir()):
+            m = _FRAME_RE.match(p.name)
+            if m:
+                self.colour_paths[int(m.group(1))] = p
+        if not self.colour_paths:
+            raise InputError(self.results, "no frameNNNNNN.jpg colour images")
+        self.indices = sorted(self.colour_paths)
+        digits = len(_FRAME_RE.match(self.colour_paths[self.indices[0]].name).group(1))
+        self.depth_paths = {i: self.results / f"depth{i:0{digits}d}.png" for i in self.indices}
+        missing = [str(p) for p in self.depth_paths.values() if not p.is_file()]
+        if missing:
+            n = len(self.indices)
+            raise InputError(missing[0], f"depth image missing ({len(missing)} of {n} frames have none)")
+
+        traj_path = self.root / "traj.txt"
+        all_poses = load_traj(traj_path)
+        if self.indices[-1] >= len(all_poses):
+            raise InputError(
+                traj_path,
+                f"has {len(all_poses)} poses but results/ holds frame number {self.indices[-1]}",
+            )
+        if len(all_poses) != len(self.indices) and not allow_partial:
+            raise InputError(
+                traj_path,
+                f"has {len(all_poses)} poses but results/ holds {len(self.indices)} frames "
+                "(line count must match the frames; a partial download needs allow_partial)",
+            )
+        self.poses = all_poses[self.indices]
+        self.native = native
+        self.intrinsics = native.resized(*size) if size is not None else native
+        self.traj_path = traj_path
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def frame(self, k: int) -> Frame:
+        """The ``k``-th frame on disk (its ``index`` is the number in its file name)."""
+        i = self.indices[k]
+        rgb = read_rgb(self.colour_paths[i])
+        depth = read_depth(self.depth_paths[i], self.native.depth_scale)
+        h, w = depth.shape
+        if rgb.shape[:2] != (h, w):
+            raise InputError(self.colour_paths[i], f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {w}x{h}")
+        if (w, h) != (self.native.width, self.native.height):
+            raise InputError(
+                self.depth_paths[i],
+                f"image is {w}x{h} but the camera parameters say {self.native.width}x{self.native.height}",
+            )
+        return resize_frame(Frame(index=i, rgb=rgb, depth_m=depth, T_wc=self.poses[k]), self.intrinsics)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for k in range(len(self)):
+            yield self.frame(k)
+
+
+def write_replica(out_dir: str | Path, intr: Intrinsics, frames: Iterable[Frame], jpeg_quality: int = 95) -> int:
+    """Write frames in the Replica layout under ``out_dir`` (renumbered from 0); return the count.
+
+    Depth is stored as uint16 at ``intr.depth_scale``; non-finite or out-of-range depth becomes 0
+    (invalid). Use :func:`roigsf_ros.core.fileio.atomic_dir` around it for an all-or-nothing folder.
+    """
+    out = Path(out_dir)
+    (out / "results").mkdir(parents=True, exist_ok=True)
+    poses = []
+    for n, fr in enumerate(frames):
+        if fr.rgb.shape[:2] != (intr.height, intr.width) or fr.depth_m.shape != (intr.height, intr.width):
+            raise InputError(f"frame {fr.index}", f"image size does not match {intr.width}x{intr.height}")
+        bgr = cv2.cvtColor(fr.rgb, cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(out / "results" / f"frame{n:06d}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        d = np.nan_to_num(fr.depth_m.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0) * intr.depth_scale
+        d = np.where((d > 0) & (d <= 65535), np.round(d), 0).astype(np.uint16)
+        cv2.imwrite(str(out / "results" / f"depth{n:06d}.png"), d)
+        poses.append(fr.T_wc)
+    save_traj(out / "traj.txt", np.asarray(poses).reshape(-1, 4, 4))
+    save_cam_params(out / "cam_params.json", intr)
+    return len(poses)
+
+
+__all__ = [
+    "MAX_DEPTH_M",
+    "ReplicaSequence",
+    "find_cam_params",
+    "load_traj",
+    "read_depth",
+    "read_rgb",
+    "save_traj",
+    "write_replica",
+]

@@ -1,0 +1,194 @@
+"""Offline runs: map a whole frame sequence with a keyframe policy, evaluate it, write the run folder."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from roigsf_ros import evaluation
+from roigsf_ros.core.camera import check_pose
+from roigsf_ros.core.config import Config
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_dir, write_json
+from roigsf_ros.core.frame import Frame, spread_indices
+from roigsf_ros.data.sources import FrameSequence
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.policies.base import KeyframePolicy
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------------- offline run
+@dataclass(frozen=True)
+class EvalConfig(Config):
+    """What an offline run evaluates and how (not part of the mapper's state)."""
+
+    eval_every: int = 1
+    """Evaluate every this-many-th non-keyframe (1 = all of them)."""
+    strip_frames: int = 4
+    """Rows of the comparison strip (evaluated frames spread over the sequence)."""
+    mesh_samples: int = 200_000
+    """Points sampled on each mesh for the mesh metrics."""
+    mesh_taus_m: tuple[float, ...] = (0.01, 0.05)
+    """Distance thresholds of precision / recall / F-score."""
+    cull_gt_to_observed: bool = True
+    """Cull the GT mesh to what the sequence's cameras observe before recall/completion."""
+    seed: int = 0
+    """Seed of the mesh sampling."""
+
+    def validate(self) -> EvalConfig:
+        """Self, or InputError naming the first field out of range."""
+        for name, lo in (("eval_every", 1), ("strip_frames", 0), ("mesh_samples", 1)):
+            if int(getattr(self, name)) < lo:
+                raise InputError(name, f"must be at least {lo}, got {getattr(self, name)}")
+        if not self.mesh_taus_m or not all(t > 0 for t in self.mesh_taus_m):
+            raise InputError("mesh_taus_m", f"must be positive metres, got {self.mesh_taus_m}")
+        return self
+
+
+def run_offline(
+    source: FrameSequence,
+    policy: KeyframePolicy,
+    config: MapperConfig | None,
+    out_dir: str | Path,
+    gt_mesh: str | Path | None = None,
+    eval_config: EvalConfig | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> dict[str, Any]:
+    """Map a whole frame sequence (e.g. :func:`roigsf_ros.data.sources.open_frames`) offline into ``out_dir``.
+
+    Files (written atomically): ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json`` and
+    ``strip.png`` (input vs rendered colour and depth of a few evaluated frames). Image metrics are
+    over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
+    counted. Returns the metrics dict.
+    """
+    ev = eval_config or EvalConfig()
+    gt_path = Path(gt_mesh) if gt_mesh is not None else None
+    if gt_path is not None and not gt_path.is_file():
+        raise InputError(gt_path, "ground-truth mesh not found")
+    out_final = Path(out_dir)
+    if out_final.exists() and not overwrite:
+        raise FileExistsError(f"{out_final}: already exists (pass --overwrite to replace it)")
+    cfg = config or MapperConfig()
+    mapper = Mapper(source.intrinsics, cfg)
+    policy.reset()
+    t0 = time.perf_counter()
+    frame_ids: list[int | None] = []  # None for a frame skipped for its pose
+    poses: list[np.ndarray] = []
+    bad_pose = 0
+    bar = tqdm(total=len(source), desc="mapping", unit="frame", disable=not progress, dynamic_ncols=True)
+    for frame in source:
+        try:
+            T = check_pose(frame.T_wc, f"frame {frame.index} pose")
+        except InputError as exc:
+            bad_pose += 1
+            log.warning("%s; frame skipped", exc)
+            frame_ids.append(None)
+            poses.append(np.full((4, 4), np.nan))
+            bar.update(1)
+            continue
+        poses.append(T)
+        frame_ids.append(int(frame.index))
+        # The policy names the frames to insert now: this one, or an earlier one (the NBV window
+        # policies); the mapper's keyframe ids below are the truth (it skips a frame without depth).
+        for keyframe in policy.observe(frame, mapper):
+            mapper.add_keyframe(keyframe)
+        bar.update(1)
+        bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)
+    bar.close()
+    if cfg.final_iters and mapper.keyframes:
+        mapper.refine(cfg.final_iters)
+    t_map = time.perf_counter() - t0
+    inserted = set(mapper.keyframe_ids)
+    is_keyframe = [fid is not None and fid in inserted for fid in frame_ids]
+
+    # Image metrics on non-keyframes, against the final map.
+    candidates = [i for i, k in enumerate(is_keyframe) if not k and np.isfinite(poses[i]).all()]
+    chosen_list = candidates[:: ev.eval_every]
+    chosen = set(chosen_list)
+    quiet = not progress or not chosen
+    bar = tqdm(total=len(chosen), desc="evaluating", unit="frame", disable=quiet, dynamic_ncols=True)
+
+    def held_out() -> Iterator[Frame]:
+        for i, frame in enumerate(source):
+            if i in chosen:
+                bar.update(1)
+                yield frame  # pose already checked above
+
+    images = evaluation.render_metrics(
+        mapper.render_rgb_depth, held_out(), mapper.valid_depth_mask,
+        strip=spread_indices(len(chosen_list), ev.strip_frames),
+    )  # fmt: skip
+    bar.close()
+    strip_rows = images.strip_rows
+    if not strip_rows and mapper.keyframes:  # every frame was a keyframe: show keyframes instead
+        for j in spread_indices(len(mapper.keyframes), ev.strip_frames):
+            kf = mapper.keyframes[j]
+            rgb, depth = mapper.render_rgb_depth(kf.T_wc)
+            strip_rows.append((kf.rgb_u8.cpu().numpy(), rgb, kf.depth_m.cpu().numpy(), depth))
+
+    mesh = mapper.mesh()
+    metrics: dict[str, Any] = {
+        "policy": policy.name,
+        "policy_params": policy.params(),
+        "n_frames": len(is_keyframe),
+        "n_keyframes": len(mapper.keyframes),
+        "keyframe_ids": mapper.keyframe_ids,
+        "map_size": mapper.n_surfels,
+        **images.means(),
+        "eval_every": ev.eval_every,
+        "eval_on": "non-keyframes",
+        "eval_depth": cfg.eval_depth,
+        "eval_frames_without_gt_depth": images.frames_without_gt_depth,
+        "frames_skipped_bad_pose": bad_pose,
+        "mesh_vertices": len(mesh.vertices),
+        "mesh_triangles": len(mesh.triangles),
+    }
+    metrics |= {f"mapper_{k}": v for k, v in asdict(mapper.stats).items()}
+    if gt_path is not None:
+        valid_poses = np.stack([p for p in poses if np.isfinite(p).all()]) if poses else np.zeros((0, 4, 4))
+        cull = ev.cull_gt_to_observed and len(valid_poses) > 0
+        mm = evaluation.mesh_metrics(
+            mesh,
+            gt_path,
+            taus_m=ev.mesh_taus_m,
+            n_samples=ev.mesh_samples,
+            seed=ev.seed,
+            observed_poses=valid_poses if cull else None,
+            intr=source.intrinsics if cull else None,
+            cull_max_depth_m=cfg.max_depth_m,
+        )
+        metrics |= mm
+        metrics["gt_mesh"] = str(gt_path)
+        metrics["gt_culling"] = (
+            "GT samples culled to those seen (in image, in range, unoccluded) from the poses of all "
+            "frames of the run before recall/completion; precision/accuracy use the whole GT mesh"
+            if cull
+            else "none: recall/completion against the whole GT mesh"
+        )
+    metrics["wall_s"] = time.perf_counter() - t0
+    metrics["mapping_wall_s"] = t_map
+    metrics["config"] = cfg.to_dict()
+    metrics["eval_config"] = ev.to_dict()
+
+    with atomic_dir(out_final, overwrite=overwrite) as tmp:
+        mapper.save(tmp)
+        if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
+            raise OSError(f"{out_final / 'mesh.ply'}: open3d could not write the mesh")
+        if strip_rows:
+            evaluation.save_comparison_strip(tmp / "strip.png", strip_rows)
+        metrics["wall_s"] = time.perf_counter() - t0
+        write_json(tmp / "metrics.json", evaluation.to_json_safe(metrics))
+    return metrics
+
+
+__all__ = ["EvalConfig", "run_offline"]

@@ -1,0 +1,22 @@
+"""The surfel mapper (optimisation, densify/prune, running H_train), its losses and the TSDF."""
+
+from roigsf_ros.core.exports import lazy_exports
+
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "losses": [
+            "SSIM_SIGMA",
+            "SSIM_WINDOW",
+            "colour_loss",
+            "depth_l1",
+            "depth_to_normal_cam",
+            "distortion",
+            "normal_consistency",
+            "ssim",
+            "ssim_map",
+        ],
+        "mapper": ["DEPTH_MODES", "Keyframe", "Mapper", "MapperConfig", "MapperStats"],
+        "tsdf": ["SurfaceVoxels", "TSDFVolume", "o3c", "tsdf_mesh_from_depths"],
+    },
+)

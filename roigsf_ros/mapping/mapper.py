@@ -1,0 +1,755 @@
+"""The surfel mapper: keyframe insertion, 2DGS optimisation, densify/prune, training Fisher, mesh.
+
+GauS-SLAM-style mapping with known poses on the CPU. A keyframe (RGB-D + pose) is validated,
+new surfels are seeded where the current map does not explain it (rendered alpha < 0.5, or the
+input depth lies in front of the rendered depth), then the map is optimised for
+``iters_per_keyframe`` steps over the newest keyframe and random past ones with the 2DGS losses,
+pruned, and the keyframe's diagonal Fisher is added to ``h_train`` (the training information
+that the NBV score divides by). :func:`run_offline` runs a whole sequence through a keyframe
+policy and writes the map, the mesh, metrics and a comparison strip.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Generator, Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+from torch import Tensor
+
+from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.config import Config
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.mapping import losses
+from roigsf_ros.mapping.tsdf import tsdf_mesh_from_depths
+from roigsf_ros.render.fisher import fisher_diag, frustum_subset
+from roigsf_ros.render.rasterize import RenderOutput, render_map
+from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, surfels_from_rgbd
+
+log = logging.getLogger(__name__)
+
+DEPTH_MODES = ("expected", "median")
+"""Rendered depth used for evaluation or meshing: alpha-normalised expected depth, or median depth."""
+
+
+@dataclass(frozen=True)
+class MapperConfig(Config):
+    """Every tunable of the mapper (ROS parameters carry the same names). Units: metres, pixels."""
+
+    iters_per_keyframe: int = 10
+    """Optimiser steps after each keyframe (GauS-SLAM uses 40 on a GPU; scaled for the CPU)."""
+    views_per_iteration: int = 1
+    """Keyframes rendered and summed per optimiser step."""
+    newest_keyframe_prob: float = 0.5
+    """Chance that a view slot of a step is the newest keyframe; the rest are drawn from the window."""
+    keyframe_window: int = 0
+    """Past keyframes drawn from: the most recent this many (0 = all keyframes)."""
+    final_iters: int = 0
+    """Extra steps over random keyframes at the end of an offline run (a global refinement)."""
+
+    lr_means: float = 2e-4
+    """Adam step of surfel centres (metres)."""
+    lr_quats: float = 2e-3
+    """Adam step of the rotation quaternions."""
+    lr_log_scales: float = 5e-3
+    """Adam step of the log scales (2DGS)."""
+    lr_opacity_logits: float = 5e-2
+    """Adam step of the opacity logits (2DGS, GauS-SLAM)."""
+    lr_sh_dc: float = 1e-2
+    """Adam step of the zeroth SH coefficient (4x 2DGS's 2.5e-3 for the few CPU iterations)."""
+
+    lambda_dssim: float = 0.2
+    """D-SSIM share of the colour loss (3DGS/2DGS)."""
+    weight_colour: float = 1.0
+    """Weight of the colour loss."""
+    weight_depth: float = 1.0
+    """Weight of the depth L1 (alpha-weighted rendered depth vs input depth, valid pixels)."""
+    weight_normal: float = 0.05
+    """Weight of the 2DGS normal-consistency loss."""
+    weight_distortion: float = 0.0
+    """Weight of the 2DGS depth-distortion loss (2DGS: 0 unbounded, 1000 for objects)."""
+
+    near_m: float = 0.1
+    """Near plane of the renderer."""
+    min_depth_m: float = 0.1
+    """Input depth at or below this is invalid (masked and counted)."""
+    max_depth_m: float = 10.0
+    """Input depth above this is invalid (masked and counted)."""
+
+    init_opacity: float = 0.9
+    """Opacity of new surfels."""
+    init_scale_factor: float = 0.7
+    """New surfel radius (std) as a fraction of its pixel footprint times the seeding stride."""
+    densify_stride: int = 1
+    """One new surfel per ``densify_stride`` x ``densify_stride`` pixel block."""
+    densify_alpha_threshold: float = 0.5
+    """Seed surfels where the map renders alpha below this (GauS-SLAM's silhouette rule)."""
+    densify_depth_margin_m: float = 0.05
+    """Also seed where the input depth is in front of the rendered depth by more than this."""
+
+    prune_opacity: float = 0.01
+    """Prune surfels whose opacity fell below this."""
+    prune_max_scale_m: float = 0.5
+    """Prune surfels whose larger scale grew beyond this (degenerate, smeared)."""
+    prune_min_scale_m: float = 1e-5
+    """Prune surfels whose larger scale shrank below this (vanished)."""
+    prune_every: int = 1
+    """Prune after every this many keyframes."""
+
+    track_h_train: bool = True
+    """Keep the running diagonal Fisher of the training views."""
+    h_train_lazy: bool = True
+    """Add new keyframes' Fisher when ``h_train`` is next read (same result when read after every
+    keyframe, as NBV policies do; free for runs that never read it); False: right after each one."""
+    fisher_outputs: tuple[str, ...] = ("color", "depth")
+    """Rendered outputs whose Fisher makes up ``h_train`` (see roigsf_ros.render.fisher)."""
+    fisher_params: tuple[str, ...] = ("means", "quats", "log_scales", "opacity_logits", "sh_dc")
+    """SurfelMap parameters ``h_train`` covers."""
+
+    mesh_voxel_size_m: float = 0.02
+    """TSDF voxel size of the exported mesh."""
+    mesh_sdf_trunc_m: float = 0.08
+    """TSDF truncation distance of the exported mesh."""
+    mesh_min_alpha: float = 0.5
+    """Rendered depth is fused only where the map's alpha reaches this."""
+    mesh_depth: str = "median"
+    """Rendered depth fused into the mesh: "median" (sharp at edges, 2DGS bounded) or "expected"."""
+    eval_depth: str = "expected"
+    """Rendered depth compared with the input in evaluation: "expected" or "median"."""
+
+    seed: int = 0
+    """Seed of the keyframe sampling."""
+    device: str = "cpu"
+    """Torch device of the map and the optimisation."""
+
+    def validate(self) -> MapperConfig:
+        """Return self if every field is in range, else raise InputError naming the field."""
+        checks = {
+            "iters_per_keyframe": self.iters_per_keyframe >= 0,
+            "views_per_iteration": self.views_per_iteration >= 1,
+            "newest_keyframe_prob": 0.0 <= self.newest_keyframe_prob <= 1.0,
+            "keyframe_window": self.keyframe_window >= 0,
+            "final_iters": self.final_iters >= 0,
+            "lambda_dssim": 0.0 <= self.lambda_dssim <= 1.0,
+            "near_m": self.near_m > 0,
+            "min_depth_m": self.min_depth_m >= 0,
+            "max_depth_m": self.max_depth_m > max(self.min_depth_m, self.near_m),
+            "init_opacity": 0.0 < self.init_opacity < 1.0,
+            "init_scale_factor": self.init_scale_factor > 0,
+            "densify_stride": self.densify_stride >= 1,
+            "densify_alpha_threshold": 0.0 < self.densify_alpha_threshold <= 1.0,
+            "densify_depth_margin_m": self.densify_depth_margin_m > 0,
+            "prune_opacity": 0.0 <= self.prune_opacity < 1.0,
+            "prune_max_scale_m": self.prune_max_scale_m > self.prune_min_scale_m >= 0,
+            "prune_every": self.prune_every >= 1,
+            "mesh_voxel_size_m": self.mesh_voxel_size_m > 0,
+            "mesh_sdf_trunc_m": self.mesh_sdf_trunc_m >= self.mesh_voxel_size_m,
+            "mesh_min_alpha": 0.0 <= self.mesh_min_alpha <= 1.0,
+            "mesh_depth": self.mesh_depth in DEPTH_MODES,
+            "eval_depth": self.eval_depth in DEPTH_MODES,
+        }
+        for name in ("lr_means", "lr_quats", "lr_log_scales", "lr_opacity_logits", "lr_sh_dc"):
+            checks[name] = getattr(self, name) >= 0
+        for name in ("weight_colour", "weight_depth", "weight_normal", "weight_distortion"):
+            checks[name] = getattr(self, name) >= 0
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not ok or (isinstance(value, float) and not math.isfinite(value)):
+                raise InputError(f"mapper.{name}", f"value {value!r} is out of range")
+        return self
+
+    def learning_rates(self) -> dict[str, float]:
+        """Adam step per SurfelMap parameter group."""
+        return {
+            "means": self.lr_means,
+            "quats": self.lr_quats,
+            "log_scales": self.lr_log_scales,
+            "opacity_logits": self.lr_opacity_logits,
+            "sh_dc": self.lr_sh_dc,
+        }
+
+
+@dataclass
+class MapperStats:
+    """Counters of what the mapper skipped, masked, added and removed (all logged as they happen)."""
+
+    keyframes_added: int = 0
+    frames_skipped_no_depth: int = 0
+    invalid_depth_pixels: int = 0
+    invalid_colour_pixels: int = 0
+    steps: int = 0
+    steps_skipped_nonfinite: int = 0
+    surfels_added: int = 0
+    surfels_pruned: int = 0
+    surfels_removed_nonfinite: int = 0
+
+
+@dataclass
+class Keyframe:
+    """A keyframe as the mapper keeps it: colour uint8 [H, W, 3], depth [H, W] (0 invalid), pose."""
+
+    frame_id: int
+    T_wc: np.ndarray
+    rgb_u8: Tensor
+    depth_m: Tensor
+    valid: Tensor
+
+    def rgb01(self, dtype: torch.dtype) -> Tensor:
+        """Colour as float [H, W, 3] in [0, 1]."""
+        return self.rgb_u8.to(dtype) / 255.0
+
+
+class _SparseAdam:
+    """Adam with per-surfel step counts that updates only the surfels seen in the step.
+
+    Rows can be appended (zero state) and removed, so the state follows the surfel set.
+    """
+
+    def __init__(self, lrs: dict[str, float], betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+        self.lrs, self.betas, self.eps = lrs, betas, eps
+        self.m: dict[str, Tensor] = {}
+        self.v: dict[str, Tensor] = {}
+        self.t: Tensor | None = None
+
+    def sync(self, params: dict[str, Tensor]) -> None:
+        """Create zero state for parameters seen for the first time."""
+        for k, p in params.items():
+            if k in self.lrs and k not in self.m:
+                self.m[k] = torch.zeros_like(p.detach())
+                self.v[k] = torch.zeros_like(p.detach())
+        if self.t is None:
+            n = next(iter(params.values())).shape[0]
+            self.t = torch.zeros(n, dtype=torch.long, device=next(iter(params.values())).device)
+
+    def append(self, n_new: int) -> None:
+        """Zero state for ``n_new`` surfels added at the end."""
+        for d in (self.m, self.v):
+            for k, s in d.items():
+                d[k] = torch.cat([s, s.new_zeros((n_new, *s.shape[1:]))])
+        if self.t is not None:
+            self.t = torch.cat([self.t, self.t.new_zeros(n_new)])
+
+    def keep(self, keep: Tensor) -> None:
+        """Keep the state rows where the bool mask ``keep`` is true."""
+        for d in (self.m, self.v):
+            for k, s in d.items():
+                d[k] = s[keep]
+        if self.t is not None:
+            self.t = self.t[keep]
+
+    @torch.no_grad()
+    def step(self, params: dict[str, Tensor], rows: Tensor) -> None:
+        """One Adam update of the surfel ``rows`` (index tensor) of every parameter with a gradient."""
+        if rows.numel() == 0 or self.t is None:
+            return
+        b1, b2 = self.betas
+        self.t.index_add_(0, rows, torch.ones_like(rows))
+        t = self.t.index_select(0, rows).to(next(iter(params.values())).dtype)
+        c1, c2 = 1.0 - b1**t, 1.0 - b2**t
+        for k, p in params.items():
+            if k not in self.lrs or p.grad is None:
+                continue
+            g = p.grad.index_select(0, rows)
+            m = self.m[k].index_select(0, rows).mul_(b1).add_(g, alpha=1.0 - b1)
+            v = self.v[k].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
+            self.m[k].index_copy_(0, rows, m)
+            self.v[k].index_copy_(0, rows, v)
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            upd = (m / c1.view(shape)) / ((v / c2.view(shape)).sqrt() + self.eps)
+            p.index_add_(0, rows, upd, alpha=-self.lrs[k])
+
+
+class Mapper:
+    """Incremental 2DGS surfel map over posed RGB-D keyframes of one camera."""
+
+    def __init__(self, intr: Intrinsics, config: MapperConfig | None = None) -> None:
+        self.config = config or MapperConfig()
+        self.intr = intr
+        self.device = torch.device(self.config.device)
+        self.dtype = torch.float32
+        self.map = SurfelMap.empty(device=self.device, dtype=self.dtype)
+        self.keyframes: list[Keyframe] = []
+        self.stats = MapperStats()
+        self._h_train: dict[str, Tensor] = {}
+        self._fisher_pending: list[Keyframe] = []
+        self.loaded_keyframe_ids: list[int] = []
+        """Keyframe ids of a map read by :meth:`load` (its images are not stored, so not keyframes here)."""
+        self.loaded_keyframe_poses = np.zeros((0, 4, 4))
+        """Keyframe poses [K, 4, 4] of a map read by :meth:`load`."""
+        self._rng = np.random.default_rng(self.config.seed)
+        self._adam = _SparseAdam(self.config.learning_rates())
+        self._version = 0  # bumped whenever the map changes (invalidates the render cache)
+        self._cache: tuple[tuple[int, bytes], RenderOutput] | None = None
+        self._reset_h_train()
+
+    # ------------------------------------------------------------------------------ properties
+    @property
+    def n_surfels(self) -> int:
+        """Number of surfels in the map."""
+        return len(self.map)
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Frame ids of the keyframes, in insertion order."""
+        return [kf.frame_id for kf in self.keyframes]
+
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """Keyframe poses [K, 4, 4] (camera-to-world)."""
+        return np.stack([kf.T_wc for kf in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
+
+    def valid_depth_mask(self, depth_m: np.ndarray) -> np.ndarray:
+        """Bool [H, W]: finite depth within (min_depth_m, max_depth_m] (and beyond the near plane)."""
+        d = np.asarray(depth_m)
+        lo = max(self.config.min_depth_m, self.config.near_m)
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(d) & (d > lo) & (d <= self.config.max_depth_m)
+
+    # ------------------------------------------------------------------------------- rendering
+    def render(self, T_wc: np.ndarray, with_grad: bool = False) -> RenderOutput:
+        """Render the map from ``T_wc`` [4, 4] (InputError if it is not a rigid transform).
+
+        Without grad the last render is cached until the map changes, so the keyframe policy's
+        check and the densification of the same frame share one render.
+        """
+        T = check_pose(T_wc, "T_wc")
+        if with_grad:
+            return self._render(T, self.config.weight_distortion > 0)
+        key = (self._version, T.tobytes())
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        with torch.no_grad():
+            out = self._render(T, False)
+        self._cache = (key, out)
+        return out
+
+    def _render(self, T: np.ndarray, with_distortion: bool) -> RenderOutput:
+        """Render the surfels that can reach the view; ``visible`` is mapped back to the whole map."""
+        idx = self._frustum_subset(T)
+        sub = self.map if idx.numel() == self.n_surfels else self.map.select(idx)
+        out = render_map(sub, T, self.intr, near=self.config.near_m, with_distortion=with_distortion)
+        if sub is not self.map:
+            visible = torch.zeros(self.n_surfels, dtype=torch.bool, device=self.device)
+            visible[idx[out.visible]] = True
+            out.visible = visible
+        return out
+
+    def _frustum_subset(self, T: np.ndarray) -> Tensor:
+        """Indices of surfels that can reach the view from ``T`` [4, 4] (conservative: see fisher.frustum_subset)."""
+        viewmat = torch.as_tensor(np.linalg.inv(T), dtype=self.dtype, device=self.device)
+        return frustum_subset(self.map, viewmat, self.intr, near=self.config.near_m, far=math.inf)
+
+    def render_alpha(self, T_wc: np.ndarray) -> np.ndarray:
+        """Accumulated alpha [H, W] (float32 numpy) of the map seen from ``T_wc``."""
+        if self.n_surfels == 0:
+            return np.zeros((self.intr.height, self.intr.width), np.float32)
+        return self.render(T_wc).alpha.cpu().numpy().astype(np.float32)
+
+    def render_depth(self, out: RenderOutput, mode: str) -> Tensor:
+        """The ``mode`` ("expected" or "median") depth [H, W] of a render (0 where nothing was hit)."""
+        return out.expected_depth() if mode == "expected" else out.median_depth
+
+    # ------------------------------------------------------------------------------ keyframes
+    def _prepare(self, frame: Frame) -> tuple[np.ndarray, Tensor, Tensor, Tensor, int]:
+        """Validate a frame: pose (InputError), sizes (InputError), depth/colour masked and counted."""
+        where = f"frame {frame.index}"
+        T = check_pose(frame.T_wc, f"{where} pose")
+        h, w = self.intr.height, self.intr.width
+        rgb = np.asarray(frame.rgb)
+        depth = np.asarray(frame.depth_m, dtype=np.float32)
+        if rgb.shape != (h, w, 3):
+            raise InputError(where, f"colour has shape {rgb.shape}, expected ({h}, {w}, 3) for the intrinsics")
+        if depth.shape != (h, w):
+            raise InputError(where, f"depth has shape {depth.shape}, expected ({h}, {w}) for the intrinsics")
+        if rgb.dtype != np.uint8:
+            rgb_f = rgb.astype(np.float64)
+            bad = ~np.isfinite(rgb_f).all(-1)
+            if bad.any():
+                self.stats.invalid_colour_pixels += int(bad.sum())
+                log.warning("%s: %d colour pixels are not finite; set to black", where, int(bad.sum()))
+            rgb = (np.clip(np.nan_to_num(rgb_f, nan=0.0, posinf=1.0, neginf=0.0), 0, 1) * 255 + 0.5).astype(np.uint8)
+        valid = self.valid_depth_mask(depth)
+        n_bad = int(valid.size - valid.sum())
+        depth = np.where(valid, depth, np.float32(0.0)).astype(np.float32)
+        return (
+            T,
+            torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device),
+            torch.from_numpy(depth).to(self.device),
+            torch.from_numpy(valid).to(self.device),
+            n_bad,
+        )
+
+    def add_keyframe(self, frame: Frame, optimise: bool = True) -> bool:
+        """Insert ``frame`` as a keyframe: seed surfels, optimise, prune, add its Fisher; False if skipped.
+
+        A non-rigid pose or a size mismatch raises InputError; invalid depth pixels (NaN, zero,
+        out of range) are masked and counted; a frame with no valid depth is skipped and counted.
+        """
+        steps = self.keyframe_schedule(frame, optimise=optimise)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return bool(done.value)
+
+    def keyframe_schedule(
+        self, frame: Frame, slice_iters: int = 0, optimise: bool = True, flush_fisher: bool | None = None
+    ) -> Generator[int, None, bool]:
+        """:meth:`add_keyframe` as a schedule of steps, for callers that share the map between them.
+
+        Insert and densify, then (``optimise``) ``iters_per_keyframe`` optimiser steps in slices of
+        ``slice_iters`` (0: one slice), then prune every ``prune_every`` keyframes and queue the keyframe's
+        Fisher, computed now when ``flush_fisher`` (None: unless ``h_train_lazy``). Yields after the
+        insertion and after each slice (the number of steps just run), so a caller can release a lock
+        between them or abandon the rest; returns whether the frame was inserted.
+        """
+        T, rgb_u8, depth, valid, n_bad = self._prepare(frame)
+        if n_bad:
+            self.stats.invalid_depth_pixels += n_bad
+            log.debug("frame %d: %d of %d depth pixels invalid (masked)", frame.index, n_bad, valid.numel())
+        if not bool(valid.any()):
+            self.stats.frames_skipped_no_depth += 1
+            log.warning("frame %d: no valid depth (NaN, zero or out of range); keyframe skipped", frame.index)
+            return False
+        kf = Keyframe(frame_id=int(frame.index), T_wc=T, rgb_u8=rgb_u8, depth_m=depth, valid=valid)
+        self.densify(kf)
+        self.keyframes.append(kf)
+        self.stats.keyframes_added += 1
+        yield 0
+        if optimise:
+            newest = len(self.keyframes) - 1
+            left = self.config.iters_per_keyframe
+            while left > 0:
+                n = min(slice_iters or left, left)
+                self.optimise(n, newest=newest)
+                left -= n
+                yield n
+            if len(self.keyframes) % self.config.prune_every == 0:
+                self.prune()
+        if self.config.track_h_train:
+            self._fisher_pending.append(kf)
+            if (not self.config.h_train_lazy) if flush_fisher is None else flush_fisher:
+                self._flush_fisher()
+        return True
+
+    # -------------------------------------------------------------------------- densify/prune
+    @torch.no_grad()
+    def densify(self, kf: Keyframe) -> int:
+        """Seed surfels from ``kf`` where the map renders alpha < threshold or lies behind its depth."""
+        cfg = self.config
+        mask = kf.valid.clone()
+        if self.n_surfels:
+            out = self.render(kf.T_wc)
+            rendered = out.expected_depth()
+            unseen = out.alpha < cfg.densify_alpha_threshold
+            in_front = kf.depth_m < rendered - cfg.densify_depth_margin_m
+            mask &= unseen | in_front
+        if not bool(mask.any()):
+            return 0
+        new = surfels_from_rgbd(
+            kf.rgb_u8.cpu().numpy(),
+            kf.depth_m.cpu().numpy(),
+            kf.T_wc,
+            self.intr,
+            mask=mask.cpu().numpy(),
+            stride=cfg.densify_stride,
+            opacity=cfg.init_opacity,
+            scale_factor=cfg.init_scale_factor,
+            min_depth=max(cfg.min_depth_m, cfg.near_m),
+            max_depth=cfg.max_depth_m,
+            device=self.device,
+            dtype=self.dtype,
+        )
+        if len(new) == 0:
+            return 0
+        self._append(new)
+        return len(new)
+
+    def _append(self, new: SurfelMap) -> None:
+        n_new = len(new)
+        self.map = SurfelMap.cat([self.map.detach(), new.detach()])
+        self._version += 1
+        if self._adam.t is not None:
+            self._adam.append(n_new)
+        for k, h in self._h_train.items():
+            self._h_train[k] = torch.cat([h, h.new_zeros((n_new, *h.shape[1:]))])
+        self.stats.surfels_added += n_new
+
+    def _keep(self, keep: Tensor) -> None:
+        self.map = self.map.select(keep)
+        self._version += 1
+        self._adam.keep(keep)
+        for k, h in self._h_train.items():
+            self._h_train[k] = h[keep]
+
+    @torch.no_grad()
+    def prune(self) -> int:
+        """Remove transparent, degenerate and non-finite surfels; returns how many went."""
+        if self.n_surfels == 0:
+            return 0
+        cfg = self.config
+        m = self.map
+        finite = torch.ones(len(m), dtype=torch.bool, device=self.device)
+        for t in m.parameters():
+            finite &= torch.isfinite(t.reshape(len(m), -1)).all(-1)
+        smax = m.scales().max(dim=-1).values
+        remove = (m.opacities() < cfg.prune_opacity) | (smax > cfg.prune_max_scale_m) | (smax < cfg.prune_min_scale_m)
+        remove |= ~finite
+        n_nonfinite = int((~finite).sum())
+        n_remove = int(remove.sum())
+        if n_remove:
+            self._keep(~remove)
+            self.stats.surfels_pruned += n_remove - n_nonfinite
+            self.stats.surfels_removed_nonfinite += n_nonfinite
+            if n_nonfinite:
+                log.warning("removed %d surfels with non-finite parameters", n_nonfinite)
+        return n_remove
+
+    # ----------------------------------------------------------------------------- optimising
+    def _pick_views(self, newest: int | None) -> list[int]:
+        """Keyframes of one step: per slot the newest (``newest_keyframe_prob``) or a random past one."""
+        cfg = self.config
+        k = len(self.keyframes)
+        lo = max(0, k - cfg.keyframe_window) if cfg.keyframe_window else 0
+        others = [i for i in range(lo, k) if i != newest]
+        picked: list[int] = []
+        for _ in range(min(cfg.views_per_iteration, k)):
+            left = [i for i in others if i not in picked]
+            can_newest = newest is not None and newest not in picked
+            if can_newest and (not left or self._rng.random() < cfg.newest_keyframe_prob):
+                picked.append(int(newest))
+            elif left:
+                picked.append(left[int(self._rng.integers(len(left)))])
+        return picked
+
+    def keyframe_loss(self, out: RenderOutput, kf: Keyframe) -> tuple[Tensor, dict[str, float]]:
+        """The weighted 2DGS loss of one rendered keyframe, and its terms (for logs)."""
+        cfg = self.config
+        gt = kf.rgb01(self.dtype)
+        terms: dict[str, Tensor] = {}
+        terms["colour"] = losses.colour_loss(out.color, gt, cfg.lambda_dssim)
+        terms["depth"] = losses.depth_l1(out.depth, kf.depth_m, kf.valid)
+        if cfg.weight_normal > 0:
+            terms["normal"] = losses.normal_consistency(out.normal, out.expected_depth(), out.alpha, self.intr)
+        if cfg.weight_distortion > 0:
+            terms["distortion"] = losses.distortion(out.distortion)
+        weights = {
+            "colour": cfg.weight_colour,
+            "depth": cfg.weight_depth,
+            "normal": cfg.weight_normal,
+            "distortion": cfg.weight_distortion,
+        }
+        total = sum(weights[k] * v for k, v in terms.items())
+        return total, {k: float(v.detach()) for k, v in terms.items()}
+
+    def optimise(self, n_iters: int, newest: int | None = None) -> dict[str, float]:
+        """Run ``n_iters`` optimiser steps over keyframe views; returns the last step's loss terms.
+
+        A step whose loss or gradients are not finite is skipped (counted and logged), so no NaN
+        ever reaches the map.
+        """
+        last: dict[str, float] = {}
+        if not self.keyframes or self.n_surfels == 0:
+            return last
+        params = self.map.named_parameters()
+        self.map.requires_grad_(True)
+        self._adam.sync(params)
+        trainable = {k: p for k, p in params.items() if k in self._adam.lrs}
+        for _ in range(int(n_iters)):
+            views = self._pick_views(newest)
+            for p in params.values():
+                p.grad = None
+            total = None
+            visible = torch.zeros(self.n_surfels, dtype=torch.bool, device=self.device)
+            terms_acc: dict[str, float] = {}
+            for i in views:
+                kf = self.keyframes[i]
+                out = self._render(kf.T_wc, self.config.weight_distortion > 0)
+                loss, terms = self.keyframe_loss(out, kf)
+                total = loss if total is None else total + loss
+                visible |= out.visible
+                terms_acc = {k: terms_acc.get(k, 0.0) + v / len(views) for k, v in terms.items()}
+            assert total is not None
+            total = total / len(views)
+            if not bool(torch.isfinite(total)):
+                self._skip_step("loss")
+                continue
+            total.backward()
+            if not all(bool(torch.isfinite(p.grad).all()) for p in trainable.values() if p.grad is not None):
+                self._skip_step("gradient")
+                continue
+            self._adam.step(trainable, visible.nonzero().squeeze(1))
+            self._version += 1
+            self.stats.steps += 1
+            last = terms_acc | {"total": float(total.detach())}
+        for p in params.values():
+            p.grad = None
+        self.map.requires_grad_(False)
+        return last
+
+    def _skip_step(self, what: str) -> None:
+        self.stats.steps_skipped_nonfinite += 1
+        n = self.stats.steps_skipped_nonfinite
+        log.warning("optimiser step skipped: non-finite %s (%d skipped so far)", what, n)
+
+    def refine(self, n_iters: int) -> dict[str, float]:
+        """``n_iters`` steps over uniformly random keyframes (no newest-keyframe preference), then prune."""
+        out = self.optimise(n_iters, newest=None)
+        self.prune()
+        return out
+
+    # ------------------------------------------------------------------------------- h_train
+    @property
+    def h_train(self) -> dict[str, Tensor]:
+        """Diagonal Fisher of the training views, ``{param: tensor shaped like map.<param>}``.
+
+        Kept aligned with the surfel set through densify/prune (new surfels start at zero).
+        """
+        self._flush_fisher()
+        return self._h_train
+
+    def _reset_h_train(self) -> None:
+        self._h_train = {}
+        self._fisher_pending = []
+        if self.config.track_h_train:
+            params = self.map.named_parameters()
+            for k in self.config.fisher_params:
+                if k not in PARAM_NAMES:
+                    raise InputError("mapper.fisher_params", f"unknown parameter {k!r}")
+                if k in params:
+                    self._h_train[k] = torch.zeros_like(params[k].detach())
+
+    def keyframe_fisher(self, kf: Keyframe) -> dict[str, Tensor]:
+        """Diagonal Fisher of one keyframe view under the current map (pixels with valid depth)."""
+        full = {k: torch.zeros_like(v.detach()) for k, v in self.map.named_parameters().items()}
+        full = {k: full[k] for k in self.config.fisher_params if k in full}
+        idx = self._frustum_subset(kf.T_wc)
+        if idx.numel() == 0:
+            return full
+        sub = fisher_diag(
+            self.map.detach().select(idx),
+            kf.T_wc,
+            self.intr,
+            outputs=self.config.fisher_outputs,
+            params=tuple(full),
+            pixel_weights=kf.valid.to(self.dtype),
+            near=self.config.near_m,
+        )
+        for k, f in sub.items():
+            if k in full:
+                full[k].index_copy_(0, idx, torch.nan_to_num(f, nan=0.0, posinf=0.0, neginf=0.0))
+        return full
+
+    def _flush_fisher(self) -> None:
+        pending, self._fisher_pending = self._fisher_pending, []
+        if self.n_surfels == 0:
+            return
+        for kf in pending:
+            for k, f in self.keyframe_fisher(kf).items():
+                if k in self._h_train:
+                    self._h_train[k] += f
+
+    def recompute_h_train(self) -> dict[str, Tensor]:
+        """Recompute ``h_train`` as the sum of every keyframe's Fisher under the current map."""
+        self._reset_h_train()
+        if self.config.track_h_train:
+            self._fisher_pending = list(self.keyframes)
+        return self.h_train
+
+    def render_rgb_depth(self, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The map at ``T_wc`` as evaluation sees it: rgb [H, W, 3] float in [0, 1], depth_m [H, W] (``eval_depth``)."""
+        out = self.render(T_wc)
+        rgb = out.color.clamp(0, 1).cpu().numpy()
+        return rgb, self.render_depth(out, self.config.eval_depth).cpu().numpy()
+
+    # ---------------------------------------------------------------------------------- mesh
+    def rendered_rgbd(
+        self, T_wc: np.ndarray, depth_mode: str | None = None, min_alpha: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The map's own RGB-D at ``T_wc``, as TSDF fusion takes it: depth_m [H, W] float32, rgb [H, W, 3] uint8.
+
+        Depth is the ``depth_mode`` depth (default ``mesh_depth``), 0 where the accumulated alpha is below
+        ``min_alpha`` (default ``mesh_min_alpha``): the mesh and the NBV scoring TSDF fuse exactly this.
+        """
+        cfg = self.config
+        out = self.render(T_wc)
+        depth = self.render_depth(out, cfg.mesh_depth if depth_mode is None else depth_mode)
+        lo = cfg.mesh_min_alpha if min_alpha is None else float(min_alpha)
+        depth = torch.where(out.alpha >= lo, depth, 0.0).cpu().numpy().astype(np.float32)
+        rgb = (out.color.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        return depth, rgb
+
+    def mesh(self, poses: Iterable[np.ndarray] | None = None) -> o3d.geometry.TriangleMesh:
+        """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: keyframe or loaded poses)."""
+        cfg = self.config
+        if poses is None:
+            poses = self.keyframe_poses if self.keyframes else self.loaded_keyframe_poses
+        poses = list(poses)
+
+        def frames() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+            for T in poses:
+                depth, rgb = self.rendered_rgbd(T)
+                yield depth, T, rgb
+
+        return tsdf_mesh_from_depths(
+            frames(),
+            self.intr,
+            voxel_size_m=cfg.mesh_voxel_size_m,
+            sdf_trunc_m=cfg.mesh_sdf_trunc_m,
+            depth_max_m=cfg.max_depth_m,
+        )
+
+    # ------------------------------------------------------------------------------ save/load
+    def save(self, out_dir: str | Path) -> None:
+        """Write ``map.ply`` (2DGS layout) and ``keyframes.json`` (ids, poses, intrinsics, config)."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        self.map.save_ply(out / "map.ply")
+        write_json(
+            out / "keyframes.json",
+            {
+                "keyframe_ids": self.keyframe_ids,
+                "keyframe_poses": [kf.T_wc.tolist() for kf in self.keyframes],
+                "intrinsics": asdict(self.intr),
+                "config": self.config.to_dict(),
+            },
+        )
+
+    @classmethod
+    def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:
+        """A mapper with the map and keyframe poses of :meth:`save` (keyframe images are not stored)."""
+        d = Path(in_dir)
+        try:
+            meta = json.loads((d / "keyframes.json").read_text())
+        except FileNotFoundError:
+            raise InputError(d / "keyframes.json", "not found (not a saved map folder)") from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(d / "keyframes.json", f"cannot read: {exc}") from None
+        intr = Intrinsics(**meta["intrinsics"])
+        if config is None:
+            config = MapperConfig.from_dict(meta.get("config", {}))
+        mapper = cls(intr, config)
+        mapper.map = SurfelMap.load_ply(d / "map.ply", device=mapper.device, dtype=mapper.dtype)
+        mapper._version += 1
+        mapper._adam = _SparseAdam(mapper.config.learning_rates())
+        mapper._reset_h_train()
+        mapper.loaded_keyframe_ids = [int(i) for i in meta.get("keyframe_ids", [])]
+        mapper.loaded_keyframe_poses = np.asarray(meta.get("keyframe_poses", []), dtype=np.float64).reshape(-1, 4, 4)
+        return mapper
+
+
+__all__ = [
+    "DEPTH_MODES",
+    "Keyframe",
+    "Mapper",
+    "MapperConfig",
+    "MapperStats",
+]

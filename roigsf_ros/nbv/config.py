@@ -1,0 +1,132 @@
+"""NBVConfig: every tunable of the NBV scorer (each field is a ROS parameter of the same name)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from roigsf_ros.core.config import Config
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.render.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, OUTPUTS
+
+MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
+"""Score modes: the method, its two ablations and the FisherRF baseline."""
+
+
+@dataclass(frozen=True)
+class NBVConfig(Config):
+    """Every tunable of the NBV scorer; each field becomes a ROS parameter of the same name.
+
+    Values the paper gives: the angle preferences, the 2.5 px footprint, epsilon, delta. The rest
+    (beta, gamma, mu, phi, sigma_p, the bump widths, the texture test, occlusion) are our choices,
+    each explained in its docstring.
+    """
+
+    mode: str = "roi-gsurfisher"
+    """Score mode, one of :data:`MODES`."""
+    epsilon: float = 0.4
+    """Eq. 15 weight of z(F) (paper: 0.4)."""
+    delta: float = 0.6
+    """Eq. 15 weight of z(I_vis) (paper: 0.6)."""
+    top_k: int = 5
+    """Length of the ``top_k`` list of the result (the full ranking is always returned)."""
+
+    # ---- Eq. 7: voxel weights
+    beta: float = 1.0
+    """Exponent of W_angle (paper: > 0, value not given); 1 keeps the bump's own width as the preference."""
+    gamma: float = 1.0
+    """Exponent of W_scale (paper: > 0, not given); 1, as beta."""
+    mu: float = 1.0
+    """Linear gain of W_cover (paper: >= 0, not given); 1 lets a once-seen voxel weigh up to 2x a well-fused one."""
+    angle_pref_texture_poor_deg: float = 30.0
+    """Preferred incidence angle on texture-poor surface (paper: about 30 deg)."""
+    angle_pref_texture_rich_deg: float = 40.0
+    """Preferred incidence angle on texture-rich surface (paper: about 40 deg)."""
+    angle_sigma_deg: float = 15.0
+    """Width of the incidence bump: 15 deg keeps frontal views (0 deg) at 0.14-0.37 and kills grazing ones."""
+    footprint_pref_px: float = 2.5
+    """Preferred projected voxel footprint in pixels (paper: about 2.5 px)."""
+    footprint_sigma_ln: float = 0.693
+    """Width of the footprint bump in ln units: ln 2, a footprint 2x off the preference weighs exp(-1/2)."""
+    texture_radius_voxels: float = 2.0
+    """Neighbourhood radius (voxels) of the surfel-colour texture test."""
+    texture_max_neighbours: int = 16
+    """Nearest surfels examined per voxel by the texture test."""
+    texture_min_neighbours: int = 3
+    """Fewer surfels than this near a voxel: texture-poor."""
+    texture_std_threshold: float = 0.03
+    """Luma std (colours in [0, 1]) from which a voxel is texture-rich: ~8/255, well above 8-bit noise."""
+
+    # ---- voxel selection, visibility, splatting
+    roi_max_abs_tsdf_voxels: float = 1.0
+    """Near-surface band: |tsdf| within this many voxels (the TSDF module's default, one voxel)."""
+    roi_min_weight: float = 1.0
+    """Voxels need at least this TSDF weight (frames fused)."""
+    near_m: float = 0.2
+    """Near plane of candidate frusta and of the Fisher renders (2DGS's 0.2 m)."""
+    far_m: float = 10.0
+    """Far plane of candidate frusta and of the Fisher renders (the TSDF's default depth range)."""
+    occlusion_tol_voxels: float = 2.0
+    """Voxels more than this many voxels (plus a slant term) behind the z-buffer are occluded: the band is ~2 thick."""
+    occlusion_min_cos: float = 0.5
+    """Clamp of the incidence cosine in the occlusion tolerance's 1/cos slant factor (at most 2x, i.e. 60 deg)."""
+    max_splat_radius_px: float = 8.0
+    """Cap of the tent-kernel half-width; bounds the cost of very near voxels."""
+
+    # ---- Eq. 9-10, FisherRF, Eq. 17-18
+    sigma_p: float = 1.0
+    """Per-pixel noise scale of Eq. 9/18; a global scale cancels in the z-scores, only its ratio to phi matters."""
+    phi: float = 1e-6
+    """Prior of Eq. 10 (F / (H_train + phi)) and Eq. 17; FisherRF's lambda, so both methods share one prior."""
+    fisherrf_lambda: float = 1e-6
+    """FisherRF's log-prior regulariser (its default)."""
+    fisher_outputs: tuple[str, ...] = ("color", "depth")
+    """Rendered outputs of Eq. 9's f_p: colour and depth (RGB-D mapping; as the Mapper's h_train)."""
+    fisher_params: tuple[str, ...] = GEOMETRIC_PARAMS
+    """Geometric parameters of Eq. 9: means, quats (t_u, t_v) and log_scales (s_u, s_v)."""
+    fisherrf_outputs: tuple[str, ...] = ("color",)
+    """FisherRF's rendered output: the colour image."""
+    fisherrf_params: tuple[str, ...] = ALL_PARAMS
+    """FisherRF's parameters: all of them (sh_rest only where the map has it)."""
+    fisher_downsample: int = 1
+    """Candidate Fisher passes at 1/this resolution (ROI block-averaged, weights x this^2): a speed knob, 1 = exact."""
+
+    def validate(self) -> NBVConfig:
+        """Self, or InputError naming the first field out of range."""
+        if self.mode not in MODES:
+            raise InputError("mode", f"unknown score mode '{self.mode}' (choose from {', '.join(MODES)})")
+        positive = ("epsilon", "delta", "beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
+        positive += ("texture_radius_voxels", "roi_max_abs_tsdf_voxels", "near_m", "sigma_p", "phi", "fisherrf_lambda")
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
+                raise InputError(name, f"must be a finite number > 0, got {v!r}")
+        for name in ("mu", "texture_std_threshold", "roi_min_weight", "occlusion_tol_voxels"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
+                raise InputError(name, f"must be a finite number >= 0, got {v!r}")
+        for name in ("angle_pref_texture_poor_deg", "angle_pref_texture_rich_deg"):
+            if not 0.0 <= getattr(self, name) < 90.0:
+                raise InputError(name, f"must be in [0, 90) degrees, got {getattr(self, name)}")
+        if not (np.isfinite(self.far_m) and self.far_m > self.near_m):
+            raise InputError("far_m", f"must be finite and > near_m ({self.near_m}), got {self.far_m}")
+        if not 0.0 < self.occlusion_min_cos <= 1.0:
+            raise InputError("occlusion_min_cos", f"must be in (0, 1], got {self.occlusion_min_cos}")
+        if not self.max_splat_radius_px >= 1.0:
+            raise InputError("max_splat_radius_px", f"must be >= 1, got {self.max_splat_radius_px}")
+        for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
+                raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
+        for name in ("fisher_outputs", "fisherrf_outputs"):
+            bad = [o for o in getattr(self, name) if o not in OUTPUTS]
+            if bad or not getattr(self, name):
+                raise InputError(name, f"unknown or no outputs {bad} (choose from {', '.join(OUTPUTS)})")
+        for name in ("fisher_params", "fisherrf_params"):
+            bad = [p for p in getattr(self, name) if p not in ALL_PARAMS]
+            if bad or not getattr(self, name):
+                raise InputError(name, f"unknown or no parameters {bad} (choose from {', '.join(ALL_PARAMS)})")
+        return self
+
+
+__all__ = ["MODES", "NBVConfig"]

@@ -1,0 +1,524 @@
+"""Next-best-view scoring: ROI-GSurFisher (Eq. 9-10, 15-16), its ablations, FisherRF, pixel uncertainty (Eq. 17-18).
+
+Score modes (``NBVConfig.mode``):
+
+- ``"roi-gsurfisher"``: ``eps z(F) + delta z(I_vis)`` (Eq. 15), F the ROI-weighted geometric Fisher gain
+  (Eq. 9-10), I_vis the close-front gain (Eq. 14, :mod:`roigsf_ros.nbv.close_front`); z the z-score over the
+  candidate set;
+- ``"roi-fisher"``: F alone; ``"close-front"``: I_vis alone (the paper's ablations);
+- ``"fisherrf"``: the FisherRF baseline, ``sum F_cand / (H_train + lambda)`` over every parameter, the
+  whole colour image, no ROI, no close-front.
+
+Eq. 10 as implemented: ``F(x) = sum_k F_diag_k(x) / (H_train_k + phi)``. Read literally,
+``<F_diag, (H^-1 + phi)^-1>`` grows with H_train and would favour parameters that are already well
+constrained, the opposite of what the paper says the normalisation is for; the sum of ratios is Eq. 5
+(``tr(H_cand H_train^-1)`` with a diagonal H) and what every FisherRF implementation scores.
+
+Eq. 17 as implemented: ``tr(G_i)`` is read as the trace of the surfel's *inverse* training information
+(its parameter variance), ``sum_k 1 / (H_train_k + phi)`` over the surfel's geometric entries, so that the
+rendered uncertainty is high where the training views constrain the geometry little.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from roigsf_ros.core.camera import Intrinsics, check_pose, pose_from_position_quat
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.evaluation.metrics import ause
+from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
+from roigsf_ros.nbv.close_front import CloseFrontMemory, close_front_gain
+from roigsf_ros.nbv.config import MODES, NBVConfig
+from roigsf_ros.nbv.roi import ViewROI, view_roi, voxel_texture
+from roigsf_ros.render.fisher import fisher_diag
+from roigsf_ros.render.rasterize import camera_tensors, render_map
+from roigsf_ros.render.surfels import SurfelMap
+
+
+# ------------------------------------------------------------------------------------ fusion
+def zscore(x: np.ndarray) -> np.ndarray:
+    """Z-scores of a score vector [M]; a (numerically) constant vector gives zeros, never NaN."""
+    a = np.asarray(x, dtype=np.float64).reshape(-1)
+    if a.size == 0:
+        return a.copy()
+    if not np.all(np.isfinite(a)):
+        raise InputError("scores", "non-finite score in z-score normalisation")
+    spread = float(a.max() - a.min())
+    if spread <= 1e-12 * max(float(np.abs(a).max()), 1e-300):
+        return np.zeros_like(a)
+    centred = a - a.mean()
+    return centred / np.sqrt(np.mean(centred**2))
+
+
+def fuse_scores(fisher: np.ndarray, close_front: np.ndarray, epsilon: float = 0.4, delta: float = 0.6) -> np.ndarray:
+    """Eq. 15: ``epsilon z(F) + delta z(I_vis)`` [M]."""
+    return epsilon * zscore(fisher) + delta * zscore(close_front)
+
+
+def rank_candidates(scores: np.ndarray, flagged: np.ndarray | None = None) -> np.ndarray:
+    """Candidate indices [M], best first: descending score, flagged ones last, ties by ascending index."""
+    s = np.asarray(scores, dtype=np.float64)
+    f = np.zeros(s.shape, bool) if flagged is None else np.asarray(flagged, bool)
+    return np.lexsort((np.arange(s.size), -s, f)).astype(np.int64)
+
+
+# ------------------------------------------------------------------------------ Fisher scores
+def information_gain(f_cand: dict[str, Tensor], h_train: dict[str, Tensor], prior: float) -> float:
+    """Eq. 10 / Eq. 5 (FisherRF reading): ``sum_k F_cand_k / (H_train_k + prior)`` over ``f_cand``'s entries."""
+    total = 0.0
+    for name, f in f_cand.items():
+        h = h_train.get(name)
+        if h is None:
+            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
+        if h.shape != f.shape:
+            raise InputError("h_train", f"'{name}' has shape {list(h.shape)}, the map needs {list(f.shape)}")
+        total += float((f.double() / (h.double().to(f.device) + prior)).sum())
+    return total
+
+
+def train_fisher(
+    surfel_map: SurfelMap,
+    train_poses: Sequence[np.ndarray] | np.ndarray,
+    intr: Intrinsics,
+    outputs: Sequence[str],
+    params: Sequence[str],
+    pixel_weight: float = 1.0,
+    near_m: float = 0.2,
+    far_m: float = 100.0,
+) -> dict[str, Tensor]:
+    """H_train: the diagonal Fisher of ``outputs`` w.r.t. ``params`` summed over whole training views.
+
+    ``pixel_weight`` multiplies every pixel (1 / sigma_p^2 keeps it in the units of Eq. 9). One exact
+    Fisher pass per pose; the Mapper keeps the same sum incrementally (``Mapper.h_train``).
+    """
+    poses = _as_pose_list(train_poses, "train_poses", allow_empty=True)
+    names = [p for p in params if p != "sh_rest" or surfel_map.sh_rest is not None]
+    out = {k: torch.zeros_like(getattr(surfel_map, k)).detach() for k in names}
+    if len(surfel_map) == 0:
+        return out
+    w = torch.full((intr.height, intr.width), float(pixel_weight), dtype=surfel_map.dtype)
+    for T in poses:
+        f = fisher_diag(surfel_map, T, intr, outputs=outputs, params=names, pixel_weights=w, near=near_m, far=far_m)
+        for k in out:
+            out[k] += f[k]
+    return out
+
+
+# ------------------------------------------------------------------------------ pixel uncertainty
+def surfel_variance(h_train: dict[str, Tensor], params: Sequence[str], prior: float) -> Tensor:
+    """Per-surfel ``tr(G_i)`` of Eq. 17 as read here: ``sum_k 1 / (H_train_k + prior)`` [N] over ``params``."""
+    parts = []
+    for name in params:
+        if name not in h_train:
+            if name == "sh_rest":
+                continue
+            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
+        h = h_train[name].detach().double()
+        parts.append((1.0 / (h + prior)).reshape(h.shape[0], -1).sum(-1))
+    if not parts:
+        raise InputError("params", "no parameters to take the uncertainty of")
+    return torch.stack(parts).sum(0)
+
+
+def render_surfel_scalar(
+    surfel_map: SurfelMap, values: Tensor, T_wc: np.ndarray, intr: Intrinsics, near_m: float, far_m: float
+) -> np.ndarray:
+    """``sum_i T_i alpha_i values_i`` [H, W] (float64): a per-surfel scalar [N] alpha-composited from ``T_wc``."""
+    if len(surfel_map) == 0:
+        return np.zeros((intr.height, intr.width))
+    m = surfel_map.detach()
+    with torch.no_grad():
+        out = render_map(
+            m, T_wc, intr, features=values.to(m.dtype)[:, None], near=near_m, far=far_m, with_distortion=False
+        )
+    return out.features[..., 0].double().cpu().numpy()
+
+
+def depth_error_ause(
+    uncertainty: np.ndarray | Tensor,
+    depth_pred_m: np.ndarray | Tensor,
+    depth_gt_m: np.ndarray | Tensor,
+    n_ratios: int = 100,
+    random_seed: int = 0,
+) -> dict:
+    """AUSE (:func:`roigsf_ros.evaluation.metrics.ause`) of an uncertainty map [H, W] against |depth_pred - depth_gt|.
+
+    Only pixels where both depths are finite and > 0 count; no such pixel raises InputError. Keys:
+    ``ause`` (normalised by the joint curve maximum, as FisherRF / Bayes' Rays report it), ``ause_raw``
+    (metres), ``ause_random_raw`` (metres, a uniform-random pixel ordering seeded by ``random_seed``),
+    ``spearman_rho`` (uncertainty vs |depth error|), ``n`` (pixels), and the curves. Report the raw
+    numbers too: the normalisation rewards maps that rank pixels backwards (their curve peaks far above
+    the mean error and the division shrinks their area), so a map with a low ``ause`` but ``ause_raw``
+    above ``ause_random_raw`` and ``spearman_rho`` < 0 is worse than no information.
+    """
+    u, dp, dg = (np.asarray(t.detach().cpu() if isinstance(t, Tensor) else t, dtype=np.float64) for t in
+                 (uncertainty, depth_pred_m, depth_gt_m))  # fmt: skip
+    if not (u.shape == dp.shape == dg.shape):
+        raise InputError("uncertainty", f"shapes differ: {u.shape}, {dp.shape}, {dg.shape}")
+    ok = np.isfinite(dp) & np.isfinite(dg) & (dp > 0) & (dg > 0) & np.isfinite(u)
+    if not ok.any():
+        raise InputError("depth", "no pixel with a valid predicted and ground-truth depth")
+    return ause(u[ok], np.abs(dp[ok] - dg[ok]), n_ratios=n_ratios, random_seed=random_seed)
+
+
+@dataclass
+class UncertaintyMaps:
+    """Pixel uncertainty of one view: ``u`` [H, W] (Eq. 17), ``u_roi`` [H, W] (Eq. 18), ``roi`` [H, W] W_roi."""
+
+    u: np.ndarray
+    u_roi: np.ndarray
+    roi: np.ndarray
+
+
+# ---------------------------------------------------------------------------------------- scorer
+@dataclass
+class NBVResult:
+    """Scores of M candidates; ``fused`` is what the mode ranks by (its z-score combination).
+
+    ``fisher`` [M]: F of Eq. 10 (ROI modes) or the FisherRF score (``fisherrf``), 0 where not computed;
+    ``close_front`` [M]: I_vis of Eq. 14, 0 where not computed; ``best_index``: the argmax (Eq. 16);
+    ``ranking`` [M]: best first, flagged candidates last, ties by index; ``flagged`` [M]: candidates that
+    see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
+    degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
+    ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi``,
+    ``close_front``, ``fisher``; ``roi_close_front`` their ROI sum) and process CPU seconds (``<phase>_cpu``).
+    """
+
+    mode: str
+    fused: np.ndarray
+    fisher: np.ndarray
+    close_front: np.ndarray
+    best_index: int
+    ranking: np.ndarray
+    top_k: np.ndarray
+    flagged: np.ndarray
+    n_roi_pixels: np.ndarray
+    roi_mass: np.ndarray
+    n_visible_voxels: np.ndarray
+    reason: str = ""
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def downsampled(intr: Intrinsics, factor: int) -> Intrinsics:
+    """Intrinsics of the image block-averaged by ``factor`` (the top-left ``W // f`` x ``H // f`` blocks)."""
+    f = int(factor)
+    if f == 1:
+        return intr
+    if intr.width < f or intr.height < f:
+        raise InputError("fisher_downsample", f"{f} is larger than the {intr.width}x{intr.height} image")
+    return replace(
+        intr,
+        width=intr.width // f,
+        height=intr.height // f,
+        fx=intr.fx / f,
+        fy=intr.fy / f,
+        cx=(intr.cx + 0.5) / f - 0.5,
+        cy=(intr.cy + 0.5) / f - 0.5,
+    )
+
+
+def block_mean(img: np.ndarray, factor: int) -> np.ndarray:
+    """Mean over ``factor`` x ``factor`` blocks of an [H, W] image (the remainder rows/columns dropped)."""
+    f = int(factor)
+    if f == 1:
+        return img
+    h, w = img.shape[0] // f, img.shape[1] // f
+    return img[: h * f, : w * f].reshape(h, f, w, f).mean(axis=(1, 3))
+
+
+def _as_pose_list(poses: object, where: str, allow_empty: bool = False) -> list[np.ndarray]:
+    """Camera-to-world poses from [M, 4, 4], a list of 4x4, or [M, 7] (x, y, z, qx, qy, qz, qw) rows."""
+    if poses is None:
+        arr = np.zeros((0, 4, 4))
+    else:
+        try:
+            arr = np.asarray(poses, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(where, f"cannot read poses: {exc}") from None
+    if arr.size == 0:
+        if allow_empty:
+            return []
+        raise InputError(where, "no candidate poses given")
+    if arr.ndim == 2 and arr.shape == (4, 4):
+        arr = arr[None]
+    if arr.ndim == 2 and arr.shape[1] == 7:
+        return [pose_from_position_quat(r[:3], r[3:], f"{where}[{i}]") for i, r in enumerate(arr)]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(where, f"expected [M, 4, 4] matrices or [M, 7] position+quaternion rows, got {arr.shape}")
+    return [check_pose(T, f"{where}[{i}]") for i, T in enumerate(arr)]
+
+
+class NBVScorer:
+    """Scores candidate views of a surfel map + TSDF for next-best-view selection (all modes)."""
+
+    def __init__(self, config: NBVConfig | None = None) -> None:
+        self.config = config or NBVConfig()
+
+    # -------------------------------------------------------------------------------- parts
+    def surface(self, tsdf: TSDFVolume | None) -> SurfaceVoxels | None:
+        """The TSDF's near-surface voxels under this config (None without a TSDF)."""
+        if tsdf is None:
+            return None
+        thr = self.config.roi_max_abs_tsdf_voxels * tsdf.voxel_size_m / tsdf.sdf_trunc_m
+        return tsdf.surface_voxels(max_abs_tsdf=thr, min_weight=self.config.roi_min_weight)
+
+    def roi(self, tsdf: TSDFVolume, T_wc: np.ndarray, intr: Intrinsics, surfel_map: SurfelMap | None = None) -> ViewROI:
+        """The ROI of one view (Eq. 7-8); texture comes from ``surfel_map`` (None: all texture-poor)."""
+        vox = self.surface(tsdf)
+        tex = voxel_texture(vox.centres_m, surfel_map, tsdf.voxel_size_m, self.config)
+        return view_roi(vox, tsdf.voxel_size_m, check_pose(T_wc, "T_wc"), intr, self.config, tex)
+
+    def train_fisher(
+        self,
+        surfel_map: SurfelMap,
+        train_poses: Sequence[np.ndarray] | np.ndarray,
+        intr: Intrinsics,
+        mode: str | None = None,
+    ) -> dict[str, Tensor]:
+        """H_train matching ``mode``'s candidate Fisher (outputs, parameters and the 1/sigma_p^2 weight)."""
+        cfg = self.config
+        mode = mode or cfg.mode
+        if mode == "fisherrf":
+            return train_fisher(surfel_map, train_poses, intr, cfg.fisherrf_outputs, cfg.fisherrf_params, 1.0,
+                                cfg.near_m, cfg.far_m)  # fmt: skip
+        return train_fisher(surfel_map, train_poses, intr, cfg.fisher_outputs, cfg.fisher_params,
+                            1.0 / cfg.sigma_p**2, cfg.near_m, cfg.far_m)  # fmt: skip
+
+    def uncertainty(
+        self,
+        surfel_map: SurfelMap,
+        h_train: dict[str, Tensor],
+        T_wc: np.ndarray,
+        intr: Intrinsics,
+        tsdf: TSDFVolume | None = None,
+    ) -> UncertaintyMaps:
+        """Eq. 17-18 at any pose: U [H, W] from the per-surfel geometric variance, and U_roi = W_roi / sigma_p^2 U.
+
+        Without a TSDF the ROI is empty (U_roi = 0). Pixels the map does not cover have U = 0 (Eq. 17
+        composites surfels only).
+        """
+        cfg = self.config
+        T = check_pose(T_wc, "T_wc")
+        if len(surfel_map):
+            _check_h_train(h_train, surfel_map, [p for p in cfg.fisher_params if p != "sh_rest"])
+            var = surfel_variance(h_train, cfg.fisher_params, cfg.phi)
+            u = render_surfel_scalar(surfel_map, var, T, intr, cfg.near_m, cfg.far_m)
+        else:
+            u = np.zeros((intr.height, intr.width))
+        roi = np.zeros_like(u)
+        if tsdf is not None:
+            roi = self.roi(tsdf, T, intr, surfel_map).weights
+        return UncertaintyMaps(u=u, u_roi=roi / cfg.sigma_p**2 * u, roi=roi)
+
+    def fisherrf_uncertainty(
+        self,
+        surfel_map: SurfelMap,
+        T_wc: np.ndarray,
+        intr: Intrinsics,
+        views: Sequence[np.ndarray] | np.ndarray,
+    ) -> np.ndarray:
+        """FisherRF's uncertainty map [H, W] (its render_uncertainty.py), for comparison with Eq. 17.
+
+        Per Gaussian: the colour-parameter (sh_dc, sh_rest) Fisher of the colour image summed over
+        ``views`` (FisherRF sums the training and the evaluated views), times the Gaussian's depth in the
+        view (clamped >= 0); alpha-composited. Note FisherRF composites information, not its inverse.
+        """
+        cfg = self.config
+        T = check_pose(T_wc, "T_wc")
+        if len(surfel_map) == 0:
+            return np.zeros((intr.height, intr.width))
+        params = [p for p in ("sh_dc", "sh_rest") if p != "sh_rest" or surfel_map.sh_rest is not None]
+        h = train_fisher(surfel_map, views, intr, ("color",), params, 1.0, cfg.near_m, cfg.far_m)
+        per = sum(t.reshape(t.shape[0], -1).sum(-1) for t in h.values())
+        viewmat, _ = camera_tensors(T, intr, dtype=torch.float64)
+        z = surfel_map.means.detach().double() @ viewmat[2, :3] + viewmat[2, 3]
+        return render_surfel_scalar(surfel_map, per.double() * z.clamp_min(0), T, intr, cfg.near_m, cfg.far_m)
+
+    # -------------------------------------------------------------------------------- scoring
+    def score(
+        self,
+        surfel_map: SurfelMap | None,
+        h_train: dict[str, Tensor] | None,
+        tsdf: TSDFVolume | None,
+        train_poses: Sequence[np.ndarray] | np.ndarray | None,
+        candidates: Sequence[np.ndarray] | np.ndarray,
+        intr: Intrinsics,
+        mode: str | None = None,
+        close_front_memory: CloseFrontMemory | None = None,
+    ) -> NBVResult:
+        """Score candidate poses ([M, 4, 4], a list of 4x4, or [M, 7] position + xyzw quaternion rows).
+
+        ``h_train``: the training Fisher matching the mode (see :meth:`train_fisher`; the Mapper's
+        ``h_train`` fits the ROI modes); None computes it here from ``train_poses`` (one Fisher pass per
+        pose). ``close_front_memory``: W_f kept incrementally; None computes it exactly from
+        ``train_poses``. An empty map or a TSDF without surface gives zero scores and a ``reason``.
+        """
+        cfg = self.config
+        mode = mode or cfg.mode
+        if mode not in MODES:
+            raise InputError("mode", f"unknown score mode '{mode}' (choose from {', '.join(MODES)})")
+        if not isinstance(intr, Intrinsics):
+            raise InputError("intr", f"expected Intrinsics, got {type(intr).__name__}")
+        cands = _as_pose_list(candidates, "candidates")
+        poses = _as_pose_list(train_poses, "train_poses", allow_empty=True)
+        m = len(cands)
+        timings: dict[str, float] = {}
+        cpu: dict[str, float] = {}
+        reasons: list[str] = []
+        t0 = _clock()
+        surfel_map = surfel_map if surfel_map is not None else SurfelMap.empty()
+        need_fisher = mode != "close-front"
+        need_voxels = mode != "fisherrf"
+        empty_map = len(surfel_map) == 0
+        if need_fisher and empty_map:
+            reasons.append("the surfel map is empty: Fisher scores are 0")
+
+        vox, voxel_size = None, 1.0
+        if need_voxels:
+            vox = self.surface(tsdf)
+            if vox is None or len(vox.centres_m) == 0:
+                reasons.append(
+                    "no TSDF given" if tsdf is None else "the TSDF has no surface voxels: ROI and close-front are 0"
+                )
+                vox = None
+            else:
+                voxel_size = tsdf.voxel_size_m
+        textured = None
+        if vox is not None and mode in ("roi-gsurfisher", "roi-fisher"):
+            textured = voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg)
+        w_f = None
+        if vox is not None and mode in ("roi-gsurfisher", "close-front"):
+            mem = close_front_memory or CloseFrontMemory.from_poses(vox, poses, intr, voxel_size, cfg)
+            w_f = mem.fused_weight(vox)
+        timings["setup"], cpu["setup"] = map(float, _since(t0))
+
+        t0 = _clock()
+        h = None
+        if need_fisher and not empty_map:
+            if mode == "fisherrf":
+                params = [p for p in cfg.fisherrf_params if p != "sh_rest" or surfel_map.sh_rest is not None]
+            else:
+                params = [p for p in cfg.fisher_params if p != "sh_rest" or surfel_map.sh_rest is not None]
+            h = h_train if h_train is not None else self.train_fisher(surfel_map, poses, intr, mode)
+            _check_h_train(h, surfel_map, params)
+        timings["h_train"], cpu["h_train"] = map(float, _since(t0))
+
+        ds = cfg.fisher_downsample
+        intr_f = downsampled(intr, ds)
+        fisher = np.zeros(m)
+        cf = np.zeros(m)
+        n_pix = np.zeros(m, dtype=np.int64)
+        mass = np.zeros(m)
+        n_vox = np.zeros(m, dtype=np.int64)
+        flagged = np.zeros(m, dtype=bool)
+        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
+        for i, T in enumerate(cands):
+            t0 = _clock()
+            roi = None
+            if vox is not None:
+                roi = view_roi(vox, voxel_size, T, intr, cfg, textured)
+                n_vox[i], n_pix[i], mass[i] = len(roi.view), roi.n_pixels, roi.mass
+            t1 = _clock()
+            acc["roi"] += np.subtract(t1, t0)
+            if roi is not None and w_f is not None:
+                cf[i] = close_front_gain(roi.view, w_f)
+            acc["close_front"] += _since(t1)
+            t0 = _clock()
+            if h is not None:
+                if mode == "fisherrf":
+                    w = None
+                    if ds > 1:
+                        w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
+                    f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisherrf_outputs, params=params,
+                                    pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
+                    fisher[i] = information_gain(f, h, cfg.fisherrf_lambda)
+                    flagged[i] = not any(bool(t.any()) for t in f.values())
+                elif roi is not None and mass[i] > 0:
+                    w = block_mean(roi.weights, ds) * (ds * ds / cfg.sigma_p**2)
+                    w = torch.as_tensor(w, dtype=surfel_map.dtype)
+                    f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
+                                    pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
+                    fisher[i] = information_gain(f, h, cfg.phi)
+            acc["fisher"] += _since(t0)
+            if need_voxels:
+                flagged[i] = n_vox[i] == 0
+            elif h is None:
+                flagged[i] = True
+        for k, (wall, proc) in acc.items():
+            timings[k], cpu[k] = float(wall), float(proc)
+        timings["roi_close_front"] = timings["roi"] + timings["close_front"]
+        timings |= {f"{k}_cpu": v for k, v in cpu.items()}
+
+        if mode == "roi-gsurfisher":
+            fused = fuse_scores(fisher, cf, cfg.epsilon, cfg.delta)
+        elif mode == "close-front":
+            fused = zscore(cf)
+        else:
+            fused = zscore(fisher)
+        if not np.all(np.isfinite(fused)):  # defensive: scores are built finite
+            raise InputError("scores", "non-finite fused score")
+        if flagged.all() and not reasons:
+            reasons.append("no candidate sees any surface")
+        ranking = rank_candidates(fused, flagged)
+        return NBVResult(
+            mode=mode,
+            fused=fused,
+            fisher=fisher,
+            close_front=cf,
+            best_index=int(ranking[0]),
+            ranking=ranking,
+            top_k=ranking[: cfg.top_k].copy(),
+            flagged=flagged,
+            n_roi_pixels=n_pix,
+            roi_mass=mass,
+            n_visible_voxels=n_vox,
+            reason="; ".join(reasons),
+            timings_s=timings,
+        )
+
+
+def _clock() -> tuple[float, float]:
+    """(wall, process CPU) seconds now."""
+    return time.perf_counter(), time.process_time()
+
+
+def _since(t0: tuple[float, float]) -> np.ndarray:
+    """(wall, process CPU) seconds elapsed since ``t0``."""
+    return np.subtract(_clock(), t0)
+
+
+def _check_h_train(h_train: dict[str, Tensor], surfel_map: SurfelMap, params: Sequence[str]) -> None:
+    """InputError unless ``h_train`` has every parameter in ``params`` shaped like the map's tensor."""
+    if not isinstance(h_train, dict):
+        raise InputError("h_train", f"expected a dict of tensors, got {type(h_train).__name__}")
+    for name in params:
+        if name not in h_train:
+            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
+        want = tuple(getattr(surfel_map, name).shape)
+        if tuple(h_train[name].shape) != want:
+            raise InputError("h_train", f"'{name}' has shape {list(h_train[name].shape)}, the map has {list(want)}")
+        if not bool(torch.isfinite(h_train[name]).all()) or bool((h_train[name] < 0).any()):
+            raise InputError("h_train", f"'{name}' must be finite and >= 0")
+
+
+__all__ = [
+    "NBVResult",
+    "NBVScorer",
+    "UncertaintyMaps",
+    "block_mean",
+    "depth_error_ause",
+    "downsampled",
+    "fuse_scores",
+    "information_gain",
+    "rank_candidates",
+    "render_surfel_scalar",
+    "surfel_variance",
+    "train_fisher",
+    "zscore",
+]

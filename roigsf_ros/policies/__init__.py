@@ -1,0 +1,24 @@
+"""Keyframe policies: the contract, the simple rules and the stream NBV policies (registered on import)."""
+
+from roigsf_ros.core.exports import lazy_exports
+
+# The registry is complete once the package is imported: these modules register their policies.
+from roigsf_ros.policies import rules, stream  # noqa: F401
+
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "base": ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy"],
+        "rules": ["AllFrames", "EveryN", "GausSlam"],
+        "stream": [
+            "CandidateWindow",
+            "CloseFrontStream",
+            "FisherRFStream",
+            "ROIFisherStream",
+            "ROIGSurFisherStream",
+            "RandomStream",
+            "STREAM_POLICIES",
+            "StreamNBVPolicy",
+        ],
+    },
+)

@@ -1,0 +1,115 @@
+"""Keyframe policies: the contract, the map they may read, and the registry of policies by name.
+
+A policy sees every frame in order through ``observe(frame, keyframe_map) -> list[Frame]`` and answers
+with the frames to insert now, in order (none, the frame itself, or an earlier frame it held back: the
+stream NBV policies choose from a window of past frames). The caller inserts them; a policy never
+changes the map. Policies are made by name with :func:`make_policy`; :mod:`roigsf_ros.policies`
+imports every module that registers one (:mod:`~roigsf_ros.policies.rules`,
+:mod:`~roigsf_ros.policies.stream`), so the registry is complete once the package is imported.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+from torch import Tensor
+
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.render.surfels import SurfelMap
+
+
+class KeyframeMap(Protocol):
+    """What a keyframe policy may read of the map (:class:`roigsf_ros.mapping.mapper.Mapper` is one)."""
+
+    intr: Intrinsics
+    config: MapperConfig
+    map: SurfelMap
+
+    @property
+    def n_surfels(self) -> int:
+        """Number of surfels in the map."""
+        ...
+
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """[K, 4, 4] camera-to-world poses of the keyframes, in insertion order."""
+        ...
+
+    @property
+    def h_train(self) -> dict[str, Tensor]:
+        """The running training Fisher (empty when not tracked)."""
+        ...
+
+    def valid_depth_mask(self, depth_m: np.ndarray) -> np.ndarray:
+        """[H, W] bool: input depth the mapper would use."""
+        ...
+
+    def render_alpha(self, T_wc: np.ndarray) -> np.ndarray:
+        """[H, W] accumulated alpha of the map at ``T_wc``."""
+        ...
+
+    def rendered_rgbd(
+        self, T_wc: np.ndarray, depth_mode: str | None = None, min_alpha: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The map's own depth_m [H, W] and rgb [H, W, 3] uint8 at ``T_wc``, as TSDF fusion takes them."""
+        ...
+
+
+class KeyframePolicy:
+    """Base class: decides frame by frame whether a frame becomes a keyframe."""
+
+    name = "base"
+
+    def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
+        """The frames to insert as keyframes now (in order), after seeing ``frame``; the caller inserts them."""
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        """Forget any state, to start a new sequence."""
+
+    def params(self) -> dict[str, Any]:
+        """The policy's parameters, for metrics.json and logs."""
+        return {}
+
+
+_REGISTRY: dict[str, Callable[..., KeyframePolicy]] = {}
+
+
+def register_policy(name: str) -> Callable[[type[KeyframePolicy]], type[KeyframePolicy]]:
+    """Class decorator adding a policy to the registry under ``name``."""
+
+    def deco(cls: type[KeyframePolicy]) -> type[KeyframePolicy]:
+        if name in _REGISTRY:
+            raise ValueError(f"keyframe policy {name!r} registered twice")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return deco
+
+
+def policy_names() -> list[str]:
+    """Names of every registered policy."""
+    return sorted(_REGISTRY)
+
+
+def make_policy(name: str, **params: Any) -> KeyframePolicy:
+    """A policy by registered name; ``None``-valued params are dropped, unknown ones are an InputError."""
+    if name not in _REGISTRY:
+        raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
+    factory = _REGISTRY[name]
+    given = {k: v for k, v in params.items() if v is not None}
+    accepted = set(inspect.signature(factory).parameters)
+    extra = sorted(set(given) - accepted)
+    if extra:
+        raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
+    return factory(**given)
+
+
+__all__ = ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy"]

@@ -1,0 +1,288 @@
+"""Stream NBV keyframe policies: pick the next keyframe from a window of recent frames by its pose.
+
+The "stream" setting of the NBV experiments: frames arrive in trajectory order, as in SLAM. The
+policy keeps the most recent ``window`` frames as candidates; every ``trigger_every`` frames
+(default: ``window``) it scores the candidates' *poses* (never their images) against the current
+map and TSDF and turns the best one into a keyframe. A frame's image is used only once it has been
+chosen, when it is inserted into the mapper. The first frame is always a keyframe (empty map).
+
+Registered names (see :func:`roigsf_ros.policies.base.make_policy`): ``"random"`` (a seeded uniform
+pick from the window, the baseline) and one policy per :data:`roigsf_ros.nbv.scorer.MODES`:
+``"roi-gsurfisher"``, ``"roi-fisher"``, ``"close-front"``, ``"fisherrf"``.
+
+At a trigger ``observe`` returns the window's winner, generally a *past* frame: the caller inserts
+it (the policy never changes the map). The window and trigger rule live in :class:`CandidateWindow`,
+which the keyframe selector node also runs when the planner node chooses for it.
+
+The TSDF the ROI and close-front scores need is fused, as in the paper, from the map's *rendered*
+depth (and colour) at each keyframe pose, incrementally (:class:`roigsf_ros.nbv.state.ScoringState`,
+the same state the planner node keeps): a keyframe is fused the first time the policy sees its pose in
+``keyframe_map.keyframe_poses`` (right after its insertion).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+
+from roigsf_ros.core.camera import check_pose
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.mapping.tsdf import TSDFVolume
+from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.scorer import NBVResult
+from roigsf_ros.nbv.state import ScoringState, running_h_train_fits
+from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_policy
+
+
+class CandidateWindow:
+    """The stream window and trigger: the last ``window`` frames not chosen yet, a selection every ``trigger_every``.
+
+    :meth:`push` answers which frames to decide among now: the very first frame alone (an empty map makes
+    it a keyframe), then the whole window every ``trigger_every`` frames. The caller picks one and
+    :meth:`remove` s it, so a frame is chosen at most once.
+    """
+
+    def __init__(self, window: int = 8, trigger_every: int | None = None) -> None:
+        if int(window) != window or int(window) < 1:
+            raise InputError("window", f"must be a positive integer, got {window!r}")
+        trigger_every = int(window) if trigger_every is None else trigger_every
+        if int(trigger_every) != trigger_every or int(trigger_every) < 1:
+            raise InputError("trigger_every", f"must be a positive integer, got {trigger_every!r}")
+        self.window = int(window)
+        self.trigger_every = int(trigger_every)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the window and the counts."""
+        self._buffer: deque[Frame] = deque(maxlen=self.window)
+        self._seen = 0
+        self._since_trigger = 0
+
+    @property
+    def pending_ids(self) -> list[int]:
+        """Frame ids currently in the window."""
+        return [f.index for f in self._buffer]
+
+    def push(self, frame: Frame) -> tuple[list[Frame], bool]:
+        """Add ``frame``; returns (frames to decide among now, whether this is the first frame). [] = nothing due."""
+        self._seen += 1
+        if self._seen == 1:
+            return [frame], True
+        self._buffer.append(frame)
+        self._since_trigger += 1
+        if self._since_trigger < self.trigger_every:
+            return [], False
+        self._since_trigger = 0
+        return list(self._buffer), False
+
+    def remove(self, frame: Frame) -> None:
+        """Drop ``frame`` (by identity: frames hold arrays) from the window if it is still there."""
+        for i, f in enumerate(self._buffer):
+            if f is frame:
+                del self._buffer[i]
+                return
+
+
+class StreamNBVPolicy(KeyframePolicy):
+    """Windowed stream selection: at each trigger the best-scoring window frame becomes a keyframe.
+
+    Parameters (all optional):
+
+    - ``window`` (8): candidates kept, the most recent frames that are not keyframes yet.
+    - ``trigger_every`` (``window``): frames between two selections (counted after the first frame).
+    - ``seed`` (0): seed of the ``"random"`` pick (unused by the scored modes).
+    - ``voxel_size_m`` / ``sdf_trunc_m`` (None): the scoring TSDF; None takes the mapper's
+      ``mesh_voxel_size_m`` / ``mesh_sdf_trunc_m``.
+    - ``min_alpha`` (None): rendered depth is fused where the map's alpha reaches this (None: the
+      mapper's ``mesh_min_alpha``); the depth kind is the mapper's ``mesh_depth``.
+    - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m``:
+      passed to :class:`roigsf_ros.nbv.config.NBVConfig` (None: its default). The mode is the policy name.
+
+    ``h_train``: the ROI modes use the map's running ``h_train`` when it covers the scorer's
+    parameters with the same outputs and ``sigma_p`` is 1 (its Fisher is unweighted); otherwise the
+    scorer recomputes it from the keyframe poses, as it always does for ``"fisherrf"``. W_f (close
+    front) is computed exactly from the keyframe poses on the current TSDF surface.
+
+    After a trigger, :attr:`last_result` is the scorer's :class:`NBVResult` (None for random),
+    :attr:`last_candidate_ids` the window's frame ids in the scored order, and
+    :attr:`inserted_ids` lists every frame the policy chose at a trigger (not the first frame).
+    """
+
+    mode: str | None = None
+    """NBV score mode (None: random pick)."""
+
+    def __init__(
+        self,
+        window: int = 8,
+        trigger_every: int | None = None,
+        seed: int = 0,
+        voxel_size_m: float | None = None,
+        sdf_trunc_m: float | None = None,
+        min_alpha: float | None = None,
+        epsilon: float | None = None,
+        delta: float | None = None,
+        fisher_downsample: int | None = None,
+        sigma_p: float | None = None,
+        phi: float | None = None,
+        near_m: float | None = None,
+        far_m: float | None = None,
+    ) -> None:
+        self.candidates = CandidateWindow(window, trigger_every)
+        if min_alpha is not None and not 0.0 <= float(min_alpha) <= 1.0:
+            raise InputError("min_alpha", f"must be in [0, 1], got {min_alpha}")
+        self.window = self.candidates.window
+        self.trigger_every = self.candidates.trigger_every
+        self.seed = int(seed)
+        self.voxel_size_m = voxel_size_m
+        self.sdf_trunc_m = sdf_trunc_m
+        self.min_alpha = min_alpha
+        nbv = {"epsilon": epsilon, "delta": delta, "fisher_downsample": fisher_downsample, "sigma_p": sigma_p,
+               "phi": phi, "near_m": near_m, "far_m": far_m}  # fmt: skip
+        self._nbv_overrides = {k: v for k, v in nbv.items() if v is not None}
+        self.config = NBVConfig(mode=self.mode or "roi-gsurfisher", **self._nbv_overrides)
+        self.reset()
+
+    # ------------------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget the window, the TSDF, the counters and re-seed the random pick."""
+        self.candidates.reset()
+        self._rng = np.random.default_rng(self.seed)
+        self.state: ScoringState | None = None
+        """The scoring state (TSDF, its products); made at the first selection, from the map's settings."""
+        self.inserted_ids: list[int] = []
+        """Frame ids this policy chose at its triggers (not the first frame)."""
+        self.triggers = 0
+        """Selections made so far."""
+        self.last_result: NBVResult | None = None
+        self.last_candidate_ids: list[int] = []
+
+    def params(self) -> dict[str, Any]:
+        """Window, trigger, seed, TSDF settings and the NBV overrides, for metrics.json."""
+        out: dict[str, Any] = {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed}
+        out |= {"voxel_size_m": self.voxel_size_m, "sdf_trunc_m": self.sdf_trunc_m, "min_alpha": self.min_alpha}
+        return out | dict(self._nbv_overrides)
+
+    @property
+    def pending_ids(self) -> list[int]:
+        """Frame ids currently in the candidate window."""
+        return self.candidates.pending_ids
+
+    @property
+    def tsdf(self) -> TSDFVolume | None:
+        """The scoring TSDF (rendered depth of the keyframes); None until the first keyframe is fused."""
+        return self.state.tsdf if self.state is not None else None
+
+    # ------------------------------------------------------------------------------ TSDF
+    @property
+    def needs_tsdf(self) -> bool:
+        """Whether the mode scores against the TSDF (ROI and close-front modes)."""
+        return self.mode is not None and self.mode != "fisherrf"
+
+    def _state(self, keyframe_map: KeyframeMap) -> ScoringState:
+        """The scoring state, made on first use with the TSDF settings (None: the map's mesh settings)."""
+        if self.state is None:
+            cfg = keyframe_map.config
+            voxel = self.voxel_size_m if self.voxel_size_m is not None else cfg.mesh_voxel_size_m
+            trunc = self.sdf_trunc_m if self.sdf_trunc_m is not None else max(cfg.mesh_sdf_trunc_m, voxel)
+            self.state = ScoringState(self.config, voxel, trunc, cfg.max_depth_m)
+        return self.state
+
+    def _render(self, keyframe_map: KeyframeMap):
+        min_alpha = keyframe_map.config.mesh_min_alpha if self.min_alpha is None else float(self.min_alpha)
+        return lambda T: keyframe_map.rendered_rgbd(T, min_alpha=min_alpha)
+
+    def sync_tsdf(self, keyframe_map: KeyframeMap) -> int:
+        """Fuse the rendered depth at every keyframe pose not fused yet; returns how many were fused."""
+        if not self.needs_tsdf:
+            return 0
+        return self._state(keyframe_map).sync(
+            self._render(keyframe_map), keyframe_map.keyframe_poses, keyframe_map.intr
+        )
+
+    # ------------------------------------------------------------------------------ scoring
+    def _h_train(self, keyframe_map: KeyframeMap) -> dict[str, torch.Tensor] | None:
+        """The map's running h_train when it matches what the scorer needs, else None (recompute)."""
+        mcfg = keyframe_map.config
+        if not mcfg.track_h_train or self.mode is None:
+            return None
+        h = keyframe_map.h_train
+        fits = running_h_train_fits(h, tuple(mcfg.fisher_outputs), self.config, self.mode)
+        needed = [p for p in self.config.fisher_params if p != "sh_rest" or keyframe_map.map.sh_rest is not None]
+        return h if fits and all(p in h for p in needed) else None
+
+    def choose(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> int:
+        """Index into ``candidates`` of the frame to insert (scores poses only)."""
+        if self.mode is None:
+            self.last_result = None
+            return int(self._rng.integers(len(candidates)))
+        mcfg = keyframe_map.config
+        result = self._state(keyframe_map).score(
+            keyframe_map.map,
+            self._h_train(keyframe_map),
+            tuple(mcfg.fisher_outputs),
+            keyframe_map.keyframe_poses,
+            [f.T_wc for f in candidates],
+            keyframe_map.intr,
+            self._render(keyframe_map),
+            mode=self.mode,
+        )
+        self.last_result = result
+        return result.best_index
+
+    # ------------------------------------------------------------------------------ stream
+    def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
+        """The first frame; at a trigger the window's best frame (a past one, generally); else nothing.
+
+        Frames with a non-rigid pose are ignored (never candidates).
+        """
+        try:
+            check_pose(frame.T_wc, f"frame {frame.index} pose")
+        except InputError:
+            return []
+        self.sync_tsdf(keyframe_map)
+        candidates, first = self.candidates.push(frame)
+        if first or not candidates:
+            return candidates
+        self.last_candidate_ids = [f.index for f in candidates]
+        winner = candidates[self.choose(candidates, keyframe_map)]
+        self.candidates.remove(winner)
+        self.triggers += 1
+        self.inserted_ids.append(int(winner.index))
+        return [winner]
+
+
+def _make(name: str, mode: str | None) -> type[StreamNBVPolicy]:
+    cls = type(
+        "StreamPolicy_" + name.replace("-", "_"),
+        (StreamNBVPolicy,),
+        {
+            "mode": mode,
+            "__doc__": f"Stream policy {name!r}: " + ("seeded random pick." if mode is None else f"NBV mode {mode!r}."),
+        },
+    )
+    return register_policy(name)(cls)  # type: ignore[return-value]
+
+
+RandomStream = _make("random", None)
+ROIGSurFisherStream = _make("roi-gsurfisher", "roi-gsurfisher")
+ROIFisherStream = _make("roi-fisher", "roi-fisher")
+CloseFrontStream = _make("close-front", "close-front")
+FisherRFStream = _make("fisherrf", "fisherrf")
+
+STREAM_POLICIES = ("random", "roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
+"""Names this module registers."""
+
+__all__ = [
+    "STREAM_POLICIES",
+    "CandidateWindow",
+    "CloseFrontStream",
+    "FisherRFStream",
+    "ROIFisherStream",
+    "ROIGSurFisherStream",
+    "RandomStream",
+    "StreamNBVPolicy",
+]
