@@ -148,12 +148,31 @@ def test_bad_parameters_name_the_problem(ros_context: Any, bag: Path, tmp_path: 
         BagPlayer(context=ros_context)
 
 
-def _run_main(*ros_args: str) -> subprocess.CompletedProcess[str]:
+def _run_main(*ros_args: str, plain: tuple[str, ...] = (), module: str = "bag_player") -> subprocess.CompletedProcess:
     env = dict(os.environ)
     assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
-    cmd = [sys.executable, "-m", "roigsf_ros.nodes.bag_player", "--ros-args", *ros_args]
+    cmd = [sys.executable, "-m", f"roigsf_ros.nodes.{module}", *plain, *(("--ros-args", *ros_args) if ros_args else ())]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, cwd=REPO)
+
+
+def test_main_takes_the_bag_as_a_positional_argument(bag: Path) -> None:
+    """``bag_player BAG``, as ``ros2 bag play BAG`` (before: "no bag given", exit 2)."""
+    proc = _run_main("-p", "rate:=0.0", "-p", "start_delay_s:=0.2", plain=(str(bag),))
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, output
+    assert "finished: published 20 messages on 4 topics" in output
+
+
+@pytest.mark.parametrize("module", ["bag_player", "mapper", "nbv_planner", "keyframe_selector", "active_mapping"])
+def test_help_prints_help_and_exits_0_without_starting_a_node(module: str) -> None:
+    """``--help`` on every console script (before: the nodes started and ran until killed)."""
+    proc = _run_main(plain=("--help",), module=module)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.startswith(f"usage: {module}") and "-p NAME:=VALUE" in proc.stdout
+    assert "[INFO]" not in proc.stdout + proc.stderr  # no node was made
+    bad = _run_main(plain=("--no-such-option",), module=module)
+    assert bad.returncode == 2 and "unrecognized arguments: --no-such-option" in bad.stderr
 
 
 def test_main_plays_and_exits_0(bag: Path) -> None:

@@ -127,7 +127,7 @@ class ActiveMapping:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``active_mapping``: run the three nodes until Ctrl-C; exit 2 on a bad parameter."""
-    return run_nodes("active_mapping", lambda: list(build_nodes()), args)
+    return run_nodes("active_mapping", lambda: list(build_nodes()), args, description=__doc__)
 
 
 if __name__ == "__main__":

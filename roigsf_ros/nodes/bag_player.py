@@ -33,7 +33,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
-from roigsf_ros.nodes.node_params import init_ros
+from roigsf_ros.nodes.node_params import init_ros, script_args
 
 
 def message_class(type_name: str, where: str = "message type") -> type:
@@ -272,7 +272,8 @@ class BagPlayer(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console script ``bag_player``: play, then exit 0 (also on Ctrl-C), 2 on bad input, 1 if playback failed."""
+    """Console script ``bag_player [BAG]``: play, then exit 0 (also on Ctrl-C), 2 on bad input, 1 if playback failed."""
+    args = script_args("bag_player", __doc__, args, bag=True)
     try:
         init_ros(args)
     except InputError as exc:  # a bad ROIGSF_GIL_SWITCH_INTERVAL_S

@@ -301,7 +301,7 @@ class KeyframeSelectorNode(SystemNode):
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``keyframe_selector``: run until Ctrl-C; exit 2 on a bad parameter."""
-    return run_nodes("keyframe_selector", lambda: [KeyframeSelectorNode()], args)
+    return run_nodes("keyframe_selector", lambda: [KeyframeSelectorNode()], args, description=__doc__)
 
 
 if __name__ == "__main__":

@@ -520,7 +520,7 @@ class MapperNode(SystemNode):
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``mapper``: run until Ctrl-C; exit 2 on a bad parameter."""
-    return run_nodes("mapper", lambda: [MapperNode()], args)
+    return run_nodes("mapper", lambda: [MapperNode()], args, description=__doc__)
 
 
 if __name__ == "__main__":

@@ -363,7 +363,7 @@ _Z_TO_X = np.array([[0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0,
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``nbv_planner``: serve until Ctrl-C; exit 2 on a bad parameter."""
-    return run_nodes("nbv_planner", lambda: [NBVPlannerNode()], args)
+    return run_nodes("nbv_planner", lambda: [NBVPlannerNode()], args, description=__doc__)
 
 
 if __name__ == "__main__":

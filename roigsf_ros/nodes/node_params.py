@@ -8,6 +8,7 @@ start and spin loop.
 
 from __future__ import annotations
 
+import argparse
 import ast
 import concurrent.futures
 import contextlib
@@ -29,6 +30,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
 
 from roigsf_ros.core.errors import InputError
 
@@ -142,6 +144,35 @@ def reduce_gil_switch_interval() -> float:
     return sys.getswitchinterval()
 
 
+ROS_ARGS_HELP = """ROS arguments (after --ros-args):
+  -p NAME:=VALUE         set a parameter (a float needs a decimal point: rate:=1.0)
+  --params-file FILE     parameters from a YAML file (this package's config/<node>.yaml has every default)
+  -r __node:=NAME        rename the node; -r OLD:=NEW remaps a topic"""
+
+
+def script_args(program: str, description: str | None, args: list[str] | None, bag: bool = False) -> list[str]:
+    """The console scripts' own command line: ``--help`` prints help and exits 0 before ROS starts.
+
+    Plain (non-ROS) arguments are parsed by argparse, so anything unknown exits 2 with usage; with
+    ``bag`` an optional positional BAG is accepted (as ``ros2 bag play BAG``) and becomes the ``bag``
+    parameter. Returns the argument list for ``rclpy.init``.
+    """
+    argv = list(sys.argv if args is None else args)
+    parser = argparse.ArgumentParser(
+        prog=program,
+        description=(description or "").strip(),
+        epilog=ROS_ARGS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    if bag:
+        parser.add_argument("bag", nargs="?", metavar="BAG", help="bag folder or .mcap file (or -p bag:=PATH)")
+    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    if bag and ns.bag:
+        quoted = "'" + str(ns.bag).replace("'", "''") + "'"  # a YAML string, whatever the path looks like
+        argv += ["--ros-args", "-p", f"bag:={quoted}"]
+    return argv  # rclpy.init ignores the plain arguments
+
+
 def init_ros(args: list[str] | None = None) -> None:
     """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
 
@@ -218,13 +249,20 @@ class BackgroundSpin:
         shutdown_executor(self.executor)
 
 
-def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | None = None, threads: int = 4) -> int:
+def run_nodes(
+    program: str,
+    build: Callable[[], list[Node]],
+    args: list[str] | None = None,
+    threads: int = 4,
+    description: str | None = None,
+) -> int:
     """Console-script body: init, build the nodes, spin them on a multi-threaded executor until Ctrl-C.
 
     Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters (or ``ROIGSF_GIL_SWITCH_INTERVAL_S``) are bad,
     the message naming them. Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on
     SIGINT, see the notes).
     """
+    args = script_args(program, description, args)
     try:
         init_ros(args)
     except InputError as exc:
@@ -262,6 +300,7 @@ def run_nodes(program: str, build: Callable[[], list[Node]], args: list[str] | N
 
 __all__ = [
     "BAD_PARAMETER_ERRORS",
+    "ROS_ARGS_HELP",
     "BackgroundSpin",
     "SystemNode",
     "check_positive",
@@ -271,5 +310,6 @@ __all__ = [
     "init_ros",
     "reduce_gil_switch_interval",
     "run_nodes",
+    "script_args",
     "shutdown_executor",
 ]
