@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from roigsf_ros.core.camera import (
     Intrinsics,
     check_pose,
     load_cam_params,
+    load_pose,
     matrix_to_quat_xyzw,
     pose_from_position_quat,
     quat_xyzw_to_matrix,
@@ -142,6 +144,53 @@ def test_bad_pose_line_is_named(seq_dir: Path) -> None:
     traj.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=r"traj\.txt:2: .*15 values"):
         load_traj(traj)
+
+
+def _kinect_like(T: np.ndarray, rng: np.random.Generator, off: float) -> np.ndarray:
+    """``T`` with its rotation off orthonormal by about ``off`` (KinectFusion poses in 7-Scenes/ScanNet)."""
+    bad = T.copy()
+    bad[:3, :3] += rng.uniform(-off, off, (3, 3))
+    return bad
+
+
+def test_real_sensor_poses_are_reorthonormalised_with_one_warning(
+    seq_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rng = np.random.default_rng(7)
+    exact = [_random_pose(rng) for _ in range(20)]
+    kinect = [_kinect_like(T, rng, 2e-4) for T in exact]
+    devs = [np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() for T in kinect]
+    assert 1e-4 < max(devs) < 1e-3  # as far off as real KinectFusion trajectories
+    traj = seq_dir / "traj.txt"
+    traj.write_text("".join(" ".join(f"{v:.8f}" for v in T.reshape(-1)) + "\n" for T in kinect))
+    with caplog.at_level(logging.WARNING, logger="roigsf_ros"):
+        poses = load_traj(traj)
+        load_traj(traj)  # the same source again: no second warning
+    assert len(poses) == 20
+    for T, want in zip(poses, exact, strict=True):
+        np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(T, want, atol=2e-3)
+    warned = [r for r in caplog.records if "orthonormal" in r.getMessage()]
+    assert len(warned) == 1 and str(traj) in warned[0].getMessage()
+    # every loader goes through the same function: a lone matrix, and check_pose for library callers
+    # (the file holds 8 decimals, hence 1e-7)
+    np.testing.assert_allclose(load_pose(kinect[0], "field", source="test"), poses[0], atol=1e-7)
+    np.testing.assert_allclose(check_pose(kinect[0], "T_wc"), poses[0], atol=1e-7)
+
+
+def test_clearly_non_rigid_poses_are_refused_naming_the_line(seq_dir: Path) -> None:
+    rng = np.random.default_rng(8)
+    good = _random_pose(rng)
+    mirrored = good.copy()
+    mirrored[:3, 0] *= -1  # orthonormal but det -1: a reflection
+    for bad, why in ((_kinect_like(good, rng, 5e-2), "not orthonormal"), (mirrored, "det")):
+        traj = seq_dir / "traj.txt"
+        traj.write_text("".join(" ".join(f"{v:.12f}" for v in T.reshape(-1)) + "\n" for T in (good, bad, good)))
+        with pytest.raises(InputError, match=rf"traj\.txt:2: .*{why}"):
+            load_traj(traj)
+    with pytest.raises(InputError, match=r"^poses\[3\]: .*det"):
+        load_pose(mirrored, "poses[3]")
 
 
 def test_missing_unreadable_and_mismatched_images(seq_dir: Path) -> None:

@@ -7,9 +7,11 @@ __all__, __getattr__ = lazy_exports(
     {
         "camera": [
             "Intrinsics",
+            "POSE_RIGID_TOL",
             "REPLICA_DEPTH_SCALE",
             "check_pose",
             "load_cam_params",
+            "load_pose",
             "matrix_to_quat_xyzw",
             "pose_from_position_quat",
             "quat_xyzw_to_matrix",

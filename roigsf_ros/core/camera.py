@@ -7,6 +7,7 @@ Poses are 4x4 float64 camera-to-world matrices ``T_wc`` throughout the library, 
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -107,21 +108,74 @@ def save_cam_params(path: str | Path, intr: Intrinsics) -> None:
     Path(path).write_text(json.dumps(intr.to_replica_json(), indent=4) + "\n")
 
 
-def check_pose(T_wc: np.ndarray, where: str, tol: float = 1e-4) -> np.ndarray:
-    """Return ``T_wc`` as float64 [4, 4] if it is a finite rigid transform, else raise InputError.
+POSE_RIGID_TOL = 1e-2
+"""Largest ``|R^T R - I|`` of a pose rotation that is accepted (and re-orthonormalised).
 
-    ``tol`` bounds ``|R^T R - I|``, ``|det R - 1|`` and the bottom row's deviation from (0, 0, 0, 1).
-    """
-    T = np.asarray(T_wc, dtype=np.float64)
+Real-sensor trajectories (KinectFusion poses in 7-Scenes, ScanNet) are off by 1e-4 to 4e-4 from
+float round-off accumulated over the sequence; a clearly non-rigid matrix is off by far more."""
+_EXACT_TOL = 1e-9
+"""Below this deviation a rotation is left as it is (nothing worth a warning)."""
+_MAX_WARNED_SOURCES = 1024
+_warned_sources: set[str] = set()
+_log = logging.getLogger(__name__)
+
+
+def _rigid_pose(T_wc: np.ndarray, where: str, tol: float) -> tuple[np.ndarray, float]:
+    """``(T, deviation)``: the checked pose with its rotation projected onto SO(3), and ``|R^T R - I|`` before."""
+    T = np.array(T_wc, dtype=np.float64)  # a copy: the caller's matrix is never modified
     if T.shape != (4, 4):
         raise InputError(where, f"pose must be 4x4, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise InputError(where, "pose has non-finite values")
     R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > tol or abs(np.linalg.det(R) - 1.0) > tol:
-        raise InputError(where, "pose rotation is not orthonormal with det +1 (not a rigid transform)")
-    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > tol:
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if det <= 0:
+        raise InputError(where, f"pose rotation has det {det:.3g} <= 0 (a reflection: not a rigid transform)")
+    if dev > tol:
+        raise InputError(
+            where, f"pose rotation is not orthonormal (|R^T R - I| = {dev:.2g} > {tol:g}: not a rigid transform)"
+        )
+    row_tol = min(tol, 1e-4)
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > row_tol:
         raise InputError(where, f"pose bottom row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    if dev > _EXACT_TOL:
+        U, _, Vt = np.linalg.svd(R)  # nearest rotation in the Frobenius norm (det > 0 and dev < 1 keep it proper)
+        T[:3, :3] = U @ Vt
+    return T, dev
+
+
+def check_pose(T_wc: np.ndarray, where: str, tol: float = POSE_RIGID_TOL) -> np.ndarray:
+    """``T_wc`` as a float64 [4, 4] rigid transform, else InputError naming ``where``.
+
+    A rotation within ``tol`` of orthonormal (``|R^T R - I|``) with det > 0 is re-orthonormalised
+    (SVD projection to the nearest rotation) instead of refused, so real-sensor poses are accepted;
+    the bottom row must be (0, 0, 0, 1) within ``min(tol, 1e-4)``. Silent: use :func:`load_pose`
+    for poses read from a file, bag or message.
+    """
+    return _rigid_pose(T_wc, where, tol)[0]
+
+
+def load_pose(T_wc: np.ndarray, where: str, source: str | None = None) -> np.ndarray:
+    """A pose read from outside (``traj.txt`` line, bag, message): :func:`check_pose`, and one warning per source.
+
+    Every pose loader goes through here. ``where`` names the line or message in errors; ``source``
+    (the file or topic, default ``where``) is named in a single logged warning when its poses needed
+    re-orthonormalising, not one per frame.
+    """
+    T, dev = _rigid_pose(T_wc, where, POSE_RIGID_TOL)
+    key = source if source is not None else where
+    if dev > _EXACT_TOL and key not in _warned_sources:
+        if len(_warned_sources) < _MAX_WARNED_SOURCES:  # bounded: beyond it, warnings repeat rather than grow
+            _warned_sources.add(key)
+        _log.warning(
+            "%s: pose rotations are not exactly orthonormal (|R^T R - I| = %.2g at %s); re-orthonormalised "
+            "(nearest rotation), further ones from this source silently",
+            key,
+            dev,
+            where,
+        )
     return T
 
 
@@ -173,10 +227,12 @@ def pose_from_position_quat(position: np.ndarray, quat_xyzw: np.ndarray, where: 
 
 
 __all__ = [
+    "POSE_RIGID_TOL",
     "REPLICA_DEPTH_SCALE",
     "Intrinsics",
     "check_pose",
     "load_cam_params",
+    "load_pose",
     "matrix_to_quat_xyzw",
     "pose_from_position_quat",
     "quat_xyzw_to_matrix",

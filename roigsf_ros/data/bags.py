@@ -33,7 +33,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
-from roigsf_ros.core.camera import Intrinsics, check_pose, matrix_to_quat_xyzw, pose_from_position_quat
+from roigsf_ros.core.camera import Intrinsics, load_pose, matrix_to_quat_xyzw, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.data.replica import ReplicaSequence
@@ -179,12 +179,16 @@ def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intri
     return Intrinsics(width=width, height=height, fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]))
 
 
-def pose_to_matrix(msg: Any, where: str = POSE_TOPIC) -> np.ndarray:
-    """[4, 4] float64 T_wc of a ``geometry_msgs/PoseStamped`` (or a bare ``Pose``); must be finite and rigid."""
+def pose_to_matrix(msg: Any, where: str = POSE_TOPIC, source: str | None = None) -> np.ndarray:
+    """[4, 4] float64 T_wc of a ``geometry_msgs/PoseStamped`` (or a bare ``Pose``); must be finite and rigid.
+
+    Checked by :func:`roigsf_ros.core.camera.load_pose` like every loaded pose; ``source`` (the topic,
+    default ``where``) is what its once-only warning names.
+    """
     pose = msg.pose if hasattr(msg, "pose") else msg
     p, q = pose.position, pose.orientation
     T = pose_from_position_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]), where)
-    return check_pose(T, where)
+    return load_pose(T, where, source)
 
 
 def _header_stamp_ns(rawdata: bytes | memoryview) -> int:
@@ -431,7 +435,9 @@ class BagReader:
         def where(topic: str) -> str:
             return f"{self.path}:{topic} @ {stamp} ns"
 
-        return assemble_frame(stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where)
+        return assemble_frame(
+            stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where, f"{self.path}:{t.pose}"
+        )
 
 
 def assemble_frame(
@@ -442,16 +448,18 @@ def assemble_frame(
     pose_msg: Any,
     topics: CameraTopics | None = None,
     where: Callable[[str], str] = str,
+    pose_source: str | None = None,
 ) -> BagFrame:
     """Convert the four messages of one stamp into a :class:`BagFrame`, checking that sizes agree.
 
-    Shared by the bag reader and the ROS nodes; ``where(topic)`` names the source in errors.
+    Shared by the bag reader and the ROS nodes; ``where(topic)`` names the source in errors,
+    ``pose_source`` (default: the pose topic) the stream in the once-only pose warning.
     """
     t = topics or CameraTopics()
     rgb = image_to_rgb(color_msg, where(t.color))
     depth_m = image_to_depth_m(depth_msg, where(t.depth))
     intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
-    T_wc = pose_to_matrix(pose_msg, where(t.pose))
+    T_wc = pose_to_matrix(pose_msg, where(t.pose), pose_source if pose_source is not None else t.pose)
     h, w = depth_m.shape
     if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
         raise InputError(

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roigsf_ros.core.camera import Intrinsics, check_pose, load_cam_params, save_cam_params
+from roigsf_ros.core.camera import Intrinsics, load_cam_params, load_pose, save_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
 
@@ -31,7 +31,11 @@ MAX_DEPTH_M = 65535 / 6553.5
 
 
 def load_traj(path: str | Path) -> np.ndarray:
-    """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid."""
+    """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid.
+
+    Rotations slightly off orthonormal (real-sensor trajectories) are re-orthonormalised with one
+    warning for the file (:func:`roigsf_ros.core.camera.load_pose`).
+    """
     path = Path(path)
     try:
         lines = path.read_text().splitlines()
@@ -49,7 +53,7 @@ def load_traj(path: str | Path) -> np.ndarray:
             raise InputError(f"{path}:{lineno}", "pose line has a value that is not a number") from None
         if values.size != 16:
             raise InputError(f"{path}:{lineno}", f"pose line has {values.size} values, expected 16")
-        poses.append(check_pose(values.reshape(4, 4), f"{path}:{lineno}"))
+        poses.append(load_pose(values.reshape(4, 4), f"{path}:{lineno}", source=str(path)))
     if not poses:
         raise InputError(path, "trajectory is empty")
     return np.stack(poses)

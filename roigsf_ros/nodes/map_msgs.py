@@ -237,7 +237,7 @@ def poses_to_array(poses: Sequence[np.ndarray] | np.ndarray, stamp_ns: int, fram
 
 def array_to_poses(msg: PoseArray, where: str = "poses") -> np.ndarray:
     """[K, 4, 4] camera-to-world matrices of a PoseArray; InputError naming the index of a bad pose."""
-    out = [pose_to_matrix(p, f"{where}[{i}]") for i, p in enumerate(msg.poses)]
+    out = [pose_to_matrix(p, f"{where}[{i}]", where) for i, p in enumerate(msg.poses)]
     return np.stack(out) if out else np.zeros((0, 4, 4))
 
 
