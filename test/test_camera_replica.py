@@ -204,8 +204,28 @@ def test_missing_unreadable_and_mismatched_images(seq_dir: Path) -> None:
     with pytest.raises(InputError, match=r"frame000002\.jpg.*unreadable"):
         ReplicaSequence(seq_dir).frame(2)
     cv2.imwrite(str(seq_dir / "results" / "depth000000.png"), np.zeros((10, 10), np.uint16))
-    with pytest.raises(InputError, match=r"frame000000\.jpg.*colour is 32x24 but depth is 10x10"):
-        ReplicaSequence(seq_dir).frame(0)
+    with pytest.raises(InputError, match=r"depth000000\.png: depth image is 10x10 but .* say 32x24"):
+        ReplicaSequence(seq_dir).frame(0)  # the wrong-size depth file is named, not the colour file
+
+
+def test_wrong_size_colour_is_blamed_on_the_colour_file(seq_dir: Path) -> None:
+    cv2.imwrite(str(seq_dir / "results" / "frame000001.jpg"), np.zeros((10, 12, 3), np.uint8))
+    with pytest.raises(InputError, match=r"frame000001\.jpg: colour image is 12x10 but .* say 32x24"):
+        ReplicaSequence(seq_dir).frame(1)
+
+
+@pytest.mark.parametrize("name", ["frame000001.jpg", "depth000001.png", "frame000001.png"])
+def test_truncated_images_are_refused_naming_the_file(seq_dir: Path, name: str) -> None:
+    path = seq_dir / "results" / name
+    if name == "frame000001.png":  # a PNG colour frame instead of the JPEG
+        (seq_dir / "results" / "frame000001.jpg").unlink()
+        cv2.imwrite(str(path), _frames(2)[1].rgb)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])  # a copy or download cut short
+    seq = ReplicaSequence(seq_dir)
+    with pytest.raises(InputError, match=rf"{name.replace('.', r'[.]')}: .*truncated"):
+        seq.frame(1)
+    assert seq.frame(0).rgb.shape == (24, 32, 3)  # the intact frames still read
 
 
 def test_office0_sample_is_readable(office0: Path) -> None:

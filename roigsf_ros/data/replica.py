@@ -66,11 +66,37 @@ def save_traj(path: str | Path, poses: np.ndarray) -> None:
             f.write(" ".join(f"{v:.18e}" for v in T) + "\n")
 
 
-def read_rgb(path: str | Path) -> np.ndarray:
-    """Colour image as [H, W, 3] uint8 RGB."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+_JPEG_SOI, _JPEG_EOI = b"\xff\xd8\xff", b"\xff\xd9"
+_PNG_SIGNATURE, _PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+
+
+def _read_image(path: str | Path, what: str) -> np.ndarray:
+    """Decode an image file as stored (``IMREAD_UNCHANGED``); InputError naming the file if unreadable or cut short.
+
+    OpenCV decodes a JPEG cut short without an error (the missing rows come out grey, with only a
+    libjpeg warning on stderr), so JPEGs must end with the end-of-image marker FF D9 and PNGs with
+    the IEND chunk.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputError(path, f"missing or unreadable {what}: file not found") from None
+    except OSError as exc:
+        raise InputError(path, f"missing or unreadable {what}: {exc.strerror or exc}") from None
+    tail = data.rstrip(b"\0")  # some writers pad to a block size
+    if data.startswith(_JPEG_SOI) and not tail.endswith(_JPEG_EOI):
+        raise InputError(path, f"truncated {what}: no JPEG end-of-image marker (FF D9) in its {len(data)} bytes")
+    if data.startswith(_PNG_SIGNATURE) and not tail.endswith(_PNG_IEND):
+        raise InputError(path, f"truncated {what}: no PNG IEND chunk at the end of its {len(data)} bytes")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
-        raise InputError(path, "missing or unreadable colour image")
+        raise InputError(path, f"missing or unreadable {what}")
+    return img
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """Colour image as [H, W, 3] uint8 RGB; InputError naming the file if unreadable or truncated."""
+    img = _read_image(path, "colour image")
     if img.dtype != np.uint8:
         raise InputError(path, f"colour image must be 8-bit, got {img.dtype}")
     if img.ndim == 2:
@@ -81,10 +107,8 @@ def read_rgb(path: str | Path) -> np.ndarray:
 
 
 def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
-    """Depth PNG (uint16, metres = value / ``depth_scale``) as [H, W] float32 metres."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise InputError(path, "missing or unreadable depth image")
+    """Depth PNG (uint16, metres = value / ``depth_scale``) as [H, W] float32 metres; InputError naming the file."""
+    img = _read_image(path, "depth image")
     if img.dtype != np.uint16 or img.ndim != 2:
         raise InputError(path, f"depth image must be single-channel uint16, got {img.dtype} with shape {img.shape}")
     return img.astype(np.float32) / np.float32(depth_scale)
@@ -175,14 +199,12 @@ class ReplicaSequence:
         i = self.indices[k]
         rgb = read_rgb(self.colour_paths[i])
         depth = read_depth(self.depth_paths[i], self.native.depth_scale)
-        h, w = depth.shape
-        if rgb.shape[:2] != (h, w):
-            raise InputError(self.colour_paths[i], f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {w}x{h}")
-        if (w, h) != (self.native.width, self.native.height):
-            raise InputError(
-                self.depth_paths[i],
-                f"image is {w}x{h} but the camera parameters say {self.native.width}x{self.native.height}",
-            )
+        (dh, dw), (ch, cw) = depth.shape, rgb.shape[:2]  # the depth is checked first: it names its own file
+        want = f"{self.native.width}x{self.native.height}"
+        if (dw, dh) != (self.native.width, self.native.height):
+            raise InputError(self.depth_paths[i], f"depth image is {dw}x{dh} but the camera parameters say {want}")
+        if (cw, ch) != (self.native.width, self.native.height):
+            raise InputError(self.colour_paths[i], f"colour image is {cw}x{ch} but the camera parameters say {want}")
         return resize_frame(Frame(index=i, rgb=rgb, depth_m=depth, T_wc=self.poses[k]), self.intrinsics)
 
     def __iter__(self) -> Iterator[Frame]:
