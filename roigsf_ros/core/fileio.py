@@ -27,7 +27,8 @@ def atomic_dir(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a fresh temporary folder beside ``final``; rename it to ``final`` on success.
 
     On an exception the temporary folder is removed and ``final`` is untouched. With
-    ``overwrite`` an existing ``final`` is replaced only after the new one is complete.
+    ``overwrite`` an existing ``final`` (folder, file or symlink) is replaced only after the new one
+    is complete, and removed: nothing but the new folder remains.
     """
     final = Path(final)
     if final.exists() and not overwrite:
@@ -40,13 +41,21 @@ def atomic_dir(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if final.exists():
+    if final.exists() or final.is_symlink():
         old = final.with_name(f".{final.name}.old-{os.getpid()}")
         final.rename(old)
         tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
+        _remove(old)
     else:
         tmp.rename(final)
+
+
+def _remove(path: Path) -> None:
+    """Delete what was replaced: a folder with its contents, or a file or symlink (never a link's target)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
