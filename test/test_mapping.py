@@ -332,3 +332,83 @@ def test_open_frames_from_a_bag(frames: list[Frame], tmp_path) -> None:
         open_frames(bag, stride=0)
     with pytest.raises(InputError):
         open_frames(tmp_path / "nothing-here")
+
+
+@pytest.fixture(scope="module")
+def saved_map(frames: list[Frame], tmp_path_factory: pytest.TempPathFactory):
+    """A saved one-keyframe map folder (no optimisation) and its keyframes.json contents."""
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=0))
+    assert mapper.add_keyframe(frames[0], optimise=False)
+    out = tmp_path_factory.mktemp("saved") / "map"
+    mapper.save(out)
+    return out, json.loads((out / "keyframes.json").read_text())
+
+
+def _edit(meta: dict, path: str, value: object) -> dict:
+    """A deep copy of ``meta`` with the dotted ``path`` set to ``value`` (``...`` deletes it)."""
+    meta = json.loads(json.dumps(meta))
+    *parents, last = path.split(".")
+    node = meta
+    for key in parents:
+        node = node[key]
+    if value is ...:
+        del node[last]
+    else:
+        node[last] = value
+    return meta
+
+
+_BAD_META = [
+    (lambda m: [m], "JSON object"),  # a list instead of an object
+    (lambda m: _edit(m, "intrinsics", ...), "'intrinsics'"),
+    (lambda m: _edit(m, "intrinsics", [64, 48]), "'intrinsics'"),
+    (lambda m: _edit(m, "intrinsics.fx", ...), "'intrinsics.fx' is missing"),
+    (lambda m: _edit(m, "intrinsics.focal", 50.0), "'intrinsics.focal' is unknown"),
+    (lambda m: _edit(m, "intrinsics.width", "sixty-four"), "'intrinsics.width'"),
+    (lambda m: _edit(m, "intrinsics.width", 64.5), "'intrinsics.width'"),
+    (lambda m: _edit(m, "intrinsics.height", None), "'intrinsics.height'"),
+    (lambda m: _edit(m, "intrinsics.fy", -1.0), "'intrinsics.fy'"),
+    (lambda m: _edit(m, "keyframe_ids", ["zero"]), "'keyframe_ids'"),
+    (lambda m: _edit(m, "keyframe_ids", [0, 1]), "'keyframe_poses' has 1 poses for 2"),
+    (lambda m: _edit(m, "keyframe_poses", [[1, 2, 3]]), "'keyframe_poses[0]'"),
+    (lambda m: _edit(m, "keyframe_poses", [[[1, 2], [3]]]), "'keyframe_poses[0]'"),
+    (lambda m: _edit(m, "keyframe_poses", [(2 * np.eye(4)).tolist()]), "'keyframe_poses[0]'"),
+    (lambda m: _edit(m, "keyframe_poses", 7), "'keyframe_poses'"),
+    (lambda m: _edit(m, "config", [1, 2]), "config"),
+    (lambda m: _edit(m, "config.no_such_field", 1), "no_such_field"),
+    (lambda m: _edit(m, "config.iters_per_keyframe", "many"), "'iters_per_keyframe'"),
+    (lambda m: _edit(m, "config.near_m", -1.0), "'near_m'"),
+    (lambda m: _edit(m, "config.fisher_params", ["nope"]), "fisher_params"),
+    (lambda m: _edit(m, "config.device", "quantum"), "'device'"),
+]
+
+
+@pytest.mark.parametrize(("corrupt", "field"), _BAD_META)
+def test_load_of_a_malformed_keyframes_json_names_the_file_and_field(saved_map, tmp_path, corrupt, field) -> None:
+    src, meta = saved_map
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "map.ply").write_bytes((src / "map.ply").read_bytes())
+    (bad / "keyframes.json").write_text(json.dumps(corrupt(meta)))
+    with pytest.raises(InputError) as exc:  # never KeyError/TypeError/AttributeError
+        Mapper.load(bad)
+    msg = str(exc.value)
+    assert msg.startswith(str(bad / "keyframes.json")) and field in msg, msg
+
+
+def test_map_load_errors_name_the_file(saved_map, tmp_path) -> None:
+    src, meta = saved_map
+    assert Mapper.load(src).loaded_keyframe_ids == meta["keyframe_ids"]  # the intact folder loads
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "keyframes.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"m/map\.ply: PLY file not found"):
+        Mapper.load(folder)
+    (folder / "map.ply").write_bytes((src / "map.ply").read_bytes()[:-10])
+    with pytest.raises(InputError, match=r"m/map\.ply: truncated"):
+        Mapper.load(folder)
+    (folder / "keyframes.json").write_text("{truncated")
+    with pytest.raises(InputError, match=r"m/keyframes\.json: cannot read"):
+        Mapper.load(folder)
+    with pytest.raises(InputError, match=r"nothing/keyframes\.json: not found"):
+        Mapper.load(tmp_path / "nothing")

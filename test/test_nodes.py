@@ -511,6 +511,41 @@ def test_saved_map_is_resumed_by_a_new_mapper(ros_context: Any, scene: Any, mapp
     assert not bad.success and "not found" in bad.message
 
 
+def test_load_map_of_a_malformed_folder_answers_false_and_keeps_the_map(
+    ros_context: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    import json
+
+    shared = _shared(mapped)
+    node = MapperNode(context=ros_context, shared=shared, node_name="mapper_c")
+    client_node = Node("load_client", context=ros_context)
+    save = client_node.create_client(SaveMap, "/mapper_c/save_map")
+    load = client_node.create_client(LoadMap, "/mapper_c/load_map")
+    answers = {}
+    with _spinning(ros_context, node, client_node):
+        assert _call(save, SaveMap.Request(directory=str(tmp_path / "good"))).success
+        meta = json.loads((tmp_path / "good" / "keyframes.json").read_text())
+        before = (node.status()["keyframe_ids"], node.status()["surfels"], shared.mapper)
+        wrong_width = json.loads(json.dumps(meta))
+        wrong_width["intrinsics"]["width"] = "wide"
+        no_fx = json.loads(json.dumps(meta))
+        del no_fx["intrinsics"]["fx"]
+        for name, content in (("list", [meta]), ("width", wrong_width), ("fx", no_fx)):
+            folder = tmp_path / name
+            folder.mkdir()
+            (folder / "map.ply").write_bytes((tmp_path / "good" / "map.ply").read_bytes())
+            (folder / "keyframes.json").write_text(json.dumps(content))
+            answers[name] = _call(load, LoadMap.Request(directory=str(folder)), timeout_s=20.0)
+        after = (node.status()["keyframe_ids"], node.status()["surfels"], shared.mapper)
+        reload = _call(load, LoadMap.Request(directory=str(tmp_path / "good")), timeout_s=20.0)
+    for name, field in (("list", "JSON object"), ("width", "'intrinsics.width'"), ("fx", "'intrinsics.fx'")):
+        res = answers[name]
+        assert not res.success and str(tmp_path / name / "keyframes.json") in res.message, res.message
+        assert field in res.message, res.message
+    assert after == before and after[2] is mapped  # the old map is kept, untouched
+    assert reload.success and reload.keyframes == 3, reload.message
+
+
 # ---------------------------------------------------------------------------------------- planner load (bug 3)
 def test_stale_requests_are_refused_before_any_map_work(ros_context: Any, scene: Any, mapped: Mapper) -> None:
     frames, _ = scene

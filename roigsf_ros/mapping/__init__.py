@@ -16,7 +16,7 @@ __all__, __getattr__ = lazy_exports(
             "ssim",
             "ssim_map",
         ],
-        "mapper": ["DEPTH_MODES", "Keyframe", "Mapper", "MapperConfig", "MapperStats"],
+        "mapper": ["DEPTH_MODES", "Keyframe", "MapMeta", "Mapper", "MapperConfig", "MapperStats", "read_map_meta"],
         "tsdf": ["SurfaceVoxels", "TSDFVolume", "o3c", "tsdf_mesh_from_depths"],
     },
 )

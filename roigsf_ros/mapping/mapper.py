@@ -15,15 +15,16 @@ import json
 import logging
 import math
 from collections.abc import Generator, Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 import torch
 from torch import Tensor
 
-from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.camera import Intrinsics, check_pose, load_pose
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
@@ -725,31 +726,157 @@ class Mapper:
 
     @classmethod
     def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:
-        """A mapper with the map and keyframe poses of :meth:`save` (keyframe images are not stored)."""
+        """A mapper with the map and keyframe poses of :meth:`save` (keyframe images are not stored).
+
+        Everything is read and checked (:func:`read_map_meta`, :meth:`SurfelMap.load_ply`) before the
+        mapper is built, and every error is an InputError naming the file (and the field), so a
+        caller that keeps a map can keep it when the folder is bad. ``config`` replaces the saved one.
+        """
         d = Path(in_dir)
+        meta_path = d / "keyframes.json"
+        meta = read_map_meta(meta_path, with_config=config is None)
+        surfel_map = SurfelMap.load_ply(d / "map.ply", dtype=torch.float32)  # on the CPU until the mapper exists
         try:
-            meta = json.loads((d / "keyframes.json").read_text())
-        except FileNotFoundError:
-            raise InputError(d / "keyframes.json", "not found (not a saved map folder)") from None
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(d / "keyframes.json", f"cannot read: {exc}") from None
-        intr = Intrinsics(**meta["intrinsics"])
-        if config is None:
-            config = MapperConfig.from_dict(meta.get("config", {}))
-        mapper = cls(intr, config)
-        mapper.map = SurfelMap.load_ply(d / "map.ply", device=mapper.device, dtype=mapper.dtype)
+            mapper = cls(meta.intrinsics, config if config is not None else meta.config)
+        except InputError as exc:
+            if config is not None:  # the caller's own config
+                raise
+            raise InputError(meta_path, f"field 'config': {exc}") from None
+        mapper.map = surfel_map.to(device=mapper.device, dtype=mapper.dtype)
         mapper._version += 1
         mapper._adam = _SparseAdam(mapper.config.learning_rates())
         mapper._reset_h_train()
-        mapper.loaded_keyframe_ids = [int(i) for i in meta.get("keyframe_ids", [])]
-        mapper.loaded_keyframe_poses = np.asarray(meta.get("keyframe_poses", []), dtype=np.float64).reshape(-1, 4, 4)
+        mapper.loaded_keyframe_ids = meta.keyframe_ids
+        mapper.loaded_keyframe_poses = meta.keyframe_poses
         return mapper
+
+
+def _config_from_json(values: object, path: Path) -> MapperConfig:
+    """A saved map's config, each field's type checked first: InputError naming the file and the field.
+
+    :meth:`MapperConfig.from_dict` alone would let a value of the wrong type through to ``validate``
+    (a TypeError there) and name no file.
+    """
+    if not isinstance(values, dict):
+        raise InputError(path, f"field 'config' must be an object of MapperConfig fields, got {_json_kind(values)}")
+    defaults = {f.name: f.default for f in fields(MapperConfig)}
+    kw: dict[str, object] = {}
+    for name, value in values.items():
+        if name not in defaults:
+            raise InputError(path, f"unknown config field '{name}' (not a MapperConfig field)")
+        default = defaults[name]
+        if isinstance(default, tuple):
+            ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+        elif isinstance(default, bool) or isinstance(value, bool):
+            ok = isinstance(value, bool) and isinstance(default, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, int | float)
+            value = float(value) if ok else value
+        else:  # int or str: exactly that type (a field without a default is left to the constructor)
+            ok = default is MISSING or isinstance(value, type(default))
+        if not ok:
+            raise InputError(path, f"config field '{name}' must be {type(default).__name__}, got {value!r:.80}")
+        kw[name] = value
+    try:
+        return MapperConfig.from_dict(kw)
+    except InputError as exc:
+        raise InputError(path, f"config field '{exc.where.removeprefix('mapper.')}': {exc.problem}") from None
+
+
+def _json_kind(value: object) -> str:
+    """How a JSON value reads in an error: 'a list', 'a string', ..."""
+    names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}
+    return names.get(type(value), "a number")
+
+
+@dataclass
+class MapMeta:
+    """The checked contents of a saved map's ``keyframes.json``."""
+
+    intrinsics: Intrinsics
+    keyframe_ids: list[int]
+    keyframe_poses: np.ndarray  # [K, 4, 4] float64 camera-to-world
+    config: MapperConfig | None  # None when not read (the caller brings its own)
+
+
+_INTRINSICS_REQUIRED = ("width", "height", "fx", "fy", "cx", "cy")
+
+
+def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
+    """Read and check every field of a saved map's ``keyframes.json``; InputError naming the file and the field.
+
+    Nothing is built from a file that fails: a JSON list instead of an object, a missing or unknown
+    intrinsics key, a non-numeric width, a pose that is not rigid, ids and poses of different
+    lengths, a bad config value. ``with_config=False`` skips the saved config (the caller has its own).
+    """
+    path = Path(path)
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "not found (not a saved map folder)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read: {exc}") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, f"expected a JSON object with 'intrinsics', 'keyframe_ids', ..., got {_json_kind(meta)}")
+
+    cam = meta.get("intrinsics")
+    if not isinstance(cam, dict):
+        raise InputError(path, f"field 'intrinsics' must be an object, got {_json_kind(cam)}")
+    known = [f.name for f in fields(Intrinsics)]
+    for key in cam:
+        if key not in known:
+            raise InputError(path, f"field 'intrinsics.{key}' is unknown (expected {', '.join(known)})")
+    for key in _INTRINSICS_REQUIRED:
+        if key not in cam:
+            raise InputError(path, f"field 'intrinsics.{key}' is missing")
+    values: dict[str, Any] = {}
+    for key, v in cam.items():
+        try:
+            ok = not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+        except OverflowError:  # an integer too large for a float
+            ok = False
+        whole = key in ("width", "height")
+        if not ok or (whole and v != int(v)) or (key not in ("cx", "cy") and v <= 0):
+            need = "a positive whole number" if whole else "a finite number" + ("" if key in ("cx", "cy") else " > 0")
+            raise InputError(path, f"field 'intrinsics.{key}' must be {need}, got {v!r}")
+        values[key] = int(v) if whole else float(v)
+    intr = Intrinsics(**values)
+
+    ids = meta.get("keyframe_ids", [])
+    if not isinstance(ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in ids):
+        raise InputError(path, f"field 'keyframe_ids' must be a list of integers, got {ids!r:.80}")
+    raw_poses = meta.get("keyframe_poses", [])
+    if not isinstance(raw_poses, list):
+        raise InputError(path, f"field 'keyframe_poses' must be a list of 4x4 matrices, got {_json_kind(raw_poses)}")
+    poses = []
+    for i, T in enumerate(raw_poses):
+        where = f"{path}: field 'keyframe_poses[{i}]'"
+        try:
+            arr = np.asarray(T, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(where, f"must be a 4x4 matrix of numbers, got {T!r:.80}") from None
+        poses.append(load_pose(arr, where, source=str(path)))
+    if len(poses) != len(ids):
+        raise InputError(path, f"field 'keyframe_poses' has {len(poses)} poses for {len(ids)} keyframe_ids")
+
+    config = _config_from_json(meta.get("config", {}), path) if with_config else None
+    if config is not None:
+        try:
+            usable = torch.device(config.device).type != "cuda" or torch.cuda.is_available()
+        except RuntimeError:
+            usable = False
+        if not usable:
+            raise InputError(path, f"config field 'device': {config.device!r} is not a usable torch device here")
+    stacked = np.stack(poses) if poses else np.zeros((0, 4, 4))
+    return MapMeta(intrinsics=intr, keyframe_ids=list(ids), keyframe_poses=stacked, config=config)
 
 
 __all__ = [
     "DEPTH_MODES",
     "Keyframe",
+    "MapMeta",
     "Mapper",
     "MapperConfig",
     "MapperStats",
+    "read_map_meta",
 ]

@@ -244,7 +244,7 @@ def read_keyframe_ids(directory: str | Path) -> list[int]:
     path = Path(directory) / "keyframes.json"
     try:
         return [int(i) for i in json.loads(path.read_text())["keyframe_ids"]]
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, TypeError) as exc:  # TypeError: not an object, or ids not a list
         raise InputError(path, f"cannot read keyframe ids: {exc}") from None
 
 
