@@ -47,3 +47,80 @@ def test_module_entry_point_runs() -> None:
         [sys.executable, "-m", "roigsf_ros.cli", "--help"], capture_output=True, text=True, cwd=REPO, timeout=120
     )
     assert proc.returncode == 0 and "scene" in proc.stdout and "bag" in proc.stdout
+
+
+def _no_work(*_args: object, **_kw: object) -> None:
+    raise AssertionError("work started before the output folder was checked")
+
+
+@pytest.fixture
+def tiny_scene(tmp_path: Path) -> Path:
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    make_synthetic_replica(tmp_path / "scene", 16, 12, 2, seed=1)
+    return tmp_path / "scene"
+
+
+def _commands(scene: Path, out: Path) -> dict[str, list[str]]:
+    return {
+        "map": ["map", str(scene), "--out", str(out), "--policy", "every-n", "--no-progress"],
+        "bag": ["bag", "from-replica", str(scene), "--out", str(out), "--no-progress"],
+        "scene": ["scene", "synth", "--out", str(out), "--frames", "2", "--width", "16", "--height", "12"],
+    }
+
+
+def _stub_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    import roigsf_ros.cli.bag
+    import roigsf_ros.cli.map
+    import roigsf_ros.data.scene
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", _no_work)
+    monkeypatch.setattr(roigsf_ros.cli.bag, "write_bag", _no_work)
+    monkeypatch.setattr(roigsf_ros.data.scene, "render_sequence", _no_work)
+
+
+@pytest.mark.parametrize("command", ["map", "bag", "scene"])
+def test_output_under_a_file_fails_up_front_naming_it(
+    command: str, tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    blocker = tmp_path / "a_file"  # a regular file where a folder should be: works as root too
+    blocker.write_text("")
+    _stub_work(monkeypatch)
+    assert main(_commands(tiny_scene, blocker / "sub" / "out")[command]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(blocker) in err[0] and "not a folder" in err[0], err
+
+
+@pytest.mark.parametrize("command", ["map", "bag", "scene"])
+def test_read_only_output_folder_fails_up_front_naming_it(
+    command: str, tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import tempfile
+
+    def read_only(*_args: object, **_kw: object) -> None:  # what a read-only mount answers, root or not
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    _stub_work(monkeypatch)
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    parent = tmp_path / "ro"
+    parent.mkdir()
+    assert main(_commands(tiny_scene, parent / "out")[command]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(parent) in err[0] and "Read-only file system" in err[0], err
+
+
+def test_unwritable_folder_fails_up_front(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        if os.access(locked, os.W_OK):
+            pytest.skip("running as root: permissions do not stop writes (covered by the tests above)")
+        assert main(["scene", "synth", "--out", str(locked / "out"), "--frames", "2"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(locked) in err[0] and "not writable" in err[0], err
+    finally:
+        locked.chmod(0o755)

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 from roigsf_ros.core.errors import InputError
@@ -24,11 +26,32 @@ def image_size(args: argparse.Namespace) -> tuple[int, int] | None:
 
 
 def check_out(out: Path, overwrite: bool) -> None:
-    """Fail early, before any work, if the output folder ``out`` exists and may not be replaced."""
+    """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written."""
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
+    check_writable(out)
+
+
+def check_writable(out: Path) -> None:
+    """Fail before any work if ``out`` cannot be created: its parent is read-only, not writable or not a folder.
+
+    Outputs are written beside their final name and renamed (:mod:`roigsf_ros.core.fileio`), so the test
+    is to create and remove a temporary file in the parent (or the nearest existing ancestor, as
+    missing parents are created); a run would otherwise fail only at its end, with a traceback.
+    """
+    folder = Path(os.path.abspath(out)).parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(folder, f"is not a folder, so the output {out} cannot be created there")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".roigsf-write-test-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(folder, f"output folder is not writable ({exc.strerror or exc}); choose another one") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import BagFrame, bag_info
 
@@ -467,6 +468,7 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
+    check_writable(out)  # the run folder is written at the end: fail now, not after the replay
     print(
         f"bag {bag}: {info['frame_count']} frames of {info['width']}x{info['height']}, depth "
         f"{info['depth_encoding']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping "
