@@ -124,3 +124,36 @@ def test_unwritable_folder_fails_up_front(tmp_path: Path, capsys: pytest.Capture
         assert len(err) == 1 and str(locked) in err[0] and "not writable" in err[0], err
     finally:
         locked.chmod(0o755)
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [(["--width", "160"], (160, 120)), (["--height", "60"], (80, 60)), ([], (320, 240)),
+     (["--width", "100", "--height", "20"], (100, 20))],
+)  # fmt: skip
+def test_scene_synth_derives_the_missing_side_from_the_default_aspect(
+    given: list[str], expected: tuple[int, int], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import roigsf_ros.data.scene
+
+    seen = []
+    monkeypatch.setattr(roigsf_ros.data.scene, "render_sequence", lambda mesh, poses, intr, *a, **kw: seen.append(intr))
+    assert main(["scene", "synth", "--out", str(tmp_path / "s"), "--frames", "2", *given]) == 0
+    assert (seen[0].width, seen[0].height) == expected
+    assert seen[0].cx == pytest.approx((expected[0] - 1) / 2) and seen[0].cy == pytest.approx((expected[1] - 1) / 2)
+
+
+def test_every_sized_command_derives_the_missing_side_from_the_source(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from roigsf_ros.data.bags import bag_info
+    from roigsf_ros.data.sources import open_frames
+
+    assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "b"), "--width", "8",
+                 "--no-progress"]) == 0  # fmt: skip
+    assert (bag_info(tmp_path / "b")["width"], bag_info(tmp_path / "b")["height"]) == (8, 6)  # 16x12 source
+    src = open_frames(tiny_scene, size=(None, 3))
+    assert (src.intrinsics.width, src.intrinsics.height) == (4, 3) and next(iter(src)).depth_m.shape == (3, 4)
+    capsys.readouterr()
+    assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "c"), "--height", "0"]) == 2
+    assert "--height" in capsys.readouterr().err

@@ -18,11 +18,16 @@ from roigsf_ros.core.errors import InputError
 _COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "perf")
 
 
-def image_size(args: argparse.Namespace) -> tuple[int, int] | None:
-    """(width, height) from ``--width``/``--height``, which come together or not at all."""
-    if (args.width is None) != (args.height is None):
-        raise InputError("--width/--height", "give both or neither")
-    return (args.width, args.height) if args.width is not None else None
+def image_size(args: argparse.Namespace) -> tuple[int | None, int | None] | None:
+    """(width, height) from ``--width``/``--height``; None if neither is given.
+
+    One alone is returned with None for the other, which then follows the source's aspect ratio
+    (:meth:`roigsf_ros.core.camera.Intrinsics.resized`), the same for every command with these options.
+    """
+    for name, value in (("--width", args.width), ("--height", args.height)):
+        if value is not None and value <= 0:
+            raise InputError(name, f"image size must be positive, got {value}")
+    return None if args.width is None and args.height is None else (args.width, args.height)
 
 
 def check_out(out: Path, overwrite: bool) -> None:

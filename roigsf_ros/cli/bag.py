@@ -36,8 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="CAM_JSON",
         help="camera parameters JSON (default: DIR/cam_params.json, else the parent folder's)",
     )
-    conv.add_argument("--width", type=int, metavar="W", help="resize images to this width (needs --height)")
-    conv.add_argument("--height", type=int, metavar="H", help="resize images to this height (needs --width)")
+    conv.add_argument("--width", type=int, metavar="W", help="resize images to this width (alone: keeps the aspect)")
+    conv.add_argument("--height", type=int, metavar="H", help="resize images to this height (alone: keeps the aspect)")
     conv.add_argument("--stride", type=int, default=1, metavar="S", help="keep every S-th frame (default 1)")
     conv.add_argument("--max-frames", type=int, metavar="N", help="write at most N frames (default all)")
     conv.add_argument(

@@ -13,7 +13,7 @@ import math
 from pathlib import Path
 
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.core.camera import Intrinsics, load_cam_params
+from roigsf_ros.core.camera import Intrinsics, derive_size, load_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import load_traj
 
@@ -79,7 +79,8 @@ def _synth(args: argparse.Namespace) -> int:
     _check_texture(args.texture_strength)
     if args.frames < 1:
         raise InputError("--frames", f"must be >= 1, got {args.frames}")
-    intr = synth_intrinsics(args.width, args.height)
+    size = image_size(args) or (None, None)
+    intr = synth_intrinsics(*derive_size(*size, (SYNTH_WIDTH, SYNTH_HEIGHT)))
     mesh = synth_room(args.seed)
     poses = synth_trajectory(args.seed, args.frames)
     render_sequence(
@@ -120,8 +121,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--cam", required=True, metavar="CAM_JSON", help="cam_params.json ({'camera': {w, h, fx, fy, cx, cy, scale}})"
     )
     p.add_argument("--out", required=True, metavar="OUT", help="output folder (must not exist unless --overwrite)")
-    p.add_argument("--width", type=int, metavar="W", help="output width in px; intrinsics are scaled (needs --height)")
-    p.add_argument("--height", type=int, metavar="H", help="output height in px; intrinsics are scaled (needs --width)")
+    p.add_argument("--width", type=int, metavar="W", help="output width in px; intrinsics are scaled (alone: "
+                   "the height keeps CAM_JSON's aspect ratio)")
+    p.add_argument("--height", type=int, metavar="H", help="output height in px; intrinsics are scaled (alone: "
+                   "the width keeps CAM_JSON's aspect ratio)")
     p.add_argument("--stride", type=int, default=1, metavar="S", help="render every S-th pose of TRAJ (default 1)")
     p.add_argument("--max-frames", type=int, metavar="N", help="render at most N frames (after --stride; default all)")
     p.add_argument(
@@ -153,10 +156,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(
-        "--width", type=int, default=SYNTH_WIDTH, metavar="W", help=f"image width in px (default {SYNTH_WIDTH})"
+        "--width",
+        type=int,
+        metavar="W",
+        help=f"image width in px (default {SYNTH_WIDTH}; alone, the height keeps the default's 4:3 aspect)",
     )
     p.add_argument(
-        "--height", type=int, default=SYNTH_HEIGHT, metavar="H", help=f"image height in px (default {SYNTH_HEIGHT})"
+        "--height",
+        type=int,
+        metavar="H",
+        help=f"image height in px (default {SYNTH_HEIGHT}; alone, the width keeps the default's 4:3 aspect)",
     )
     p.add_argument(
         "--texture-strength",

@@ -10,6 +10,7 @@ __all__, __getattr__ = lazy_exports(
             "POSE_RIGID_TOL",
             "REPLICA_DEPTH_SCALE",
             "check_pose",
+            "derive_size",
             "load_cam_params",
             "load_pose",
             "matrix_to_quat_xyzw",

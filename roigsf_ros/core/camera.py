@@ -36,11 +36,13 @@ class Intrinsics:
         """The 3x3 calibration matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def resized(self, width: int, height: int) -> Intrinsics:
+    def resized(self, width: int | None, height: int | None) -> Intrinsics:
         """Intrinsics of the same camera with its image resized to ``width`` x ``height``.
 
         Pixel centres are kept aligned (the convention of ``cv2.resize``): ``c' = (c + 0.5) s - 0.5``.
+        Either side may be None: it then follows this image's aspect ratio (rounded, at least 1 px).
         """
+        width, height = derive_size(width, height, (self.width, self.height))
         if width <= 0 or height <= 0:
             raise InputError("--width/--height", f"image size must be positive, got {width}x{height}")
         sx, sy = width / self.width, height / self.height
@@ -67,6 +69,26 @@ class Intrinsics:
                 "scale": self.depth_scale,
             }
         }
+
+
+def derive_size(width: int | None, height: int | None, default: tuple[int, int]) -> tuple[int, int]:
+    """``(width, height)`` with a missing side taken from ``default``'s aspect ratio (both missing: ``default``).
+
+    So ``--width`` alone keeps the picture's shape instead of pairing it with the default height.
+    """
+    if width is None and height is None:
+        return int(default[0]), int(default[1])
+    if width is None:
+        name, given = "--height", height
+    elif height is None:
+        name, given = "--width", width
+    else:
+        return int(width), int(height)
+    if given <= 0:
+        raise InputError(name, f"image size must be positive, got {given}")
+    if width is None:
+        return max(1, round(given * default[0] / default[1])), int(given)
+    return int(given), max(1, round(given * default[1] / default[0]))
 
 
 def load_cam_params(path: str | Path) -> Intrinsics:
@@ -231,6 +253,7 @@ __all__ = [
     "REPLICA_DEPTH_SCALE",
     "Intrinsics",
     "check_pose",
+    "derive_size",
     "load_cam_params",
     "load_pose",
     "matrix_to_quat_xyzw",

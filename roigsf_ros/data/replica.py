@@ -137,7 +137,7 @@ class ReplicaSequence:
         self,
         root: str | Path,
         cam: str | Path | Intrinsics | None = None,
-        size: tuple[int, int] | None = None,
+        size: tuple[int | None, int | None] | None = None,
         allow_partial: bool = False,
     ) -> None:
         root = Path(root)

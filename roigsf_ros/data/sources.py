@@ -58,7 +58,12 @@ class ReplicaFrameSource(FrameSource):
     kind = "replica"
 
     def __init__(
-        self, path: Path, size: tuple[int, int] | None, stride: int, max_frames: int | None, allow_partial: bool
+        self,
+        path: Path,
+        size: tuple[int | None, int | None] | None,
+        stride: int,
+        max_frames: int | None,
+        allow_partial: bool,
     ) -> None:
         self.seq = ReplicaSequence(path, size=size, allow_partial=allow_partial)
         self.ks = list(range(0, len(self.seq), stride))[: max_frames if max_frames is not None else None]
@@ -79,7 +84,9 @@ class BagFrameSource(FrameSource):
 
     kind = "bag"
 
-    def __init__(self, path: Path, size: tuple[int, int] | None, stride: int, max_frames: int | None) -> None:
+    def __init__(
+        self, path: Path, size: tuple[int | None, int | None] | None, stride: int, max_frames: int | None
+    ) -> None:
         self.stride, self.max_frames, self.size = stride, max_frames, size
         native = None
         with BagReader(path) as reader:
@@ -140,12 +147,14 @@ def _is_bag(path: Path) -> bool:
 
 def open_frames(
     path: str | Path,
-    size: tuple[int, int] | None = None,
+    size: tuple[int | None, int | None] | None = None,
     stride: int = 1,
     max_frames: int | None = None,
     allow_partial: bool = False,
 ) -> FrameSource:
     """A :class:`FrameSource` over a bag or Replica folder; ``size`` = (width, height) resizes on load.
+
+    One side of ``size`` may be None: it follows the source's aspect ratio.
 
     ``stride`` keeps every stride-th frame, ``max_frames`` caps the count after the stride;
     ``allow_partial`` lets a Replica ``traj.txt`` hold more poses than frames on disk.
@@ -157,7 +166,7 @@ def open_frames(
         raise InputError("--stride", f"must be at least 1, got {stride}")
     if max_frames is not None and int(max_frames) < 1:
         raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
-    if size is not None and (int(size[0]) <= 0 or int(size[1]) <= 0):
+    if size is not None and any(v is not None and int(v) <= 0 for v in size):
         raise InputError("--width/--height", f"image size must be positive, got {size[0]}x{size[1]}")
     if _is_bag(path):
         return BagFrameSource(path, size, int(stride), max_frames)

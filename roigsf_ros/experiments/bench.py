@@ -256,7 +256,8 @@ class BenchConfig(Config):
     policies: list[PolicySpec]
     seeds: int = 1
     gt_mesh: Path | None = None
-    size: tuple[int, int] | None = None
+    size: tuple[int | None, int | None] | None = None
+    """Frame size (one side None: it follows the scene's aspect ratio); None: the scene's own."""
     stride: int = 1
     max_frames: int | None = None
     mapper: MapperConfig = field(default_factory=MapperConfig)
@@ -451,7 +452,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
         "gt_mesh": str(gt) if gt is not None else None,
         "command": command,
         "seeds": list(range(cfg.seeds)),
-        "size": list(cfg.size) if cfg.size else [source.intrinsics.width, source.intrinsics.height],
+        "size": [source.intrinsics.width, source.intrinsics.height],  # as resized (a side given alone is derived)
         "stride": cfg.stride,
         "max_frames": cfg.max_frames,
         "n_frames": len(source),
