@@ -215,6 +215,19 @@ def test_cli_overwrite(replica: Path, tmp_path: Path, capsys: pytest.CaptureFixt
 # ------------------------------------------------------------------------------------------ bad input
 
 
+@pytest.mark.parametrize(
+    "option", [["--rate", "0"], ["--rate", "-5"], ["--rate", "nan"], ["--stride", "0"], ["--max-frames", "0"]]
+)
+def test_cli_bad_numbers_name_the_option_typed(
+    option: list[str], replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["bag", "from-replica", str(replica), "--out", str(tmp_path / "b"), "--no-progress", *option]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"error: {option[0]}: " in err[0], err  # not write_bag's rate_hz / max_frames
+    assert not (tmp_path / "b").exists()
+
+
 def test_cli_traj_mismatch_exit_2_leaves_nothing(
     replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence
 
@@ -74,6 +76,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _from_replica(args: argparse.Namespace) -> int:
+    # Checked here, before any work, so that errors name the options typed (write_bag's are rate_hz, ...).
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise InputError("--rate", f"must be a positive number of frames per second, got {args.rate:g}")
+    if args.stride < 1:
+        raise InputError("--stride", f"must be >= 1, got {args.stride}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
     size = image_size(args)
     check_out(args.out, args.overwrite)
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
