@@ -267,11 +267,7 @@ def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: An
         _wait(lambda: mapper.status()["keyframes"] == 1, 30.0, "the keyframe")
         _wait(lambda: mapper.status()["keyframes_missing"] == 1, 10.0, "the missing keyframe counted")
         status = mapper.status()
-    rejected = status["frames_rejected"]
-    assert sum(rejected.values()) == 3, rejected
-    assert any("unsupported depth encoding" in r for r in rejected)
-    assert any("sizes disagree" in r for r in rejected)
-    assert any("quaternion" in r for r in rejected)
+    assert status["frames_rejected"] == {"bad_encoding": 1, "size_mismatch": 1, "bad_pose": 1}  # short categories
     assert mapper.camera.stats()["pending"] == 1  # the colourless stamp waits, bounded
     assert status["keyframe_ids"] == [5_000] and status["surfels"] > 0 and status["keyframes_failed"] == 0
 

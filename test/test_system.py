@@ -721,16 +721,17 @@ def test_four_times_real_time_bounded_queues_counted_drops_flat_memory(
     print(f"mapper {dict(m, keyframe_ids=len(m['keyframe_ids']))}\nselector {dict(s, keyframe_ids=None)}")
     from roigsf_ros.nodes.shared_map import read_keyframe_ids
 
-    # Every frame sent is accounted for: received whole, given up incomplete (some of its messages lost;
-    # one whose messages straggle in after its stamp was given up counts again) or estimated missed from
-    # the stamp gaps (all its messages lost: not reported by the middleware). Not exact: losses before a
-    # stream's period is known or at a loop's wrap-around are not seen, hence 90 %.
+    # Every frame sent is accounted for once (sync.FrameLedger): received whole, given up incomplete (some
+    # of its messages lost; stragglers are absorbed, not counted again), a repeated or out-of-order stamp
+    # (a loop's wrap-around) or estimated missed from the stamp gaps (all its messages lost: not reported
+    # by the middleware). Not exact: losses before a stream's period is known are not seen, hence 90 %.
     stopped = re.search(r"stopped after (\d+) messages", player.log())
     assert stopped, player.log()
     sent_frames = int(stopped.group(1)) // 4
     for counts in (s, m):
         received = counts["frames"] if counts is s else counts["frames_received"]
         lost = counts["frames_dropped_incomplete"] + counts["frames_missed_estimate"]
+        lost += counts["frames_duplicate_stamp"] + counts["frames_out_of_order"]
         assert received <= sent_frames and 0.9 * sent_frames <= received + lost, (received, lost, sent_frames)
     for st in statuses:
         assert st["pending_keyframes"] <= FAST_BOUNDS["max_pending_keyframes"]

@@ -67,6 +67,6 @@ __all__, __getattr__ = lazy_exports(
             "ReplicaFrameSource",
             "open_frames",
         ],
-        "sync": ["StampGapCounter", "StampMatcher", "T"],
+        "sync": ["FrameLedger", "REJECT_REASONS", "StampGapCounter", "StampMatcher", "T"],
     },
 )

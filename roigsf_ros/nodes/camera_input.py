@@ -1,12 +1,13 @@
 """Camera input shared by the nodes: four subscriptions matched by stamp into validated frames.
 
 Messages are converted with the library's converters (:mod:`roigsf_ros.data.bags`) and matched with
-:class:`roigsf_ros.data.sync.StampMatcher`. Bad messages (unsupported encoding, size mismatch with the
-camera info, NaN pose, ...) are dropped with a throttled warning and counted by reason; frames that
-never complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows;
-frames that never arrived at all (every message overwritten in a full middleware queue, which the
-middleware does not report) are estimated from gaps in each topic's stamps
-(:class:`roigsf_ros.data.sync.StampGapCounter`).
+:class:`roigsf_ros.data.sync.FrameLedger`, which accounts for every frame sent exactly once in bounded
+counters. Bad messages (unsupported encoding, size mismatch with the camera info, NaN pose, ...) are
+dropped with a throttled warning and counted by a short reason category; frames that never complete
+(e.g. depth without colour) are dropped and counted once the bounded queue overflows; repeated stamps
+and stamps gone back are counted, not delivered; frames that never arrived at all (every message
+overwritten in a full middleware queue, which the middleware does not report) are estimated from gaps
+in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`).
 """
 
 from __future__ import annotations
@@ -24,10 +25,25 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import BagFrame, CameraTopics, assemble_frame, stamp_to_ns
-from roigsf_ros.data.sync import StampGapCounter, StampMatcher
+from roigsf_ros.data.sync import FrameLedger, StampGapCounter
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
+
+
+def reject_reason(exc: InputError, topics: CameraTopics) -> str:
+    """The short, bounded category of a frame's conversion error (counters are keyed by it, not by its text)."""
+    problem = exc.problem
+    if "encoding" in problem:
+        return "bad_encoding"
+    if "sizes disagree" in problem:
+        return "size_mismatch"
+    for topic, reason in ((topics.pose, "bad_pose"), (topics.camera_info, "bad_camera_info")):
+        if exc.where.startswith(topic):
+            return reason
+    if exc.where.startswith((topics.color, topics.depth)):
+        return "bad_image"
+    return "other"
 
 
 class CameraInput:
@@ -47,10 +63,9 @@ class CameraInput:
         self.topics = topics or CameraTopics()
         self.received: Counter[str] = Counter()
         """Messages received per topic."""
-        self.rejected: Counter[str] = Counter()
-        """Frames dropped because a message was bad, by reason."""
-        self.frames = 0
-        self._matcher: StampMatcher[Any] = StampMatcher(self.topics.types(), max_pending)
+        self.last_rejection = ""
+        """The full text of the last frame's conversion error (the counters hold only its category)."""
+        self._ledger: FrameLedger[Any] = FrameLedger(self.topics.types(), max_pending)
         self._gaps = {topic: StampGapCounter() for topic in self.topics.types()}
         self._lock = threading.Lock()
         t = self.topics
@@ -58,27 +73,38 @@ class CameraInput:
             node.create_subscription(msg_type, topic, self._callback_for(topic), qos, callback_group=callback_group)
 
     @property
+    def frames(self) -> int:
+        """Frames delivered to ``on_frame``."""
+        with self._lock:
+            return self._ledger.frames
+
+    @property
     def dropped_incomplete(self) -> int:
         """Stamps given up because one of the four messages never came."""
-        return self._matcher.dropped
+        with self._lock:
+            return self._ledger.dropped_incomplete
 
     def stats(self) -> dict[str, Any]:
-        """Counters for reports: messages per topic, frames, rejected by reason, incomplete dropped, missed.
+        """Counters for reports; every frame sent is in exactly one of the frame counters.
 
-        ``missed_estimate``: messages per topic estimated lost before they arrived (stamp gaps);
-        ``frames_missed_estimate``: frames none of whose messages arrived, the least of those (a frame
-        missing on some topics only is counted in ``dropped_incomplete`` instead).
+        Frames: ``frames`` (delivered), ``rejected`` (by reason category), ``dropped_incomplete``,
+        ``pending``, ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its
+        messages arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages:
+        ``received`` and ``missed_estimate`` (estimated lost before they arrived) per topic.
         """
         with self._lock:
-            missed = {topic: g.missed for topic, g in self._gaps.items()}
+            counts = self._ledger.counts()
             return {
                 "received": dict(self.received),
-                "frames": self.frames,
-                "rejected": dict(self.rejected),
-                "dropped_incomplete": self._matcher.dropped,
-                "pending": self._matcher.pending,
-                "missed_estimate": missed,
-                "frames_missed_estimate": min(missed.values()),
+                "frames": counts["frames"],
+                "rejected": counts["rejected"],
+                "dropped_incomplete": counts["dropped_incomplete"],
+                "pending": counts["pending"],
+                "duplicate_stamp": counts["duplicate_stamp"],
+                "out_of_order": counts["out_of_order"],
+                "frames_missed_estimate": counts["missed_estimate"],
+                "missed_estimate": {topic: g.missed for topic, g in self._gaps.items()},
+                "last_rejection": self.last_rejection,
             }
 
     def _callback_for(self, topic: str) -> Callable[[Any], None]:
@@ -92,7 +118,7 @@ class CameraInput:
         with self._lock:
             self.received[topic] += 1
             self._gaps[topic].add(stamp)
-            parts = self._matcher.add(stamp, topic, msg)
+            parts = self._ledger.add(stamp, topic, msg)
         if parts is None:
             return
         t = self.topics
@@ -107,11 +133,9 @@ class CameraInput:
                 lambda name: f"{name} @ {stamp} ns",
             )
         except InputError as exc:
-            reason = exc.problem.split(" (")[0].split(":")[0]
             with self._lock:
-                self.rejected[reason] += 1
+                self._ledger.reject(reject_reason(exc, t))
+                self.last_rejection = str(exc)
             self.node.get_logger().warning(f"dropped frame: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
             return
-        with self._lock:
-            self.frames += 1
         self.on_frame(frame)

@@ -277,6 +277,8 @@ class KeyframeSelectorNode(SystemNode):
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "frames_duplicate_stamp": cam["duplicate_stamp"],
+                "frames_out_of_order": cam["out_of_order"],
                 "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframe_ids": list(self.keyframe_ids),

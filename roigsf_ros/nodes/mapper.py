@@ -398,6 +398,8 @@ class MapperNode(SystemNode):
                 "frames_received": cam["frames"],
                 "frames_rejected": cam["rejected"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
+                "frames_duplicate_stamp": cam["duplicate_stamp"],
+                "frames_out_of_order": cam["out_of_order"],
                 "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes": len(snap_ids),
                 "keyframe_ids": snap_ids,
