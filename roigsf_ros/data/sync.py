@@ -184,15 +184,20 @@ class FrameLedger(Generic[T]):
     stream restarted (``restarts``: a looped bag, a restarted source): ordering and gaps start afresh;
     if the next stamp returns to the old sequence, the frame that went back was a stray. Memory is
     bounded: ``max_pending`` incomplete frames with their items, and the message counts of the last
-    ``memory`` stamps.
+    ``memory`` stamps (default: 256, or 4 ``max_pending`` if more).
     """
 
     def __init__(
-        self, keys: Iterable[Hashable], max_pending: int = 16, memory: int = 256, max_gap_periods: float = 1000.0
+        self,
+        keys: Iterable[Hashable],
+        max_pending: int = 16,
+        memory: int | None = None,
+        max_gap_periods: float = 1000.0,
     ) -> None:
         self.keys = frozenset(keys)
         if not self.keys:
             raise ValueError("FrameLedger needs at least one key")
+        memory = max(256, 4 * max_pending) if memory is None else memory
         if max_pending < 1 or memory < max_pending:
             raise ValueError(f"need max_pending >= 1 and memory >= max_pending, got {max_pending}, {memory}")
         self.max_pending = max_pending
