@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Build and install the roigsf_interfaces ament_cmake package into the venv with pip-installed ROS tools.
+# Build and install the roigsf_interfaces ament_cmake package into the venv with pip-installed ROS tools,
+# and vendor/tf2_msgs (the standard TFMessage: not on PyPI) when no tf2_msgs is installed.
 # Usage: build_interfaces.sh VENV. Works around the PyPI wheels' quirks (../shared/notes/ros2-on-pypi.md):
 # exported CMake files carry the wheel build machine's include paths, and the prefix paths must point at the venv.
 set -euo pipefail
@@ -23,13 +24,23 @@ for f in (venv / "share").glob("*/cmake/export_*__rosidl_generator_pyExport.cmak
         f.write_text(new)
 PY
 
-# 2. Configure, build and install with plain CMake (about 10 s).
+# 2. Configure, build and install each package with plain CMake (about 10 s each).
 export AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV"
 BUILD="$(mktemp -d)"
 trap 'rm -rf "$BUILD"' EXIT
-cmake -S "$REPO/roigsf_interfaces" -B "$BUILD" -DCMAKE_INSTALL_PREFIX="$VENV" -DBUILD_TESTING=OFF \
-    -DPython3_EXECUTABLE="$PYBIN" -DCMAKE_BUILD_TYPE=Release >"$BUILD/cmake.log" 2>&1 \
-    || { cat "$BUILD/cmake.log" >&2; exit 1; }
-cmake --build "$BUILD" -j2 >"$BUILD/build.log" 2>&1 || { tail -50 "$BUILD/build.log" >&2; exit 1; }
-cmake --install "$BUILD" >/dev/null
+build_package() {  # build_package SOURCE_DIR
+    local src="$1" dir="$BUILD/$(basename "$1")"
+    cmake -S "$src" -B "$dir" -DCMAKE_INSTALL_PREFIX="$VENV" -DBUILD_TESTING=OFF \
+        -DPython3_EXECUTABLE="$PYBIN" -DCMAKE_BUILD_TYPE=Release >"$BUILD/cmake.log" 2>&1 \
+        || { cat "$BUILD/cmake.log" >&2; exit 1; }
+    cmake --build "$dir" -j2 >"$BUILD/build.log" 2>&1 || { tail -50 "$BUILD/build.log" >&2; exit 1; }
+    cmake --install "$dir" >/dev/null
+}
+# tf2_msgs: a full ROS install has it; the PyPI wheels do not (the nodes read the camera pose from /tf).
+if ! "$PYBIN" -c "import tf2_msgs.msg" 2>/dev/null || [ -f "$VENV/share/tf2_msgs/.roigsf-vendored" ]; then
+    build_package "$REPO/vendor/tf2_msgs"
+    touch "$VENV/share/tf2_msgs/.roigsf-vendored"
+fi
+build_package "$REPO/roigsf_interfaces"
 "$PYBIN" -c "from roigsf_interfaces.srv import GetNextBestView; GetNextBestView.Request()"
+"$PYBIN" -c "from tf2_msgs.msg import TFMessage; TFMessage()"

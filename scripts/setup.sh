@@ -42,12 +42,13 @@ if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$REQ_HASH" ]; then
     echo "$REQ_HASH" > "$STAMP"
 fi
 
-# 4. The interface package (ament_cmake), rebuilt when its sources or the pinned packages change.
+# 4. The interface packages (ament_cmake: roigsf_interfaces, and tf2_msgs if missing), rebuilt when its sources or the pinned packages change.
 IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
-    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
+    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO"/vendor/tf2_msgs/{CMakeLists.txt,package.xml,msg/TFMessage.msg} \
+    "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
 IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
 if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
-    log "building roigsf_interfaces into $VENV"
+    log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
     bash "$REPO/scripts/build_interfaces.sh" "$VENV"
     echo "$IFACE_HASH" > "$IFACE_STAMP"
 fi

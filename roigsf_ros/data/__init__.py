@@ -1,4 +1,4 @@
-"""Data in and out: Replica sequences, synthetic scenes, rosbag2 bags, stamp matching, frame sources."""
+"""Data in and out: Replica sequences, synthetic scenes, rosbag2 bags, stamp matching, TF, frame sources."""
 
 from roigsf_ros.core.exports import lazy_exports
 
@@ -68,5 +68,18 @@ __all__, __getattr__ = lazy_exports(
             "open_frames",
         ],
         "sync": ["FrameLedger", "REJECT_REASONS", "StampGapCounter", "StampMatcher", "T"],
+        "tf": [
+            "DEFAULT_CACHE_S",
+            "DEFAULT_MAX_FRAMES",
+            "DEFAULT_MAX_HISTORY",
+            "DEFAULT_TOLERANCE_S",
+            "TF_MESSAGE_TYPE",
+            "TF_STATIC_TOPIC",
+            "TF_TOPIC",
+            "TransformBuffer",
+            "TransformUnavailableError",
+            "frame_name",
+            "slerp_xyzw",
+        ],
     },
 )
