@@ -13,6 +13,14 @@ import tempfile
 from pathlib import Path
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.bags import (
+    AUTO,
+    COLOR_TRANSPORTS,
+    DEPTH_TRANSPORTS,
+    POSE_SOURCES,
+    CameraTopics,
+    realsense_topics,
+)
 
 # Subcommand modules, in the order `roigsf --help` lists them.
 _COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "perf")
@@ -28,6 +36,82 @@ def image_size(args: argparse.Namespace) -> tuple[int | None, int | None] | None
         if value is not None and value <= 0:
             raise InputError(name, f"image size must be positive, got {value}")
     return None if args.width is None and args.height is None else (args.width, args.height)
+
+
+_CAMERA_OPTIONS = {
+    "color": "--color-topic",
+    "depth": "--depth-topic",
+    "camera_info": "--camera-info-topic",
+    "pose": "--pose-topic",
+    "pose_source": "--pose-source",
+    "tf_parent_frame": "--tf-parent-frame",
+    "tf_child_frame": "--tf-child-frame",
+    "tf_topic": "--tf-topic",
+    "tf_static_topic": "--tf-static-topic",
+    "tf_tolerance_s": "--tf-tolerance",
+    "color_transport": "--color-transport",
+    "depth_transport": "--depth-transport",
+}
+"""CameraTopics field -> the command-line option that sets it."""
+
+
+def add_camera_options(parser: argparse.ArgumentParser) -> None:
+    """Options that say how a bag's camera is read: topics, transports, pose from a topic or TF, RealSense names."""
+    d = CameraTopics()
+    g = parser.add_argument_group("camera topics (bags)")
+    g.add_argument(
+        "--realsense",
+        nargs="?",
+        const="/camera",
+        metavar="NS",
+        help="RealSense names under NS (default /camera): NS/color/image_raw, NS/aligned_depth_to_color/image_raw, "
+        "NS/color/camera_info, pose from TF; the options below override single names",
+    )
+    g.add_argument("--color-topic", metavar="TOPIC", help=f"colour image topic (default {d.color})")
+    g.add_argument("--depth-topic", metavar="TOPIC", help=f"depth image topic (default {d.depth})")
+    g.add_argument("--camera-info-topic", metavar="TOPIC", help=f"camera info topic (default {d.camera_info})")
+    g.add_argument("--pose-topic", metavar="TOPIC", help=f"PoseStamped topic of the camera pose (default {d.pose})")
+    g.add_argument(
+        "--color-transport",
+        choices=(AUTO, *COLOR_TRANSPORTS),
+        help="raw (Image) or compressed (CompressedImage JPEG/PNG, on TOPIC/compressed); default auto: from the bag",
+    )
+    g.add_argument(
+        "--depth-transport",
+        choices=(AUTO, *DEPTH_TRANSPORTS),
+        help="raw, compressed (16-bit PNG) or compressedDepth (on TOPIC/compressedDepth); default auto: from the bag",
+    )
+    g.add_argument(
+        "--pose-source",
+        choices=POSE_SOURCES,
+        help="camera pose from the pose topic or from TF (/tf + /tf_static); default topic (tf with --realsense)",
+    )
+    g.add_argument("--tf-parent-frame", metavar="FRAME", help=f"TF: the world frame (default {d.tf_parent_frame})")
+    g.add_argument(
+        "--tf-child-frame", metavar="FRAME", help=f"TF: the camera optical frame (default {d.tf_child_frame})"
+    )
+    g.add_argument("--tf-topic", metavar="TOPIC", help=f"TF topic (default {d.tf_topic})")
+    g.add_argument("--tf-static-topic", metavar="TOPIC", help=f"static TF topic (default {d.tf_static_topic})")
+    g.add_argument(
+        "--tf-tolerance",
+        type=float,
+        metavar="S",
+        help=f"TF: interpolate only between samples within S seconds of the image stamp (default {d.tf_tolerance_s:g})",
+    )
+
+
+def camera_topics(args: argparse.Namespace) -> CameraTopics:
+    """The :class:`CameraTopics` of :func:`add_camera_options`' options; errors name the option typed."""
+    given = {field: getattr(args, opt[2:].replace("-", "_")) for field, opt in _CAMERA_OPTIONS.items()}
+    given = {k: v for k, v in given.items() if v is not None}
+    given.setdefault("color_transport", AUTO)
+    given.setdefault("depth_transport", AUTO)
+    try:
+        if args.realsense is not None:
+            return realsense_topics(args.realsense, **given)
+        return CameraTopics(**given)
+    except InputError as exc:
+        raise InputError(_CAMERA_OPTIONS.get(exc.where, exc.where), exc.problem) from None
 
 
 def check_out(out: Path, overwrite: bool) -> None:

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence
@@ -72,6 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     info.add_argument("bag", type=Path, metavar="BAG", help="rosbag2 folder or .mcap file")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_camera_options(info)
     info.set_defaults(func=_info)
 
 
@@ -114,7 +115,7 @@ def format_info(info: dict[str, Any]) -> str:
     if info["width"] is not None:
         lines.append(
             f"images:       {info['width']}x{info['height']}, colour {info['color_encoding']}, "
-            f"depth {info['depth_encoding']}"
+            f"depth {info['depth_encoding']}, pose from {info['pose_source']}"
         )
     lines.append(f"frames:       {info['frame_count']} complete, {info['incomplete_stamps']} incomplete stamps")
     lines.append(f"messages:     {info['message_count']}")
@@ -126,6 +127,6 @@ def format_info(info: dict[str, Any]) -> str:
 
 
 def _info(args: argparse.Namespace) -> int:
-    info = bag_info(args.bag)
+    info = bag_info(args.bag, camera_topics(args))
     print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0

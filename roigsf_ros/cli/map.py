@@ -7,7 +7,7 @@ import logging
 from dataclasses import fields, replace
 from pathlib import Path
 
-from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
@@ -66,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NAME=VALUE",
         help="override any MapperConfig field, e.g. --set lr_means=1e-4 (repeatable)",
     )
+    add_camera_options(p)
     p.set_defaults(func=run)
 
 
@@ -104,11 +105,12 @@ def run(args: argparse.Namespace) -> int:
     """Run the offline mapping loop and print a summary table."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     size = image_size(args)
+    topics = camera_topics(args)
     check_out(args.out, args.overwrite)
     policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k)
     cfg = config_from_args(args)
     source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
-                         allow_partial=args.allow_partial)  # fmt: skip
+                         allow_partial=args.allow_partial, topics=topics)  # fmt: skip
     gt_mesh = args.gt_mesh if args.gt_mesh is not None else source.gt_mesh_path
     metrics = run_offline(
         source,

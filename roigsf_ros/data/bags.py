@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import math
 import struct
+from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
+import cv2
 import numpy as np
 from numpy.typing import DTypeLike
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -38,6 +40,14 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.sync import StampMatcher
+from roigsf_ros.data.tf import (
+    DEFAULT_TOLERANCE_S,
+    TF_MESSAGE_TYPE,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
+    TransformBuffer,
+    TransformUnavailableError,
+)
 
 COLOR_TOPIC = "/camera/color/image_raw"
 DEPTH_TOPIC = "/camera/depth/image_raw"
@@ -47,6 +57,7 @@ CAMERA_FRAME_ID = "camera_color_optical_frame"
 MAP_FRAME_ID = "map"
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 
@@ -76,23 +87,166 @@ _QOS_RELIABLE = Qos(
 )
 
 
+POSE_SOURCES = ("topic", "tf")
+"""Where a frame's pose comes from: a PoseStamped topic, or the TF tree (``/tf`` + ``/tf_static``)."""
+COLOR_TRANSPORTS = ("raw", "compressed")
+DEPTH_TRANSPORTS = ("raw", "compressed", "compressedDepth")
+"""image_transport names: ``raw`` (sensor_msgs/Image), ``compressed`` (JPEG/PNG), ``compressedDepth`` (header + PNG)."""
+AUTO = "auto"
+"""A transport read from the topic's type in a bag (not for live topics: the nodes need it named)."""
+
+
+def transport_topic(topic: str, transport: str) -> str:
+    """The topic a transport is published on, as image_transport names it: ``<base>/<transport>`` (raw: ``<base>``).
+
+    A topic that already ends with ``/<transport>`` is kept as it is, so either the base name or the
+    full name may be given.
+    """
+    if transport in ("raw", AUTO) or topic.endswith(f"/{transport}"):
+        return topic
+    return f"{topic.rstrip('/')}/{transport}"
+
+
 @dataclass(frozen=True)
 class CameraTopics:
-    """Topic names of one RGB-D camera with its pose; the defaults are what :func:`write_bag` writes."""
+    """How one RGB-D camera with its pose is read: topic names, image transports, pose source and TF frames.
+
+    The defaults are what :func:`write_bag` writes. With ``pose_source="tf"`` the pose of
+    ``tf_child_frame`` in ``tf_parent_frame`` is looked up on ``tf_topic`` / ``tf_static_topic`` at each
+    frame's stamp (:class:`roigsf_ros.data.tf.TransformBuffer`, ``tf_tolerance_s``) instead of ``pose``.
+    ``color`` and ``depth`` are base topics: a compressed transport reads ``<topic>/compressed`` (or
+    ``/compressedDepth``) as image_transport does, unless the name already ends so (:meth:`resolved`).
+    """
 
     color: str = COLOR_TOPIC
     depth: str = DEPTH_TOPIC
     camera_info: str = CAMERA_INFO_TOPIC
     pose: str = POSE_TOPIC
+    pose_source: str = "topic"
+    tf_parent_frame: str = MAP_FRAME_ID
+    tf_child_frame: str = CAMERA_FRAME_ID
+    tf_topic: str = TF_TOPIC
+    tf_static_topic: str = TF_STATIC_TOPIC
+    tf_tolerance_s: float = DEFAULT_TOLERANCE_S
+    color_transport: str = "raw"
+    depth_transport: str = "raw"
+
+    def __post_init__(self) -> None:
+        """Refuse unknown choices and empty names, naming the field (a parameter or option of the same name)."""
+        checks = (
+            ("pose_source", self.pose_source, POSE_SOURCES),
+            ("color_transport", self.color_transport, (*COLOR_TRANSPORTS, AUTO)),
+            ("depth_transport", self.depth_transport, (*DEPTH_TRANSPORTS, AUTO)),
+        )
+        for name, value, choices in checks:
+            if value not in choices:
+                raise InputError(name, f"'{value}' is not one of {', '.join(choices)}")
+        names = {"color": self.color, "depth": self.depth, "camera_info": self.camera_info}
+        names |= {"pose": self.pose} if self.pose_source == "topic" else {}
+        if self.pose_source == "tf":
+            names |= {"tf_topic": self.tf_topic, "tf_parent_frame": self.tf_parent_frame}
+            names |= {"tf_child_frame": self.tf_child_frame}
+        for name, value in names.items():
+            if not str(value).strip("/ "):
+                raise InputError(name, "must not be empty")
+        if not (math.isfinite(self.tf_tolerance_s) and self.tf_tolerance_s >= 0):
+            raise InputError("tf_tolerance_s", f"must be a number of seconds >= 0, got {self.tf_tolerance_s}")
+
+    @property
+    def uses_tf(self) -> bool:
+        """True when poses come from the TF tree."""
+        return self.pose_source == "tf"
+
+    def resolved(self) -> CameraTopics:
+        """The same with ``color`` and ``depth`` naming the topics their transports are published on."""
+        return replace(
+            self,
+            color=transport_topic(self.color, self.color_transport),
+            depth=transport_topic(self.depth, self.depth_transport),
+        )
 
     def types(self) -> dict[str, str]:
-        """Topic name -> expected message type."""
-        return {
-            self.color: IMAGE_TYPE,
-            self.depth: IMAGE_TYPE,
-            self.camera_info: CAMERA_INFO_TYPE,
-            self.pose: POSE_TYPE,
-        }
+        """Topic name -> expected message type, for the messages matched by stamp into a frame.
+
+        Colour, depth and camera info, and the pose topic unless poses come from TF. Call on
+        :meth:`resolved` topics (transport ``auto`` counts as raw here).
+        """
+        color_type = COMPRESSED_IMAGE_TYPE if self.color_transport == "compressed" else IMAGE_TYPE
+        depth_type = COMPRESSED_IMAGE_TYPE if self.depth_transport in ("compressed", "compressedDepth") else IMAGE_TYPE
+        types = {self.color: color_type, self.depth: depth_type, self.camera_info: CAMERA_INFO_TYPE}
+        if not self.uses_tf:
+            types[self.pose] = POSE_TYPE
+        return types
+
+    def tf_types(self) -> dict[str, str]:
+        """The TF topics read (none unless poses come from TF)."""
+        if not self.uses_tf:
+            return {}
+        return {self.tf_topic: TF_MESSAGE_TYPE, self.tf_static_topic: TF_MESSAGE_TYPE}
+
+    def in_bag(self, present: dict[str, str], where: str | Path) -> CameraTopics:
+        """These topics resolved against a bag's ``{topic: type}``: ``auto`` transports from the types found.
+
+        With transport ``auto`` the topic is read as given if the bag has it, else ``<topic>/compressed``
+        (depth: also ``<topic>/compressedDepth``); its type then says raw or compressed. InputError names
+        the bag and the topic when a topic is missing or of the wrong type.
+        """
+        have = ", ".join(sorted(present)) or "no topics"
+        fields: dict[str, str] = {}
+        for stream, suffixes in (("color", ("compressed",)), ("depth", ("compressedDepth", "compressed"))):
+            topic, transport = getattr(self, stream), getattr(self, f"{stream}_transport")
+            if transport != AUTO:
+                continue
+            candidates = [topic, *(transport_topic(topic, s) for s in suffixes)]
+            found = next((c for c in candidates if c in present), None)
+            if found is None:
+                raise InputError(
+                    where, f"{stream} topic {topic} (or {', '.join(candidates[1:])}) is missing (it has {have})"
+                )
+            if present[found] == COMPRESSED_IMAGE_TYPE:
+                fields[f"{stream}_transport"] = (
+                    "compressedDepth" if found.endswith("/compressedDepth") else "compressed"
+                )
+            elif present[found] == IMAGE_TYPE:
+                fields[f"{stream}_transport"] = "raw"
+            else:
+                raise InputError(
+                    f"{where}:{found}", f"has type {present[found]}, expected {IMAGE_TYPE} or {COMPRESSED_IMAGE_TYPE}"
+                )
+            fields[stream] = found
+        topics = replace(self, **fields).resolved()
+        for topic, typ in topics.types().items():
+            if topic not in present:
+                raise InputError(where, f"topic {topic} ({typ}) is missing from the bag (it has {have})")
+            if present[topic] != typ:
+                raise InputError(f"{where}:{topic}", f"has type {present[topic]}, expected {typ}")
+        if topics.uses_tf:
+            if topics.tf_topic not in present and topics.tf_static_topic not in present:
+                raise InputError(
+                    where,
+                    f"pose_source is tf but the bag has neither {topics.tf_topic} nor {topics.tf_static_topic} "
+                    f"(it has {have})",
+                )
+            for topic in (topics.tf_topic, topics.tf_static_topic):
+                if topic in present and present[topic] != TF_MESSAGE_TYPE:
+                    raise InputError(f"{where}:{topic}", f"has type {present[topic]}, expected {TF_MESSAGE_TYPE}")
+        return topics
+
+
+def realsense_topics(namespace: str = "/camera", **overrides: Any) -> CameraTopics:
+    """The topics of a RealSense camera (realsense2_camera, depth aligned to colour) with the pose on TF.
+
+    ``namespace`` is the camera's (``/camera``; newer drivers publish under ``/camera/camera``).
+    """
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    fields: dict[str, Any] = {
+        "color": f"{ns}/color/image_raw",
+        "depth": f"{ns}/aligned_depth_to_color/image_raw",
+        "camera_info": f"{ns}/color/camera_info",
+        "pose_source": "tf",
+        "tf_child_frame": CAMERA_FRAME_ID,
+    }
+    return CameraTopics(**(fields | overrides))
 
 
 @dataclass
@@ -143,7 +297,9 @@ def _image_array(msg: Any, where: str, dtype: DTypeLike, channels: int) -> np.nd
 
 
 def image_to_rgb(msg: Any, where: str = COLOR_TOPIC) -> np.ndarray:
-    """A colour ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8) as [H, W, 3] uint8 RGB."""
+    """A colour ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8) or ``CompressedImage`` as [H, W, 3] uint8 RGB."""
+    if is_compressed(msg):
+        return compressed_to_rgb(msg, where)
     enc = str(msg.encoding)
     if enc not in COLOR_ENCODINGS:
         raise InputError(where, f"unsupported colour encoding '{enc}' (supported: {', '.join(COLOR_ENCODINGS)})")
@@ -154,10 +310,12 @@ def image_to_rgb(msg: Any, where: str = COLOR_TOPIC) -> np.ndarray:
 
 
 def image_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
-    """A depth ``sensor_msgs/Image`` (32FC1 metres, 16UC1/mono16 millimetres) as [H, W] float32 metres.
+    """A depth ``sensor_msgs/Image`` (32FC1 metres, 16UC1/mono16 mm) or ``CompressedImage`` as [H, W] float32 metres.
 
     Invalid depth (0, NaN, inf or negative) becomes 0, the library's convention.
     """
+    if is_compressed(msg):
+        return compressed_to_depth_m(msg, where)
     enc = str(msg.encoding)
     if enc == "32FC1":
         depth_m = _image_array(msg, where, np.float32, 1)
@@ -166,6 +324,128 @@ def image_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
     if enc in ("16UC1", "mono16"):
         return _image_array(msg, where, np.uint16, 1).astype(np.float32) / np.float32(1000.0)
     raise InputError(where, f"unsupported depth encoding '{enc}' (supported: 32FC1 metres, 16UC1 millimetres)")
+
+
+# --------------------------------------------------------------------------------------------
+# sensor_msgs/CompressedImage (image_transport's "compressed" and "compressedDepth") -> numpy
+# --------------------------------------------------------------------------------------------
+
+COMPRESSED_DEPTH_HEADER_BYTES = 12
+"""compressedDepth prepends a 12-byte ConfigHeader to the PNG: int32 format, float32 depthParam[2] (little-endian)."""
+
+
+def is_compressed(msg: Any) -> bool:
+    """True for a ``sensor_msgs/CompressedImage`` (a ``format`` and no ``encoding``), False for an ``Image``."""
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def _compressed_bytes(msg: Any, where: str) -> np.ndarray:
+    data = msg.data
+    buf = data.view(np.uint8).reshape(-1) if isinstance(data, np.ndarray) else np.frombuffer(bytes(data), np.uint8)
+    if buf.size == 0:
+        raise InputError(where, f"compressed image ('{msg.format}') has no data")
+    return buf
+
+
+def _decode(buf: np.ndarray, flags: int, where: str, fmt: str) -> np.ndarray:
+    """cv2.imdecode, refusing what it cannot decode (truncated, corrupt, not an image) with the topic named."""
+    if buf.size >= 2 and buf[0] == 0xFF and buf[1] == 0xD8 and not bytes(buf[-16:]).rstrip(b"\0").endswith(b"\xff\xd9"):
+        raise InputError(
+            where, f"compressed image ('{fmt}', {buf.size} bytes) is truncated: JPEG without its end marker"
+        )
+    try:
+        img = cv2.imdecode(buf, flags)
+    except cv2.error as exc:
+        raise InputError(where, f"cannot decode compressed image ('{fmt}', {buf.size} bytes): {exc}") from None
+    if img is None or img.size == 0:
+        raise InputError(
+            where, f"cannot decode compressed image ('{fmt}', {buf.size} bytes): truncated or not JPEG/PNG"
+        )
+    return img
+
+
+def compressed_to_rgb(msg: Any, where: str = COLOR_TOPIC) -> np.ndarray:
+    """A colour ``CompressedImage`` (JPEG or PNG, as image_transport's ``compressed``) as [H, W, 3] uint8 RGB.
+
+    OpenCV decodes to BGR (what compressed_image_transport encodes from), so the channels are swapped.
+    """
+    fmt = str(msg.format)
+    if "compresseddepth" in fmt.lower():
+        raise InputError(where, f"format '{fmt}' is a depth image, not colour")
+    bgr = _decode(_compressed_bytes(msg, where), cv2.IMREAD_COLOR, where, fmt)
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def compressed_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
+    """A depth ``CompressedImage`` as [H, W] float32 metres (0 = invalid).
+
+    Two layouts: image_transport's ``compressedDepth`` (format ``"16UC1; compressedDepth png"``: a
+    12-byte config header, then a 16-bit PNG of millimetres; or ``"32FC1; compressedDepth png"``: the
+    PNG holds quantised inverse depth ``q = A / depth + B`` with A, B in the header), and a plain 16-bit
+    PNG of millimetres (``compressed`` transport, format e.g. ``"16UC1; png compressed"`` or ``"png"``).
+    RVL-coded compressedDepth is not supported (refused naming the format).
+    """
+    fmt = str(msg.format)
+    buf = _compressed_bytes(msg, where)
+    encoding = fmt.split(";", 1)[0].strip()
+    if "compresseddepth" in fmt.lower():
+        if "rvl" in fmt.lower():
+            raise InputError(where, f"compressedDepth format '{fmt}' (RVL) is not supported; use png")
+        if buf.size <= COMPRESSED_DEPTH_HEADER_BYTES:
+            raise InputError(where, f"compressedDepth data has {buf.size} bytes: no room for the header and a PNG")
+        quant_a, quant_b = struct.unpack_from("<ff", bytes(buf[4:COMPRESSED_DEPTH_HEADER_BYTES]))
+        px = _decode(buf[COMPRESSED_DEPTH_HEADER_BYTES:], cv2.IMREAD_UNCHANGED, where, fmt)
+        if px.dtype != np.uint16 or px.ndim != 2:
+            raise InputError(
+                where, f"compressedDepth PNG is {px.dtype} with shape {px.shape}, expected 16-bit single-channel"
+            )
+        if encoding == "32FC1":
+            if not (math.isfinite(quant_a) and math.isfinite(quant_b) and quant_a > 0):
+                raise InputError(where, f"compressedDepth header has invalid quantisation A={quant_a}, B={quant_b}")
+            q = px.astype(np.float32)
+            with np.errstate(divide="ignore"):
+                depth_m = np.where(px > 0, np.float32(quant_a) / (q - np.float32(quant_b)), np.float32(0.0))
+            depth_m[~np.isfinite(depth_m) | (depth_m < 0)] = 0.0
+            return depth_m.astype(np.float32)
+        if encoding not in ("16UC1", "mono16"):
+            raise InputError(where, f"unsupported compressedDepth encoding '{encoding}' (supported: 16UC1, 32FC1)")
+        return px.astype(np.float32) / np.float32(1000.0)
+    if encoding == "32FC1":
+        raise InputError(where, f"format '{fmt}': float depth cannot be a plain PNG/JPEG; use compressedDepth")
+    px = _decode(buf, cv2.IMREAD_UNCHANGED, where, fmt)
+    if px.dtype != np.uint16 or px.ndim != 2:
+        raise InputError(
+            where,
+            f"compressed depth ('{fmt}') decodes to {px.dtype} with shape {px.shape}; expected a 16-bit PNG in mm",
+        )
+    return px.astype(np.float32) / np.float32(1000.0)
+
+
+def encode_compressed_rgb(rgb: np.ndarray, fmt: str = "jpeg", jpeg_quality: int = 95) -> tuple[str, bytes]:
+    """(format, data) of a ``CompressedImage`` of [H, W, 3] uint8 RGB as compressed_image_transport sends it."""
+    if fmt not in ("jpeg", "png"):
+        raise InputError("format", f"'{fmt}' is not jpeg or png")
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []
+    ok, data = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", np.ascontiguousarray(rgb[..., ::-1]), params)
+    if not ok:
+        raise InputError("image", f"cannot encode a {rgb.shape} image as {fmt}")
+    return f"rgb8; {fmt} compressed bgr8", data.tobytes()
+
+
+def encode_compressed_depth(depth_m: np.ndarray, transport: str = "compressedDepth") -> tuple[str, bytes]:
+    """(format, data) of a depth ``CompressedImage``: 16-bit PNG of millimetres, with compressedDepth's header or not.
+
+    Depth is rounded to millimetres as for a 16UC1 ``Image`` (:func:`depth_to_image_data`).
+    """
+    if transport not in ("compressed", "compressedDepth"):
+        raise InputError("depth transport", f"'{transport}' is not compressed or compressedDepth")
+    ok, png = cv2.imencode(".png", depth_to_image_data(depth_m, "16UC1"))
+    if not ok:
+        raise InputError("depth", f"cannot encode a {depth_m.shape} depth image as PNG")
+    if transport == "compressed":
+        return "16UC1; png compressed", png.tobytes()
+    header = struct.pack("<iff", 0, 0.0, 0.0)  # format INV_DEPTH; the quantisation is unused for 16UC1
+    return "16UC1; compressedDepth png", header + png.tobytes()
 
 
 def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intrinsics:
@@ -349,19 +629,29 @@ def open_any_reader(path: str | Path) -> AnyReader:
 
 
 class BagReader:
-    """Frames of an RGB-D bag, four messages matched by identical header stamp (no approximate sync).
+    """Frames of an RGB-D bag, their messages matched by identical header stamp (no approximate sync).
 
-    Use as a context manager and iterate :meth:`frames`. A stamp that lacks one of the four
-    messages is skipped and counted in ``skipped_frames`` (also when more than
-    ``MAX_PENDING_STAMPS`` incomplete stamps pile up, the oldest is given up). A missing topic or a
-    topic of the wrong type raises InputError naming the bag and the topic.
+    Use as a context manager and iterate :meth:`frames`. A stamp that lacks one of its messages is
+    skipped and counted in ``skipped_frames`` (also when more than ``MAX_PENDING_STAMPS`` incomplete
+    stamps pile up, the oldest is given up). A missing topic or a topic of the wrong type raises
+    InputError naming the bag and the topic. Transports ``auto`` are read from the topics' types
+    (:meth:`CameraTopics.in_bag`). With poses from TF, a complete frame waits (at most
+    ``MAX_PENDING_STAMPS`` of them) until the TF messages read so far give its pose; one whose pose
+    never comes is skipped and counted in ``no_tf`` (the reason in ``last_tf_error``).
     """
 
     def __init__(self, path: str | Path, topics: CameraTopics | None = None) -> None:
         self.path = Path(path)
-        self.topics = topics or CameraTopics()
+        self.requested = topics or CameraTopics()
+        self.topics = self.requested
+        """The topics read: ``requested`` resolved against the bag once it is open."""
         self.skipped_frames = 0
         self.frames_read = 0
+        self.no_tf = 0
+        """Complete frames skipped because TF never gave their pose."""
+        self.tf_rejected = 0
+        """Transforms refused (bad values); the rest of their messages is kept."""
+        self.last_tf_error = ""
         self._reader = open_any_reader(self.path)
         self._open = False
 
@@ -372,7 +662,8 @@ class BagReader:
             raise InputError(self.path, f"cannot open bag: {exc}") from None
         self._open = True
         try:
-            self._check_topics()
+            present = {c.topic: c.msgtype for c in self._reader.connections}
+            self.topics = self.requested.in_bag(present, self.path)
         except BaseException:
             self.close()
             raise
@@ -389,17 +680,8 @@ class BagReader:
             self._reader.close()
             self._open = False
 
-    def _check_topics(self) -> None:
-        present = {c.topic: c.msgtype for c in self._reader.connections}
-        for topic, typ in self.topics.types().items():
-            if topic not in present:
-                have = ", ".join(sorted(present)) or "no topics"
-                raise InputError(self.path, f"topic {topic} ({typ}) is missing from the bag (it has {have})")
-            if present[topic] != typ:
-                raise InputError(f"{self.path}:{topic}", f"has type {present[topic]}, expected {typ}")
-
     def message_count(self) -> int:
-        """Messages on the four camera topics."""
+        """Messages on the topics matched into frames (camera topics, and the pose topic unless from TF)."""
         wanted = set(self.topics.types())
         return sum(c.msgcount for c in self._reader.connections if c.topic in wanted)
 
@@ -407,22 +689,68 @@ class BagReader:
         """Yield complete frames in the order they complete (stamp order for bags from :func:`write_bag`)."""
         if not self._open:
             raise RuntimeError("BagReader.frames() needs an open reader: use it in a `with` block")
-        conns = [c for c in self._reader.connections if c.topic in self.topics.types()]
-        matcher: StampMatcher[tuple[Any, bytes]] = StampMatcher(self.topics.types(), MAX_PENDING_STAMPS)
+        t = self.topics
+        frame_topics, tf_topics = t.types(), t.tf_types()
+        conns = [c for c in self._reader.connections if c.topic in frame_topics or c.topic in tf_topics]
+        matcher: StampMatcher[tuple[Any, bytes]] = StampMatcher(frame_topics, MAX_PENDING_STAMPS)
+        tf = TransformBuffer(tolerance_s=t.tf_tolerance_s) if t.uses_tf else None
+        waiting: deque[tuple[int, dict[str, tuple[Any, bytes]]]] = deque()
         for conn, _, raw in self._reader.messages(connections=conns):
+            if tf is not None and conn.topic in tf_topics:
+                self._add_tf(tf, conn, raw)
+                yield from self._posed(tf, waiting, final=False)
+                continue
             try:
                 stamp = _header_stamp_ns(raw)
             except (struct.error, IndexError):
                 raise InputError(f"{self.path}:{conn.topic}", "message too short to hold a header") from None
             parts = matcher.add(stamp, conn.topic, (conn, raw))
             self.skipped_frames = matcher.dropped
-            if parts is not None:
+            if parts is None:
+                continue
+            if tf is None:
                 self.frames_read += 1
-                yield self._convert(stamp, parts)
+                yield self._convert(stamp, parts, None)
+                continue
+            waiting.append((stamp, parts))
+            yield from self._posed(tf, waiting, final=False)
+        if tf is not None:
+            yield from self._posed(tf, waiting, final=True)
         matcher.flush()
         self.skipped_frames = matcher.dropped
 
-    def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]]) -> BagFrame:
+    def _add_tf(self, tf: TransformBuffer, conn: Any, raw: bytes) -> None:
+        where = f"{self.path}:{conn.topic}"
+        try:
+            msg = self._reader.deserialize(raw, conn.msgtype)
+        except AnyReaderError as exc:
+            raise InputError(where, f"cannot deserialize TF message: {exc}") from None
+        errors = tf.add_message(msg, static=conn.topic == self.topics.tf_static_topic, where=where)
+        self.tf_rejected += len(errors)
+        if errors:
+            self.last_tf_error = str(errors[-1])
+
+    def _posed(
+        self, tf: TransformBuffer, waiting: deque[tuple[int, dict[str, tuple[Any, bytes]]]], final: bool
+    ) -> Iterator[BagFrame]:
+        """Frames of ``waiting`` (oldest first) whose pose TF now gives; those it never will are counted and dropped."""
+        t = self.topics
+        while waiting:
+            stamp, parts = waiting[0]
+            try:
+                T_wc = tf.lookup(t.tf_parent_frame, t.tf_child_frame, stamp)
+            except TransformUnavailableError as exc:
+                if exc.retry and not final and len(waiting) <= MAX_PENDING_STAMPS:
+                    return
+                waiting.popleft()
+                self.no_tf += 1
+                self.last_tf_error = str(exc)
+                continue
+            waiting.popleft()
+            self.frames_read += 1
+            yield self._convert(stamp, parts, T_wc)
+
+    def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]], T_wc: np.ndarray | None) -> BagFrame:
         t = self.topics
 
         def msg(topic: str) -> Any:
@@ -435,9 +763,9 @@ class BagReader:
         def where(topic: str) -> str:
             return f"{self.path}:{topic} @ {stamp} ns"
 
-        return assemble_frame(
-            stamp, msg(t.color), msg(t.depth), msg(t.camera_info), msg(t.pose), t, where, f"{self.path}:{t.pose}"
-        )
+        pose = T_wc if T_wc is not None else msg(t.pose)
+        source = f"{self.path}:{t.tf_topic if T_wc is not None else t.pose}"
+        return assemble_frame(stamp, msg(t.color), msg(t.depth), msg(t.camera_info), pose, t, where, source)
 
 
 def assemble_frame(
@@ -445,21 +773,25 @@ def assemble_frame(
     color_msg: Any,
     depth_msg: Any,
     info_msg: Any,
-    pose_msg: Any,
+    pose: Any,
     topics: CameraTopics | None = None,
     where: Callable[[str], str] = str,
     pose_source: str | None = None,
 ) -> BagFrame:
-    """Convert the four messages of one stamp into a :class:`BagFrame`, checking that sizes agree.
+    """Convert the messages of one stamp into a :class:`BagFrame`, checking that sizes agree.
 
+    ``pose`` is a ``PoseStamped`` (or ``Pose``) message, or the [4, 4] ``T_wc`` already looked up on TF.
     Shared by the bag reader and the ROS nodes; ``where(topic)`` names the source in errors,
-    ``pose_source`` (default: the pose topic) the stream in the once-only pose warning.
+    ``pose_source`` (default: the pose or TF topic) the stream in the once-only pose warning.
     """
     t = topics or CameraTopics()
     rgb = image_to_rgb(color_msg, where(t.color))
     depth_m = image_to_depth_m(depth_msg, where(t.depth))
     intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
-    T_wc = pose_to_matrix(pose_msg, where(t.pose), pose_source if pose_source is not None else t.pose)
+    if isinstance(pose, np.ndarray):
+        T_wc = load_pose(pose, where(t.tf_topic), pose_source if pose_source is not None else t.tf_topic)
+    else:
+        T_wc = pose_to_matrix(pose, where(t.pose), pose_source if pose_source is not None else t.pose)
     h, w = depth_m.shape
     if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
         raise InputError(
@@ -480,8 +812,10 @@ def read_bag_frames(path: str | Path, topics: CameraTopics | None = None) -> tup
 def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, Any]:
     """Summary of a bag: topics with types and counts, time span, image size, encodings, frame count.
 
-    Frames are stamps carried by all four camera topics; ``incomplete_stamps`` counts the others.
-    Image fields are None when the bag has no such topic.
+    Frames are stamps carried by every topic matched into a frame (:meth:`CameraTopics.types`, resolved
+    against the bag when it has them); ``incomplete_stamps`` counts the others. With poses from TF the
+    pose is not checked here. Image fields are None when the bag has no such topic; a compressed
+    stream's encoding is its ``format``.
     """
     t = topics or CameraTopics()
     reader = open_any_reader(path)
@@ -495,7 +829,12 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         for c in conns:
             entry = counts.setdefault(c.topic, {"type": c.msgtype, "count": 0})
             entry["count"] += c.msgcount
-        camera = [c for c in conns if c.topic in t.types() and c.msgtype == t.types()[c.topic]]
+        try:
+            t = t.in_bag({c.topic: c.msgtype for c in conns}, path)
+        except InputError:
+            t = t.resolved()  # counted as far as the bag has the topics
+        frame_types = t.types()
+        camera = [c for c in conns if c.topic in frame_types and c.msgtype == frame_types[c.topic]]
         stamps: dict[int, set[str]] = {}
         first_msgs: dict[str, Any] = {}
         first_ns = last_ns = None
@@ -504,14 +843,24 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
             last_ns = ts if last_ns is None else max(last_ns, ts)
             if conn in camera:
                 stamps.setdefault(_header_stamp_ns(raw), set()).add(conn.topic)
-                if conn.topic not in first_msgs and conn.msgtype == IMAGE_TYPE:
+                if conn.topic not in first_msgs and conn.msgtype in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE):
                     first_msgs[conn.topic] = reader.deserialize(raw, conn.msgtype)
     finally:
         reader.close()
     n_topics = len({c.topic for c in camera})
-    complete = sum(1 for s in stamps.values() if len(s) == 4) if n_topics == 4 else 0
+    n_keys = len(frame_types)
+    complete = sum(1 for s in stamps.values() if len(s) == n_keys) if n_topics == n_keys else 0
     color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
-    ref = color if color is not None else depth
+    size = None
+    for msg, convert, topic in ((color, image_to_rgb, t.color), (depth, image_to_depth_m, t.depth)):
+        if msg is not None and size is None:
+            if is_compressed(msg):
+                try:
+                    size = convert(msg, f"{path}:{topic}").shape[1::-1]
+                except InputError:
+                    size = None
+            else:
+                size = (int(msg.width), int(msg.height))
     return {
         "path": str(path),
         "topics": counts,
@@ -519,28 +868,41 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         "start_ns": first_ns,
         "end_ns": last_ns,
         "duration_s": (last_ns - first_ns) / 1e9 if first_ns is not None else 0.0,
-        "width": int(ref.width) if ref is not None else None,
-        "height": int(ref.height) if ref is not None else None,
-        "color_encoding": str(color.encoding) if color is not None else None,
-        "depth_encoding": str(depth.encoding) if depth is not None else None,
+        "width": int(size[0]) if size is not None else None,
+        "height": int(size[1]) if size is not None else None,
+        "color_encoding": _encoding_of(color),
+        "depth_encoding": _encoding_of(depth),
+        "pose_source": t.pose_source,
         "frame_count": complete,
         "incomplete_stamps": len(stamps) - complete,
     }
 
 
+def _encoding_of(msg: Any) -> str | None:
+    if msg is None:
+        return None
+    return str(msg.format) if is_compressed(msg) else str(msg.encoding)
+
+
 __all__ = [
+    "AUTO",
     "CAMERA_FRAME_ID",
     "CAMERA_INFO_TOPIC",
     "CAMERA_INFO_TYPE",
     "COLOR_ENCODINGS",
     "COLOR_TOPIC",
+    "COLOR_TRANSPORTS",
+    "COMPRESSED_DEPTH_HEADER_BYTES",
+    "COMPRESSED_IMAGE_TYPE",
     "DEFAULT_RATE_HZ",
     "DEFAULT_T0_NS",
     "DEPTH_ENCODINGS",
     "DEPTH_TOPIC",
+    "DEPTH_TRANSPORTS",
     "IMAGE_TYPE",
     "MAP_FRAME_ID",
     "MAX_PENDING_STAMPS",
+    "POSE_SOURCES",
     "POSE_TOPIC",
     "POSE_TYPE",
     "BagFrame",
@@ -549,13 +911,20 @@ __all__ = [
     "assemble_frame",
     "bag_info",
     "camera_info_to_intrinsics",
+    "compressed_to_depth_m",
+    "compressed_to_rgb",
     "depth_to_image_data",
+    "encode_compressed_depth",
+    "encode_compressed_rgb",
     "frame_stamp_ns",
     "image_to_depth_m",
     "image_to_rgb",
+    "is_compressed",
     "open_any_reader",
     "pose_to_matrix",
     "read_bag_frames",
+    "realsense_topics",
     "stamp_to_ns",
+    "transport_topic",
     "write_bag",
 ]

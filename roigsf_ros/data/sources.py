@@ -16,7 +16,7 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
-from roigsf_ros.data.bags import BagReader
+from roigsf_ros.data.bags import BagReader, CameraTopics
 from roigsf_ros.data.replica import ReplicaSequence
 
 
@@ -80,22 +80,29 @@ class ReplicaFrameSource(FrameSource):
 
 
 class BagFrameSource(FrameSource):
-    """Frames of a rosbag2 bag (folder or ``.mcap``) in the layout of :mod:`roigsf_ros.data.bags`."""
+    """Frames of a rosbag2 bag (folder or ``.mcap``): the topics, transports and pose source of ``topics``."""
 
     kind = "bag"
 
     def __init__(
-        self, path: Path, size: tuple[int | None, int | None] | None, stride: int, max_frames: int | None
+        self,
+        path: Path,
+        size: tuple[int | None, int | None] | None,
+        stride: int,
+        max_frames: int | None,
+        topics: CameraTopics | None = None,
     ) -> None:
         self.stride, self.max_frames, self.size = stride, max_frames, size
+        self.topics = topics or CameraTopics()
         native = None
-        with BagReader(path) as reader:
+        with BagReader(path, self.topics) as reader:
             for bf in reader.frames():
                 native = bf.intrinsics
                 break
-            n_total = reader.message_count() // 4  # four messages per frame
+            n_total = reader.message_count() // len(reader.topics.types())  # one message per topic and frame
+            why = f" (no pose on TF: {reader.last_tf_error})" if reader.no_tf else ""
         if native is None:
-            raise InputError(path, "bag holds no complete RGB-D frame")
+            raise InputError(path, f"bag holds no complete RGB-D frame{why}")
         self.native = native
         n = len(range(0, n_total, stride))
         n = min(n, max_frames) if max_frames is not None else n
@@ -104,7 +111,7 @@ class BagFrameSource(FrameSource):
         super().__init__(path, intr, n, mesh if mesh.is_file() else None)
 
     def __iter__(self) -> Iterator[Frame]:
-        with BagReader(self.path) as reader:
+        with BagReader(self.path, self.topics) as reader:
             emitted = 0
             for i, bf in enumerate(reader.frames()):
                 if self.max_frames is not None and emitted >= self.max_frames:
@@ -151,13 +158,15 @@ def open_frames(
     stride: int = 1,
     max_frames: int | None = None,
     allow_partial: bool = False,
+    topics: CameraTopics | None = None,
 ) -> FrameSource:
     """A :class:`FrameSource` over a bag or Replica folder; ``size`` = (width, height) resizes on load.
 
     One side of ``size`` may be None: it follows the source's aspect ratio.
 
     ``stride`` keeps every stride-th frame, ``max_frames`` caps the count after the stride;
-    ``allow_partial`` lets a Replica ``traj.txt`` hold more poses than frames on disk.
+    ``allow_partial`` lets a Replica ``traj.txt`` hold more poses than frames on disk; ``topics`` says
+    how a bag is read (topic names, transports, pose from a topic or TF; ignored for a folder).
     """
     path = Path(path)
     if not path.exists():
@@ -169,7 +178,7 @@ def open_frames(
     if size is not None and any(v is not None and int(v) <= 0 for v in size):
         raise InputError("--width/--height", f"image size must be positive, got {size[0]}x{size[1]}")
     if _is_bag(path):
-        return BagFrameSource(path, size, int(stride), max_frames)
+        return BagFrameSource(path, size, int(stride), max_frames, topics)
     return ReplicaFrameSource(path, size, int(stride), max_frames, allow_partial)
 
 

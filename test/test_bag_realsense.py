@@ -1,0 +1,271 @@
+"""Real-robot bags: camera poses on TF (+ tf_static, through a chain), compressed images, RealSense topic names.
+
+A bag with the poses on ``/tf`` and the images as ``sensor_msgs/CompressedImage`` (PNG colour, compressedDepth
+depth) under RealSense names is derived message by message from a raw bag written by ``write_bag``; it must
+read back as the same frames and map through ``roigsf map`` to the same keyframes and poses.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation
+
+from roigsf_ros.cli import main as cli_main
+from roigsf_ros.core.camera import matrix_to_quat_xyzw
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data import bags
+from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.perf.io import make_synthetic_replica
+
+W, H, N = 64, 48, 6
+TS = get_typestore(Stores.ROS2_JAZZY)
+T_ = TS.types
+RS_COLOR, RS_DEPTH, RS_INFO = (
+    "/camera/color/image_raw",
+    "/camera/aligned_depth_to_color/image_raw",
+    "/camera/color/camera_info",
+)
+OPTICAL = "camera_color_optical_frame"
+
+
+def _rigid(rotvec: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+# A robot's tree: map -> odom (static here), odom -> base_link (the moving part, on /tf),
+# base_link -> camera_link -> camera_color_optical_frame (static, REP 103 body to optical axes).
+T_MAP_ODOM = _rigid((0.0, 0.0, 0.4), (1.0, -2.0, 0.0))
+T_BASE_LINK = _rigid((0.0, 0.05, 0.0), (0.1, 0.0, 0.3))
+T_LINK_OPTICAL = _rigid((-np.pi / 2, 0.0, 0.0), (0.0, 0.0, 0.0)) @ _rigid((0.0, -np.pi / 2, 0.0), (0.0, 0.0, 0.0))
+
+
+def _transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Any:
+    q = matrix_to_quat_xyzw(T[:3, :3])
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return T_["geometry_msgs/msg/TransformStamped"](
+        header=T_["std_msgs/msg/Header"](
+            stamp=T_["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=parent
+        ),
+        child_frame_id=child,
+        transform=T_["geometry_msgs/msg/Transform"](
+            translation=T_["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            rotation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+
+
+def _tf(*transforms: Any) -> Any:
+    return T_["tf2_msgs/msg/TFMessage"](transforms=list(transforms))
+
+
+def _compressed(header: Any, fmt: str, data: bytes) -> Any:
+    return T_["sensor_msgs/msg/CompressedImage"](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
+
+
+def realsense_bag(
+    raw_bag: Path,
+    out: Path,
+    color_format: str = "png",
+    depth_transport: str = "compressedDepth",
+    tf_lag_ns: int = 1_000_000,
+    keep_tf: Callable[[int], bool] = lambda k: True,
+) -> None:
+    """``raw_bag`` (write_bag, 16UC1) rewritten as a robot records it: RealSense names, compressed images, pose on TF.
+
+    The odom -> base_link transform of frame k is recorded ``tf_lag_ns`` after its images (TF lags the
+    camera on a robot), unless ``keep_tf(k)`` is False; the static transforms come first, on /tf_static.
+    """
+    color_topic = f"{RS_COLOR}/compressed"
+    depth_topic = f"{RS_DEPTH}/{depth_transport}"
+    types = {
+        color_topic: "sensor_msgs/msg/CompressedImage",
+        depth_topic: "sensor_msgs/msg/CompressedImage",
+        RS_INFO: "sensor_msgs/msg/CameraInfo",
+        "/tf": "tf2_msgs/msg/TFMessage",
+        "/tf_static": "tf2_msgs/msg/TFMessage",
+    }
+    records: list[tuple[int, str, Any]] = []
+    with bags.open_any_reader(raw_bag) as reader:
+        k = -1
+        for conn, stamp, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == bags.COLOR_TOPIC:
+                rgb = bags.image_to_rgb(msg)
+                fmt, data = bags.encode_compressed_rgb(rgb, color_format)
+                records.append((stamp, color_topic, _compressed(msg.header, fmt, data)))
+            elif conn.topic == bags.DEPTH_TOPIC:
+                fmt, data = bags.encode_compressed_depth(bags.image_to_depth_m(msg), depth_transport)
+                records.append((stamp, depth_topic, _compressed(msg.header, fmt, data)))
+            elif conn.topic == bags.CAMERA_INFO_TOPIC:
+                records.append((stamp, RS_INFO, msg))
+            elif conn.topic == bags.POSE_TOPIC:
+                k += 1
+                T_wc = bags.pose_to_matrix(msg)
+                T_odom_base = np.linalg.inv(T_MAP_ODOM) @ T_wc @ np.linalg.inv(T_BASE_LINK @ T_LINK_OPTICAL)
+                if keep_tf(k):
+                    records.append((stamp + tf_lag_ns, "/tf", _tf(_transform("odom", "base_link", T_odom_base, stamp))))
+    t0 = min(r[0] for r in records)
+    static = _tf(
+        _transform("map", "odom", T_MAP_ODOM, 0),
+        _transform("base_link", "camera_link", T_BASE_LINK, 0),
+        _transform("camera_link", OPTICAL, T_LINK_OPTICAL, 0),
+    )
+    records.append((t0 - 1, "/tf_static", static))
+    records.sort(key=lambda r: r[0])
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {topic: writer.add_connection(topic, typ, typestore=TS) for topic, typ in types.items()}
+        for stamp, topic, msg in records:
+            writer.write(conns[topic], stamp, TS.serialize_cdr(msg, types[topic]))
+
+
+@pytest.fixture(scope="module")
+def raw_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 64x48, 6-frame 10 Hz bag with 16UC1 depth (what compressedDepth carries, so the frames compare exactly)."""
+    root = tmp_path_factory.mktemp("rs")
+    make_synthetic_replica(root / "scene", W, H, N, seed=5)
+    bags.write_bag(ReplicaSequence(root / "scene"), root / "raw", depth_encoding="16UC1", progress=False)
+    return root / "raw"
+
+
+@pytest.fixture(scope="module")
+def rs_bag(raw_bag: Path) -> Path:
+    out = raw_bag.parent / "realsense"
+    realsense_bag(raw_bag, out)
+    return out
+
+
+def _assert_same_frames(got: list[bags.BagFrame], want: list[bags.BagFrame], rgb_atol: int = 0) -> None:
+    assert [f.stamp_ns for f in got] == [f.stamp_ns for f in want]
+    for g, w in zip(got, want, strict=True):
+        if rgb_atol:
+            assert np.abs(g.rgb.astype(int) - w.rgb.astype(int)).mean() < rgb_atol
+        else:
+            np.testing.assert_array_equal(g.rgb, w.rgb)
+        np.testing.assert_array_equal(g.depth_m, w.depth_m)
+        np.testing.assert_allclose(g.T_wc, w.T_wc, atol=1e-12)
+        assert g.intrinsics == w.intrinsics
+
+
+def test_tf_and_compressed_bag_reads_as_the_raw_bag(raw_bag: Path, rs_bag: Path) -> None:
+    want, _ = bags.read_bag_frames(raw_bag)
+    with bags.BagReader(rs_bag, bags.realsense_topics(color_transport="auto", depth_transport="auto")) as reader:
+        got = list(reader.frames())
+        assert reader.topics.color == f"{RS_COLOR}/compressed" and reader.topics.color_transport == "compressed"
+        assert reader.topics.depth == f"{RS_DEPTH}/compressedDepth"
+        assert reader.no_tf == 0 and reader.skipped_frames == 0
+    assert len(got) == N
+    _assert_same_frames(got, want)
+    # the transports named instead of detected: the same frames
+    topics = bags.realsense_topics(color_transport="compressed", depth_transport="compressedDepth")
+    _assert_same_frames(bags.read_bag_frames(rs_bag, topics)[0], want)
+
+
+def test_jpeg_colour_and_png_depth_transport(raw_bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / "jpeg"
+    realsense_bag(raw_bag, out, color_format="jpeg", depth_transport="compressed")
+    got, _ = bags.read_bag_frames(out, bags.realsense_topics(color_transport="auto", depth_transport="auto"))
+    want, _ = bags.read_bag_frames(raw_bag)
+    _assert_same_frames(got, want, rgb_atol=10)  # JPEG is lossy (here on noise: ~6 levels); depth PNG is not
+    err = np.abs(got[0].rgb.astype(int) - want[0].rgb.astype(int)).mean()
+    swapped = np.abs(got[0].rgb[..., ::-1].astype(int) - want[0].rgb.astype(int)).mean()
+    assert swapped > 2 * err  # RGB, not OpenCV's BGR (the PNG test checks the order exactly)
+
+
+def test_frames_without_tf_are_skipped_and_counted_with_the_reason(raw_bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / "tf_gap"
+    realsense_bag(raw_bag, out, keep_tf=lambda k: k != N - 1)  # the last frame's pose never comes
+    with bags.BagReader(out, bags.realsense_topics(color_transport="auto", depth_transport="auto")) as reader:
+        got = list(reader.frames())
+        assert reader.no_tf == 1 and "after the newest transform 'odom' -> 'base_link'" in reader.last_tf_error
+    assert len(got) == N - 1
+    # a wrong child frame: no frame at all, and the error names the frames
+    with pytest.raises(InputError, match=r"no complete RGB-D frame \(no pose on TF: .*'camera_depth_optical_frame'"):
+        open_frames(out, topics=bags.realsense_topics(tf_child_frame="camera_depth_optical_frame",
+                                                     color_transport="auto", depth_transport="auto"))  # fmt: skip
+
+
+def test_bag_info_counts_frames_of_a_tf_bag(rs_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frame_count"] == N and info["incomplete_stamps"] == 0 and info["pose_source"] == "tf"
+    assert (info["width"], info["height"]) == (W, H) and "compressedDepth" in info["depth_encoding"]
+
+
+def test_map_with_realsense_options_gives_the_raw_bags_keyframes_and_poses(
+    raw_bag: Path, rs_bag: Path, tmp_path: Path
+) -> None:
+    common = ["--policy", "gaus-slam", "--iters-per-keyframe", "2", "--no-progress", "--no-h-train"]
+    assert cli_main(["map", str(raw_bag), "--out", str(tmp_path / "raw"), *common]) == 0
+    rs_args = ["--depth-topic", RS_DEPTH, "--color-topic", RS_COLOR, "--camera-info-topic", RS_INFO]
+    assert cli_main(["map", str(rs_bag), "--out", str(tmp_path / "rs"), *common, *rs_args, "--pose-source", "tf"]) == 0
+    assert cli_main(["map", str(rs_bag), "--out", str(tmp_path / "preset"), *common, "--realsense"]) == 0
+    raw = json.loads((tmp_path / "raw" / "keyframes.json").read_text())
+    for run in ("rs", "preset"):
+        got = json.loads((tmp_path / run / "keyframes.json").read_text())
+        assert got["keyframe_ids"] == raw["keyframe_ids"] and len(raw["keyframe_ids"]) >= 2
+        np.testing.assert_allclose(got["keyframe_poses"], raw["keyframe_poses"], atol=1e-9)
+        assert json.loads((tmp_path / run / "metrics.json").read_text())["n_frames"] == N
+
+
+def test_cli_camera_options_fail_naming_the_option_or_topic(rs_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--tf-tolerance", "-1"]) == 2
+    assert "--tf-tolerance" in capsys.readouterr().err
+    out = rs_bag.parent / "never"
+    assert cli_main(["map", str(rs_bag), "--out", str(out), "--no-progress"]) == 2  # default names: not in this bag
+    err = capsys.readouterr().err
+    assert "/camera/depth/image_raw" in err and "missing" in err and not out.exists()
+
+
+# ------------------------------------------------------------------------------------------ converters
+
+
+def test_compressed_converters_round_trip_and_reject_bad_data_naming_the_topic() -> None:
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, size=(12, 16, 3), dtype=np.uint8)
+    depth_m = np.round(rng.uniform(0.3, 5.0, size=(12, 16)), 3).astype(np.float32)
+    depth_m[0, :4] = 0.0
+    hdr = T_["std_msgs/msg/Header"](stamp=T_["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="cam")
+    fmt, data = bags.encode_compressed_rgb(rgb, "png")
+    assert fmt == "rgb8; png compressed bgr8"
+    np.testing.assert_array_equal(bags.image_to_rgb(_compressed(hdr, fmt, data)), rgb)
+    for transport in ("compressed", "compressedDepth"):
+        fmt, data = bags.encode_compressed_depth(depth_m, transport)
+        got = bags.image_to_depth_m(_compressed(hdr, fmt, data))
+        np.testing.assert_allclose(got, depth_m, atol=1e-6)
+        assert (got[0, :4] == 0).all()
+    # compressedDepth of float depth: quantised inverse depth, decoded as image_transport does
+    quant_a, quant_b = 100.0 * 101.0, 1.0 - 100.0 * 101.0 / 10.0
+    inv = np.where(depth_m > 0, quant_a / np.where(depth_m > 0, depth_m, 1) + quant_b, 0).astype(np.uint16)
+    png = cv2.imencode(".png", inv)[1].tobytes()
+    got = bags.image_to_depth_m(
+        _compressed(hdr, "32FC1; compressedDepth png", struct.pack("<iff", 0, quant_a, quant_b) + png)
+    )
+    assert (got[0, :4] == 0).all() and np.abs(got - depth_m)[depth_m > 0].max() < 0.01 * 5.0**2  # quantisation step
+    # bad data: named by the topic
+    fmt, data = bags.encode_compressed_rgb(rgb, "jpeg")
+    for bad in (data[: len(data) // 2], data[:-2], b"not an image"):
+        with pytest.raises(InputError, match=r"^/camera/color/image_raw/compressed: .*(truncated|cannot decode)"):
+            bags.image_to_rgb(_compressed(hdr, fmt, bad), "/camera/color/image_raw/compressed")
+    fmt, data = bags.encode_compressed_depth(depth_m, "compressedDepth")
+    with pytest.raises(InputError, match=r"^/d: .*truncated"):
+        bags.image_to_depth_m(_compressed(hdr, fmt, data[:-20]), "/d")
+    with pytest.raises(InputError, match=r"^/d: compressedDepth data has 12 bytes"):
+        bags.image_to_depth_m(_compressed(hdr, fmt, data[:12]), "/d")
+    with pytest.raises(InputError, match=r"^/d: .*RVL.*not supported"):
+        bags.image_to_depth_m(_compressed(hdr, "16UC1; compressedDepth rvl", data), "/d")
+    with pytest.raises(InputError, match=r"^/d: .*expected a 16-bit PNG"):
+        bags.image_to_depth_m(_compressed(hdr, "png", cv2.imencode(".png", rgb)[1].tobytes()), "/d")
