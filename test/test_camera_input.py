@@ -149,3 +149,285 @@ def test_demo_command_replays_and_maps(tmp_path: Path) -> None:
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["n_frames"] == 4 and metrics["n_keyframes"] >= 1
     assert (run / "mesh.ply").is_file() and (run / "map.ply").is_file() and (run / "replay.json").is_file()
+
+
+# ---------------------------------------------------------------------------------------- TF + compressed
+T0_NS = 1_700_000_000 * 1_000_000_000
+OPTICAL = "camera_color_optical_frame"
+
+
+def _rigid(rotvec: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+T_MAP_ODOM = _rigid((0.0, 0.0, 0.4), (1.0, -2.0, 0.0))
+T_BASE_OPTICAL = _rigid((-np.pi / 2, 0.0, -np.pi / 2), (0.1, 0.0, 0.3))  # base_link -> camera_link -> optical
+
+
+def _transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Any:
+    from geometry_msgs.msg import TransformStamped
+
+    from roigsf_ros.core.camera import matrix_to_quat_xyzw
+
+    ts = _header(TransformStamped(), stamp_ns)
+    ts.header.frame_id, ts.child_frame_id = parent, child
+    ts.transform.translation.x, ts.transform.translation.y, ts.transform.translation.z = (float(v) for v in T[:3, 3])
+    q = matrix_to_quat_xyzw(T[:3, :3])
+    ts.transform.rotation.x, ts.transform.rotation.y, ts.transform.rotation.z, ts.transform.rotation.w = map(float, q)
+    return ts
+
+
+class _Publishers:
+    """Publishes frames both ways: PoseStamped + Image (default topics) and TF + CompressedImage (RealSense names)."""
+
+    def __init__(self, ctx: Any, rs: CameraTopics, qos: Any) -> None:
+        from sensor_msgs.msg import CompressedImage
+        from tf2_msgs.msg import TFMessage
+
+        from roigsf_ros.nodes.camera_input import tf_static_qos
+
+        self.node = Node("tf_compressed_pub", context=ctx)
+        raw = CameraTopics()
+        types = {raw.color: Image, raw.depth: Image, raw.camera_info: CameraInfo, raw.pose: PoseStamped}
+        types |= {rs.color: CompressedImage, rs.depth: CompressedImage, rs.camera_info: CameraInfo}
+        types |= {rs.tf_topic: TFMessage}
+        self.pubs = {topic: self.node.create_publisher(cls, topic, qos) for topic, cls in types.items()}
+        self.static = self.node.create_publisher(TFMessage, rs.tf_static_topic, tf_static_qos())
+        self.raw, self.rs = raw, rs
+
+    def wait_for_subscribers(self) -> None:
+        deadline = time.monotonic() + 10.0
+        while any(p.get_subscription_count() == 0 for p in self.pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    def publish_static(self) -> None:
+        from tf2_msgs.msg import TFMessage
+
+        self.static.publish(
+            TFMessage(
+                transforms=[
+                    _transform("map", "odom", T_MAP_ODOM, 0),
+                    _transform("base_link", "camera_link", T_BASE_OPTICAL, 0),
+                    _transform("camera_link", OPTICAL, np.eye(4), 0),
+                ]
+            )
+        )
+
+    def publish_frame(self, frame: Any, intr: Any, stamp_ns: int, tf: bool, truncate_colour: bool = False) -> None:
+        from sensor_msgs.msg import CompressedImage
+        from tf2_msgs.msg import TFMessage
+
+        from roigsf_ros.data import bags
+        from roigsf_ros.nodes.map_msgs import pose_stamped
+
+        h, w = frame.depth_m.shape
+        info = _header(CameraInfo(), stamp_ns)
+        info.width, info.height, info.k = w, h, intr.K.reshape(-1).tolist()
+        color = _header(Image(height=h, width=w, encoding="rgb8", step=3 * w), stamp_ns)
+        color.data = np.ascontiguousarray(frame.rgb).tobytes()
+        depth = _header(Image(height=h, width=w, encoding="16UC1", step=2 * w), stamp_ns)
+        depth.data = bags.depth_to_image_data(frame.depth_m, "16UC1").tobytes()
+        for topic, msg in ((self.raw.color, color), (self.raw.depth, depth), (self.raw.camera_info, info)):
+            self.pubs[topic].publish(msg)
+        self.pubs[self.raw.pose].publish(pose_stamped(frame.T_wc, stamp_ns))
+        # the robot's way: compressed images under RealSense names, the pose as odom -> base_link on /tf
+        T_odom_base = np.linalg.inv(T_MAP_ODOM) @ frame.T_wc @ np.linalg.inv(T_BASE_OPTICAL)
+        odd = (stamp_ns // 100_000_000) % 2 == 1
+        if tf and not odd:  # TF before the images for even frames, after them for odd ones
+            self.pubs[self.rs.tf_topic].publish(
+                TFMessage(transforms=[_transform("odom", "base_link", T_odom_base, stamp_ns)])
+            )
+        fmt, data = bags.encode_compressed_rgb(frame.rgb, "png")
+        self.pubs[self.rs.color].publish(
+            _header(CompressedImage(format=fmt, data=data[: len(data) // 2] if truncate_colour else data), stamp_ns)
+        )
+        fmt, data = bags.encode_compressed_depth(frame.depth_m, "compressedDepth")
+        self.pubs[self.rs.depth].publish(_header(CompressedImage(format=fmt, data=data), stamp_ns))
+        self.pubs[self.rs.camera_info].publish(info)
+        if tf and odd:
+            self.pubs[self.rs.tf_topic].publish(
+                TFMessage(transforms=[_transform("odom", "base_link", T_odom_base, stamp_ns)])
+            )
+
+
+def test_tf_and_compressed_images_give_the_frames_of_pose_and_raw_images(ros_context: Any, tmp_path: Path) -> None:
+    pytest.importorskip("tf2_msgs")
+    from roigsf_ros.data.bags import realsense_topics
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    make_synthetic_replica(tmp_path / "scene", 32, 24, 8, seed=4)
+    seq = ReplicaSequence(tmp_path / "scene")
+    rs = realsense_topics(color_transport="compressed", depth_transport="compressedDepth", tf_tolerance_s=0.05)
+    qos = reliable_qos(50)
+    raw_frames: list[BagFrame] = []
+    tf_frames: list[BagFrame] = []
+    raw_node = Node("raw_input", context=ros_context)
+    tf_node = Node("tf_input", context=ros_context)
+    raw_cam = CameraInput(raw_node, raw_frames.append, qos)
+    tf_cam = CameraInput(tf_node, tf_frames.append, qos, rs, tf_wait_s=0.5)
+    assert tf_cam.topics.color == "/camera/color/image_raw/compressed"
+    assert tf_cam.topics.depth == "/camera/aligned_depth_to_color/image_raw/compressedDepth"
+    pub = _Publishers(ros_context, tf_cam.topics, qos)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (raw_node, tf_node, pub.node):
+        executor.add_node(n)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        pub.wait_for_subscribers()
+        pub.publish_static()
+        for k, frame in enumerate(seq):
+            # frame 5: no TF (its neighbours' are 0.1 s away, beyond the 0.05 s tolerance: never posed);
+            # frame 6: truncated colour; frame 7: no TF at all (dropped after tf_wait_s)
+            pub.publish_frame(
+                frame, seq.intrinsics, T0_NS + k * 100_000_000, tf=k not in (5, 7), truncate_colour=k == 6
+            )
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and (
+            len(raw_frames) < 8 or sum(tf_cam.stats()["rejected"].values()) + tf_cam.frames < 8
+        ):
+            time.sleep(0.02)
+    finally:
+        executor.shutdown()
+        spin.join()
+        for n in (raw_node, tf_node, pub.node):
+            n.destroy_node()
+    stats = tf_cam.stats()
+    assert stats["rejected"] == {"no_tf": 2, "bad_image": 1} and stats["awaiting_tf"] == 0
+    assert "within 0.05 s" in stats["last_rejection"] or "in time" in stats["last_rejection"]
+    assert [f.stamp_ns for f in tf_frames] == [T0_NS + k * 100_000_000 for k in range(5)]
+    assert len(raw_frames) == 8 and raw_cam.stats()["rejected"] == {}
+    for got, want in zip(tf_frames, raw_frames[:5], strict=True):
+        assert got.stamp_ns == want.stamp_ns and got.intrinsics == want.intrinsics
+        np.testing.assert_array_equal(got.rgb, want.rgb)
+        np.testing.assert_array_equal(got.depth_m, want.depth_m)
+        np.testing.assert_allclose(got.T_wc, want.T_wc, atol=1e-12)  # map -> odom -> base_link -> ... -> optical
+
+
+def test_640x480_at_30hz_is_downscaled_on_arrival_and_every_frame_accounted(ros_context: Any) -> None:
+    """A RealSense-size stream at its rate through the mapper node's camera input: bounded, downscaled, all counted.
+
+    No timing threshold: whatever this machine's speed, each frame sent must be in exactly one counter
+    (delivered, rejected, pending, dropped, ... or estimated missed), queues stay within their bounds
+    and what is kept is at the mapping size.
+    """
+    pytest.importorskip("roigsf_interfaces")
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros.core.camera import Intrinsics
+    from roigsf_ros.nodes.map_msgs import pose_stamped
+    from roigsf_ros.nodes.mapper import MapperNode
+
+    w, h, n_frames, rate_hz = 640, 480, 90, 30.0
+    intr = Intrinsics(width=w, height=h, fx=615.0, fy=615.0, cx=319.5, cy=239.5)
+    overrides = [
+        Parameter("input_width", value=80),
+        Parameter("frame_buffer_size", value=8),
+        Parameter("map_publish_rate_hz", value=0.0),
+        Parameter("status_rate_hz", value=0.0),
+    ]
+    mapper = MapperNode(context=ros_context, parameter_overrides=overrides)
+    pub_node = Node("camera_30hz", context=ros_context)
+    t = CameraTopics()
+    qos = reliable_qos(100)
+    pubs = {
+        topic: pub_node.create_publisher(cls, topic, qos)
+        for topic, cls in ((t.color, Image), (t.depth, Image), (t.camera_info, CameraInfo), (t.pose, PoseStamped))
+    }
+    rng = np.random.default_rng(0)
+    rgb_bytes = rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8).tobytes()
+    depth_bytes = np.full((h, w), 2.0, np.float32).tobytes()
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(mapper)
+    executor.add_node(pub_node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        start = time.monotonic()
+        for k in range(n_frames):
+            stamp = T0_NS + round(k * 1e9 / rate_hz)
+            color = _header(Image(height=h, width=w, encoding="rgb8", step=3 * w), stamp)
+            color.data = rgb_bytes
+            depth = _header(Image(height=h, width=w, encoding="32FC1", step=4 * w), stamp)
+            depth.data = depth_bytes
+            info = _header(CameraInfo(width=w, height=h), stamp)
+            info.k = intr.K.reshape(-1).tolist()
+            for topic, msg in ((t.color, color), (t.depth, depth), (t.camera_info, info)):
+                pubs[topic].publish(msg)
+            pubs[t.pose].publish(pose_stamped(np.eye(4), stamp))
+            time.sleep(max(0.0, start + (k + 1) / rate_hz - time.monotonic()))
+        frame_counts = ("frames", "awaiting_tf", "dropped_incomplete", "pending", "duplicate_stamp", "out_of_order")
+
+        def accounted() -> int:
+            s = mapper.camera.stats()
+            return sum(s[c] for c in frame_counts) + s["frames_missed_estimate"] + sum(s["rejected"].values())
+
+        deadline = time.monotonic() + 30.0
+        while accounted() - mapper.camera.stats()["pending"] < n_frames - 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats, status = mapper.camera.stats(), mapper.status()
+        with mapper._lock:
+            buffered = list(mapper._frames.values())
+    finally:
+        executor.shutdown()
+        spin.join()
+        mapper.destroy_node()
+        pub_node.destroy_node()
+    # every frame sent is in exactly one counter (the last may still wait for a newer stamp to be settled)
+    assert accounted() in (n_frames, n_frames - 1) and stats["rejected"] == {}
+    assert stats["frames"] > 0 and stats["pending"] <= mapper.camera.max_pending
+    for topic in t.types():  # every message either arrived or is counted as lost on its way
+        assert stats["received"][topic] + stats["missed_estimate"][topic] in (n_frames, n_frames - 1)
+    # bounded memory: the mapper keeps frame_buffer_size frames, each at the mapping size 80x60
+    assert 0 < len(buffered) <= 8 and status["frames_evicted"] == stats["frames"] - len(buffered)
+    assert {f.rgb.shape for f in buffered} == {(60, 80, 3)} and {f.depth_m.shape for f in buffered} == {(60, 80)}
+    small = mapper._intr
+    assert (small.width, small.height, small.fx, small.cx) == (80, 60, 615.0 / 8, (319.5 + 0.5) / 8 - 0.5)
+
+
+def test_bag_player_latches_tf_static_for_late_listeners(ros_context: Any, tmp_path: Path) -> None:
+    """/tf_static is played transient-local (as tf2's static broadcaster offers it): a later listener gets it."""
+    pytest.importorskip("tf2_msgs")
+    from rclpy.parameter import Parameter
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.nodes.bag_player import BagPlayer
+    from roigsf_ros.nodes.camera_input import tf_static_qos
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    static = ts.types["tf2_msgs/msg/TFMessage"](transforms=[])
+    with Writer(tmp_path / "static", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
+        writer.write(conn, T0_NS, ts.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
+    params = [Parameter("bag", value=str(tmp_path / "static")), Parameter("rate", value=0.0)]
+    player = BagPlayer(context=ros_context, parameter_overrides=[*params, Parameter("start_delay_s", value=0.0)])
+    got: list[Any] = []
+    late = Node("late_listener", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(player)
+    executor.add_node(late)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        assert player.wait(10.0)  # played before anyone listened
+        late.create_subscription(TFMessage, "/tf_static", got.append, tf_static_qos())
+        deadline = time.monotonic() + 5.0
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        executor.shutdown()
+        spin.join()
+        player.destroy_node()
+        late.destroy_node()
+    assert len(got) == 1

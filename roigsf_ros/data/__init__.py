@@ -30,6 +30,7 @@ __all__, __getattr__ = lazy_exports(
             "POSE_TOPIC",
             "POSE_TYPE",
             "assemble_frame",
+            "assemble_images",
             "bag_info",
             "camera_info_to_intrinsics",
             "compressed_to_depth_m",

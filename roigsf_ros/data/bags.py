@@ -768,6 +768,24 @@ class BagReader:
         return assemble_frame(stamp, msg(t.color), msg(t.depth), msg(t.camera_info), pose, t, where, source)
 
 
+def assemble_images(
+    color_msg: Any, depth_msg: Any, info_msg: Any, topics: CameraTopics | None = None, where: Callable[[str], str] = str
+) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """``(rgb [H, W, 3] uint8, depth_m [H, W] float32, intrinsics)`` of one stamp; InputError if sizes disagree."""
+    t = topics or CameraTopics()
+    rgb = image_to_rgb(color_msg, where(t.color))
+    depth_m = image_to_depth_m(depth_msg, where(t.depth))
+    intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
+    h, w = depth_m.shape
+    if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
+        raise InputError(
+            where(t.depth),
+            f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
+            f"camera info {intr.width}x{intr.height}",
+        )
+    return rgb, depth_m, intr
+
+
 def assemble_frame(
     stamp_ns: int,
     color_msg: Any,
@@ -785,20 +803,11 @@ def assemble_frame(
     ``pose_source`` (default: the pose or TF topic) the stream in the once-only pose warning.
     """
     t = topics or CameraTopics()
-    rgb = image_to_rgb(color_msg, where(t.color))
-    depth_m = image_to_depth_m(depth_msg, where(t.depth))
-    intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
     if isinstance(pose, np.ndarray):
         T_wc = load_pose(pose, where(t.tf_topic), pose_source if pose_source is not None else t.tf_topic)
     else:
         T_wc = pose_to_matrix(pose, where(t.pose), pose_source if pose_source is not None else t.pose)
-    h, w = depth_m.shape
-    if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
-        raise InputError(
-            where(t.depth),
-            f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
-            f"camera info {intr.width}x{intr.height}",
-        )
+    rgb, depth_m, intr = assemble_images(color_msg, depth_msg, info_msg, t, where)
     return BagFrame(stamp_ns=stamp_ns, rgb=rgb, depth_m=depth_m, T_wc=T_wc, intrinsics=intr)
 
 
@@ -909,6 +918,7 @@ __all__ = [
     "BagReader",
     "CameraTopics",
     "assemble_frame",
+    "assemble_images",
     "bag_info",
     "camera_info_to_intrinsics",
     "compressed_to_depth_m",

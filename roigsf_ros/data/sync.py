@@ -151,7 +151,7 @@ class StampGapCounter:
         return lost
 
 
-REJECT_REASONS = ("bad_encoding", "size_mismatch", "bad_image", "bad_camera_info", "bad_pose", "other")
+REJECT_REASONS = ("bad_encoding", "size_mismatch", "bad_image", "bad_camera_info", "bad_pose", "no_tf", "other")
 """The categories :meth:`FrameLedger.reject` counts by (anything else is counted as "other")."""
 
 

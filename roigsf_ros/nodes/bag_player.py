@@ -33,6 +33,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
+from roigsf_ros.data.tf import TF_MESSAGE_TYPE
 from roigsf_ros.nodes.node_params import init_ros, script_args
 
 
@@ -147,8 +148,19 @@ class BagPlayer(Node):
             raise InputError(self.bag_path, "bag has no topics to play")
 
         qos = reliable_qos(qos_depth)
+        latched = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=qos_depth,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        # Static transforms are latched, as tf2's static broadcaster offers them (a listener asks for it).
         self._publishers_by_topic: dict[str, Publisher] = {
-            topic: self.create_publisher(message_class(typ, f"{self.bag_path}:{topic}"), topic, qos)
+            topic: self.create_publisher(
+                message_class(typ, f"{self.bag_path}:{topic}"),
+                topic,
+                latched if typ == TF_MESSAGE_TYPE and topic.endswith("tf_static") else qos,
+            )
             for topic, typ in types.items()
         }
         self.total_per_loop = sum(counts[t] for t in types)

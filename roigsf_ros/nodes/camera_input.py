@@ -1,49 +1,144 @@
-"""Camera input shared by the nodes: four subscriptions matched by stamp into validated frames.
+"""Camera input shared by the nodes: the camera's topics matched by stamp into validated, downscaled frames.
 
-Messages are converted with the library's converters (:mod:`roigsf_ros.data.bags`) and matched with
-:class:`roigsf_ros.data.sync.FrameLedger`, which accounts for every frame sent exactly once in bounded
-counters. Bad messages (unsupported encoding, size mismatch with the camera info, NaN pose, ...) are
-dropped with a throttled warning and counted by a short reason category; frames that never complete
-(e.g. depth without colour) are dropped and counted once the bounded queue overflows; repeated stamps
-and stamps gone back are counted, not delivered; frames that never arrived at all (every message
+Colour and depth come as ``sensor_msgs/Image`` or ``CompressedImage`` (image_transport's ``compressed``
+and ``compressedDepth``), and the pose as a ``geometry_msgs/PoseStamped`` or from TF (``/tf`` +
+``/tf_static``, :class:`roigsf_ros.data.tf.TransformBuffer`) at the frame's stamp
+(:class:`roigsf_ros.data.bags.CameraTopics` says which). Messages are converted with the library's
+converters (:mod:`roigsf_ros.data.bags`) and matched with :class:`roigsf_ros.data.sync.FrameLedger`,
+which accounts for every frame sent exactly once in bounded counters. Each frame is downscaled on
+arrival to ``input_size`` (intrinsics scaled with pixel centres kept aligned), so a 640x480 30 Hz
+camera costs the nodes only the mapping resolution in memory and work.
+
+Bad messages (unsupported encoding, size mismatch with the camera info, NaN pose, truncated JPEG, ...)
+are dropped with a throttled warning and counted by a short reason category; frames that never
+complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows; repeated
+stamps and stamps gone back are counted, not delivered; frames that never arrived at all (every message
 overwritten in a full middleware queue, which the middleware does not report) are estimated from gaps
-in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`).
+in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`). With poses from TF, a complete frame
+waits (at most ``max_pending`` frames, at most ``tf_wait_s``) until TF gives its pose, else it is
+dropped and counted as ``no_tf``.
 """
 
 from __future__ import annotations
 
+import importlib
 import threading
-from collections import Counter
+import time
+from collections import Counter, deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from roigsf_ros.core.camera import Intrinsics, load_pose
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import BagFrame, CameraTopics, assemble_frame, stamp_to_ns
+from roigsf_ros.core.frame import Frame, resize_frame
+from roigsf_ros.data.bags import (
+    AUTO,
+    CAMERA_INFO_TYPE,
+    COMPRESSED_IMAGE_TYPE,
+    IMAGE_TYPE,
+    POSE_TYPE,
+    BagFrame,
+    CameraTopics,
+    assemble_frame,
+    assemble_images,
+    stamp_to_ns,
+)
 from roigsf_ros.data.sync import FrameLedger, StampGapCounter
+from roigsf_ros.data.tf import TransformBuffer, TransformUnavailableError
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
+TF_EXPIRE_PERIOD_S = 0.1
+"""How often frames waiting for their pose on TF are checked against ``tf_wait_s``."""
+_MESSAGE_CLASSES: dict[str, type] = {
+    IMAGE_TYPE: Image,
+    COMPRESSED_IMAGE_TYPE: CompressedImage,
+    CAMERA_INFO_TYPE: CameraInfo,
+    POSE_TYPE: PoseStamped,
+}
 
 
 def reject_reason(exc: InputError, topics: CameraTopics) -> str:
     """The short, bounded category of a frame's conversion error (counters are keyed by it, not by its text)."""
+    if isinstance(exc, TransformUnavailableError):
+        return "no_tf"
     problem = exc.problem
     if "encoding" in problem:
         return "bad_encoding"
     if "sizes disagree" in problem:
         return "size_mismatch"
-    for topic, reason in ((topics.pose, "bad_pose"), (topics.camera_info, "bad_camera_info")):
+    for topic, reason in (
+        (topics.pose, "bad_pose"),
+        (topics.tf_topic, "bad_pose"),
+        (topics.camera_info, "bad_camera_info"),
+    ):
         if exc.where.startswith(topic):
             return reason
     if exc.where.startswith((topics.color, topics.depth)):
         return "bad_image"
     return "other"
+
+
+def tf_message_class() -> type:
+    """``tf2_msgs.msg.TFMessage``; InputError saying how to get it when it is not installed."""
+    try:
+        return importlib.import_module("tf2_msgs.msg").TFMessage
+    except (ImportError, AttributeError):
+        raise InputError(
+            "parameter 'pose_source'",
+            "tf needs the tf2_msgs message package: run scripts/setup.sh (it builds vendor/tf2_msgs when "
+            "a full ROS install does not provide it)",
+        ) from None
+
+
+def tf_static_qos() -> QoSProfile:
+    """What tf2's static listener asks for: reliable, transient local (latched), keep-last 100."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=100,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+def tf_qos() -> QoSProfile:
+    """What tf2's listener asks for on ``/tf``: reliable, volatile, keep-last 100."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=100,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """How a node reads its camera: topics, transports and pose source, the mapping size, the TF wait."""
+
+    topics: CameraTopics
+    input_size: tuple[int | None, int | None] | None = None
+    """(width, height) frames are downscaled to on arrival; None keeps the camera's size, one None its aspect."""
+    tf_wait_s: float = 1.0
+    """Seconds a complete frame waits for its pose on TF before it is dropped (``no_tf``)."""
+
+
+@dataclass
+class _AwaitingPose:
+    """A converted frame waiting for its pose on TF."""
+
+    stamp_ns: int
+    rgb: np.ndarray  # [H, W, 3] uint8
+    depth_m: np.ndarray  # [H, W] float32 metres
+    intrinsics: Intrinsics
+    since: float  # time.monotonic() when it completed
 
 
 class CameraInput:
@@ -57,59 +152,91 @@ class CameraInput:
         topics: CameraTopics | None = None,
         max_pending: int = 16,
         callback_group: CallbackGroup | None = None,
+        input_size: tuple[int | None, int | None] | None = None,
+        tf_wait_s: float = 1.0,
     ) -> None:
         self.node = node
         self.on_frame = on_frame
-        self.topics = topics or CameraTopics()
+        requested = topics or CameraTopics()
+        for name in ("color_transport", "depth_transport"):
+            if getattr(requested, name) == AUTO:
+                raise InputError(f"parameter '{name}'", "'auto' is for bags; name the transport of a live topic")
+        self.topics = requested.resolved()
+        self.input_size = input_size
+        self.tf_wait_s = float(tf_wait_s)
+        self.max_pending = int(max_pending)
         self.received: Counter[str] = Counter()
         """Messages received per topic."""
+        self.tf_rejected = 0
+        """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.last_rejection = ""
         """The full text of the last frame's conversion error (the counters hold only its category)."""
         self._ledger: FrameLedger[Any] = FrameLedger(self.topics.types(), max_pending)
         self._gaps = {topic: StampGapCounter() for topic in self.topics.types()}
         self._lock = threading.Lock()
+        self._tf: TransformBuffer | None = None
+        self._awaiting: deque[_AwaitingPose] = deque()
         t = self.topics
-        for topic, msg_type in ((t.color, Image), (t.depth, Image), (t.camera_info, CameraInfo), (t.pose, PoseStamped)):
-            node.create_subscription(msg_type, topic, self._callback_for(topic), qos, callback_group=callback_group)
+        for topic, type_name in t.types().items():
+            cls = _MESSAGE_CLASSES[type_name]
+            node.create_subscription(cls, topic, self._callback_for(topic), qos, callback_group=callback_group)
+        if t.uses_tf:
+            tf_cls = tf_message_class()
+            self._tf = TransformBuffer(tolerance_s=t.tf_tolerance_s)
+            for topic, static, tqos in ((t.tf_topic, False, tf_qos()), (t.tf_static_topic, True, tf_static_qos())):
+                node.create_subscription(
+                    tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
+                )
+            node.create_timer(TF_EXPIRE_PERIOD_S, self._expire_awaiting, callback_group=callback_group)
 
     @property
     def frames(self) -> int:
         """Frames delivered to ``on_frame``."""
         with self._lock:
-            return self._ledger.frames
+            return self._ledger.frames - len(self._awaiting)
 
     @property
     def dropped_incomplete(self) -> int:
-        """Stamps given up because one of the four messages never came."""
+        """Stamps given up because one of their messages never came."""
         with self._lock:
             return self._ledger.dropped_incomplete
 
     def stats(self) -> dict[str, Any]:
         """Counters for reports; every frame sent is in exactly one of the frame counters.
 
-        Frames: ``frames`` (delivered), ``rejected`` (by reason category), ``dropped_incomplete``,
-        ``pending``, ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its
-        messages arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages:
-        ``received`` and ``missed_estimate`` (estimated lost before they arrived) per topic.
+        Frames: ``frames`` (delivered), ``rejected`` (by reason category, ``no_tf`` included),
+        ``awaiting_tf`` (complete, waiting for their pose on TF), ``dropped_incomplete``, ``pending``,
+        ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its messages
+        arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages: ``received``
+        and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``.
         """
         with self._lock:
             counts = self._ledger.counts()
+            awaiting = len(self._awaiting)
             return {
                 "received": dict(self.received),
-                "frames": counts["frames"],
+                "frames": counts["frames"] - awaiting,
                 "rejected": counts["rejected"],
+                "awaiting_tf": awaiting,
                 "dropped_incomplete": counts["dropped_incomplete"],
                 "pending": counts["pending"],
                 "duplicate_stamp": counts["duplicate_stamp"],
                 "out_of_order": counts["out_of_order"],
                 "frames_missed_estimate": counts["missed_estimate"],
                 "missed_estimate": {topic: g.missed for topic, g in self._gaps.items()},
+                "tf_rejected": self.tf_rejected,
                 "last_rejection": self.last_rejection,
             }
 
     def _callback_for(self, topic: str) -> Callable[[Any], None]:
         def callback(msg: Any) -> None:
             self._on_message(topic, msg)
+
+        return callback
+
+    def _tf_callback_for(self, topic: str, static: bool) -> Callable[[Any], None]:
+        def callback(msg: Any) -> None:
+            self._on_tf(topic, static, msg)
 
         return callback
 
@@ -122,20 +249,93 @@ class CameraInput:
         if parts is None:
             return
         t = self.topics
+
+        def where(name: str) -> str:
+            return f"{name} @ {stamp} ns"
+
         try:
-            frame = assemble_frame(
-                stamp,
-                parts[t.color],
-                parts[t.depth],
-                parts[t.camera_info],
-                parts[t.pose],
-                t,
-                lambda name: f"{name} @ {stamp} ns",
-            )
+            if self._tf is None:
+                frame = self._downscale(
+                    assemble_frame(stamp, parts[t.color], parts[t.depth], parts[t.camera_info], parts[t.pose], t, where)
+                )
+            else:
+                rgb, depth_m, intr = assemble_images(parts[t.color], parts[t.depth], parts[t.camera_info], t, where)
+                small = self._downscale(BagFrame(stamp, rgb, depth_m, np.eye(4), intr))
+                awaiting = _AwaitingPose(stamp, small.rgb, small.depth_m, small.intrinsics, time.monotonic())
         except InputError as exc:
-            with self._lock:
-                self._ledger.reject(reject_reason(exc, t))
-                self.last_rejection = str(exc)
-            self.node.get_logger().warning(f"dropped frame: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._reject(exc)
             return
-        self.on_frame(frame)
+        if self._tf is None:
+            self.on_frame(frame)
+            return
+        with self._lock:
+            self._awaiting.append(awaiting)
+        self._deliver_posed()
+
+    def _on_tf(self, topic: str, static: bool, msg: Any) -> None:
+        assert self._tf is not None
+        with self._lock:
+            self.received[topic] += 1
+            errors = self._tf.add_message(msg, static, topic)
+            self.tf_rejected += len(errors)
+        if errors:
+            self.node.get_logger().warning(f"ignored transform: {errors[-1]}", throttle_duration_sec=WARN_THROTTLE_S)
+        self._deliver_posed()
+
+    def _expire_awaiting(self) -> None:
+        self._deliver_posed(now=time.monotonic())
+
+    def _deliver_posed(self, now: float | None = None) -> None:
+        """Deliver the waiting frames (oldest first) whose pose TF gives; drop those it will not give in time."""
+        assert self._tf is not None
+        t = self.topics
+        ready: list[BagFrame] = []
+        dropped: list[InputError] = []
+        with self._lock:
+            while self._awaiting:
+                a = self._awaiting[0]
+                try:
+                    T = self._tf.lookup(t.tf_parent_frame, t.tf_child_frame, a.stamp_ns)
+                    T_wc = load_pose(T, f"{t.tf_topic} @ {a.stamp_ns} ns", t.tf_topic)
+                except TransformUnavailableError as exc:
+                    expired = now is not None and now - a.since > self.tf_wait_s
+                    if exc.retry and not expired and len(self._awaiting) <= self.max_pending:
+                        break
+                    self._awaiting.popleft()
+                    if exc.retry:
+                        why = "in time" if expired else f"before {self.max_pending} newer frames were waiting"
+                        exc = TransformUnavailableError(exc.where, f"{exc.problem} (no pose {why})", retry=False)
+                    self._ledger.reject("no_tf")
+                    self.last_rejection = str(exc)
+                    dropped.append(exc)
+                    continue
+                except InputError as exc:  # a composed pose that is not rigid
+                    self._awaiting.popleft()
+                    self._ledger.reject("bad_pose")
+                    self.last_rejection = str(exc)
+                    dropped.append(exc)
+                    continue
+                self._awaiting.popleft()
+                ready.append(BagFrame(a.stamp_ns, a.rgb, a.depth_m, T_wc, a.intrinsics))
+        if dropped:
+            self.node.get_logger().warning(
+                f"dropped {len(dropped)} frame(s): {dropped[-1]}", throttle_duration_sec=WARN_THROTTLE_S
+            )
+        for frame in ready:
+            self.on_frame(frame)
+
+    def _reject(self, exc: InputError) -> None:
+        with self._lock:
+            self._ledger.reject(reject_reason(exc, self.topics))
+            self.last_rejection = str(exc)
+        self.node.get_logger().warning(f"dropped frame: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _downscale(self, bf: BagFrame) -> BagFrame:
+        """The frame at ``input_size`` (colour by area, depth nearest with centres aligned, intrinsics scaled)."""
+        if self.input_size is None:
+            return bf
+        intr = bf.intrinsics.resized(*self.input_size)
+        if (intr.width, intr.height) == (bf.intrinsics.width, bf.intrinsics.height):
+            return bf
+        small = resize_frame(Frame(index=bf.stamp_ns, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), intr)
+        return BagFrame(bf.stamp_ns, small.rgb, small.depth_m, bf.T_wc, intr)

@@ -46,7 +46,7 @@ from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
-from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_topic_params, frame_of, latched_qos
+from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_params, frame_of, latched_qos
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
@@ -78,7 +78,7 @@ class KeyframeSelectorNode(SystemNode):
         self.service_name = str(declare(self, "planner_service", PLANNER_SERVICE, "the planner's service"))
         self.timeout_s = float(declare(self, "planner_timeout_s", 10.0, "seconds to wait for the planner's answer"))
         self.fallback = str(declare(self, "fallback_policy", "random", "decides when the planner does not answer"))
-        topics = camera_topic_params(self)
+        camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
         self.frame_id = str(declare(self, "frame_id", "map", "frame of the published poses"))
@@ -118,7 +118,15 @@ class KeyframeSelectorNode(SystemNode):
 
         inputs = MutuallyExclusiveCallbackGroup()
         planner = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraInput(self, self._on_frame, reliable_qos(qos_depth), topics, callback_group=inputs)
+        self.camera = CameraInput(
+            self,
+            self._on_frame,
+            reliable_qos(qos_depth),
+            camera.topics,
+            callback_group=inputs,
+            input_size=camera.input_size,
+            tf_wait_s=camera.tf_wait_s,
+        )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         self._client = self.create_client(GetNextBestView, self.service_name, callback_group=planner)
@@ -276,6 +284,7 @@ class KeyframeSelectorNode(SystemNode):
                 "policy": self.policy,
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],
+                "frames_awaiting_tf": cam["awaiting_tf"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
                 "frames_duplicate_stamp": cam["duplicate_stamp"],
                 "frames_out_of_order": cam["out_of_order"],

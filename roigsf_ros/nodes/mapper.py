@@ -54,7 +54,7 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame, CameraTopics, stamp_to_ns
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings
 from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
@@ -76,15 +76,58 @@ def latched_qos(depth: int = 1) -> QoSProfile:
     )
 
 
-def camera_topic_params(node: Node) -> CameraTopics:
-    """Declare ``color_topic``, ``depth_topic``, ``camera_info_topic``, ``pose_topic``; the topics they name."""
+def camera_params(node: Node) -> CameraSettings:
+    """Declare the camera input's parameters (topics, transports, pose source and TF, input size); their settings.
+
+    ``color_topic`` / ``depth_topic`` are base topics: a compressed transport subscribes to
+    ``<topic>/compressed`` (``/compressedDepth``) as image_transport does, unless the name already ends so.
+    """
     d = CameraTopics()
-    return CameraTopics(
-        color=declare(node, "color_topic", d.color, "colour image topic (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8)"),
-        depth=declare(node, "depth_topic", d.depth, "depth image topic (sensor_msgs/Image 32FC1 m or 16UC1 mm)"),
-        camera_info=declare(node, "camera_info_topic", d.camera_info, "camera info topic (sensor_msgs/CameraInfo)"),
-        pose=declare(node, "pose_topic", d.pose, "camera pose topic (geometry_msgs/PoseStamped, optical frame)"),
-    )
+    fields = {
+        "color": declare(node, "color_topic", d.color, "colour image topic (base name; see color_transport)"),
+        "depth": declare(node, "depth_topic", d.depth, "depth image topic (base name; see depth_transport)"),
+        "camera_info": declare(node, "camera_info_topic", d.camera_info, "camera info topic (sensor_msgs/CameraInfo)"),
+        "pose": declare(
+            node, "pose_topic", d.pose, "camera pose topic (PoseStamped of the optical frame; pose_source topic)"
+        ),
+        "color_transport": declare(
+            node, "color_transport", d.color_transport, "raw (Image rgb8/bgr8/rgba8/bgra8) | compressed (JPEG/PNG)"
+        ),
+        "depth_transport": declare(
+            node,
+            "depth_transport",
+            d.depth_transport,
+            "raw (32FC1 m, 16UC1 mm) | compressed (16-bit PNG) | compressedDepth",
+        ),
+        "pose_source": declare(
+            node, "pose_source", d.pose_source, "topic (pose_topic) | tf (tf_topic + tf_static_topic)"
+        ),
+        "tf_parent_frame": declare(node, "tf_parent_frame", d.tf_parent_frame, "tf: the world frame of the poses"),
+        "tf_child_frame": declare(node, "tf_child_frame", d.tf_child_frame, "tf: the camera's optical frame"),
+        "tf_topic": declare(node, "tf_topic", d.tf_topic, "tf: transforms (tf2_msgs/TFMessage)"),
+        "tf_static_topic": declare(node, "tf_static_topic", d.tf_static_topic, "tf: static transforms (latched)"),
+        "tf_tolerance_s": declare(
+            node, "tf_tolerance_s", d.tf_tolerance_s, "tf: interpolate only between samples this close to the stamp"
+        ),
+    }
+    tf_wait_s = float(declare(node, "tf_wait_s", 1.0, "tf: seconds a frame waits for its pose, then dropped (no_tf)"))
+    width = int(declare(node, "input_width", 0, "frames downscaled on arrival to this width (0 = camera's)"))
+    height = int(declare(node, "input_height", 0, "frames downscaled on arrival to this height (0 = camera's)"))
+    check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
+    check_positive("input_width", width, allow_zero=True)
+    check_positive("input_height", height, allow_zero=True)
+    try:
+        topics = CameraTopics(**fields)
+    except InputError as exc:
+        name = {
+            "color": "color_topic",
+            "depth": "depth_topic",
+            "camera_info": "camera_info_topic",
+            "pose": "pose_topic",
+        }
+        raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
+    size = None if not width and not height else (width or None, height or None)
+    return CameraSettings(topics, size, tf_wait_s)
 
 
 def frame_of(bf: BagFrame) -> Frame:
@@ -101,7 +144,7 @@ class MapperNode(SystemNode):
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:
         self.config = MapperConfig(**declare_config(self, MapperConfig))
-        topics = camera_topic_params(self)
+        camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes to insert (PoseStamped, stamp)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map output (PointCloud2, transient local)")
         poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "keyframe poses (PoseArray)")
@@ -181,7 +224,15 @@ class MapperNode(SystemNode):
         keyframes = MutuallyExclusiveCallbackGroup()
         outputs = MutuallyExclusiveCallbackGroup()
         services = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraInput(self, self._on_frame, reliable_qos(qos_depth), topics, callback_group=inputs)
+        self.camera = CameraInput(
+            self,
+            self._on_frame,
+            reliable_qos(qos_depth),
+            camera.topics,
+            callback_group=inputs,
+            input_size=camera.input_size,
+            tf_wait_s=camera.tf_wait_s,
+        )
         self.create_subscription(
             PoseStamped, keyframe_topic, self._on_keyframe, reliable_qos(qos_depth), callback_group=keyframes
         )
@@ -201,7 +252,7 @@ class MapperNode(SystemNode):
         self._thread = threading.Thread(target=self._work, name=f"{self.get_name()}_worker", daemon=True)
         self._thread.start()
         self.get_logger().info(
-            f"mapping keyframes named on {keyframe_topic} from {topics.color}; map on {map_topic} "
+            f"mapping keyframes named on {keyframe_topic} from {self.camera.topics.color}; map on {map_topic} "
             f"({'shared in-process' if self.in_process else 'own'} map)"
         )
 
@@ -397,6 +448,7 @@ class MapperNode(SystemNode):
             return {
                 "frames_received": cam["frames"],
                 "frames_rejected": cam["rejected"],
+                "frames_awaiting_tf": cam["awaiting_tf"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
                 "frames_duplicate_stamp": cam["duplicate_stamp"],
                 "frames_out_of_order": cam["out_of_order"],

@@ -97,6 +97,11 @@ class NBVPlannerNode(SystemNode):
         info_topic = declare(
             self, "camera_info_topic", CameraTopics().camera_info, "camera info (intrinsics, topic mode)"
         )
+        in_w = int(declare(self, "input_width", 0, "camera info scaled to the mapper's input_width (0 = as sent)"))
+        in_h = int(declare(self, "input_height", 0, "camera info scaled to the mapper's input_height (0 = as sent)"))
+        check_positive("input_width", in_w, allow_zero=True)
+        check_positive("input_height", in_h, allow_zero=True)
+        self.input_size = None if not in_w and not in_h else (in_w or None, in_h or None)
         self.frame_id = str(declare(self, "frame_id", "map", "frame of candidate poses and outputs"))
         sync_s = float(declare(self, "tsdf_sync_period_s", 1.0, "seconds between TSDF updates (0 = at requests only)"))
         self.publish_uncertainty = bool(declare(self, "publish_uncertainty", True, "publish Eq. 17 of the best view"))
@@ -172,6 +177,8 @@ class NBVPlannerNode(SystemNode):
     def _on_info(self, msg: CameraInfo) -> None:
         try:
             intr = camera_info_to_intrinsics(msg)
+            if self.input_size is not None:  # the mapper downscales frames on arrival: score at that size
+                intr = intr.resized(*self.input_size)
         except InputError as exc:
             self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
             return
