@@ -75,15 +75,11 @@ def reject_reason(exc: InputError, topics: CameraTopics) -> str:
         return "bad_encoding"
     if "sizes disagree" in problem:
         return "size_mismatch"
-    for topic, reason in (
-        (topics.pose, "bad_pose"),
-        (topics.tf_topic, "bad_pose"),
-        (topics.camera_info, "bad_camera_info"),
-    ):
-        if exc.where.startswith(topic):
-            return reason
-    if exc.where.startswith((topics.color, topics.depth)):
-        return "bad_image"
+    source = exc.where.split(" @ ", 1)[0]  # errors name "<topic> @ <stamp> ns"
+    reasons = {topics.color: "bad_image", topics.depth: "bad_image", topics.camera_info: "bad_camera_info"}
+    reasons |= {topics.pose: "bad_pose", topics.tf_topic: "bad_pose"}
+    if source in reasons:
+        return reasons[source]
     return "other"
 
 
