@@ -196,7 +196,26 @@ def test_scorer_prefers_the_weakly_observed_panel_in_every_mode(world: World) ->
             assert res.n_roi_pixels[1] > 0.9 * INTR.width * INTR.height and res.n_visible_voxels[2] == 0
             assert res.fisher[1] > res.fisher[0] > 0.0 or mode == "close-front"
     fused = scorer.score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR)
-    np.testing.assert_allclose(fused.fused, 0.4 * fused_z(fused.fisher) + 0.6 * fused_z(fused.close_front))
+    ok = ~fused.flagged  # z-scores over the candidates that see surface; the flagged one gets 0
+    np.testing.assert_allclose(fused.fused[ok], 0.4 * fused_z(fused.fisher[ok]) + 0.6 * fused_z(fused.close_front[ok]))
+    assert fused.fused[2] == 0.0
+
+
+def test_a_candidate_that_sees_nothing_does_not_change_the_others_fused_scores(world: World) -> None:
+    """Eq. 15's z-scores are over scored candidates: adding a flagged one (looking at the sky, F = I_vis = 0 as
+    placeholders) must leave the other candidates' fused scores, and so their order, unchanged."""
+    scorer = NBVScorer()
+    extra = look_at(np.array([0.9, 0.4, 1.0]), np.array([2.0, 0.1, 1.2]), UP)  # a third view of panel A
+    cands = np.stack([world.view_a, world.view_b, extra])
+    base = scorer.score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    more = scorer.score(world.map, world.h_train, world.tsdf, world.train, np.stack([*cands, world.view_up]), INTR)
+    assert more.flagged.tolist() == [False, False, False, True] and not base.flagged.any()
+    np.testing.assert_allclose(more.fused[:3], base.fused, rtol=1e-9, atol=1e-12)
+    for mode in ("roi-fisher", "close-front", "fisherrf"):
+        h = world.h_train if mode != "fisherrf" else None
+        b = scorer.score(world.map, h, world.tsdf, world.train, cands, INTR, mode=mode)
+        m = scorer.score(world.map, h, world.tsdf, world.train, np.stack([*cands, world.view_up]), INTR, mode=mode)
+        np.testing.assert_allclose(m.fused[:3], b.fused, rtol=1e-9, atol=1e-12, err_msg=mode)
 
 
 def fused_z(x: np.ndarray) -> np.ndarray:
@@ -376,3 +395,48 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
             assert r["roi_ms"] < 0.05 * r["fisher_ms"]  # FisherRF has no ROI: only loop overhead
     assert "ratio" in capsys.readouterr().out
     assert main([*args, "--candidates", "0"]) == 2  # bad input: one-line error
+
+
+def test_unseen_term_pulls_towards_space_the_map_has_not_seen(world: World) -> None:
+    """Beyond the paper: a map of panel A only. Paper mode flags the view of unmapped panel B (its ROI is
+    empty) and picks A again; ``unseen_weight`` > 0 prefers B, whose pixels the map has not seen."""
+    map_a = world.map.select(torch.arange(world.n_a))
+    tsdf = TSDFVolume(voxel_size_m=0.04)
+    for T in world.train[:3]:
+        rgb, d = world.renderer.render(T, INTR)
+        tsdf.integrate(d, T, INTR, rgb)
+    h = NBVScorer().train_fisher(map_a, world.train[:3], INTR)
+    cands = np.stack([world.view_a, world.view_b])
+    paper = NBVScorer().score(map_a, h, tsdf, world.train[:3], cands, INTR)
+    assert paper.best_index == 0 and paper.unseen is None
+    for mode in ("roi-gsurfisher", "roi-fisher"):
+        cfg = NBVConfig(unseen_weight=1.0, unseen_bbox_margin_m=float("inf"))  # B lies outside A's box
+        res = NBVScorer(cfg).score(map_a, h, tsdf, world.train[:3], cands, INTR, mode=mode)
+        assert res.best_index == 1, mode
+        assert res.unseen[1] > 0.9 and res.unseen[0] < 0.5 and not res.flagged[1]
+    with pytest.raises(InputError):
+        NBVConfig(unseen_weight=-1.0)
+
+
+def test_unseen_term_ignores_rays_that_miss_the_mapped_region(world: World) -> None:
+    """Rays that never meet the box of the mapped surface (an object scene's background, the sky) are not unseen
+    surface: the view straight up sees only such rays and gets U = 0."""
+    from roigsf_ros.nbv import rays_meet_box
+
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0])
+    inside = rays_meet_box(np.eye(4), INTR, lo, hi)
+    assert inside.all()  # a camera inside the box: every ray meets it
+    away = np.eye(4)
+    away[:3, 3] = [0.0, 0.0, 3.0]  # outside, looking +z, away from the box
+    assert not rays_meet_box(away, INTR, lo, hi).any()
+    towards = look_at(np.array([0.0, 0.0, -3.0]), np.zeros(3), np.array([0.0, -1.0, 0.0]))
+    hits = rays_meet_box(towards, INTR, lo, hi)
+    assert hits[INTR.height // 2, INTR.width // 2] and 0 < hits.mean() < 1  # the box fills the image centre only
+    sky = look_at(np.array([0.0, 0.0, 3.0]), np.array([0.0, 0.0, 5.0]), np.array([1.0, 0.0, 0.0]))  # above the map
+    cands = np.stack([world.view_a, world.view_b, sky])
+    res = NBVScorer(NBVConfig(unseen_weight=1.0)).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    assert res.unseen[2] == 0.0 and res.flagged[2]
+    res = NBVScorer(NBVConfig(unseen_weight=1.0, unseen_bbox_margin_m=float("inf"))).score(
+        world.map, world.h_train, world.tsdf, world.train, cands, INTR
+    )
+    assert res.unseen[2] == 1.0 and not res.flagged[2]  # without the box every empty pixel counts

@@ -132,3 +132,39 @@ def test_roi_gsurfisher_choice_matches_the_scorer(frames: list[Frame]) -> None:
     assert len(expected) == 2
     assert [e[0] for e in expected] == policy.inserted_ids
     np.testing.assert_allclose(policy.last_result.fused, expected[-1][1], rtol=1e-9, atol=1e-12)
+
+
+def test_policy_passes_any_nbv_config_field() -> None:
+    """Every NBVConfig field is a policy parameter (the beyond-paper options included); unknown ones raise."""
+    p = make_policy("roi-gsurfisher", window=4, beta=2.0)
+    assert p.config.beta == 2.0 and p.params()["beta"] == 2.0
+    with pytest.raises(InputError):
+        make_policy("roi-gsurfisher", no_such_option=1.0)
+    with pytest.raises(InputError):
+        make_policy("roi-gsurfisher", mode="fisherrf")
+
+
+def test_adaptive_trigger_inserts_only_high_gain_windows(frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond the paper: trigger="adaptive" inserts a window's best only when its raw gain reaches the ratio x the
+    median of the recent ones (or after max_gap empty triggers); "window" (default) inserts at every trigger."""
+    from types import SimpleNamespace
+
+    gains = iter([5.0, 4.0, 1.0, 9.0, 1.0, 1.0, 1.0, 1.0, 8.0, 1.0, 1.0])
+
+    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper) -> int:
+        self.last_result = SimpleNamespace(fisher=np.array([next(gains)]), close_front=np.zeros(1))
+        return 0
+
+    monkeypatch.setattr(StreamNBVPolicy, "choose", fake_choose)
+    pol = make_policy("roi-fisher", window=2, trigger_every=1, trigger="adaptive", adaptive_max_gap=3)
+    assert pol.params()["trigger"] == "adaptive"
+    mapper = run_stream(pol, frames)  # 11 triggers, gains as above
+    # medians of the history before each trigger: -, -, 4.5, 4, 4.5, 4, 2.5 (gap 2 -> forced), 1, 1, 1, 1
+    accepted = [True, True, False, True, False, False, True, True, True, True, True]
+    assert pol.triggers == 11 and pol.skipped_triggers == accepted.count(False)
+    assert len(mapper.keyframe_ids) == 1 + sum(accepted) and len(pol.inserted_ids) == sum(accepted)
+    with pytest.raises(InputError):
+        make_policy("random", trigger="adaptive")
+    with pytest.raises(InputError):
+        make_policy("roi-fisher", trigger="sometimes")
+    assert make_policy("roi-fisher").trigger == "window"

@@ -267,3 +267,36 @@ def test_roi_bad_inputs() -> None:
     empty = SurfaceVoxels(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros((0, 3)))
     roi = view_roi(empty, 0.02, EYE, INTR, CFG)
     assert roi.weights.shape == (48, 64) and not roi.weights.any() and roi.n_pixels == 0
+
+
+def test_frontier_mask_marks_the_edge_of_the_observed_surface_and_weights_it() -> None:
+    """Beyond the paper: a wall seen once, frontally, at 2 m. Its frontier voxels (a never-observed 6-neighbour)
+    lie at the edge of the view's footprint, not inside; frontier_weight raises their share of the ROI."""
+    from roigsf_ros.data.scene import MeshRenderer
+
+    wall = o3d.geometry.TriangleMesh.create_box(6.0, 6.0, 0.05).translate((-3.0, -3.0, 2.0))
+    T = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([0.0, -1.0, 0.0]))
+    rgb, depth = MeshRenderer(wall).render(T, INTR)
+    tsdf = TSDFVolume(voxel_size_m=0.04, sdf_trunc_m=0.16)
+    tsdf.integrate(depth, T, INTR, rgb)
+    vox = tsdf.surface_voxels()
+    fr = tsdf.frontier_mask(vox)
+    assert fr.shape == (len(vox.centres_m),) and 0 < fr.sum() < 0.3 * len(fr)
+    u = INTR.fx * vox.centres_m[:, 0] / vox.centres_m[:, 2] + INTR.cx  # camera at the origin looking +z
+    v = INTR.fy * vox.centres_m[:, 1] / vox.centres_m[:, 2] + INTR.cy
+    border = np.minimum.reduce([u + 0.5, INTR.width - 0.5 - u, v + 0.5, INTR.height - 0.5 - v])
+    assert np.mean(border[fr] < 3.0) > 0.9  # frontier voxels: at the edge of the observed footprint
+    assert np.mean(fr[border > 4.0]) < 0.02  # inside it: (almost) none
+    # In the ROI: with frontier_weight, frontier voxels weigh (1 + f) times the others; 0 = the paper's weights.
+    cand = look_at(np.array([0.5, 0.3, 0.2]), np.array([0.0, 0.0, 2.0]), np.array([0.0, -1.0, 0.0]))
+    paper = view_roi(vox, 0.04, cand, INTR, NBVConfig(), frontier=fr)
+    boosted = view_roi(vox, 0.04, cand, INTR, NBVConfig(frontier_weight=3.0), frontier=fr)
+    np.testing.assert_allclose(paper.voxel_weight, view_roi(vox, 0.04, cand, INTR, NBVConfig()).voxel_weight)
+    f_in = fr[boosted.view.index]
+    assert f_in.any() and (~f_in).any()
+    ratio = boosted.voxel_weight / paper.voxel_weight
+    np.testing.assert_allclose(ratio[f_in], 1.0)
+    np.testing.assert_allclose(ratio[~f_in], 0.25)
+    assert boosted.weights.max() <= 1.0
+    with pytest.raises(InputError):
+        NBVConfig(frontier_weight=-1.0)

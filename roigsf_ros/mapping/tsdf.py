@@ -234,6 +234,28 @@ class TSDFVolume:
             normals=normals,
         )
 
+    def frontier_mask(self, voxels: SurfaceVoxels) -> np.ndarray:
+        """Bool [M]: surface voxels (from :meth:`surface_voxels`) with a 6-neighbour never observed (weight 0 or
+        unallocated): the edge of the mapped surface, next to space no fused frame has seen.
+
+        Voxels up to ``sdf_trunc`` behind and in front of an observed surface are fused, so inside the
+        mapped surface all 6 neighbours of a surface voxel are observed (for ``sdf_trunc`` >= 2 voxels);
+        only where the observation stops (image borders, depth holes, unrendered map) is one unobserved.
+        """
+        centres = np.asarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3)
+        if len(centres) == 0:
+            return np.zeros(0, dtype=bool)
+        res = self.block_resolution
+        ijk = np.rint(centres / self.voxel_size_m).astype(np.int64)
+        blocks = np.floor_divide(ijk, res)
+        keys, b_idx = np.unique(blocks, axis=0, return_inverse=True)
+        flat = self._neighbour_flat_indices(keys, b_idx.reshape(-1), ijk - blocks * res)
+        weight_all = self.vbg.attribute("weight").numpy().reshape(-1)
+        ok = flat >= 0
+        observed = np.zeros(flat.shape, dtype=bool)
+        observed[ok] = weight_all[flat[ok]] > 0
+        return ~observed.all(axis=1)
+
 
 def _empty_surface_voxels() -> SurfaceVoxels:
     return SurfaceVoxels(

@@ -30,6 +30,7 @@ __all__, __getattr__ = lazy_exports(
             "fuse_scores",
             "information_gain",
             "rank_candidates",
+            "rays_meet_box",
             "render_surfel_scalar",
             "surfel_variance",
             "train_fisher",

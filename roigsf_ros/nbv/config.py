@@ -73,6 +73,10 @@ class NBVConfig(Config):
     """Clamp of the incidence cosine in the occlusion tolerance's 1/cos slant factor (at most 2x, i.e. 60 deg)."""
     max_splat_radius_px: float = 8.0
     """Cap of the tent-kernel half-width; bounds the cost of very near voxels."""
+    frontier_weight: float = 0.0
+    """Beyond the paper: extra gain phi_f of frontier voxels in Eq. 7 (surface voxels next to never-observed space,
+    :meth:`roigsf_ros.mapping.tsdf.TSDFVolume.frontier_mask`), W *= (1 + phi_f [frontier]) / (1 + phi_f), so the
+    ROI pulls towards the edge of the mapped surface. 0: the paper's W (the ROI has no term for unseen space)."""
 
     # ---- Eq. 9-10, FisherRF, Eq. 17-18
     sigma_p: float = 1.0
@@ -92,6 +96,20 @@ class NBVConfig(Config):
     fisher_downsample: int = 1
     """Candidate Fisher passes at 1/this resolution (ROI block-averaged, weights x this^2): a speed knob, 1 = exact."""
 
+    # ---- beyond the paper (0 / off by default = the paper's method)
+    unseen_weight: float = 0.0
+    """Weight kappa of a third fused term ``kappa z(U(x))`` of the ROI modes, U(x) the fraction of the candidate's
+    pixels where the map renders accumulated alpha below ``unseen_alpha`` (space the map has not seen). Not in the
+    paper: its ROI and Fisher live only on already-mapped surface, so they cannot pull a room-scale map towards
+    what it has not seen. 0: the paper's Eq. 15. With it on, a candidate that sees no mapped surface but unseen
+    pixels is not flagged."""
+    unseen_alpha: float = 0.5
+    """Rendered alpha below which a pixel counts as unseen (GauS-SLAM's silhouette threshold)."""
+    unseen_bbox_margin_m: float = 0.1
+    """Only pixels whose ray meets the bounding box of the TSDF surface voxels, grown by this margin, count in
+    U(x) (its denominator too): rays past the mapped region (background of an object-centric scene) are not
+    unseen surface. A camera inside the box (a room) counts every pixel; inf: every pixel always counts."""
+
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
         if self.mode not in MODES:
@@ -102,7 +120,14 @@ class NBVConfig(Config):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
                 raise InputError(name, f"must be a finite number > 0, got {v!r}")
-        for name in ("mu", "texture_std_threshold", "roi_min_weight", "occlusion_tol_voxels"):
+        for name in (
+            "mu",
+            "texture_std_threshold",
+            "roi_min_weight",
+            "occlusion_tol_voxels",
+            "unseen_weight",
+            "frontier_weight",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise InputError(name, f"must be a finite number >= 0, got {v!r}")
@@ -111,6 +136,12 @@ class NBVConfig(Config):
                 raise InputError(name, f"must be in [0, 90) degrees, got {getattr(self, name)}")
         if not (np.isfinite(self.far_m) and self.far_m > self.near_m):
             raise InputError("far_m", f"must be finite and > near_m ({self.near_m}), got {self.far_m}")
+        if not self.unseen_bbox_margin_m >= 0:
+            raise InputError(
+                "unseen_bbox_margin_m", f"must be >= 0 (inf: every pixel), got {self.unseen_bbox_margin_m}"
+            )
+        if not 0.0 < self.unseen_alpha <= 1.0:
+            raise InputError("unseen_alpha", f"must be in (0, 1], got {self.unseen_alpha}")
         if not 0.0 < self.occlusion_min_cos <= 1.0:
             raise InputError("occlusion_min_cos", f"must be in (0, 1], got {self.occlusion_min_cos}")
         if not self.max_splat_radius_px >= 1.0:

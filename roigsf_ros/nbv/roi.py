@@ -465,10 +465,14 @@ def view_roi(
     cfg: NBVConfig,
     textured: np.ndarray | None = None,
     view: VoxelView | None = None,
+    frontier: np.ndarray | None = None,
 ) -> ViewROI:
     """The ROI (Eq. 7-8) of candidate ``T_wc``; ``textured`` [M] bool per voxel (None: all texture-poor).
 
     ``view`` may pass a visibility already computed for this pose (it is then not recomputed).
+    ``frontier`` [M] bool (beyond the paper, :meth:`roigsf_ros.tsdf.TSDFVolume.frontier_mask`): with
+    ``cfg.frontier_weight`` = phi_f > 0 a frontier voxel's W is multiplied by (1 + phi_f) and every W divided by
+    (1 + phi_f), so W_roi stays in [0, 1]; None or phi_f = 0 is the paper's Eq. 7.
     """
     if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
         raise InputError("voxel_size_m", f"must be a positive number, got {voxel_size_m}")
@@ -482,6 +486,11 @@ def view_roi(
     tex = np.asarray(textured, bool)[view.index]
     theta = np.degrees(np.arccos(np.clip(view.cos_incidence, -1.0, 1.0)))
     w, wa, ws, wc = voxel_weight(theta, tex, view.footprint_px, np.asarray(voxels.weight)[view.index], cfg)
+    fw = float(getattr(cfg, "frontier_weight", 0.0))
+    if frontier is not None and fw > 0:
+        if np.shape(frontier) != (m,):
+            raise InputError("frontier", f"expected shape [{m}], got {list(np.shape(frontier))}")
+        w = w * (1.0 + fw * np.asarray(frontier, bool)[view.index]) / (1.0 + fw)
     return ViewROI(splat_roi(view, w, intr, cfg), view, w, wa, ws, wc, tex)
 
 

@@ -203,6 +203,8 @@ class NBVResult:
     n_visible_voxels: np.ndarray
     reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
+    unseen: np.ndarray | None = None
+    """[M] fraction of unseen pixels U(x) (``NBVConfig.unseen_weight`` > 0 in the ROI modes), else None."""
 
 
 def downsampled(intr: Intrinsics, factor: int) -> Intrinsics:
@@ -392,6 +394,9 @@ class NBVScorer:
         textured = None
         if vox is not None and mode in ("roi-gsurfisher", "roi-fisher"):
             textured = voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg)
+        frontier = None
+        if vox is not None and cfg.frontier_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher"):
+            frontier = tsdf.frontier_mask(vox)
         w_f = None
         if vox is not None and mode in ("roi-gsurfisher", "close-front"):
             mem = close_front_memory or CloseFrontMemory.from_poses(vox, poses, intr, voxel_size, cfg)
@@ -417,12 +422,14 @@ class NBVScorer:
         mass = np.zeros(m)
         n_vox = np.zeros(m, dtype=np.int64)
         flagged = np.zeros(m, dtype=bool)
+        use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
+        unseen = np.ones(m) if use_unseen else None
         acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
         for i, T in enumerate(cands):
             t0 = _clock()
             roi = None
             if vox is not None:
-                roi = view_roi(vox, voxel_size, T, intr, cfg, textured)
+                roi = view_roi(vox, voxel_size, T, intr, cfg, textured, frontier=frontier)
                 n_vox[i], n_pix[i], mass[i] = len(roi.view), roi.n_pixels, roi.mass
             t1 = _clock()
             acc["roi"] += np.subtract(t1, t0)
@@ -445,9 +452,20 @@ class NBVScorer:
                     f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
                                     pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
                     fisher[i] = information_gain(f, h, cfg.phi)
+            if unseen is not None and not empty_map:
+                with torch.no_grad():
+                    alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
+                                       with_distortion=False).alpha  # fmt: skip
+                hole = (alpha < cfg.unseen_alpha).cpu().numpy()
+                if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
+                    meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
+                                          vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
+                    unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
+                else:
+                    unseen[i] = float(hole.mean())
             acc["fisher"] += _since(t0)
             if need_voxels:
-                flagged[i] = n_vox[i] == 0
+                flagged[i] = n_vox[i] == 0 and (unseen is None or unseen[i] == 0)
             elif h is None:
                 flagged[i] = True
         for k, (wall, proc) in acc.items():
@@ -455,12 +473,19 @@ class NBVScorer:
         timings["roi_close_front"] = timings["roi"] + timings["close_front"]
         timings |= {f"{k}_cpu": v for k, v in cpu.items()}
 
+        # Eq. 15's z-scores over the candidates that have scores: a flagged candidate (it sees no surface / gets
+        # no Fisher) has no F or I_vis, and its placeholder zeros would shift the means and inflate the spreads,
+        # changing the balance of epsilon and delta among the others. Flagged candidates get 0 and rank last.
+        fused = np.zeros(m)
+        ok = ~flagged if (~flagged).any() else np.ones(m, dtype=bool)
         if mode == "roi-gsurfisher":
-            fused = fuse_scores(fisher, cf, cfg.epsilon, cfg.delta)
+            fused[ok] = fuse_scores(fisher[ok], cf[ok], cfg.epsilon, cfg.delta)
         elif mode == "close-front":
-            fused = zscore(cf)
+            fused[ok] = zscore(cf[ok])
         else:
-            fused = zscore(fisher)
+            fused[ok] = zscore(fisher[ok])
+        if unseen is not None:
+            fused[ok] = fused[ok] + cfg.unseen_weight * zscore(unseen[ok])
         if not np.all(np.isfinite(fused)):  # defensive: scores are built finite
             raise InputError("scores", "non-finite fused score")
         if flagged.all() and not reasons:
@@ -480,7 +505,22 @@ class NBVScorer:
             n_visible_voxels=n_vox,
             reason="; ".join(reasons),
             timings_s=timings,
+            unseen=unseen,
         )
+
+
+def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Bool [H, W]: pixels whose viewing ray (from the camera centre, forward) meets the box [lo, hi] (slab test)."""
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)
+    d = d_cam @ np.asarray(T_wc)[:3, :3].T
+    o = np.asarray(T_wc)[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (np.asarray(lo) - o) / d, (np.asarray(hi) - o) / d
+    t1, t2 = np.nan_to_num(t1, nan=-np.inf), np.nan_to_num(t2, nan=np.inf)
+    t_near = np.minimum(t1, t2).max(-1)
+    t_far = np.maximum(t1, t2).min(-1)
+    return t_far >= np.maximum(t_near, 0.0)
 
 
 def _clock() -> tuple[float, float]:
@@ -517,6 +557,7 @@ __all__ = [
     "fuse_scores",
     "information_gain",
     "rank_candidates",
+    "rays_meet_box",
     "render_surfel_scalar",
     "surfel_variance",
     "train_fisher",

@@ -19,6 +19,7 @@ __all__, __getattr__ = lazy_exports(
             "RandomStream",
             "STREAM_POLICIES",
             "StreamNBVPolicy",
+            "TRIGGERS",
         ],
     },
 )

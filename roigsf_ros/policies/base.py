@@ -105,9 +105,9 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
         raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
     factory = _REGISTRY[name]
     given = {k: v for k, v in params.items() if v is not None}
-    accepted = set(inspect.signature(factory).parameters)
-    extra = sorted(set(given) - accepted)
-    if extra:
+    sig = inspect.signature(factory).parameters
+    extra = sorted(set(given) - set(sig))
+    if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
         raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
     return factory(**given)
 

@@ -23,6 +23,7 @@ the same state the planner node keeps): a keyframe is fused the first time the p
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -99,8 +100,14 @@ class StreamNBVPolicy(KeyframePolicy):
       ``mesh_voxel_size_m`` / ``mesh_sdf_trunc_m``.
     - ``min_alpha`` (None): rendered depth is fused where the map's alpha reaches this (None: the
       mapper's ``mesh_min_alpha``); the depth kind is the mapper's ``mesh_depth``.
-    - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m``:
-      passed to :class:`roigsf_ros.nbv.config.NBVConfig` (None: its default). The mode is the policy name.
+    - ``trigger`` ("window"): "window" inserts the best candidate at every trigger (the paper's setting, one
+      keyframe per window); "adaptive" (beyond the paper) inserts it only when its raw gain is at least
+      ``adaptive_ratio`` (1.0) x the median of the last ``adaptive_history`` (8) triggers' best gains, or
+      after ``adaptive_max_gap`` (4) triggers without a keyframe; a skipped window's frames stay candidates.
+      Use it with ``trigger_every`` < ``window`` so that the keyframe rate adapts around 1 / (2 trigger_every).
+    - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m`` and any
+      other :class:`roigsf_ros.nbv.config.NBVConfig` field by name (e.g. ``unseen_weight``): passed to the
+      scorer's config (None: its default). The mode is the policy name; unknown names raise InputError.
 
     ``h_train``: the ROI modes use the map's running ``h_train`` when it covers the scorer's
     parameters with the same outputs and ``sigma_p`` is 1 (its Fisher is unweighted); otherwise the
@@ -130,10 +137,28 @@ class StreamNBVPolicy(KeyframePolicy):
         phi: float | None = None,
         near_m: float | None = None,
         far_m: float | None = None,
+        trigger: str = "window",
+        adaptive_ratio: float = 1.0,
+        adaptive_history: int = 8,
+        adaptive_max_gap: int = 4,
+        **nbv_options: Any,
     ) -> None:
         self.candidates = CandidateWindow(window, trigger_every)
         if min_alpha is not None and not 0.0 <= float(min_alpha) <= 1.0:
             raise InputError("min_alpha", f"must be in [0, 1], got {min_alpha}")
+        if trigger not in TRIGGERS:
+            raise InputError("trigger", f"must be one of {', '.join(TRIGGERS)}, got {trigger!r}")
+        if trigger == "adaptive" and self.mode is None:
+            raise InputError("trigger", "'adaptive' needs a scored mode (random has no gain)")
+        if not (np.isfinite(adaptive_ratio) and adaptive_ratio >= 0):
+            raise InputError("adaptive_ratio", f"must be a finite number >= 0, got {adaptive_ratio!r}")
+        for name, v in (("adaptive_history", adaptive_history), ("adaptive_max_gap", adaptive_max_gap)):
+            if int(v) != v or int(v) < 1:
+                raise InputError(name, f"must be a positive integer, got {v!r}")
+        self.trigger = trigger
+        self.adaptive_ratio = float(adaptive_ratio)
+        self.adaptive_history = int(adaptive_history)
+        self.adaptive_max_gap = int(adaptive_max_gap)
         self.window = self.candidates.window
         self.trigger_every = self.candidates.trigger_every
         self.seed = int(seed)
@@ -142,6 +167,10 @@ class StreamNBVPolicy(KeyframePolicy):
         self.min_alpha = min_alpha
         nbv = {"epsilon": epsilon, "delta": delta, "fisher_downsample": fisher_downsample, "sigma_p": sigma_p,
                "phi": phi, "near_m": near_m, "far_m": far_m}  # fmt: skip
+        unknown = sorted(set(nbv_options) - {f.name for f in fields(NBVConfig)} | ({"mode"} & set(nbv_options)))
+        if unknown:
+            raise InputError("--policy", f"policy takes no parameter(s) {', '.join(unknown)}")
+        nbv |= nbv_options
         self._nbv_overrides = {k: v for k, v in nbv.items() if v is not None}
         self.config = NBVConfig(mode=self.mode or "roi-gsurfisher", **self._nbv_overrides)
         self.reset()
@@ -159,10 +188,18 @@ class StreamNBVPolicy(KeyframePolicy):
         """Selections made so far."""
         self.last_result: NBVResult | None = None
         self.last_candidate_ids: list[int] = []
+        self.gains: deque[float] = deque(maxlen=self.adaptive_history)
+        """Raw gains of the recent triggers' best candidates (``trigger="adaptive"``)."""
+        self.skipped_triggers = 0
+        """Triggers that inserted no keyframe (``trigger="adaptive"``)."""
+        self._gap = 0
 
     def params(self) -> dict[str, Any]:
         """Window, trigger, seed, TSDF settings and the NBV overrides, for metrics.json."""
         out: dict[str, Any] = {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed}
+        if self.trigger != "window":
+            out |= {"trigger": self.trigger, "adaptive_ratio": self.adaptive_ratio,
+                    "adaptive_history": self.adaptive_history, "adaptive_max_gap": self.adaptive_max_gap}  # fmt: skip
         out |= {"voxel_size_m": self.voxel_size_m, "sdf_trunc_m": self.sdf_trunc_m, "min_alpha": self.min_alpha}
         return out | dict(self._nbv_overrides)
 
@@ -248,11 +285,41 @@ class StreamNBVPolicy(KeyframePolicy):
         if first or not candidates:
             return candidates
         self.last_candidate_ids = [f.index for f in candidates]
-        winner = candidates[self.choose(candidates, keyframe_map)]
-        self.candidates.remove(winner)
+        pick = self.choose(candidates, keyframe_map)
+        winner = candidates[pick]
         self.triggers += 1
+        if self.trigger == "adaptive" and not self._accept(pick):
+            self.skipped_triggers += 1  # the window's frames stay candidates
+            return []
+        self.candidates.remove(winner)
         self.inserted_ids.append(int(winner.index))
         return [winner]
+
+    def gain(self, pick: int) -> float:
+        """Raw (not z-scored, so comparable across windows) expected gain of candidate ``pick`` of the last
+        trigger: F of Eq. 10 for the Fisher modes, I_vis of Eq. 14 for close-front.
+        """
+        r = self.last_result
+        if r is None:
+            return 0.0
+        return float(r.close_front[pick] if self.mode == "close-front" else r.fisher[pick])
+
+    def _accept(self, pick: int) -> bool:
+        """Adaptive trigger (beyond the paper): insert the window's best only when its raw gain reaches
+        ``adaptive_ratio`` x the median of the last ``adaptive_history`` triggers' best gains, or when
+        ``adaptive_max_gap`` triggers in a row inserted nothing. The first two triggers always insert.
+        """
+        g = self.gain(pick)
+        ok = len(self.gains) < 2 or g >= self.adaptive_ratio * float(np.median(self.gains))
+        ok = ok or self._gap + 1 >= self.adaptive_max_gap
+        self.gains.append(g)
+        self._gap = 0 if ok else self._gap + 1
+        return ok
+
+
+TRIGGERS = ("window", "adaptive")
+"""Stream triggers: ``window`` (the paper's setting: one keyframe per trigger) or ``adaptive`` (see
+:meth:`StreamNBVPolicy._accept`)."""
 
 
 def _make(name: str, mode: str | None) -> type[StreamNBVPolicy]:
@@ -278,6 +345,7 @@ STREAM_POLICIES = ("random", "roi-gsurfisher", "roi-fisher", "close-front", "fis
 
 __all__ = [
     "STREAM_POLICIES",
+    "TRIGGERS",
     "CandidateWindow",
     "CloseFrontStream",
     "FisherRFStream",
