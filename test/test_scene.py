@@ -412,3 +412,23 @@ def test_texture_strength_zero_gives_plain_vertex_colours() -> None:
     assert np.abs(flat.astype(int) - tex.astype(int)).mean() > 10
     with pytest.raises(InputError, match="texture_strength"):
         MeshRenderer(mesh, texture_strength=float("nan"))
+
+
+def test_synth_object_scene_is_an_orbit_around_primitives_with_an_empty_background(tmp_path: Path) -> None:
+    """``scene synth --kind object``: the object-centric NBV scene; every view sees the object and some sky."""
+    out = tmp_path / "obj"
+    assert main(["scene", "synth", "--kind", "object", "--frames", "6", "--width", "48", "--out", str(out)]) == 0
+    seq = ReplicaSequence(out)
+    assert len(seq) == 6 and (seq.intrinsics.width, seq.intrinsics.height) == (48, 36)
+    mesh = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
+    lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
+    assert np.all(hi[:2] <= 0.81) and np.all(lo[:2] >= -0.81) and lo[2] >= -0.05 and hi[2] < 0.6
+    centre = np.zeros(3)
+    for frame in seq:
+        valid = frame.depth_m > 0
+        assert 0.05 < valid.mean() < 0.95  # the object and the empty background
+        eye = frame.T_wc[:3, 3]
+        assert 0.8 < np.linalg.norm(eye[:2] - centre[:2]) < 1.5 and 0.1 < eye[2] < 1.0
+    again = scene.synth_object(0)
+    assert np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_object(0).vertices))
+    assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_object(1).vertices))

@@ -72,7 +72,7 @@ def _render(args: argparse.Namespace) -> int:
 
 def _synth(args: argparse.Namespace) -> int:
     """Handler of ``scene synth``."""
-    from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
+    from roigsf_ros.data.scene import orbit_trajectory, render_sequence, synth_object, synth_room, synth_trajectory
 
     out = Path(args.out)
     check_out(out, args.overwrite)
@@ -81,8 +81,10 @@ def _synth(args: argparse.Namespace) -> int:
         raise InputError("--frames", f"must be >= 1, got {args.frames}")
     size = image_size(args) or (None, None)
     intr = synth_intrinsics(*derive_size(*size, (SYNTH_WIDTH, SYNTH_HEIGHT)))
-    mesh = synth_room(args.seed)
-    poses = synth_trajectory(args.seed, args.frames)
+    if args.kind == "object":
+        mesh, poses = synth_object(args.seed), orbit_trajectory(args.frames)
+    else:
+        mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
         mesh,
         poses,
@@ -91,9 +93,9 @@ def _synth(args: argparse.Namespace) -> int:
         texture_strength=args.texture_strength,
         texture_seed=args.seed,
         overwrite=args.overwrite,
-        metadata={"synth_seed": args.seed},
+        metadata={"synth_seed": args.seed, "synth_kind": args.kind},
     )
-    print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} (seed {args.seed}) to {out}")
+    print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} ({args.kind}, seed {args.seed}) to {out}")
     return 0
 
 
@@ -153,6 +155,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0,
         metavar="SEED",
         help="seed of the room layout, trajectory and texture (default 0)",
+    )
+    p.add_argument(
+        "--kind",
+        choices=("room", "object"),
+        default="room",
+        help="room: the procedural room and a handheld loop inside it (default); object: an object-centric scene "
+        "(five primitives on a disc) and one orbit around it, the background empty (no depth)",
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(

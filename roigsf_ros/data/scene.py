@@ -614,6 +614,50 @@ def render_sequence(
     return out_dir
 
 
+def synth_object(seed: int = 0) -> o3d.geometry.TriangleMesh:
+    """An object-centric scene (not a room): a torus, sphere, cylinder, cone and box on a 0.8 m disc.
+
+    Seed 0 is the fixed layout the NBV benchmark reports on; other seeds jitter each part's position by up
+    to 5 cm and its colour slightly. Vertex colours only; the renderer adds the procedural texture.
+    """
+    rng = np.random.default_rng(seed)
+    jitter = (lambda: np.zeros(3)) if seed == 0 else (lambda: np.append(rng.uniform(-0.05, 0.05, 2), 0.0))
+
+    def part(
+        mesh: o3d.geometry.TriangleMesh, colour: list[float], at: tuple[float, float, float]
+    ) -> o3d.geometry.TriangleMesh:
+        c = np.clip(np.asarray(colour) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
+        mesh.translate(np.asarray(at) + jitter())
+        mesh.paint_uniform_color(c)
+        return mesh
+
+    o3g = o3d.geometry.TriangleMesh
+    torus = o3g.create_torus(0.22, 0.07, 64, 24).rotate(o3d.geometry.get_rotation_matrix_from_xyz((1.2, 0, 0)))
+    box = o3g.create_box(0.3, 0.2, 0.18).rotate(o3d.geometry.get_rotation_matrix_from_xyz((0, 0, 0.5)))
+    mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.55, 0.45, 0.35])
+    mesh += part(torus, [0.8, 0.3, 0.2], (0.25, 0.1, 0.3))
+    mesh += part(o3g.create_sphere(0.16, 40), [0.2, 0.5, 0.8], (-0.3, 0.25, 0.16))
+    mesh += part(o3g.create_cylinder(0.09, 0.5, 48), [0.3, 0.7, 0.3], (-0.15, -0.3, 0.25))
+    mesh += part(o3g.create_cone(0.15, 0.35, 48), [0.85, 0.75, 0.2], (0.35, -0.35, 0.0))
+    mesh += part(box, [0.6, 0.3, 0.7], (-0.45, -0.05, 0.0))
+    mesh = mesh.subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def orbit_trajectory(n_frames: int) -> np.ndarray:
+    """[N, 4, 4] cameras orbiting :func:`synth_object` once at 0.9-1.4 m radius and 0.2-0.9 m height, looking at it."""
+    poses = []
+    for i in range(int(n_frames)):
+        a = 2 * np.pi * i / n_frames
+        r = 1.15 + 0.25 * np.sin(3 * a)
+        h = 0.55 + 0.35 * np.sin(2 * a + 0.7)
+        eye = np.array([r * np.cos(a), r * np.sin(a), h])
+        target = np.array([0.1 * np.cos(5 * a), 0.1 * np.sin(5 * a), 0.15])
+        poses.append(look_at(eye, target, np.array([0.0, 0.0, 1.0])))
+    return np.stack(poses)
+
+
 __all__ = [
     "REPLICA_PIXEL_OFFSET",
     "ROOM_MAX",
@@ -622,8 +666,10 @@ __all__ = [
     "camera_rays",
     "load_mesh",
     "look_at",
+    "orbit_trajectory",
     "render_sequence",
     "surface_texture",
+    "synth_object",
     "synth_room",
     "synth_trajectory",
 ]
