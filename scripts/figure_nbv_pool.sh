@@ -1,24 +1,30 @@
 #!/usr/bin/env bash
-# The pool NBV figure of the README (issue 4): FisherRF's "v20seq1" active reconstruction, 20 views
+# The pool NBV figure of the README (issues 4 and 10): FisherRF's "v20seq1" active reconstruction, 20 views
 # (4 initial: first + farthest camera centres, then one greedy pick per training phase), 3 seeds,
-# policies roi-gsurfisher, fisherrf, random (POLICIES=... adds e.g. roi-fisher, close-front), on
+# policies roi-gsurfisher (the paper), roi-gsurfisher with the unseen-space term (unseen_weight=1, issue 10),
+# fisherrf, random (POLICIES=... adds e.g. roi-fisher, close-front), on
 #   1. office0 re-rendered at 120x68 along every 20th pose (100 frames; 13 held-out test views,
-#      pool = every 2nd of the other 87 -> 44 candidates), and
-#   2. the synthetic room (`roigsf scene synth`, 96 frames at 120x90; 12 test views, 42 candidates).
+#      pool = every 2nd of the other 87 -> 44 candidates; SCALE=2 renders 240x136 instead),
+#   2. the synthetic room (`roigsf scene synth`, 96 frames at 120x90; 12 test views, 42 candidates), the
+#      only scene the unseen term's weight was checked on, and
+#   3. an object-centric scene (`roigsf scene synth --kind object`: primitives on a disc, 96 orbit views at
+#      120x90, empty background).
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
 # Writes runs/office0_120_s20/, runs/synth_room_120/ (scenes, reused when present) and
-# runs/bench_pool_office0/, runs/bench_pool_synth/ (results.json, results.md, plots, runs/).
+# runs/bench_pool_office0_<W>/, runs/bench_pool_synth/, runs/bench_pool_object/ (results.json, results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
-POLICIES="${POLICIES:-roi-gsurfisher,fisherrf,random}"
+POLICIES="${POLICIES:-roi-gsurfisher,roi-gsurfisher:unseen_weight=1,fisherrf,random}"
 SEEDS="${SEEDS:-3}"
-SCENES="${SCENES:-office0 synth}"
+SCENES="${SCENES:-office0 synth object}"
+SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE)
+W=$((120 * SCALE)); H=$((68 * SCALE))
 COMMON=(--setting pool --policies "$POLICIES" --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
@@ -28,11 +34,12 @@ for scene in $SCENES; do
     case "$scene" in
     office0)
         [ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
-        if [ ! -f runs/office0_120_s20/mesh.ply ]; then
+        if [ ! -f "runs/office0_${W}_s20/mesh.ply" ]; then
             roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" \
-                --cam "$DATA/cam_params.json" --out runs/office0_120_s20 --width 120 --height 68 --stride 20 --overwrite
+                --cam "$DATA/cam_params.json" --out "runs/office0_${W}_s20" --width "$W" --height "$H" --stride 20 \
+                --overwrite
         fi
-        roigsf bench --scene runs/office0_120_s20 "${COMMON[@]}" --out runs/bench_pool_office0
+        roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --out "runs/bench_pool_office0_${W}"
         ;;
     synth)
         if [ ! -f runs/synth_room_120/mesh.ply ]; then
@@ -40,6 +47,12 @@ for scene in $SCENES; do
         fi
         roigsf bench --scene runs/synth_room_120 "${COMMON[@]}" --out runs/bench_pool_synth
         ;;
-    *) echo "unknown scene $scene (office0, synth)" >&2; exit 2 ;;
+    object)
+        if [ ! -f runs/object_120/mesh.ply ]; then
+            roigsf scene synth --kind object --out runs/object_120 --frames 96 --width 120 --height 90 --overwrite
+        fi
+        roigsf bench --scene runs/object_120 "${COMMON[@]}" --out runs/bench_pool_object
+        ;;
+    *) echo "unknown scene $scene (office0, synth, object)" >&2; exit 2 ;;
     esac
 done
