@@ -14,6 +14,15 @@ Eq. 10 as implemented: ``F(x) = sum_k F_diag_k(x) / (H_train_k + phi)``. Read li
 constrained, the opposite of what the paper says the normalisation is for; the sum of ratios is Eq. 5
 (``tr(H_cand H_train^-1)`` with a diagonal H) and what every FisherRF implementation scores.
 
+Eq. 15 as implemented: the z-scores are taken over the candidates that have scores; a flagged candidate
+(sees no surface voxel, or gets no Fisher) gets 0 and ranks last, so it cannot shift the others' balance.
+
+Audit (README, "Audit of Eq. 7-18"): the ROI and the Fisher see only surface that is already mapped
+(the TSDF of rendered depth; no surfels elsewhere), so nothing in Eq. 7-16 pulls towards unseen space;
+``NBVConfig.unseen_weight`` adds that as an option. H_train (the mapper's) weights pixels by valid
+input depth with a 0.1 m near plane, the candidate Fisher by the ROI with ``near_m``: equal on clean
+depth, a known mismatch with depth holes.
+
 Eq. 17 as implemented: ``tr(G_i)`` is read as the trace of the surfel's *inverse* training information
 (its parameter variance), ``sum_k 1 / (H_train_k + phi)`` over the surfel's geometric entries, so that the
 rendered uncertainty is high where the training views constrain the geometry little.
