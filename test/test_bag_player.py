@@ -60,7 +60,9 @@ def _bag_messages(path: Path) -> tuple[dict[str, str], dict[str, list[bytes]]]:
 
 
 def _player(ctx: Any, bag: Path, **params: Any) -> BagPlayer:
-    overrides = [Parameter("bag", value=str(bag)), Parameter("progress_period_s", value=0.2)]
+    """A player of ``bag``; no wait for subscribers unless ``wait_for_subscribers`` is given (most tests have none)."""
+    params = {"progress_period_s": 0.2, "wait_for_subscribers": 0, **params}
+    overrides = [Parameter("bag", value=str(bag))]
     overrides += [Parameter(name, value=value) for name, value in params.items()]
     return BagPlayer(context=ctx, parameter_overrides=overrides)
 
@@ -93,7 +95,7 @@ def test_every_message_arrives_in_order_with_identical_payload(ros_context: Any,
         sink.create_subscription(
             message_class(typ), topic, lambda msg, out=received[topic]: out.append(msg), reliable_qos(100), raw=True
         )
-    player = _player(ros_context, bag, rate=0.0, start_delay_s=0.5)
+    player = _player(ros_context, bag, rate=0.0, start_delay_s=0.5, wait_for_subscribers=1)
     with _spinning(ros_context, sink, player):
         assert player.wait(30.0), "playback did not finish"
         deadline = time.monotonic() + 10.0
@@ -105,6 +107,53 @@ def test_every_message_arrives_in_order_with_identical_payload(ros_context: Any,
         assert received[topic] == expected[topic], f"{topic}: payloads differ or arrived out of order"
         stamps = [struct.unpack_from("<iI", raw, 4) for raw in received[topic]]
         assert stamps == sorted(stamps) and len(set(stamps)) == 5
+
+
+def _sink(ctx: Any, name: str, types: dict[str, str], received: dict[str, list[bytes]]) -> Any:
+    """A node subscribed (reliable, raw) to every topic of ``types``, appending to ``received``."""
+    import rclpy
+
+    sink = rclpy.create_node(name, context=ctx)
+    for topic, typ in types.items():
+        sink.create_subscription(
+            message_class(typ), topic, lambda msg, out=received[topic]: out.append(msg), reliable_qos(100), raw=True
+        )
+    return sink
+
+
+def test_waits_for_subscribers_before_the_first_message(ros_context: Any, bag: Path) -> None:
+    """Nothing is published until every topic has a matched subscriber; then all of it arrives, the first included.
+
+    Before: the player published after ``start_delay_s`` whoever listened, and a subscriber in another process
+    that DDS had not matched yet lost the first frames (a 20-frame bag into active_mapping: no keyframe).
+    """
+    types, expected = _bag_messages(bag)
+    received: dict[str, list[bytes]] = {t: [] for t in types}
+    player = _player(ros_context, bag, rate=0.0, start_delay_s=0.0, wait_for_subscribers=1, wait_timeout_s=60.0)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(player)
+    thread = threading.Thread(target=executor.spin, name="test_executor")
+    thread.start()
+    sink = None
+    try:
+        time.sleep(1.5)
+        assert player.published == 0 and not player.done  # no subscriber yet: waiting
+        sink = _sink(ros_context, "test_late_sink", types, received)
+        executor.add_node(sink)
+        assert player.wait(30.0), "playback did not finish"
+        deadline = time.monotonic() + 10.0
+        while sum(map(len, received.values())) < 20 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        summary = player.summary()
+    finally:
+        executor.shutdown()
+        thread.join(timeout=10)
+        assert not thread.is_alive()
+        player.destroy_node()
+        if sink is not None:
+            sink.destroy_node()
+    assert summary["subscribers_matched"] is True and summary["subscriber_wait_s"] >= 1.5
+    assert received == expected  # every message, from the first, in order
 
 
 def test_rate_factor_sets_the_timing(ros_context: Any, bag20hz: Path) -> None:
@@ -146,6 +195,10 @@ def test_bad_parameters_name_the_problem(ros_context: Any, bag: Path, tmp_path: 
         _player(ros_context, bag, topics=["/nope"])
     with pytest.raises(InputError, match="no bag given"):
         BagPlayer(context=ros_context)
+    with pytest.raises(InputError, match=r"wait_for_subscribers.*>= 0"):
+        _player(ros_context, bag, wait_for_subscribers=-1)
+    with pytest.raises(InputError, match=r"wait_timeout_s.*>= 0"):
+        _player(ros_context, bag, wait_timeout_s=float("nan"))
 
 
 def _run_main(*ros_args: str, plain: tuple[str, ...] = (), module: str = "bag_player") -> subprocess.CompletedProcess:
@@ -158,7 +211,7 @@ def _run_main(*ros_args: str, plain: tuple[str, ...] = (), module: str = "bag_pl
 
 def test_main_takes_the_bag_as_a_positional_argument(bag: Path) -> None:
     """``bag_player BAG``, as ``ros2 bag play BAG`` (before: "no bag given", exit 2)."""
-    proc = _run_main("-p", "rate:=0.0", "-p", "start_delay_s:=0.2", plain=(str(bag),))
+    proc = _run_main("-p", "rate:=0.0", "-p", "start_delay_s:=0.2", "-p", "wait_for_subscribers:=0", plain=(str(bag),))
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0, output
     assert "finished: published 20 messages on 4 topics" in output
@@ -176,10 +229,24 @@ def test_help_prints_help_and_exits_0_without_starting_a_node(module: str) -> No
 
 
 def test_main_plays_and_exits_0(bag: Path) -> None:
-    proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=0.0", "-p", "start_delay_s:=0.2")
+    no_wait = ("-p", "wait_for_subscribers:=0")
+    proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=0.0", "-p", "start_delay_s:=0.2", *no_wait)
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0, output
     assert "finished: published 20 messages on 4 topics" in output
+
+
+def test_main_without_subscribers_says_so_after_the_timeout_and_plays(bag: Path) -> None:
+    """No subscriber within ``wait_timeout_s``: a warning naming every topic short of one, then playback, exit 0."""
+    t0 = time.monotonic()
+    proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=0.0", "-p", "start_delay_s:=0.0", "-p", "wait_timeout_s:=1.0")
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, output
+    assert "after 1 s (wait_timeout_s), topics still short of the 1 subscriber(s)" in output
+    for topic in (bags.CameraTopics().color, bags.CameraTopics().depth, bags.POSE_TOPIC):
+        assert f"{topic} (0)" in output
+    assert "playing anyway" in output and "finished: published 20 messages on 4 topics" in output
+    assert time.monotonic() - t0 >= 1.0
 
 
 def test_main_bad_path_exits_nonzero_naming_it(tmp_path: Path) -> None:

@@ -535,6 +535,60 @@ def test_three_processes_match_in_process(
     assert abs(m["keyframes"] - ref) <= KEYFRAME_TOLERANCE, (m["keyframes"], ref)
 
 
+# ------------------------------------------------------------------ a player started later, in its own process
+N_LATE = 20
+"""Frames of the bag played into an ``active_mapping`` that has been running for a while (the issue's case)."""
+
+
+@pytest.fixture(scope="module")
+def bag20(bag: Path) -> Path:
+    """The first 20 frames of ``bag``'s scene (2 s at 10 Hz), as a bag of their own."""
+    out = bag.parent / "bag20"
+    bags.write_bag(ReplicaSequence(bag.parent / "scene"), out, rate_hz=10.0, max_frames=N_LATE, progress=False)
+    return out
+
+
+class TestLateStart:
+    """``active_mapping`` running for 5 s, then ``bag_player`` started in a process of its own (defaults, rate 1).
+
+    Before, the player published as soon as its ``start_delay_s`` (0.5 s) passed, whether or not DDS had
+    matched it with the node's subscriptions yet: the first frames were lost (a 20-frame bag gave no keyframe
+    at all). It now waits until every topic has a matched subscriber.
+    """
+
+    @pytest.fixture(scope="class")
+    def late(self, bag20: Path, watch: Watcher, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+        tmp = tmp_path_factory.mktemp("late")
+        watch.clear()
+        with processes(tmp) as ps:
+            params = {**as_params("mapper"), **as_params("keyframe_selector")}
+            node = ps.start("active_mapping", params | as_params("nbv_planner"))
+            t_start = time.monotonic()
+            wait_until("active_mapping's status", lambda: bool(watch.get("keyframe_selector")), 60, ps)
+            time.sleep(max(0.0, t_start + 5.0 - time.monotonic()))
+            player = ps.start("bag_player", {"bag": str(bag20), "rate": 1.0})
+            assert player.wait(60) == 0, player.log()
+            yield {"ps": ps, "node": node, "player": player}
+
+    def test_a_player_started_later_loses_no_frame(self, late: dict[str, Any], watch: Watcher, bag20: Path):
+        ps = late["ps"]
+        stamps = [f.stamp_ns for f in bags.read_bag_frames(bag20)[0]]
+        sel = lambda: watch.get("keyframe_selector")  # noqa: E731
+        wait_until(f"the selector to receive the {N_LATE} frames", lambda: sel().get("frames", 0) >= N_LATE, 15, ps)
+        n_keyframes = expected_keyframes(N_LATE)  # the first frame, then one per window
+
+        def settled() -> bool:
+            s, m = sel(), watch.get("mapper")
+            return not s["planner_pending"] and s["keyframes_published"] == n_keyframes <= m["keyframes_inserted"]
+
+        wait_until("the mapper to insert every keyframe named", settled, 60, ps)
+        s, m = sel(), watch.get("mapper")
+        assert s["frames"] == m["frames_received"] == N_LATE
+        assert s["keyframe_ids"][0] == stamps[0]  # the first frame is a keyframe, and it was mapped
+        assert set(s["keyframe_ids"]) == set(m["keyframe_ids"]) <= set(stamps)
+        assert "1 subscriber(s) matched on every topic" in late["player"].log()
+
+
 LOOP_MAPPER = {"frame_buffer_size": 32, "map_publish_rate_hz": 0.5}
 LOOP_SELECTOR = {"window": 8, "trigger_every": 8, "planner_timeout_s": 15.0}
 """The looping system: a window every 0.8 s, and time for a planner in its own process (which recomputes

@@ -7,8 +7,17 @@ Python package is installed can be played. Run it as::
     bag_player --ros-args -p bag:=office0.bag -p rate:=0.0        # as fast as possible
 
 Parameters: ``bag`` (path to a rosbag2 folder or .mcap), ``rate`` (factor on recorded timing; <= 0
-publishes as fast as possible), ``loop``, ``start_delay_s`` (time for subscribers to connect),
-``topics`` (string list, unset = all), ``progress_period_s``, ``qos_depth``, ``ack_timeout_s``.
+publishes as fast as possible), ``loop``, ``wait_for_subscribers`` and ``wait_timeout_s`` (see below),
+``start_delay_s`` (a pause after that wait), ``topics`` (string list, unset = all), ``progress_period_s``,
+``qos_depth``, ``ack_timeout_s``.
+
+Before the first message the player waits until every topic it plays has ``wait_for_subscribers``
+(default 1; 0 = no wait) matched subscriptions, at most ``wait_timeout_s`` (default 10 s). Without the
+wait, a player started in a process of its own published before DDS discovery had matched it with
+the subscribers, and those first messages were lost: a 20-frame bag played at rate 1 into a running
+``active_mapping`` gave no keyframe at all. On timeout it logs the topics still short of subscribers
+and plays anyway (as ``ros2 bag play`` would): a subscriber that matches later still gets the rest,
+and playing into no subscriber at all is a legitimate use (a recorder started later, a smoke test).
 """
 
 from __future__ import annotations
@@ -63,7 +72,8 @@ def reliable_qos(depth: int) -> QoSProfile:
 class BagPlayer(Node):
     """Publishes a bag's messages on their topics, timed against a monotonic clock relative to the start.
 
-    Playback runs in a thread of its own that starts after ``start_delay_s``; the node's executor
+    Playback runs in a thread of its own that starts once the subscribers matched (``wait_for_subscribers``,
+    ``wait_timeout_s``) and ``start_delay_s`` passed; the node's executor
     only runs the progress timer. ``done`` turns true when playback ends (never with ``loop``, unless
     stopped); :meth:`destroy_node` stops the thread and joins it. ``published``, ``loops_completed``
     and ``play_duration_s`` (start of the latest loop to its latest publish) report progress.
@@ -93,7 +103,19 @@ class BagPlayer(Node):
         )
         self.declare_parameter("loop", False, ParameterDescriptor(description="restart from the beginning at the end"))
         self.declare_parameter(
-            "start_delay_s", 0.5, ParameterDescriptor(description="seconds to wait for subscribers before publishing")
+            "wait_for_subscribers",
+            1,
+            ParameterDescriptor(description="matched subscriptions every topic needs before playback; 0 = no wait"),
+        )
+        self.declare_parameter(
+            "wait_timeout_s",
+            10.0,
+            ParameterDescriptor(description="seconds to wait for them; then a warning and playback anyway"),
+        )
+        self.declare_parameter(
+            "start_delay_s",
+            0.5,
+            ParameterDescriptor(description="seconds to pause after the subscribers matched (their side of discovery)"),
         )
         topics_param = self.declare_parameter(
             "topics", Parameter.Type.STRING_ARRAY, ParameterDescriptor(description="topics to play; unset = all")
@@ -112,6 +134,8 @@ class BagPlayer(Node):
         self.rate = float(self.get_parameter("rate").value)
         self.loop = bool(self.get_parameter("loop").value)
         self.start_delay_s = max(0.0, float(self.get_parameter("start_delay_s").value))
+        self.wait_for_subscribers = int(self.get_parameter("wait_for_subscribers").value)
+        self.wait_timeout_s = float(self.get_parameter("wait_timeout_s").value)
         wanted = topics_param.value  # None when unset (an empty list cannot be typed as a string array)
         progress_period_s = float(self.get_parameter("progress_period_s").value)
         qos_depth = int(self.get_parameter("qos_depth").value)
@@ -120,6 +144,10 @@ class BagPlayer(Node):
             raise InputError("parameter 'bag'", "no bag given (use --ros-args -p bag:=PATH)")
         if qos_depth < 1:
             raise InputError("parameter 'qos_depth'", f"must be >= 1, got {qos_depth}")
+        if self.wait_for_subscribers < 0:
+            raise InputError("parameter 'wait_for_subscribers'", f"must be >= 0, got {self.wait_for_subscribers}")
+        if not self.wait_timeout_s >= 0:
+            raise InputError("parameter 'wait_timeout_s'", f"must be >= 0, got {self.wait_timeout_s}")
         self.bag_path = Path(bag)
 
         reader = open_any_reader(self.bag_path)
@@ -167,6 +195,10 @@ class BagPlayer(Node):
         self.published = 0
         self.loops_completed = 0
         self.play_duration_s = 0.0
+        self.subscriber_wait_s = 0.0
+        """Seconds playback waited for subscribers to match."""
+        self.subscribers_matched: bool | None = None
+        """Whether every topic had its ``wait_for_subscribers`` when playback began (None: no wait asked)."""
         self.error: BaseException | None = None
         self._t_first_publish: float | None = None
         self._stop = threading.Event()
@@ -175,9 +207,11 @@ class BagPlayer(Node):
             self.create_timer(progress_period_s, self._report_progress) if progress_period_s > 0 else None
         )
         mode = "as fast as possible" if self.rate <= 0 else f"at rate x{self.rate:g}"
+        n = self.wait_for_subscribers
+        start = f"{n} subscriber(s) on every topic (at most {self.wait_timeout_s:g} s), then " if n > 0 else ""
         self.get_logger().info(
             f"playing {self.bag_path}: {self.total_per_loop} messages on {len(types)} topics {mode}"
-            f"{' in a loop' if self.loop else ''}, starting in {self.start_delay_s:g} s"
+            f"{' in a loop' if self.loop else ''}, starting after {start}{self.start_delay_s:g} s"
         )
         self._thread = threading.Thread(target=self._run, name=f"{node_name}_playback", daemon=True)
         self._thread.start()
@@ -212,6 +246,8 @@ class BagPlayer(Node):
             "loops_completed": self.loops_completed,
             "play_duration_s": self.play_duration_s,
             "rate": self.rate,
+            "subscriber_wait_s": self.subscriber_wait_s,
+            "subscribers_matched": self.subscribers_matched,
             "error": None if self.error is None else str(self.error),
         }
 
@@ -225,9 +261,38 @@ class BagPlayer(Node):
             f"{pct:5.1f}% ({in_loop}/{self.total_per_loop} messages{loop}), {self.published} published"
         )
 
+    def _subscribers_short(self) -> dict[str, int]:
+        """Topics with fewer than ``wait_for_subscribers`` matched subscriptions, and how many they have."""
+        counts = {t: pub.get_subscription_count() for t, pub in self._publishers_by_topic.items()}
+        return {t: c for t, c in counts.items() if c < self.wait_for_subscribers}
+
+    def _wait_for_subscribers(self) -> bool:
+        """Wait (``wait_timeout_s`` at most) until every topic has its subscribers; False if stopped meanwhile."""
+        if self.wait_for_subscribers <= 0:
+            return True
+        t0 = time.monotonic()
+        short = self._subscribers_short()
+        while short and time.monotonic() - t0 < self.wait_timeout_s:
+            if self._stop.wait(0.02):
+                return False
+            short = self._subscribers_short()
+        self.subscriber_wait_s = time.monotonic() - t0
+        self.subscribers_matched = not short
+        if short:
+            have = ", ".join(f"{t} ({c})" for t, c in sorted(short.items()))
+            self.get_logger().warning(
+                f"after {self.wait_timeout_s:g} s (wait_timeout_s), topics still short of the "
+                f"{self.wait_for_subscribers} subscriber(s) wait_for_subscribers asks for: {have}; playing anyway"
+            )
+        else:
+            self.get_logger().info(
+                f"{self.wait_for_subscribers} subscriber(s) matched on every topic after {self.subscriber_wait_s:.2f} s"
+            )
+        return True
+
     def _run(self) -> None:
         try:
-            if self._stop.wait(self.start_delay_s):
+            if not self._wait_for_subscribers() or self._stop.wait(self.start_delay_s):
                 return
             while not self._stop.is_set():
                 if not self._play_once():
