@@ -397,12 +397,16 @@ def run_demo(
         bar.update(status, final=True)
         player_summary = player.summary()
     finally:  # also on Ctrl-C: stop playback, the executor and every node thread, then the context
-        if system is not None and player is not None:
-            system.executor.remove_node(player)
+        # Order matters: a node destroyed while the executor thread still spins fails in that thread
+        # (InvalidHandle: "cannot use Destroyable because destruction was requested", a traceback at the
+        # end of the demo). Stop the playback thread, then the executor (ActiveMapping.shutdown joins it
+        # and destroys its own nodes), and only then destroy the player.
         if player is not None:
-            player.destroy_node()
+            player.stop()
         if system is not None:
             system.shutdown()
+        if player is not None:
+            player.destroy_node()
         context.try_shutdown()
 
     mapper = system.shared.mapper
