@@ -59,7 +59,20 @@ log "installing roigsf_ros into $VENV"
     | grep -v -e 'DEPRECATION' -e '^$' >&2 || true
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
-# 6. Environment for ROS: ament index in the venv, loopback-only discovery.
+# 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
+#    modules: cold, they take 15-60 s, which the planner's first requests on a fresh machine used to pay (the
+#    selector's fallback decided those windows). Redone when the package's sources or the pinned packages
+#    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled.
+KERNEL_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_ros/*/*.py | sha256sum | cut -d' ' -f1)"
+KERNEL_STAMP="$VENV/.roigsf-kernels.sha256"
+if [ "$(cat "$KERNEL_STAMP" 2>/dev/null || true)" != "$KERNEL_HASH" ] \
+    || ! compgen -G "$VENV/lib/python3*/site-packages/roigsf_ros/render/__pycache__/*.nbi" >/dev/null; then
+    log "compiling the numba kernels (once; cached on disk)"
+    (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup) | sed 's/^/[setup] /' >&2
+    echo "$KERNEL_HASH" > "$KERNEL_STAMP"
+fi
+
+# 7. Environment for ROS: ament index in the venv, loopback-only discovery.
 export VIRTUAL_ENV="$VENV"
 export PATH="$VENV/bin:$PATH"
 export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"

@@ -58,6 +58,7 @@ SUMMARY_ROWS = (
     ("recall @5cm", "recall@5cm", "{:.3f}"),
     ("planner answers/calls", "planner", "{}"),
     ("fallbacks", "fallbacks", "{:d}"),
+    ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
 )
@@ -440,7 +441,10 @@ def run_demo(
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],
+        "planner_failures": sel["planner_failures"],
+        "planner_timeouts": sel["planner_timeouts"],
         "fallbacks": sel["fallbacks"],
+        "warm_up_s": status["nbv_planner"]["warm_up_s"],
         "keyframes_published": sel["keyframes_published"],
         "stream_s": t_stream,
         "final_iters": final_iters,

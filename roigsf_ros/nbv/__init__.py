@@ -47,5 +47,6 @@ __all__, __getattr__ = lazy_exports(
             "pose_keys",
             "running_h_train_fits",
         ],
+        "warmup": ["WARMUP_INTRINSICS", "warm_up_kernels", "warm_up_once"],
     },
 )

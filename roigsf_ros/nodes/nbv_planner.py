@@ -21,6 +21,11 @@ the Fisher of each keyframe pose not seen before is added under the current map,
 over to the current surfels (:func:`match_surfels`); recomputed from scratch only when the keyframe
 set is not an extension of the one summed (a loaded map) or every ``h_train_refresh_every`` new poses.
 
+At start-up (``warm_up``, default true) the planner runs mapping and scoring once on a tiny scene
+(:func:`roigsf_ros.nbv.warmup.warm_up_once`): the numba kernels compile on first use, 15-60 s with a cold
+cache, and on a fresh machine the first windows of the demo then found the planner busy compiling and
+were decided by the fallback. With a warm cache it takes about a second.
+
 Requests older than ``max_request_age_s`` (their ``candidates.header.stamp``; 0 = unstamped, always
 served) are refused before scoring, "stale request": the selector has given up on them by then, and
 scoring them would only delay the next window's request.
@@ -58,6 +63,7 @@ from roigsf_ros.mapping.mapper import DEPTH_MODES, MapperConfig
 from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
 from roigsf_ros.nbv.state import ScoringState
+from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S
 from roigsf_ros.nodes.map_msgs import (
@@ -108,6 +114,7 @@ class NBVPlannerNode(SystemNode):
         self.max_request_age_s = float(
             declare(self, "max_request_age_s", 10.0, "refuse requests stamped longer ago than this (0 = no limit)")
         )
+        warm_up = bool(declare(self, "warm_up", True, "compile the numba kernels at start-up (tiny scene)"))
         refresh = int(declare(self, "h_train_refresh_every", 0, "full H_train recompute every this many new poses"))
         match_tol = float(declare(self, "h_train_match_tol_m", 0.01, "surfel centre drift tolerated when carrying H"))
         check_positive("max_request_age_s", self.max_request_age_s, allow_zero=True)
@@ -136,10 +143,18 @@ class NBVPlannerNode(SystemNode):
         )
         """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
-        self.counters: dict[str, Any] = dict.fromkeys(
-            ("requests", "answered", "failed", "stale", "bad_map_msgs"), 0
-        )
+        self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
         self.counters["last_scoring_s"] = 0.0
+        self.counters["warm_up_s"] = 0.0
+        if warm_up:  # before the service exists: no request waits behind the compiler
+            try:
+                times = warm_up_once(self.nbv)
+            except Exception as exc:  # the real calls compile on first use then; the node still serves
+                self.get_logger().warning(f"kernel warm-up failed ({exc}): kernels compile at the first request")
+                times = None
+            if times is not None:
+                self.counters["warm_up_s"] = times["total_s"]
+                self.get_logger().info(f"numba kernels ready in {times['total_s']:.1f} s (warm-up on a tiny scene)")
 
         scoring = MutuallyExclusiveCallbackGroup()
         inputs = MutuallyExclusiveCallbackGroup()
