@@ -184,6 +184,58 @@ def test_service_refuses_with_a_reason(ros_context: Any, scene: Any) -> None:
     assert planner.status()["failed"] == 6 and planner.status()["answered"] == 1
 
 
+def test_service_refuses_more_than_max_candidates_and_serves_on(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    """65 candidates (default ``max_candidates`` 64): ``success: false`` naming the limit, before any scoring.
+
+    Before: any number was scored; 10,000 held the service for minutes and every request queued behind it.
+    """
+    frames, _ = scene
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    client_node = Node("nbv_test_client_max", context=ros_context)
+    client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    with _spinning(ros_context, planner, client_node):
+        t0 = time.monotonic()
+        too_many = _call(client, _request([frames[1 + i % 10].T_wc for i in range(65)]))
+        refused_in_s = time.monotonic() - t0
+        ok = _call(client, _request([frames[1].T_wc, frames[2].T_wc]))
+    assert not too_many.success and too_many.best_index == -1 and not too_many.fused_scores
+    assert "candidates: 65 poses, more than max_candidates (64)" in too_many.message
+    assert refused_in_s < 5.0  # nothing scored (65 candidates take several seconds here)
+    assert ok.success and len(ok.fused_scores) == 2
+    assert planner.status()["failed"] == 1 and planner.status()["answered"] == 1
+
+
+def test_stop_interrupts_scoring_within_a_candidate(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    """``stop()`` (what Ctrl-C calls) during a long request: it answers ``success: false`` within a candidate's work.
+
+    Before: the callback scored every candidate (minutes for thousands) and shutdown waited for it.
+    """
+    frames, _ = scene
+    planner = NBVPlannerNode(
+        context=ros_context, shared=_shared(mapped), parameter_overrides=[Parameter("max_candidates", value=5000)]
+    )
+    req = _request([frames[i % N_FRAMES].T_wc for i in range(3000)])
+    answer: list[GetNextBestView.Response] = []
+    worker = threading.Thread(
+        target=lambda: answer.append(planner._on_request(req, GetNextBestView.Response())), daemon=True
+    )
+    try:
+        worker.start()
+        time.sleep(1.5)
+        assert worker.is_alive() and not answer  # scoring 3000 candidates: a minute or more
+        t0 = time.monotonic()
+        planner.stop()
+        worker.join(timeout=30)
+        took_s = time.monotonic() - t0
+    finally:
+        planner.stop()
+        worker.join(timeout=120)
+        planner.destroy_node()
+    assert not worker.is_alive() and took_s < 3.0, f"scoring went on for {took_s:.1f} s after stop()"
+    assert not answer[0].success and "shutting down" in answer[0].message and answer[0].best_index == -1
+    assert planner.status()["failed"] == 1 and planner.status()["answered"] == 0
+
+
 def test_scoring_does_not_block_the_executor(ros_context: Any, scene: Any, mapped: Mapper) -> None:
     frames, _ = scene
     planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))

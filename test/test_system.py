@@ -538,6 +538,8 @@ def test_three_processes_match_in_process(
 # ------------------------------------------------------------------ a player started later, in its own process
 N_LATE = 20
 """Frames of the bag played into an ``active_mapping`` that has been running for a while (the issue's case)."""
+LATE_CANDIDATES = 10_000
+"""Candidates of the request interrupted by Ctrl-C (minutes of scoring: 10,000 blocked the planner > 80 s)."""
 
 
 @pytest.fixture(scope="module")
@@ -553,7 +555,9 @@ class TestLateStart:
 
     Before, the player published as soon as its ``start_delay_s`` (0.5 s) passed, whether or not DDS had
     matched it with the node's subscriptions yet: the first frames were lost (a 20-frame bag gave no keyframe
-    at all). It now waits until every topic has a matched subscriber.
+    at all). It now waits until every topic has a matched subscriber. The same process then gets a request
+    of 10,000 candidates (``max_candidates`` raised for it) and Ctrl-C while scoring it: before, the executor
+    waited for the scoring callback to finish (over 80 s) and the test's SIGKILL ended it.
     """
 
     @pytest.fixture(scope="class")
@@ -562,7 +566,7 @@ class TestLateStart:
         watch.clear()
         with processes(tmp) as ps:
             params = {**as_params("mapper"), **as_params("keyframe_selector")}
-            node = ps.start("active_mapping", params | as_params("nbv_planner"))
+            node = ps.start("active_mapping", params | as_params("nbv_planner", max_candidates=2 * LATE_CANDIDATES))
             t_start = time.monotonic()
             wait_until("active_mapping's status", lambda: bool(watch.get("keyframe_selector")), 60, ps)
             time.sleep(max(0.0, t_start + 5.0 - time.monotonic()))
@@ -587,6 +591,34 @@ class TestLateStart:
         assert s["keyframe_ids"][0] == stamps[0]  # the first frame is a keyframe, and it was mapped
         assert set(s["keyframe_ids"]) == set(m["keyframe_ids"]) <= set(stamps)
         assert "1 subscriber(s) matched on every topic" in late["player"].log()
+
+    def test_ctrl_c_while_scoring_a_huge_request_exits_promptly(
+        self, late: dict[str, Any], watch: Watcher, bag20: Path
+    ):
+        from roigsf_interfaces.srv import GetNextBestView
+        from roigsf_ros.nodes.map_msgs import poses_to_array
+
+        node: NodeProcess = late["node"]
+        wait_until("a map to score against", lambda: watch.get("mapper").get("keyframes", 0) >= 2, 60, late["ps"])
+        seen = np.stack([f.T_wc for f in bags.read_bag_frames(bag20)[0]])  # views that see the mapped surface
+        poses = seen[np.arange(LATE_CANDIDATES) % len(seen)].copy()
+        poses[:, :3, 3] += np.random.default_rng(0).uniform(-0.02, 0.02, (LATE_CANDIDATES, 3))
+        req = GetNextBestView.Request(top_k=1)
+        req.candidates = poses_to_array(poses, 0, "map")  # stamp 0: never refused as stale
+        client = watch.node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+        try:
+            assert client.wait_for_service(timeout_sec=20)
+            future = client.call_async(req)
+            time.sleep(3.0)  # the request is in and being scored (10,000 candidates: minutes)
+            assert not future.done() and node.alive()
+            t0 = time.monotonic()
+            code = node.stop(timeout_s=60)
+            took_s = time.monotonic() - t0
+        finally:
+            watch.node.destroy_client(client)
+        assert code == 0, node.log()[-3000:]
+        assert took_s < 10.0, f"took {took_s:.1f} s to exit after Ctrl-C"
+        assert not UNCLEAN_EXIT.search(node.log()), node.log()[-3000:]
 
 
 LOOP_MAPPER = {"frame_buffer_size": 32, "map_publish_rate_hz": 0.5}

@@ -23,8 +23,11 @@ __all__, __getattr__ = lazy_exports(
         "scorer": [
             "NBVResult",
             "NBVScorer",
+            "ScoringStoppedError",
+            "ShouldStop",
             "UncertaintyMaps",
             "block_mean",
+            "check_stop",
             "depth_error_ause",
             "downsampled",
             "fuse_scores",

@@ -31,7 +31,7 @@ rendered uncertainty is high where the training views constrain the geometry lit
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -48,6 +48,19 @@ from roigsf_ros.nbv.roi import ViewROI, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap
+
+ShouldStop = Callable[[], bool] | None
+"""A check scoring calls between its units of work (a candidate, a training view); True stops it."""
+
+
+class ScoringStoppedError(RuntimeError):
+    """Raised by scoring when its ``should_stop`` turned true (a node shutting down): no result, nothing half-kept."""
+
+
+def check_stop(should_stop: ShouldStop) -> None:
+    """Raise :class:`ScoringStoppedError` if ``should_stop`` says so."""
+    if should_stop is not None and should_stop():
+        raise ScoringStoppedError("scoring stopped: asked to stop (shutting down)")
 
 
 # ------------------------------------------------------------------------------------ fusion
@@ -100,11 +113,13 @@ def train_fisher(
     pixel_weight: float = 1.0,
     near_m: float = 0.2,
     far_m: float = 100.0,
+    should_stop: ShouldStop = None,
 ) -> dict[str, Tensor]:
     """H_train: the diagonal Fisher of ``outputs`` w.r.t. ``params`` summed over whole training views.
 
     ``pixel_weight`` multiplies every pixel (1 / sigma_p^2 keeps it in the units of Eq. 9). One exact
     Fisher pass per pose; the Mapper keeps the same sum incrementally (``Mapper.h_train``).
+    ``should_stop`` is checked before each pose (:class:`ScoringStoppedError`).
     """
     poses = _as_pose_list(train_poses, "train_poses", allow_empty=True)
     names = [p for p in params if p != "sh_rest" or surfel_map.sh_rest is not None]
@@ -113,6 +128,7 @@ def train_fisher(
         return out
     w = torch.full((intr.height, intr.width), float(pixel_weight), dtype=surfel_map.dtype)
     for T in poses:
+        check_stop(should_stop)
         f = fisher_diag(surfel_map, T, intr, outputs=outputs, params=names, pixel_weights=w, near=near_m, far=far_m)
         for k in out:
             out[k] += f[k]
@@ -291,15 +307,16 @@ class NBVScorer:
         train_poses: Sequence[np.ndarray] | np.ndarray,
         intr: Intrinsics,
         mode: str | None = None,
+        should_stop: ShouldStop = None,
     ) -> dict[str, Tensor]:
         """H_train matching ``mode``'s candidate Fisher (outputs, parameters and the 1/sigma_p^2 weight)."""
         cfg = self.config
         mode = mode or cfg.mode
         if mode == "fisherrf":
             return train_fisher(surfel_map, train_poses, intr, cfg.fisherrf_outputs, cfg.fisherrf_params, 1.0,
-                                cfg.near_m, cfg.far_m)  # fmt: skip
+                                cfg.near_m, cfg.far_m, should_stop)  # fmt: skip
         return train_fisher(surfel_map, train_poses, intr, cfg.fisher_outputs, cfg.fisher_params,
-                            1.0 / cfg.sigma_p**2, cfg.near_m, cfg.far_m)  # fmt: skip
+                            1.0 / cfg.sigma_p**2, cfg.near_m, cfg.far_m, should_stop)  # fmt: skip
 
     def uncertainty(
         self,
@@ -362,6 +379,7 @@ class NBVScorer:
         intr: Intrinsics,
         mode: str | None = None,
         close_front_memory: CloseFrontMemory | None = None,
+        should_stop: ShouldStop = None,
     ) -> NBVResult:
         """Score candidate poses ([M, 4, 4], a list of 4x4, or [M, 7] position + xyzw quaternion rows).
 
@@ -369,6 +387,8 @@ class NBVScorer:
         ``h_train`` fits the ROI modes); None computes it here from ``train_poses`` (one Fisher pass per
         pose). ``close_front_memory``: W_f kept incrementally; None computes it exactly from
         ``train_poses``. An empty map or a TSDF without surface gives zero scores and a ``reason``.
+        ``should_stop`` is checked before each candidate (and training view): a node shutting down stops
+        a long call within one candidate's work, raising :class:`ScoringStoppedError`.
         """
         cfg = self.config
         mode = mode or cfg.mode
@@ -419,7 +439,7 @@ class NBVScorer:
                 params = [p for p in cfg.fisherrf_params if p != "sh_rest" or surfel_map.sh_rest is not None]
             else:
                 params = [p for p in cfg.fisher_params if p != "sh_rest" or surfel_map.sh_rest is not None]
-            h = h_train if h_train is not None else self.train_fisher(surfel_map, poses, intr, mode)
+            h = h_train if h_train is not None else self.train_fisher(surfel_map, poses, intr, mode, should_stop)
             _check_h_train(h, surfel_map, params)
         timings["h_train"], cpu["h_train"] = map(float, _since(t0))
 
@@ -435,6 +455,7 @@ class NBVScorer:
         unseen = np.ones(m) if use_unseen else None
         acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
         for i, T in enumerate(cands):
+            check_stop(should_stop)
             t0 = _clock()
             roi = None
             if vox is not None:
@@ -559,8 +580,11 @@ def _check_h_train(h_train: dict[str, Tensor], surfel_map: SurfelMap, params: Se
 __all__ = [
     "NBVResult",
     "NBVScorer",
+    "ScoringStoppedError",
+    "ShouldStop",
     "UncertaintyMaps",
     "block_mean",
+    "check_stop",
     "depth_error_ause",
     "downsampled",
     "fuse_scores",

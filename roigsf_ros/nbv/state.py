@@ -23,7 +23,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, ShouldStop, check_stop
 from roigsf_ros.render.surfels import SurfelMap
 
 
@@ -81,8 +81,13 @@ class TrainFisherCache:
         self.full_computations = 0
         self.poses_added = 0
 
-    def get(self, surfel_map: SurfelMap, poses: np.ndarray, intr: Intrinsics, mode: str) -> dict[str, torch.Tensor]:
-        """H_train of ``mode`` for ``poses`` under ``surfel_map`` (incremental where the poses extend the last)."""
+    def get(
+        self, surfel_map: SurfelMap, poses: np.ndarray, intr: Intrinsics, mode: str, should_stop: ShouldStop = None
+    ) -> dict[str, torch.Tensor]:
+        """H_train of ``mode`` for ``poses`` under ``surfel_map`` (incremental where the poses extend the last).
+
+        ``should_stop`` is checked before each pose's Fisher; a stop keeps the cache as it was.
+        """
         kind = "fisherrf" if mode == "fisherrf" else "fisher"
         keys = pose_keys(poses)
         means = surfel_map.means.detach().cpu().numpy().astype(np.float64)
@@ -90,7 +95,7 @@ class TrainFisherCache:
         entry = self._entries.get(kind)
         stale = entry is not None and self.refresh_every > 0 and entry[3] >= self.refresh_every
         if entry is None or keys[: len(entry[0])] != entry[0] or stale:
-            h = scorer.train_fisher(surfel_map, poses, intr, mode)
+            h = scorer.train_fisher(surfel_map, poses, intr, mode, should_stop)
             self.full_computations += 1
             self._entries[kind] = (keys, h, means, 0)
             return h
@@ -98,7 +103,7 @@ class TrainFisherCache:
         if len(old_means) != len(means) or not np.array_equal(old_means, means):
             h = carry_rows(h, match_surfels(old_means, means, self.match_tol_m))
         if len(keys) > len(old_keys):
-            new = scorer.train_fisher(surfel_map, np.asarray(poses)[len(old_keys) :], intr, mode)
+            new = scorer.train_fisher(surfel_map, np.asarray(poses)[len(old_keys) :], intr, mode, should_stop)
             h = {k: h[k] + new[k] for k in h}
             self.poses_added += len(keys) - len(old_keys)
             added += len(keys) - len(old_keys)
@@ -156,6 +161,8 @@ class ScoringState:
     ``voxel_size_m``/``sdf_trunc_m``/``depth_max_m``: the scoring TSDF. ``cache_h_train``: when the running
     H_train does not fit, keep one with :class:`TrainFisherCache` (incremental, approximate; the planner) or,
     False, let the scorer recompute it exactly from the keyframe poses at every call (the offline policies).
+    ``should_stop``: checked between units of work (a fused keyframe, a training view, a candidate); when it
+    turns true the call raises :class:`~roigsf_ros.nbv.scorer.ScoringStoppedError` (what was fused so far is kept).
     """
 
     def __init__(
@@ -167,8 +174,10 @@ class ScoringState:
         cache_h_train: bool = False,
         match_tol_m: float = 0.01,
         refresh_every: int = 0,
+        should_stop: ShouldStop = None,
     ) -> None:
         self.config = config
+        self.should_stop = should_stop
         self.voxel_size_m = float(voxel_size_m)
         self.sdf_trunc_m = float(sdf_trunc_m)
         self.depth_max_m = float(depth_max_m)
@@ -204,6 +213,7 @@ class ScoringState:
         if self.tsdf is None:
             self.tsdf = TSDFVolume(self.voxel_size_m, self.sdf_trunc_m, self.depth_max_m)
         for i in new:
+            check_stop(self.should_stop)
             T = np.asarray(poses)[i]
             depth, rgb = render_rgbd(T)
             self.tsdf.integrate(depth, T, intr, rgb)
@@ -241,7 +251,7 @@ class ScoringState:
             return running
         if self.train_fisher_cache is None:
             return None
-        return self.train_fisher_cache.get(surfel_map, poses, intr, mode)
+        return self.train_fisher_cache.get(surfel_map, poses, intr, mode, self.should_stop)
 
     def update(
         self,
@@ -282,8 +292,9 @@ class ScoringState:
         tsdf = self.tsdf if mode != "fisherrf" else None
         scorer = PreparedScorer(cfg, tsdf, voxels)
         return scorer.score(
-            surfel_map, h, tsdf, poses, candidates, intr, mode=mode, close_front_memory=close_front
-        )
+            surfel_map, h, tsdf, poses, candidates, intr, mode=mode, close_front_memory=close_front,
+            should_stop=self.should_stop,
+        )  # fmt: skip
 
 
 __all__ = [

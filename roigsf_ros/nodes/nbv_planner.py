@@ -21,6 +21,12 @@ the Fisher of each keyframe pose not seen before is added under the current map,
 over to the current surfels (:func:`match_surfels`); recomputed from scratch only when the keyframe
 set is not an extension of the one summed (a loaded map) or every ``h_train_refresh_every`` new poses.
 
+A request carries at most ``max_candidates`` poses (default 64, 8x the selector's window): scoring costs
+about 0.1 s per candidate on 2 cores, and one request of 10,000 held the service (and every request queued
+behind it) for minutes; a longer list is refused, ``success: false``, before any work. Scoring checks
+between candidates (and between keyframes fused, training views summed) whether the node is stopping, so
+Ctrl-C during a long request exits within one candidate's work (the request answers ``success: false``).
+
 At start-up (``warm_up``, default true) the planner runs mapping and scoring once on a tiny scene
 (:func:`roigsf_ros.nbv.warmup.warm_up_once`): the numba kernels compile on first use, 15-60 s with a cold
 cache, and on a fresh machine the first windows of the demo then found the planner busy compiling and
@@ -61,7 +67,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import CameraTopics, camera_info_to_intrinsics, stamp_to_ns
 from roigsf_ros.mapping.mapper import DEPTH_MODES, MapperConfig
 from roigsf_ros.nbv.config import MODES, NBVConfig
-from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, ScoringStoppedError
 from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
@@ -114,10 +120,12 @@ class NBVPlannerNode(SystemNode):
         self.max_request_age_s = float(
             declare(self, "max_request_age_s", 10.0, "refuse requests stamped longer ago than this (0 = no limit)")
         )
+        self.max_candidates = int(declare(self, "max_candidates", 64, "most candidate poses one request may carry"))
         warm_up = bool(declare(self, "warm_up", True, "compile the numba kernels at start-up (tiny scene)"))
         refresh = int(declare(self, "h_train_refresh_every", 0, "full H_train recompute every this many new poses"))
         match_tol = float(declare(self, "h_train_match_tol_m", 0.01, "surfel centre drift tolerated when carrying H"))
         check_positive("max_request_age_s", self.max_request_age_s, allow_zero=True)
+        check_positive("max_candidates", self.max_candidates)
         check_positive("h_train_refresh_every", refresh, allow_zero=True)
         check_positive("h_train_match_tol_m", match_tol)
         check_positive("voxel_size_m", self.voxel_size_m)
@@ -132,6 +140,7 @@ class NBVPlannerNode(SystemNode):
             raise InputError("parameter 'render_depth'", f"must be one of {', '.join(DEPTH_MODES)}")
 
         self.shared = shared
+        self._stop = threading.Event()
         self._lock = threading.Lock()  # topic-mode map state and counters
         self._cloud: PointCloud2 | None = None
         self._cloud_version = 0
@@ -139,8 +148,9 @@ class NBVPlannerNode(SystemNode):
         self._intr: Intrinsics | None = None
         self._topic_snapshot: MapSnapshot | None = None
         self.state = ScoringState(
-            self.nbv, self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m, True, match_tol, refresh
-        )
+            self.nbv, self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m, True, match_tol, refresh,
+            should_stop=self.stopping,
+        )  # fmt: skip
         """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
         self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
@@ -242,13 +252,23 @@ class NBVPlannerNode(SystemNode):
             snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, snap.intrinsics, self._render(snap), mode
         )
 
+    def stopping(self) -> bool:
+        """True once :meth:`stop` was called or the context shut down: long scoring gives up."""
+        return self._stop.is_set() or not self.context.ok()
+
+    def stop(self) -> None:
+        """Make scoring in progress give up within one candidate's work (returns at once)."""
+        self._stop.set()
+
     def _sync_timer(self) -> None:
         """Between requests: fuse new keyframes, rebuild what derives from the TSDF, bring H_train up to date."""
         snap = self.snapshot()
-        if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
+        if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0 or self.stopping():
             return
         try:
             self._update(snap, self.nbv.mode)
+        except ScoringStoppedError:
+            return
         except InputError as exc:
             self.get_logger().warning(f"map update failed: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
 
@@ -259,6 +279,11 @@ class NBVPlannerNode(SystemNode):
             self.counters["requests"] += 1
         try:
             result, snap, cands = self.score_request(req)
+        except ScoringStoppedError:
+            res.success, res.message, res.best_index = False, "nbv_planner: shutting down, not scored", -1
+            with self._lock:
+                self.counters["failed"] += 1
+            return res
         except InputError as exc:
             res.success, res.message, res.best_index = False, str(exc), -1
             with self._lock:
@@ -293,6 +318,12 @@ class NBVPlannerNode(SystemNode):
             raise InputError("mode", f"unknown score mode '{mode}' (choose from {', '.join(MODES)})")
         if not req.candidates.poses:
             raise InputError("candidates", "empty candidate list")
+        if len(req.candidates.poses) > self.max_candidates:
+            raise InputError(
+                "candidates",
+                f"{len(req.candidates.poses)} poses, more than max_candidates ({self.max_candidates}); "
+                "send at most that many per request (or raise the parameter)",
+            )
         frame = req.candidates.header.frame_id
         if frame and frame != self.frame_id:
             raise InputError("candidates.header.frame_id", f"'{frame}' is not the map frame '{self.frame_id}'")
