@@ -24,6 +24,19 @@ SHARED_DATA = Path(os.environ.get("ROIGSF_SHARED_DATA", REPO.parent / "shared" /
 OFFICE0 = SHARED_DATA / "replica_office0"
 
 
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """After a run that included the bad-input corpus (test_bad_input_corpus.py): cases tried and survived."""
+    reports = [
+        r
+        for key in ("passed", "failed", "error")
+        for r in terminalreporter.stats.get(key, [])
+        if getattr(r, "when", "") == "call" and "test_bad_input_corpus.py::" in getattr(r, "nodeid", "")
+    ]
+    if reports:
+        survived = sum(r.passed for r in reports)
+        terminalreporter.write_line(f"bad-input corpus: {len(reports)} cases tried, {survived} survived")
+
+
 @pytest.fixture(scope="session")
 def office0() -> Path:
     """The shared real Replica office0 sample (mesh, 2000 poses, 4 frames); skips when absent."""
