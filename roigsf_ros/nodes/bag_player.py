@@ -12,7 +12,8 @@ publishes as fast as possible), ``loop``, ``wait_for_subscribers`` and ``wait_ti
 ``qos_depth``, ``ack_timeout_s``.
 
 Before the first message the player waits until every topic it plays has ``wait_for_subscribers``
-(default 1; 0 = no wait) matched subscriptions, at most ``wait_timeout_s`` (default 10 s). Without the
+(default 1; 0 = no wait) matched subscriptions, at most ``wait_timeout_s`` (default 10 s); latched topics
+(``/tf_static``) are not waited for, a later subscriber gets them anyway. Without the
 wait, a player started in a process of its own published before DDS discovery had matched it with
 the subscribers, and those first messages were lost: a 20-frame bag played at rate 1 into a running
 ``active_mapping`` gave no keyframe at all. On timeout it logs the topics still short of subscribers
@@ -183,11 +184,12 @@ class BagPlayer(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         # Static transforms are latched, as tf2's static broadcaster offers them (a listener asks for it).
+        self._latched_topics = {t for t, typ in types.items() if typ == TF_MESSAGE_TYPE and t.endswith("tf_static")}
         self._publishers_by_topic: dict[str, Publisher] = {
             topic: self.create_publisher(
                 message_class(typ, f"{self.bag_path}:{topic}"),
                 topic,
-                latched if typ == TF_MESSAGE_TYPE and topic.endswith("tf_static") else qos,
+                latched if topic in self._latched_topics else qos,
             )
             for topic, typ in types.items()
         }
@@ -262,8 +264,15 @@ class BagPlayer(Node):
         )
 
     def _subscribers_short(self) -> dict[str, int]:
-        """Topics with fewer than ``wait_for_subscribers`` matched subscriptions, and how many they have."""
-        counts = {t: pub.get_subscription_count() for t, pub in self._publishers_by_topic.items()}
+        """Topics with fewer than ``wait_for_subscribers`` matched subscriptions, and how many they have.
+
+        Latched topics (``/tf_static``) are not waited for: a subscriber that comes later still gets them.
+        """
+        counts = {
+            t: pub.get_subscription_count()
+            for t, pub in self._publishers_by_topic.items()
+            if t not in self._latched_topics
+        }
         return {t: c for t, c in counts.items() if c < self.wait_for_subscribers}
 
     def _wait_for_subscribers(self) -> bool:
@@ -282,7 +291,8 @@ class BagPlayer(Node):
             have = ", ".join(f"{t} ({c})" for t, c in sorted(short.items()))
             self.get_logger().warning(
                 f"after {self.wait_timeout_s:g} s (wait_timeout_s), topics still short of the "
-                f"{self.wait_for_subscribers} subscriber(s) wait_for_subscribers asks for: {have}; playing anyway"
+                f"{self.wait_for_subscribers} subscriber(s) wait_for_subscribers asks for: {have}; playing anyway "
+                "(play only the topics a node reads with -p topics:=[...], or -p wait_for_subscribers:=0)"
             )
         else:
             self.get_logger().info(
