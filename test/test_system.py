@@ -550,6 +550,22 @@ def bag20(bag: Path) -> Path:
     return out
 
 
+@pytest.fixture(scope="class")
+def late(bag20: Path, watch: Watcher, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """active_mapping running for 5 s, then the 20-frame bag played into it by bag_player in its own process."""
+    tmp = tmp_path_factory.mktemp("late")
+    watch.clear()
+    with processes(tmp) as ps:
+        params = {**as_params("mapper"), **as_params("keyframe_selector")}
+        node = ps.start("active_mapping", params | as_params("nbv_planner", max_candidates=2 * LATE_CANDIDATES))
+        t_start = time.monotonic()
+        wait_until("active_mapping's status", lambda: bool(watch.get("keyframe_selector")), 60, ps)
+        time.sleep(max(0.0, t_start + 5.0 - time.monotonic()))
+        player = ps.start("bag_player", {"bag": str(bag20), "rate": 1.0})
+        assert player.wait(60) == 0, player.log()
+        yield {"ps": ps, "node": node, "player": player}
+
+
 class TestLateStart:
     """``active_mapping`` running for 5 s, then ``bag_player`` started in a process of its own (defaults, rate 1).
 
@@ -559,20 +575,6 @@ class TestLateStart:
     of 10,000 candidates (``max_candidates`` raised for it) and Ctrl-C while scoring it: before, the executor
     waited for the scoring callback to finish (over 80 s) and the test's SIGKILL ended it.
     """
-
-    @pytest.fixture(scope="class")
-    def late(self, bag20: Path, watch: Watcher, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
-        tmp = tmp_path_factory.mktemp("late")
-        watch.clear()
-        with processes(tmp) as ps:
-            params = {**as_params("mapper"), **as_params("keyframe_selector")}
-            node = ps.start("active_mapping", params | as_params("nbv_planner", max_candidates=2 * LATE_CANDIDATES))
-            t_start = time.monotonic()
-            wait_until("active_mapping's status", lambda: bool(watch.get("keyframe_selector")), 60, ps)
-            time.sleep(max(0.0, t_start + 5.0 - time.monotonic()))
-            player = ps.start("bag_player", {"bag": str(bag20), "rate": 1.0})
-            assert player.wait(60) == 0, player.log()
-            yield {"ps": ps, "node": node, "player": player}
 
     def test_a_player_started_later_loses_no_frame(self, late: dict[str, Any], watch: Watcher, bag20: Path):
         ps = late["ps"]
