@@ -1,4 +1,4 @@
-"""Data in and out: Replica sequences, synthetic scenes, rosbag2 bags, stamp matching, TF, frame sources."""
+"""Data in and out: Replica, synthetic scenes, a simulated RGB-D sensor, bags, stamp matching, TF, frame sources."""
 
 from roigsf_ros.core.exports import lazy_exports
 
@@ -74,6 +74,24 @@ __all__, __getattr__ = lazy_exports(
             "synth_object",
             "synth_room",
             "synth_trajectory",
+        ],
+        "sensor": [
+            "CAMERAS",
+            "HoleCounts",
+            "KINECT_V1_INTRINSICS",
+            "SENSORS",
+            "SensorConfig",
+            "SensorModel",
+            "axial_sigma_m",
+            "depth_edges",
+            "lateral_sigma_px",
+            "measured_poses",
+            "non_orthonormal",
+            "orthonormality_error",
+            "projector_shadow",
+            "quantise_disparity",
+            "simulate_colour",
+            "simulate_depth",
         ],
         "sources": [
             "BagFrameSource",

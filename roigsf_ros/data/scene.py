@@ -27,7 +27,8 @@ from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.core.frame import Frame
-from roigsf_ros.data.replica import write_replica
+from roigsf_ros.data.replica import save_traj, write_replica
+from roigsf_ros.data.sensor import SensorModel, orthonormality_error
 
 ROOM_MIN = np.array([-2.5, -2.0, 0.0])
 """Lower corner (m) of the room made by :func:`synth_room` (world z up, floor at z = 0)."""
@@ -221,7 +222,8 @@ class MeshRenderer:
         T = check_pose(T_wc, "T_wc")
         rays = camera_rays(T, intr, pixel_offset)
         hits = self._scene.cast_rays(o3d.core.Tensor(rays))
-        return rays, {k: hits[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
+        keys = ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")
+        return rays, {k: hits[k].numpy() for k in keys}
 
     @staticmethod
     def _depth(t_hit: np.ndarray) -> np.ndarray:
@@ -242,6 +244,29 @@ class MeshRenderer:
         ``pixel_offset`` as in :func:`camera_rays` (:data:`REPLICA_PIXEL_OFFSET` mimics Replica).
         """
         rays, hits = self._cast(T_wc, intr, pixel_offset)
+        return self._shade(rays, hits, intr)
+
+    def render_with_incidence(
+        self, T_wc: np.ndarray, intr: Intrinsics, pixel_offset: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`render` and ``|cos|`` [H, W] float32 of the angle between each ray and the hit triangle's normal.
+
+        The incidence (0 where nothing is hit) is what a sensor model needs for grazing-angle holes and
+        angle-dependent noise (:mod:`roigsf_ros.data.sensor`); the absolute value makes it independent of
+        the triangles' winding.
+        """
+        rays, hits = self._cast(T_wc, intr, pixel_offset)
+        rgb, depth_m = self._shade(rays, hits, intr)
+        dirs = rays[..., 3:].astype(np.float64)
+        normals = hits["primitive_normals"].astype(np.float64)
+        norm = np.linalg.norm(dirs, axis=-1) * np.linalg.norm(normals, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = np.abs(np.einsum("hwk,hwk->hw", dirs, normals)) / norm
+        cos = np.where(np.isfinite(hits["t_hit"]) & (norm > 0), np.clip(cos, 0.0, 1.0), 0.0)
+        return rgb, depth_m, cos.astype(np.float32)
+
+    def _shade(self, rays: np.ndarray, hits: dict[str, np.ndarray], intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Colour [H, W, 3] uint8 and depth [H, W] float32 of a cast (see :meth:`render`)."""
         t_hit = hits["t_hit"]
         depth_m = self._depth(t_hit)
         hit = np.isfinite(t_hit)
@@ -573,6 +598,7 @@ def render_sequence(
     jpeg_quality: int = 95,
     progress: bool = True,
     metadata: dict | None = None,
+    sensor: SensorModel | None = None,
 ) -> Path:
     """Render ``poses`` [N, 4, 4] of ``mesh`` into a Replica-layout folder ``out_dir``, all or nothing.
 
@@ -580,7 +606,10 @@ def render_sequence(
     ground-truth ``mesh.ply`` (same coordinates as the poses) and ``render.json`` (settings and
     ``metadata``), inside :func:`~roigsf_ros.core.fileio.atomic_dir`, so a failure leaves nothing under
     ``out_dir``. ``pixel_offset`` as in :func:`camera_rays` (0 keeps ``cam_params.json`` exact).
-    Returns ``out_dir``.
+    With a ``sensor`` (:class:`~roigsf_ros.data.sensor.SensorModel`) every ideal frame goes through it
+    (noisy depth with holes, noisy JPEG colour), ``traj.txt`` holds the poses as its tracker writes them
+    (not exactly orthonormal, optionally drifting), ``traj_gt.txt`` the true ones, and ``render.json``
+    the sensor's constants and hole fractions. Returns ``out_dir``.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(poses) == 0:
@@ -592,12 +621,21 @@ def render_sequence(
     with atomic_dir(out_dir, overwrite=overwrite) as tmp:
         show = progress and sys.stderr.isatty()
 
+        written = poses if sensor is None else sensor.poses(poses)
+
         def frames() -> Iterator[Frame]:
             for i, T in enumerate(tqdm(poses, desc=f"render {out_dir.name}", unit="frame", disable=not show)):
-                rgb, depth_m = renderer.render(T, intr, pixel_offset)
-                yield Frame(index=i, rgb=rgb, depth_m=depth_m, T_wc=T)
+                if sensor is None:
+                    rgb, depth_m = renderer.render(T, intr, pixel_offset)
+                    yield Frame(index=i, rgb=rgb, depth_m=depth_m, T_wc=T)
+                    continue
+                rgb, depth_m, cos_incidence = renderer.render_with_incidence(T, intr, pixel_offset)
+                ideal = Frame(index=i, rgb=rgb, depth_m=depth_m, T_wc=written[i])
+                yield sensor.frame(ideal, intr, cos_incidence)
 
         write_replica(tmp, intr, frames(), jpeg_quality=jpeg_quality)
+        if sensor is not None:
+            save_traj(tmp / "traj_gt.txt", poses)
         if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh, write_ascii=False):
             raise OSError(f"{tmp / 'mesh.ply'}: open3d could not write the mesh")
         info = {
@@ -610,6 +648,13 @@ def render_sequence(
             "depth": "z-depth along the optical axis, metres = png / scale",
             **(metadata or {}),
         }
+        if sensor is not None:
+            dev = [orthonormality_error(T[:3, :3]) for T in written]
+            info["sensor"] = sensor.describe() | {
+                "traj": "traj.txt: the poses as the simulated tracker writes them; traj_gt.txt: the true poses",
+                "pose_orthonormality_error": [min(dev), max(dev)],
+                "pose_position_error_m_max": float(np.abs(written[:, :3, 3] - poses[:, :3, 3]).max()),
+            }
         (tmp / "render.json").write_text(json.dumps(info, indent=2) + "\n")
     return out_dir
 
