@@ -1,7 +1,9 @@
-"""The simulated Kinect v1 sensor (data/sensor.py): noise statistics, holes, determinism, poses."""
+"""The simulated Kinect v1 sensor (data/sensor.py): noise statistics, holes, determinism, poses, and a
+simulated-sensor sequence mapped end to end through ``roigsf scene synth --sensor`` and ``roigsf map``."""
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from pathlib import Path
@@ -10,10 +12,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from roigsf_ros.cli import main
 from roigsf_ros.core.camera import POSE_RIGID_TOL, Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
-from roigsf_ros.data.replica import load_traj, save_traj
+from roigsf_ros.data.replica import ReplicaSequence, load_traj, save_traj
 from roigsf_ros.data.scene import MeshRenderer, look_at
 from roigsf_ros.data.sensor import (
     KINECT_V1_INTRINSICS,
@@ -240,3 +243,62 @@ def test_sensor_config_is_validated_and_named() -> None:
     with pytest.raises(InputError, match="unknown sensor"):
         SensorModel.named("realsense")
     assert SensorModel.named("kinect", seed=2, dropout_prob=0.05).config.dropout_prob == 0.05
+
+
+# ----------------------------------------------------------------------------------- end to end
+def test_simulated_sensor_sequence_maps_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``scene synth --sensor kinect`` -> ``roigsf map``: no pose refused, holes masked and counted, finite metrics."""
+    scene = tmp_path / "room"
+    args = ["scene", "synth", "--out", str(scene), "--seed", "2", "--frames", "24", "--width", "160",
+            "--sensor", "kinect", "--sensor-seed", "5"]  # fmt: skip
+    assert main(args) == 0
+    assert "simulated kinect sensor (seed 5)" in capsys.readouterr().out
+    info = json.loads((scene / "render.json").read_text())["sensor"]
+    assert info["name"] == "kinect" and info["hole_fractions"]["total"] > 0.01
+    assert 1e-4 * (1 - 1e-6) <= info["pose_orthonormality_error"][0] <= info["pose_orthonormality_error"][1] <= 4e-4
+    raw = np.loadtxt(scene / "traj.txt").reshape(-1, 4, 4)
+    assert min(orthonormality_error(T[:3, :3]) for T in raw) >= 1e-4 * (1 - 1e-6)  # what a real tracker writes
+    np.testing.assert_allclose(ReplicaSequence(scene).poses, load_traj(scene / "traj_gt.txt"), atol=1e-3)
+
+    run = tmp_path / "run"
+    rc = main(["map", str(scene), "--policy", "every-n", "--every-n", "2", "--out", str(run), "--width", "64",
+               "--stride", "4", "--iters-per-keyframe", "3", "--no-progress", "--no-h-train",
+               "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15"])  # fmt: skip
+    assert rc == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["n_frames"] == 6 and m["frames_skipped_bad_pose"] == 0 and m["n_keyframes"] == 3
+    assert m["mapper_frames_skipped_no_depth"] == 0
+    # Holes arrive as 0 depth, are masked and counted: at least the 1 % dropouts of every keyframe.
+    assert m["mapper_invalid_depth_pixels"] >= 0.005 * m["n_keyframes"] * 64 * 48
+    assert m["n_eval_frames"] == 3 and m["eval_frames_without_gt_depth"] == 0
+    for key in ("psnr", "depth_l1_cm", "precision@5cm", "recall@5cm", "precision@1cm", "recall@1cm"):
+        assert math.isfinite(m[key]), key
+    assert m["precision@5cm"] > 0.5 and m["psnr"] > 10
+
+
+def test_cli_sensor_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["scene", "synth", "--frames", "2", "--width", "32"]
+    assert main([*base, "--out", str(tmp_path / "a"), "--sensor-set", "dropout_prob=0.1"]) == 2
+    assert "needs --sensor" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "b"), "--sensor", "kinect", "--sensor-set", "nope=1"]) == 2
+    assert main([*base, "--out", str(tmp_path / "c"), "--sensor", "kinect", "--sensor-set", "dropout_prob=2"]) == 2
+    assert "dropout_prob" in capsys.readouterr().err
+    assert not any((tmp_path / n).exists() for n in "abc")
+    out = tmp_path / "d"
+    assert main([*base, "--out", str(out), "--sensor", "kinect", "--sensor-set", "drift_trans_m_per_sqrt_m=0.02"]) == 0
+    info = json.loads((out / "render.json").read_text())["sensor"]
+    assert info["config"]["drift_trans_m_per_sqrt_m"] == 0.02 and info["pose_position_error_m_max"] > 0
+
+
+def test_cli_render_named_kinect_camera(office0: Path, tmp_path: Path) -> None:
+    """``scene render --cam kinect-v1 --sensor kinect`` on office0: a 640x480 Kinect-like sequence, read back."""
+    out = tmp_path / "o0"
+    rc = main(["scene", "render", "--mesh", str(office0 / "office0_mesh.ply"), "--traj",
+               str(office0 / "office0" / "traj.txt"), "--cam", "kinect-v1", "--out", str(out), "--stride", "700",
+               "--max-frames", "2", "--width", "320", "--sensor", "kinect"])  # fmt: skip
+    assert rc == 0
+    seq = ReplicaSequence(out)
+    assert seq.intrinsics == K1.resized(320, 240)
+    frame = seq.frame(1)
+    assert 0.005 < (frame.depth_m == 0).mean() < 0.5
+    np.testing.assert_allclose(seq.poses, load_traj(office0 / "office0" / "traj.txt")[[0, 700]], atol=1e-3)
