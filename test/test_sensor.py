@@ -260,12 +260,20 @@ def test_simulated_sensor_sequence_maps_end_to_end(tmp_path: Path, capsys: pytes
     assert min(orthonormality_error(T[:3, :3]) for T in raw) >= 1e-4 * (1 - 1e-6)  # what a real tracker writes
     np.testing.assert_allclose(ReplicaSequence(scene).poses, load_traj(scene / "traj_gt.txt"), atol=1e-3)
 
+    ideal = tmp_path / "ideal"  # the same sequence without the sensor: image metrics against it
+    assert main(["scene", "synth", "--out", str(ideal), "--seed", "2", "--frames", "24", "--width", "160"]) == 0
+
     run = tmp_path / "run"
-    rc = main(["map", str(scene), "--policy", "every-n", "--every-n", "2", "--out", str(run), "--width", "64",
-               "--stride", "4", "--iters-per-keyframe", "3", "--no-progress", "--no-h-train",
-               "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15"])  # fmt: skip
-    assert rc == 0
+    cmd = ["map", str(scene), "--policy", "every-n", "--every-n", "2", "--out", str(run), "--width", "64",
+           "--stride", "4", "--iters-per-keyframe", "3", "--no-progress", "--no-h-train", "--set",
+           "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15", "--eval-against", str(ideal)]  # fmt: skip
+    short = tmp_path / "short"
+    assert main(["scene", "synth", "--out", str(short), "--frames", "8", "--width", "32"]) == 0
+    assert main([*cmd[:-1], str(short)]) == 2  # 2 frames against 6: refused before mapping
+    assert "eval_source" in capsys.readouterr().err and not run.exists()
+    assert main(cmd) == 0
     m = json.loads((run / "metrics.json").read_text())
+    assert m["eval_against"] == str(ideal)
     assert m["n_frames"] == 6 and m["frames_skipped_bad_pose"] == 0 and m["n_keyframes"] == 3
     assert m["mapper_frames_skipped_no_depth"] == 0
     # Holes arrive as 0 depth, are masked and counted: at least the 1 % dropouts of every keyframe.

@@ -55,6 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--every-n", type=int, help="N of the every-n policy")
     p.add_argument("--tau-k", type=float, help="unmapped-pixel fraction of the gaus-slam policy")
     p.add_argument("--eval-every", type=int, default=1, help="evaluate every K-th non-keyframe")
+    p.add_argument(
+        "--eval-against",
+        metavar="BAG_OR_DIR",
+        help="image metrics against these frames (same sequence, read with the same size and stride) instead of "
+        "the mapped ones: e.g. the noise-free render of a 'scene render --sensor' sequence",
+    )
     p.add_argument("--no-h-train", action="store_true", help="do not track the training Fisher (faster)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mapper")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
@@ -111,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
                          allow_partial=args.allow_partial, topics=topics)  # fmt: skip
+    eval_source = None
+    if args.eval_against is not None:
+        eval_source = open_frames(args.eval_against, size=size, stride=args.stride, max_frames=args.max_frames,
+                                  allow_partial=args.allow_partial, topics=topics)  # fmt: skip
     gt_mesh = args.gt_mesh if args.gt_mesh is not None else source.gt_mesh_path
     metrics = run_offline(
         source,
@@ -121,8 +131,11 @@ def run(args: argparse.Namespace) -> int:
         eval_config=EvalConfig(eval_every=args.eval_every),
         progress=not args.no_progress,
         overwrite=args.overwrite,
+        eval_source=eval_source,
     )
     print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
+    if eval_source is not None:
+        print(f"  (PSNR, SSIM, depth L1 against {args.eval_against})")
     print_summary(metrics)
     if gt_mesh is None:
         print("  (no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)")

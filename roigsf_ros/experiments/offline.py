@@ -63,14 +63,22 @@ def run_offline(
     eval_config: EvalConfig | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    eval_source: FrameSequence | None = None,
 ) -> dict[str, Any]:
     """Map a whole frame sequence (e.g. :func:`roigsf_ros.data.sources.open_frames`) offline into ``out_dir``.
 
     Files (written atomically): ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json`` and
     ``strip.png`` (input vs rendered colour and depth of a few evaluated frames). Image metrics are
     over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
-    counted. Returns the metrics dict.
+    counted. ``eval_source``: the image metrics compare with its frames, at its poses, instead of the
+    mapped ones (the same frames in the same order and size: e.g. the noise-free render of a simulated
+    sensor's sequence, so that sensor noise is not counted as map error). Returns the metrics dict.
     """
+    if eval_source is not None:
+        if len(eval_source) != len(source):
+            raise InputError("eval_source", f"has {len(eval_source)} frames, the mapped sequence {len(source)}")
+        if eval_source.intrinsics != source.intrinsics:
+            raise InputError("eval_source", "its camera differs from the mapped sequence's")
     ev = eval_config or EvalConfig()
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
     if gt_path is not None and not gt_path.is_file():
@@ -119,10 +127,15 @@ def run_offline(
     bar = tqdm(total=len(chosen), desc="evaluating", unit="frame", disable=quiet, dynamic_ncols=True)
 
     def held_out() -> Iterator[Frame]:
-        for i, frame in enumerate(source):
+        for i, frame in enumerate(source if eval_source is None else eval_source):
             if i in chosen:
                 bar.update(1)
-                yield frame  # pose already checked above
+                if eval_source is None:
+                    yield frame  # pose already checked above
+                    continue
+                if frame.index != frame_ids[i]:
+                    raise InputError("eval_source", f"frame {i} is number {frame.index}, the mapped one {frame_ids[i]}")
+                yield Frame(frame.index, frame.rgb, frame.depth_m, check_pose(frame.T_wc, f"eval frame {frame.index}"))
 
     images = evaluation.render_metrics(
         mapper.render_rgb_depth, held_out(), mapper.valid_depth_mask,
@@ -147,6 +160,7 @@ def run_offline(
         **images.means(),
         "eval_every": ev.eval_every,
         "eval_on": "non-keyframes",
+        "eval_against": "the mapped frames" if eval_source is None else str(getattr(eval_source, "path", "other")),
         "eval_depth": cfg.eval_depth,
         "eval_frames_without_gt_depth": images.frames_without_gt_depth,
         "frames_skipped_bad_pose": bad_pose,
