@@ -299,8 +299,10 @@ def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -
     assert cli_main(["map", str(scene), "--out", str(run)]) == 2  # exists, no --overwrite
     assert cli_main(["map", str(scene), "--out", str(tmp_path / "r3"), "--policy", "nope"]) == 2
     assert cli_main(["map", str(scene), "--out", str(tmp_path / "r4"), "--set", "lr_means=abc"]) == 2
+    assert cli_main(["map", str(scene), "--out", str(tmp_path / "r5"), "--window", "3"]) == 2  # gaus-slam: no window
+    assert cli_main(["map", str(scene), "--out", str(tmp_path / "r6"), "--policy", "random", "--window", "0"]) == 2
     assert "error" in capsys.readouterr().err
-    assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
+    assert not any((tmp_path / f"r{k}").exists() for k in range(2, 7))
 
 
 def test_resize_keeps_pixel_centres_aligned() -> None:

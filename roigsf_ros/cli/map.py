@@ -54,6 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--final-iters", type=int, help="global refinement steps at the end")
     p.add_argument("--every-n", type=int, help="N of the every-n policy")
     p.add_argument("--tau-k", type=float, help="unmapped-pixel fraction of the gaus-slam policy")
+    p.add_argument("--window", type=int, help="candidate window (frames) of the stream NBV policies (default 8)")
     p.add_argument("--eval-every", type=int, default=1, help="evaluate every K-th non-keyframe")
     p.add_argument(
         "--eval-against",
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     size = image_size(args)
     topics = camera_topics(args)
     check_out(args.out, args.overwrite)
-    policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k)
+    policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k, window=args.window)
     cfg = config_from_args(args)
     source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
                          allow_partial=args.allow_partial, topics=topics)  # fmt: skip
