@@ -65,12 +65,13 @@ def fast(backend: str):
     return lambda *a, **k: render.rasterize_surfels(*a, backend=backend, **k)
 
 
-def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", **kw):
-    """Values and input gradients of a random linear loss over all outputs, from both renderers."""
+def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", fast_kw=None, **kw):
+    """Values and input gradients of a random linear loss over all outputs, from both renderers
+    (``fast_kw``: extra arguments of the fast one)."""
     results = []
-    for fn in (fast(backend), render_reference.rasterize_surfels):
+    for fn, extra in ((fast(backend), fast_kw or {}), (render_reference.rasterize_surfels, {})):
         leaves = [t.clone().requires_grad_() for t in tensors]
-        out = fn(*leaves, viewmat, K, width, height, **kw)
+        out = fn(*leaves, viewmat, K, width, height, **kw, **extra)
         g = torch.Generator().manual_seed(weights_seed)
         probes = {k: torch.randn(getattr(out, k).shape, generator=g, dtype=F64) for k in OUTPUTS}
         loss = sum((getattr(out, k) * probes[k]).sum() for k in OUTPUTS)
@@ -321,3 +322,94 @@ def test_numba_compact_pair_storage(monkeypatch) -> None:
     proj = render.project_surfels(*tensors[:4], viewmat, K, w, h)
     numba_pairs = render.select_pairs(proj, w, h, backend="numba")
     assert torch.equal(numba_pairs.surf, render.select_pairs(proj, w, h, backend="torch").surf)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("tile_size", [2, 8])
+def test_long_tile_lists_match_reference(backend: str, tile_size: int) -> None:
+    """Hundreds of surfels per tile: the numba kernels' chunked lists (64 surfels a pass) and early stop."""
+    tensors, viewmat, K, w, h = random_scene("mixed", 7, n=300, width=12, height=10)
+    tensors[3] = tensors[3] * 0.6  # lower opacity: long lists before transmittance is spent
+    bg = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=F64)
+    (fast, g_fast), (ref, g_ref) = run_both(
+        tensors, viewmat, K, w, h, background=bg, backend=backend, fast_kw={"tile_size": tile_size}
+    )
+    assert int(ref.n_contrib.max()) > 64
+    for k in OUTPUTS:
+        a, b = getattr(fast, k), getattr(ref, k)
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
+    assert torch.equal(fast.n_contrib, ref.n_contrib)
+    assert torch.equal(fast.visible, ref.visible)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_without_distortion(backend: str) -> None:
+    """``with_distortion=False``: a zero distortion map, every other output and gradient unchanged."""
+    tensors, viewmat, K, w, h = random_scene("mixed", 8, n=40)
+    res = {}
+    for wd in (True, False):
+        leaves = [t.clone().requires_grad_() for t in tensors]
+        out = render.rasterize_surfels(*leaves, viewmat, K, w, h, with_distortion=wd, backend=backend)
+        (out.features.sum() + out.depth.sum() + out.alpha.sum() + out.normal.sum()).backward()
+        res[wd] = (out, [t.grad for t in leaves])
+    (a, ga), (b, gb) = res[True], res[False]
+    assert float(a.distortion.detach().abs().max()) > 0 and float(b.distortion.detach().abs().max()) == 0.0
+    for k in ("features", "alpha", "depth", "median_depth", "normal"):
+        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-12, atol=1e-12), k
+    for x, y in zip(ga, gb, strict=True):
+        assert torch.allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+@NEEDS_NUMBA
+def test_numba_camera_gradients_match_torch() -> None:
+    """A camera with gradients takes the torch projection + numba compositing path: same as torch."""
+    tensors, viewmat, K, w, h = random_scene("mixed", 9, n=40)
+    results = []
+    for backend in ("torch", "numba"):
+        leaves = [t.clone().requires_grad_() for t in tensors]
+        vm = viewmat.clone().requires_grad_()
+        out = render.rasterize_surfels(*leaves, vm, K, w, h, backend=backend)
+        g = torch.Generator().manual_seed(1)
+        loss = sum(
+            (getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g, dtype=F64)).sum() for k in OUTPUTS
+        )
+        loss.backward()
+        results.append((out, [t.grad for t in [*leaves, vm]]))
+    (a, ga), (b, gb) = results
+    for k in OUTPUTS:
+        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-10, atol=1e-10), k
+    for x, y in zip(ga, gb, strict=True):
+        assert torch.allclose(x, y, rtol=1e-9, atol=1e-9 * y.abs().max())
+
+
+@NEEDS_NUMBA
+def test_numba_projection_kernel_matches_torch() -> None:
+    """The fused projection/culling kernel gives project_surfels' rows, normals, boxes and culling."""
+    for kind, seed in (("mixed", 0), ("behind", 1), ("grazing", 2)):
+        tensors, viewmat, K, w, h = random_scene(kind, seed, n=60)
+        ref = render.project_surfels(*tensors[:4], viewmat, K, w, h, backend="torch")
+        n = tensors[0].shape[0]
+        pk, nrm, thr = np.empty((n, render.NPACK)), np.empty((n, 3)), np.empty(n)
+        rect, keep = np.empty((n, 4), np.int32), np.empty(n, np.uint8)
+        f = [t.numpy() for t in tensors[:4]]
+        render._KERNELS["project"](*f, viewmat.numpy(), K.numpy(), w, h, 0.2, 100.0, pk, nrm, rect, thr, keep)
+        kept = torch.from_numpy(keep.astype(bool))
+        assert torch.equal(kept, ref.keep)
+        assert torch.equal(torch.from_numpy(rect).long()[kept], ref.rect[ref.keep])
+        assert torch.allclose(torch.from_numpy(pk).T, ref.packed, rtol=1e-12, atol=1e-12)
+        assert torch.allclose(torch.from_numpy(nrm), ref.normals, rtol=1e-12, atol=1e-12)
+
+
+@NEEDS_NUMBA
+def test_polynomial_exp_is_accurate() -> None:
+    """The kernels' straight-line exp (range reduction + degree-13 polynomial), compiled as they use it,
+    is within a few ulp over the exponents a kept pair can have (-rho / 2 >= -ln 255 > -5.6) and beyond."""
+    render._RASTER_KERNELS["forward"]  # compiles the kernels and their helper
+    rng = np.random.default_rng(0)
+    for lo, tol in ((5.6, 4e-16), (20.0, 2e-15)):
+        x = -np.concatenate([np.linspace(0.0, lo, 5601), rng.uniform(0, lo, 2000)])
+        got = np.array([render._exp_neg(float(v)) for v in x])
+        ref = np.exp(x.astype(np.longdouble))
+        assert float(np.max(np.abs(got - ref) / ref)) < tol, lo

@@ -82,10 +82,22 @@ def balanced_bounds(cost: Tensor, parts: int) -> np.ndarray:
 
 
 class Kernels:
-    """numba-compiled versions of plain-Python kernels, all compiled on the first lookup (cached on disk)."""
+    """numba-compiled versions of plain-Python kernels, all compiled on the first lookup (cached on disk).
 
-    def __init__(self, parallel: bool = True, fastmath: bool | set[str] = False, **kernels: Callable) -> None:
+    ``helpers``: plain-Python functions the kernels call; each is compiled first (inlined into its
+    callers at numba's IR level, so a call inside a loop does not stop LLVM from vectorising it) and
+    put in place of the Python function in the calling kernel's module.
+    """
+
+    def __init__(
+        self,
+        parallel: bool = True,
+        fastmath: bool | set[str] = False,
+        helpers: tuple[Callable, ...] = (),
+        **kernels: Callable,
+    ) -> None:
         self._source = kernels
+        self._helpers = helpers
         self._options: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": fastmath}
         if parallel:
             self._options["parallel"] = True
@@ -94,6 +106,13 @@ class Kernels:
     def __getitem__(self, name: str) -> Callable:
         if not self._compiled:
             numba = configure_numba()
+            for h in self._helpers:
+                jitted = numba.njit(
+                    cache=self._options["cache"], nogil=True, inline="always", fastmath=self._options["fastmath"]
+                )(h)
+                for fn in self._source.values():
+                    if h.__name__ in fn.__code__.co_names:
+                        fn.__globals__[h.__name__] = jitted
             for fn in self._source.values():
                 if "prange" in fn.__code__.co_names:
                     fn.__globals__["prange"] = numba.prange

@@ -7,12 +7,14 @@ rules, taken from hbb1/diff-surfel-rasterization); both backends match it in val
    rows ``A`` (so the ray-splat hit ``p = k x l = A [x, y, 1]`` is linear in the pixel), ``det``,
    centre depth and projected centre; a conservative pixel box holding every pixel where
    ``alpha >= 1/255`` (exact bound of the projected disc clipped at the near plane, with margins).
-   :func:`rasterize_surfels` culls with it without autograd, then projects only the kept surfels
-   differentiably.
 2. :func:`bin_tiles`: kept surfels binned into 4x4-pixel tiles, depth-sorted per tile.
-3. ``backend="numba"`` (CPU, default when numba is installed): compiled kernels written like the
-   2DGS CUDA rasteriser (front-to-back walk per pixel; hand-written back-to-front backward), wrapped
-   in a ``torch.autograd.Function``; torch autograd handles the projection.
+3. ``backend="numba"`` (CPU, default when numba is installed): the whole render is compiled
+   kernels in one ``torch.autograd.Function`` (projection, culling and pixel boxes in one pass;
+   stable depth sort and binning; compositing written like the 2DGS CUDA rasteriser, front-to-back
+   per pixel, with a hand-written back-to-front backward; the projection's backward), so a render
+   costs a handful of kernel launches and no per-surfel torch operations. When the camera itself
+   needs gradients, torch projects the surfels (:func:`project_packed`, culled with
+   :func:`project_surfels`) and only the compositing runs in the kernels.
    ``backend="torch"`` (any device): :func:`select_pairs` walks the tiles in chunks with the
    per-pixel early stop to list the exact (pixel, surfel) contributions, and
    :func:`composite_pairs` composites them with plain differentiable tensor ops (transmittance by a
@@ -538,11 +540,294 @@ def composite_pairs(
 
 
 # ------------------------------------------------------------------------------ numba backend
-# CPU kernels written like the 2DGS CUDA rasteriser: every pixel walks its tile's depth-sorted list
-# front to back (forward), then its accepted surfels back to front (backward), rebuilding
-# transmittance by division as diff-surfel-rasterization's backward does. Both loop over the tile's
-# surfels outside and the pixels each covers inside. They are plain Python here, compiled by numba
-# on first use (cached on disk) and always run in float64 (one specialisation to compile).
+# CPU kernels written like the 2DGS CUDA rasteriser. Per tile (a work item), the tile's depth-sorted
+# list is processed in chunks of _CHUNK surfels: a lane pass computes alpha and depth of every
+# (tile pixel, surfel) of the chunk in one straight loop over the surfels (LLVM vectorises it), then
+# each pixel composites its surfels of the chunk front to back. The backward walks the list back to
+# front, each surfel over the pixels that accepted it, rebuilding transmittance by division as
+# diff-surfel-rasterization's backward does. Projection, culling, pixel boxes, sorting and binning
+# are kernels too, and so is the projection's backward. They are plain Python here, compiled by
+# numba on first use (cached on disk) and always run in float64 (one specialisation to compile).
+
+_CHUNK = 64
+"""Surfels of a tile's list per lane pass of the forward kernel (a multiple of 8)."""
+
+
+def _exp_neg(x: float) -> float:
+    """``exp(x)`` for ``-20 <= x <= 0`` in straight-line code (vectorises inside loops; within 2 ulp).
+
+    Range reduction ``x = k ln 2 + r``, ``|r| <= ln(2) / 2``, a degree-13 Taylor polynomial, and ``2^k``
+    from the bits of ``-k`` (``k >= -31``).
+    """
+    kf = np.floor(x * 1.4426950408889634 + 0.5)
+    r = (x - kf * 6.93147180369123816490e-01) - kf * 1.90821492927058770002e-10
+    p = 1.6059043836821613e-10
+    p = p * r + 2.08767569878681e-09
+    p = p * r + 2.505210838544172e-08
+    p = p * r + 2.755731922398589e-07
+    p = p * r + 2.7557319223985893e-06
+    p = p * r + 2.48015873015873e-05
+    p = p * r + 0.0001984126984126984
+    p = p * r + 0.001388888888888889
+    p = p * r + 0.008333333333333333
+    p = p * r + 0.041666666666666664
+    p = p * r + 0.16666666666666666
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    ki = int(-kf)
+    p = p * 0.5 if ki & 1 else p
+    p = p * 0.25 if ki & 2 else p
+    p = p * 0.0625 if ki & 4 else p
+    p = p * 0.00390625 if ki & 8 else p
+    p = p * 1.52587890625e-05 if ki & 16 else p
+    return p
+
+
+def _pixel_box(
+    u0: float, u1: float, u2: float, v0: float, v1: float, v2: float, w0: float, w1: float, w2: float,
+    cx: float, cy: float, o: float, width: int, height: int, near: float, rect: np.ndarray, i: int,
+) -> bool:  # fmt: skip
+    """Pixel box of one surfel (numba helper): the bound of :func:`_pixel_boxes`, written to ``rect[i]``.
+
+    Rows Tu (u0..u2), Tv, Tw of the splat-to-pixel transform, projected centre, opacity; returns
+    whether the box is on the image (``rect[i]`` is (0, 0, -1, -1) when not).
+    """
+    big = 1e9
+    z_min = near * (1 - 1e-6) - 1e-9
+    rect[i, 0] = 0
+    rect[i, 1] = 0
+    rect[i, 2] = -1
+    rect[i, 3] = -1
+    if not 255.0 * o > 1.0:
+        return False
+    R2 = 2.0 * np.log(255.0 * o) * 1.01 + 1e-3
+    r2d = np.sqrt(R2 / 2.0)
+    lo_x, hi_x, lo_y, hi_y = cx - r2d, cx + r2d, cy - r2d, cy + r2d
+    iR2 = 1.0 / R2
+    c22 = w0 * w0 + w1 * w1 - w2 * w2 * iR2
+    degenerate = False
+    # Tangent points of the lines x = X (row = Tu) and y = Y (row = Tv), then the chord ends.
+    for k in range(6):
+        if k < 4:
+            if k < 2:
+                a0, a1, a2 = u0, u1, u2
+            else:
+                a0, a1, a2 = v0, v1, v2
+            c00 = a0 * a0 + a1 * a1 - a2 * a2 * iR2
+            c02 = a0 * w0 + a1 * w1 - a2 * w2 * iR2
+            if abs(c22) < 1e-12 * (abs(c02) + abs(c00) + 1e-30):
+                degenerate = True
+                continue
+            disc = np.sqrt(max(c02 * c02 - c00 * c22, 0.0))
+            X = (c02 + (disc if k % 2 else -disc)) / c22
+            L0, L1, L2 = a0 - X * w0, a1 - X * w1, a2 - X * w2
+            if L2 == 0.0:
+                L2 = 1e-300
+            cu = -L0 * R2 / L2
+            cv = -L1 * R2 / L2
+        else:
+            g2 = w0 * w0 + w1 * w1
+            if not g2 > 0.0:
+                continue
+            kk = (z_min - w2) / g2
+            fu, fv = kk * w0, kk * w1
+            if not fu * fu + fv * fv < R2:
+                continue
+            h = np.sqrt(max((R2 - (fu * fu + fv * fv)) / g2, 0.0))
+            sg = 1.0 if k == 4 else -1.0
+            cu = fu - sg * h * w1
+            cv = fv + sg * h * w0
+        zc = w0 * cu + w1 * cv + w2
+        if not (np.isfinite(zc) and zc >= z_min - 1e-9 and zc > 0.0):
+            continue
+        px = (u0 * cu + u1 * cv + u2) / zc
+        py = (v0 * cu + v1 * cv + v2) / zc
+        lo_x = min(lo_x, px)
+        hi_x = max(hi_x, px)
+        lo_y = min(lo_y, py)
+        hi_y = max(hi_y, py)
+    if degenerate:
+        lo_x, lo_y, hi_x, hi_y = -big, -big, big, big
+    if not (np.isfinite(lo_x) and np.isfinite(hi_x) and np.isfinite(lo_y) and np.isfinite(hi_y)):
+        return False
+    x0 = max(np.ceil(max(lo_x, -big) - 0.5), 0.0)
+    x1 = min(np.floor(min(hi_x, big) + 0.5), width - 1.0)
+    y0 = max(np.ceil(max(lo_y, -big) - 0.5), 0.0)
+    y1 = min(np.floor(min(hi_y, big) + 0.5), height - 1.0)
+    if x0 <= x1 and y0 <= y1:
+        rect[i, 0] = int(x0)
+        rect[i, 1] = int(y0)
+        rect[i, 2] = int(x1)
+        rect[i, 3] = int(y1)
+        return True
+    return False
+
+
+def _k_boxes(rows: np.ndarray, width: int, height: int, near: float, rect: np.ndarray, ok: np.ndarray) -> None:
+    """Per-surfel pixel boxes (numba): the same bound as :func:`_pixel_boxes`, one surfel at a time.
+
+    ``rows`` [N, 12] float64: Tu (3), Tv (3), Tw (3), centre x, y, opacity.
+    """
+    for i in prange(rows.shape[0]):
+        r = rows[i]
+        on = _pixel_box(
+            r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], width, height, near, rect, i
+        )
+        ok[i] = 1 if on else 0
+
+
+def _k_project(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    opac: np.ndarray,
+    V: np.ndarray,
+    Km: np.ndarray,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    pk: np.ndarray,
+    nrm: np.ndarray,
+    rect: np.ndarray,
+    thr: np.ndarray,
+    keep: np.ndarray,
+) -> None:
+    """Projection and culling in one pass (numba): :func:`project_packed`'s rows ``pk`` [N, 14] and
+    normals ``nrm`` [N, 3], the pixel box ``rect`` [N, 4], the alpha test threshold ``thr`` (``rho``
+    above it means alpha < 1/255) and ``keep`` (centre depth in (near, far] and the box on the image).
+    """
+    k00, k01, k02, k11, k12 = Km[0, 0], Km[0, 1], Km[0, 2], Km[1, 1], Km[1, 2]
+    for i in prange(means.shape[0]):
+        qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        nc = max(np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
+        w, x, y, z = qw / nc, qx / nc, qy / nc, qz / nc
+        tu0, tu1, tu2 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        tv0, tv1, tv2 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        tw0, tw1, tw2 = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        su, sv = scales[i, 0], scales[i, 1]
+        m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
+        a0 = (V[0, 0] * tu0 + V[0, 1] * tu1 + V[0, 2] * tu2) * su
+        a1 = (V[1, 0] * tu0 + V[1, 1] * tu1 + V[1, 2] * tu2) * su
+        a2 = (V[2, 0] * tu0 + V[2, 1] * tu1 + V[2, 2] * tu2) * su
+        b0 = (V[0, 0] * tv0 + V[0, 1] * tv1 + V[0, 2] * tv2) * sv
+        b1 = (V[1, 0] * tv0 + V[1, 1] * tv1 + V[1, 2] * tv2) * sv
+        b2 = (V[2, 0] * tv0 + V[2, 1] * tv1 + V[2, 2] * tv2) * sv
+        c0 = V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2 + V[0, 3]
+        c1 = V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2 + V[1, 3]
+        c2 = V[2, 0] * m0 + V[2, 1] * m1 + V[2, 2] * m2 + V[2, 3]
+        n0 = V[0, 0] * tw0 + V[0, 1] * tw1 + V[0, 2] * tw2
+        n1 = V[1, 0] * tw0 + V[1, 1] * tw1 + V[1, 2] * tw2
+        n2 = V[2, 0] * tw0 + V[2, 1] * tw1 + V[2, 2] * tw2
+        u0, u1, u2 = k00 * a0 + k01 * a1 + k02 * a2, k00 * b0 + k01 * b1 + k02 * b2, k00 * c0 + k01 * c1 + k02 * c2
+        v0, v1, v2 = k11 * a1 + k12 * a2, k11 * b1 + k12 * b2, k11 * c1 + k12 * c2
+        w0, w1, w2 = a2, b2, c2
+        ax0, ax1, ax2 = w2 * v1 - w1 * v2, u2 * w1 - u1 * w2, u1 * v2 - u2 * v1
+        ay0, ay1, ay2 = w0 * v2 - w2 * v0, u0 * w2 - u2 * w0, u2 * v0 - u0 * v2
+        az0, az1, az2 = w1 * v0 - w0 * v1, u1 * w0 - u0 * w1, u0 * v1 - u1 * v0
+        in_range = c2 > near and c2 <= far
+        zs = c2 if in_range else 1.0
+        o = opac[i]
+        pk[i, 0], pk[i, 1], pk[i, 2], pk[i, 3], pk[i, 4], pk[i, 5] = ax0, ax1, ax2, ay0, ay1, ay2
+        pk[i, 6], pk[i, 7], pk[i, 8] = az0, az1, az2
+        pk[i, 9] = w0 * ax2 + w1 * ay2 + w2 * az2
+        pk[i, 10], pk[i, 11], pk[i, 12], pk[i, 13] = c2, u2 / zs, v2 / zs, o
+        sg = -1.0 if n0 * c0 + n1 * c1 + n2 * c2 > 0 else 1.0
+        nrm[i, 0], nrm[i, 1], nrm[i, 2] = sg * n0, sg * n1, sg * n2
+        thr[i] = 2.0 * np.log(max(255.0 * o, 1e-300)) * (1 + 1e-6) + 1e-6
+        keep[i] = 0
+        if in_range:  # the box only of surfels that can be kept
+            on = _pixel_box(u0, u1, u2, v0, v1, v2, w0, w1, w2, u2 / zs, v2 / zs, o, width, height, near, rect, i)
+            keep[i] = 1 if on else 0
+        else:
+            rect[i, 0] = 0
+            rect[i, 1] = 0
+            rect[i, 2] = -1
+            rect[i, 3] = -1
+
+
+def _k_bin(
+    pk: np.ndarray,
+    nrm: np.ndarray,
+    rect: np.ndarray,
+    thr: np.ndarray,
+    keep: np.ndarray,
+    feats: np.ndarray,
+    ts: int,
+    ntx: int,
+    nty: int,
+    n_blocks: int,
+) -> tuple[np.ndarray, ...]:
+    """Sort the kept surfels by centre depth (stable), renumber them by that order and bin them into tiles.
+
+    Returns ``order`` [K] (input index of each kept surfel, nearest first), their rows ``pk``,
+    ``nrm``, ``rect``, ``thr``, ``feats``, the tile lists (``surf``, ``start``, ``count``: ids in
+    depth order) and ``bounds``, ``n_blocks`` contiguous ranges of tiles of about equal work.
+    """
+    n = keep.shape[0]
+    nk = 0
+    for i in range(n):
+        nk += keep[i]
+    kept = np.empty(nk, np.int64)
+    j = 0
+    for i in range(n):
+        if keep[i]:
+            kept[j] = i
+            j += 1
+    z = np.empty(nk)
+    for j in range(nk):
+        z[j] = pk[kept[j], 10]
+    order = kept[np.argsort(z, kind="mergesort")]
+    n_ch = feats.shape[1]
+    pk_l = np.empty((nk, 14))
+    nrm_l = np.empty((nk, 3))
+    rect_l = np.empty((nk, 4), np.int32)
+    thr_l = np.empty(nk)
+    feats_l = np.empty((nk, n_ch))
+    n_tiles = ntx * nty
+    count = np.zeros(n_tiles, np.int64)
+    for j in range(nk):
+        i = order[j]
+        for k in range(14):
+            pk_l[j, k] = pk[i, k]
+        for k in range(3):
+            nrm_l[j, k] = nrm[i, k]
+        for k in range(4):
+            rect_l[j, k] = rect[i, k]
+        thr_l[j] = thr[i]
+        for k in range(n_ch):
+            feats_l[j, k] = feats[i, k]
+        for ty in range(rect_l[j, 1] // ts, rect_l[j, 3] // ts + 1):
+            for tx in range(rect_l[j, 0] // ts, rect_l[j, 2] // ts + 1):
+                count[ty * ntx + tx] += 1
+    start = np.empty(n_tiles, np.int64)
+    acc = 0
+    for t in range(n_tiles):
+        start[t] = acc
+        acc += count[t]
+    fill = start.copy()
+    surf = np.empty(acc, np.int64)
+    for j in range(nk):
+        for ty in range(rect_l[j, 1] // ts, rect_l[j, 3] // ts + 1):
+            for tx in range(rect_l[j, 0] // ts, rect_l[j, 2] // ts + 1):
+                t = ty * ntx + tx
+                surf[fill[t]] = j
+                fill[t] += 1
+    # Blocks of tiles of about equal work (entries + 1 per tile), as balanced_bounds.
+    bounds = np.empty(n_blocks + 1, np.int64)
+    bounds[0] = 0
+    bounds[n_blocks] = n_tiles
+    total = acc + n_tiles
+    cum = 0
+    t = 0
+    for blk in range(1, n_blocks):
+        goal = total * blk / n_blocks
+        while t < n_tiles and cum + count[t] + 1 <= goal:
+            cum += count[t] + 1
+            t += 1
+        bounds[blk] = t
+    return order, pk_l, nrm_l, rect_l, thr_l, feats_l, surf, start, count, bounds
 
 
 def _k_forward(
@@ -550,6 +835,8 @@ def _k_forward(
     feats: np.ndarray,
     nrm: np.ndarray,
     bg: np.ndarray,
+    thr: np.ndarray,
+    rect: np.ndarray,
     tl_surf: np.ndarray,
     t_start: np.ndarray,
     t_count: np.ndarray,
@@ -560,6 +847,9 @@ def _k_forward(
     ntx: int,
     near: float,
     far: float,
+    with_dist: bool,
+    compact: bool,
+    store: bool,
     o_feat: np.ndarray,
     o_alpha: np.ndarray,
     o_depth: np.ndarray,
@@ -572,26 +862,37 @@ def _k_forward(
     o_M1: np.ndarray,
     o_M2: np.ndarray,
     pair_buf: np.ndarray,
+    pair_e: np.ndarray,
     pix_off: np.ndarray,
     o_vis: np.ndarray,
-    rect: np.ndarray,
-    thr: np.ndarray,
-    compact: bool,
-    store: bool,
+    t_last: np.ndarray,
 ) -> None:
-    """Forward walk (numba): per tile, surfels in depth order, each over the tile pixels its box covers.
+    """Forward walk (numba): per tile, its depth-sorted list in chunks; a lane pass, then each pixel.
 
-    Every pixel sees its surfels in the same order as a per-pixel walk (2DGS), so the result is the
-    same; looping surfels outside and pixels inside reads each surfel once per tile and skips the
-    pixels outside its box without a test per pixel. Writes the outputs, the accepted surfel ids per
-    pixel (``pair_buf`` from ``pix_off``) and the sums the backward needs. Pixel q of tile t stores
-    its ids from ``Q * start[t] + q * count[t]`` (a bound that needs no counting pass), or with
-    ``compact`` from the given ``pix_off``; ``store=False`` only counts.
+    The lane pass computes, for every pixel of the tile and every surfel of the chunk, alpha (0
+    where the pair is skipped: outside the surfel's box, ``p_z == 0``, ``rho`` above the threshold,
+    depth before the near plane, alpha < 1/255) and depth, in a loop over the chunk's surfels
+    that LLVM vectorises. Each pixel then composites its chunk front to back (stopping, without the
+    crossing surfel, once transmittance would fall below 1e-4), exactly as a per-pixel walk. Writes
+    the outputs, the accepted surfel ids per pixel (``pair_buf`` from ``pix_off``), the sums the
+    backward needs and ``t_last[t]``, one past the last list position any pixel of tile t accepted.
+    Pixel q of tile t stores its ids from ``Q * start[t] + q * count[t]`` (a bound that needs no
+    counting pass), or with ``compact`` from the given ``pix_off``; ``store=False`` only counts.
+    ``with_dist=False`` skips the distortion sums (zeros).
     """
     n_ch = feats.shape[1]
     mscale = far / (far - near)
     Q = ts * ts
+    CH = _CHUNK
     for b in prange(bounds.shape[0] - 1):
+        S = np.zeros((18 + n_ch, CH))  # the chunk's packed rows (14), threshold, normals (3), features (C)
+        sidj = np.empty(CH, np.int64)
+        box = np.zeros((4, CH))
+        al = np.empty((Q, CH))
+        dep = np.empty((Q, CH))
+        mz = np.empty((Q, CH))
+        WL = np.empty(CH)
+        visj = np.empty(CH, np.bool_)
         Tq = np.empty(Q)
         cnt = np.empty(Q, np.int64)
         done = np.empty(Q, np.bool_)
@@ -601,9 +902,10 @@ def _k_forward(
         dist = np.empty(Q)
         med = np.empty(Q)
         medi = np.empty(Q, np.int64)
-        nq = np.empty((Q, 3))
-        acc = np.empty((Q, n_ch))
+        accn = np.empty((Q, 3))
+        accf = np.empty((Q, n_ch))
         base = np.empty(Q, np.int64)
+        idx = np.empty(CH, np.int64)
         for t in range(bounds[b], bounds[b + 1]):
             n_t = t_count[t]
             s = t_start[t]
@@ -611,9 +913,11 @@ def _k_forward(
             y_base = (t // ntx) * ts
             n_done = 0
             for q in range(Q):
+                xi = x_base + q % ts
+                yi = y_base + q // ts
                 base[q] = Q * s + q * n_t
-                if compact and x_base + q % ts < width and y_base + q // ts < height:
-                    base[q] = pix_off[(y_base + q // ts) * width + x_base + q % ts]
+                if compact and xi < width and yi < height:
+                    base[q] = pix_off[yi * width + xi]
                 Tq[q] = 1.0
                 cnt[q] = 0
                 D[q] = 0.0
@@ -623,80 +927,153 @@ def _k_forward(
                 med[q] = 0.0
                 medi[q] = -1
                 for c in range(3):
-                    nq[q, c] = 0.0
+                    accn[q, c] = 0.0
                 for c in range(n_ch):
-                    acc[q, c] = 0.0
-                done[q] = x_base + q % ts >= width or y_base + q // ts >= height
+                    accf[q, c] = 0.0
+                done[q] = xi >= width or yi >= height
                 if done[q]:
                     n_done += 1
-            for e in range(n_t):
+            last = 0
+            for lo in range(0, n_t, CH):
                 if n_done == Q:
                     break
-                sid = tl_surf[s + e]
-                xa = max(rect[sid, 0], x_base)
-                xb = min(rect[sid, 2], x_base + ts - 1)
-                ya = max(rect[sid, 1], y_base)
-                yb = min(rect[sid, 3], y_base + ts - 1)
-                if xa > xb or ya > yb:
-                    continue
-                a0, a1, a2, b0, b1, b2 = pk[sid, 0], pk[sid, 1], pk[sid, 2], pk[sid, 3], pk[sid, 4], pk[sid, 5]
-                c0, c1, c2, det, tz = pk[sid, 6], pk[sid, 7], pk[sid, 8], pk[sid, 9], pk[sid, 10]
-                cx, cy, opa, th = pk[sid, 11], pk[sid, 12], pk[sid, 13], thr[sid]
-                for yi in range(ya, yb + 1):
-                    y = float(yi)
-                    for xi in range(xa, xb + 1):
-                        q = (yi - y_base) * ts + (xi - x_base)
-                        if done[q]:
-                            continue
-                        x = float(xi)
-                        pz = c0 * x + c1 * y + c2
-                        if pz == 0.0:
-                            continue
-                        inv = 1.0 / pz
-                        u = (a0 * x + a1 * y + a2) * inv
-                        v = (b0 * x + b1 * y + b2) * inv
+                n = min(CH, n_t - lo)
+                npad = (n + 7) // 8 * 8
+                for j in range(npad):
+                    visj[j] = False
+                    if j < n:
+                        sid = tl_surf[s + lo + j]
+                        sidj[j] = sid
+                        for k in range(14):
+                            S[k, j] = pk[sid, k]
+                        S[14, j] = thr[sid]
+                        for k in range(3):
+                            S[15 + k, j] = nrm[sid, k]
+                        for k in range(n_ch):
+                            S[18 + k, j] = feats[sid, k]
+                        box[0, j] = float(max(rect[sid, 0], x_base))
+                        box[1, j] = float(min(rect[sid, 2], x_base + ts - 1))
+                        box[2, j] = float(max(rect[sid, 1], y_base))
+                        box[3, j] = float(min(rect[sid, 3], y_base + ts - 1))
+                    else:  # padding: an empty box
+                        box[0, j] = 1.0
+                        box[1, j] = 0.0
+                a0s, a1s, a2s, b0s, b1s, b2s = S[0], S[1], S[2], S[3], S[4], S[5]
+                c0s, c1s, c2s, dets, tzs, cxs, cys, opas, ths = (
+                    S[6],
+                    S[7],
+                    S[8],
+                    S[9],
+                    S[10],
+                    S[11],
+                    S[12],
+                    S[13],
+                    S[14],
+                )
+                n0s, n1s, n2s = S[15], S[16], S[17]
+                bx0, bx1, by0, by1 = box[0], box[1], box[2], box[3]
+                # Lane pass: alpha (0 = skipped) and depth of every (pixel, surfel of the chunk).
+                for q in range(Q):
+                    if done[q]:
+                        continue
+                    x = float(x_base + q % ts)
+                    y = float(y_base + q // ts)
+                    alq = al[q]
+                    depq = dep[q]
+                    for j in range(npad):
+                        pz = c0s[j] * x + c1s[j] * y + c2s[j]
+                        nz = pz != 0.0
+                        inv = 1.0 / (pz if nz else 1.0)
+                        u = (a0s[j] * x + a1s[j] * y + a2s[j]) * inv
+                        v = (b0s[j] * x + b1s[j] * y + b2s[j]) * inv
                         r3 = u * u + v * v
-                        dx = cx - x
-                        dy = cy - y
+                        dx = cxs[j] - x
+                        dy = cys[j] - y
                         r2 = 2.0 * (dx * dx + dy * dy)
-                        if r3 <= r2:
-                            rho = r3
-                            depth = det * inv
-                        else:
-                            rho = r2
-                            depth = tz
-                        # rho > th (th = 2 ln(255 o) plus a margin) means alpha < 1/255 for sure.
-                        if rho > th or depth < near:
-                            continue
-                        a = opa * np.exp(-0.5 * rho)
-                        if a > 0.99:
-                            a = 0.99
-                        if a < 1.0 / 255.0:
-                            continue
-                        T = Tq[q]
+                        use3 = r3 <= r2
+                        rho = r3 if use3 else r2
+                        depth = dets[j] * inv if use3 else tzs[j]
+                        ok = (x >= bx0[j]) & (x <= bx1[j]) & (y >= by0[j]) & (y <= by1[j])
+                        ok = ok & nz & (rho <= ths[j]) & (depth >= near)
+                        a = opas[j] * _exp_neg(-0.5 * rho if ok else 0.0)
+                        a = 0.99 if a > 0.99 else a
+                        ok = ok & (a >= 1.0 / 255.0)
+                        alq[j] = a if ok else 0.0
+                        depq[j] = depth if ok else 1.0
+                    if with_dist:
+                        mzq = mz[q]
+                        for j in range(npad):
+                            mzq[j] = mscale * (1.0 - near / depq[j])
+                # Each pixel composites the chunk front to back: a walk over the accepted lanes for
+                # transmittance and the weights, then the weighted sums over the lanes (vectorised).
+                for q in range(Q):
+                    if done[q]:
+                        continue
+                    T = Tq[q]
+                    c = cnt[q]
+                    M1q, M2q, dq, mq, mi = M1[q], M2[q], dist[q], med[q], medi[q]
+                    nacc = 0
+                    alq = al[q]
+                    depq = dep[q]
+                    mzq = mz[q]
+                    for j in range(npad):
+                        WL[j] = 0.0
+                        idx[nacc] = j
+                        nacc += alq[j] > 0.0
+                    for kk in range(nacc):
+                        j = idx[kk]
+                        a = alq[j]
                         test_T = T * (1.0 - a)
                         if test_T < 1e-4:
                             done[q] = True
                             n_done += 1
-                            continue
+                            break
                         w = a * T
-                        for c in range(n_ch):
-                            acc[q, c] += w * feats[sid, c]
-                        m = mscale * (1.0 - near / depth)
-                        dist[q] += w * (m * m * (1.0 - T) + M2[q] - 2.0 * m * M1[q])
-                        D[q] += w * depth
-                        M1[q] += w * m
-                        M2[q] += w * m * m
+                        WL[j] = w
+                        if with_dist:
+                            m = mzq[j]
+                            dq += w * (m * m * (1.0 - T) + M2q - 2.0 * m * M1q)
+                            M1q += w * m
+                            M2q += w * m * m
                         if T > 0.5:
-                            med[q] = depth
-                            medi[q] = cnt[q]
-                        for c in range(3):
-                            nq[q, c] += w * nrm[sid, c]
+                            mq = depq[j]
+                            mi = c
                         if store:
-                            pair_buf[base[q] + cnt[q]] = sid
-                        o_vis[sid] = 1  # idempotent store; concurrent writers all write 1
-                        cnt[q] += 1
-                        Tq[q] = test_T
+                            pair_buf[base[q] + c] = sidj[j]
+                            pair_e[base[q] + c] = lo + j
+                        c += 1
+                        T = test_T
+                        last = max(last, lo + j + 1)
+                    Tq[q] = T
+                    cnt[q] = c
+                    M1[q], M2[q], dist[q], med[q], medi[q] = M1q, M2q, dq, mq, mi
+                    sd = 0.0
+                    s0 = 0.0
+                    s1 = 0.0
+                    s2 = 0.0
+                    for j in range(npad):
+                        w = WL[j]
+                        hit = w != 0.0
+                        visj[j] |= hit
+                        sd += w * depq[j]
+                        s0 += w * n0s[j] if hit else 0.0
+                        s1 += w * n1s[j] if hit else 0.0
+                        s2 += w * n2s[j] if hit else 0.0
+                    D[q] += sd
+                    accn[q, 0] += s0
+                    accn[q, 1] += s1
+                    accn[q, 2] += s2
+                    for ch in range(n_ch):
+                        fc = S[18 + ch]
+                        sf = 0.0
+                        for j in range(npad):
+                            w = WL[j]
+                            sf += w * fc[j] if w != 0.0 else 0.0
+                        accf[q, ch] += sf
+                for j in range(n):
+                    if visj[j]:
+                        o_vis[sidj[j]] = 1  # idempotent store; concurrent writers all write 1
+            t_last[t] = last
             for q in range(Q):
                 xi = x_base + q % ts
                 yi = y_base + q // ts
@@ -706,12 +1083,12 @@ def _k_forward(
                 pix_off[p] = base[q]
                 T = Tq[q]
                 for c in range(n_ch):
-                    o_feat[p, c] = acc[q, c] + T * bg[c]
+                    o_feat[p, c] = accf[q, c] + T * bg[c]
                 o_alpha[p] = 1.0 - T
                 o_depth[p] = D[q]
                 o_median[p] = med[q]
                 for c in range(3):
-                    o_normal[p, c] = nq[q, c]
+                    o_normal[p, c] = accn[q, c]
                 o_dist[p] = dist[q]
                 o_count[p] = cnt[q]
                 o_medidx[p] = medi[q]
@@ -727,14 +1104,13 @@ def _k_backward(
     bg: np.ndarray,
     tl_surf: np.ndarray,
     t_start: np.ndarray,
-    t_count: np.ndarray,
-    rect: np.ndarray,
+    t_last: np.ndarray,
     bounds: np.ndarray,
     width: int,
     height: int,
     ts: int,
     ntx: int,
-    pair_buf: np.ndarray,
+    pair_e: np.ndarray,
     pix_off: np.ndarray,
     count: np.ndarray,
     medidx: np.ndarray,
@@ -743,6 +1119,7 @@ def _k_backward(
     M2t: np.ndarray,
     near: float,
     far: float,
+    with_dist: bool,
     g_feat: np.ndarray,
     g_alpha: np.ndarray,
     g_depth: np.ndarray,
@@ -753,23 +1130,42 @@ def _k_backward(
     gf: np.ndarray,
     gn: np.ndarray,
 ) -> None:
-    """Backward walk (numba): per tile, the depth-sorted list back to front, each surfel over its pixels.
+    """Backward walk (numba): per tile, its list back to front in chunks of _CHUNK surfels.
 
-    A pixel's accepted surfels are a subsequence of its tile's list, so walking the list backwards
-    and matching each pixel's next accepted id visits every pixel's contributions back to front, as
-    2DGS's per-pixel backward does (transmittance rebuilt by division). A surfel's gradient over the
-    tile's pixels is summed locally and added once per (tile, surfel) to the block's buffers.
+    Per chunk and pixel: a lane pass (vectorised) computes for every surfel of the chunk alpha,
+    ``1 / (1 - alpha)`` and ``val``, the gradient of the pixel's loss with respect to the surfel's
+    weight; the pixel then walks its accepted surfels of the chunk back to front (``pair_e``: their
+    list positions), rebuilding transmittance by division as 2DGS's per-pixel backward does, which
+    gives each one's weight and ``dA``, the gradient with respect to its alpha; a second lane pass
+    (vectorised) turns these into gradients of the packed rows, normal and features, summed per
+    surfel of the chunk and added once per (tile, surfel) to the block's buffers ``gp`` [B, K, 14],
+    ``gn`` [B, K, 3], ``gf`` [B, K, C].
     """
     n_ch = feats.shape[1]
     mscale = far / (far - near)
     Q = ts * ts
+    CH = _CHUNK
+    NG = 17 + n_ch
     for b in prange(bounds.shape[0] - 1):
+        S = np.zeros((NG, CH))  # the chunk's packed rows (14), normals (3), features (C)
+        sidj = np.empty(CH, np.int64)
+        EX = np.empty(CH)  # exp(-rho / 2)
+        INV = np.empty(CH)  # 1 / p_z
+        AQ = np.empty(CH)  # alpha (clamped)
+        IM = np.empty(CH)  # 1 / (1 - alpha)
+        VAL = np.empty(CH)  # d loss / d weight
+        DDW = np.empty(CH)  # distortion part of d loss / d depth, per unit weight
+        WL = np.empty(CH)  # weight of the accepted pairs (0 elsewhere)
+        DA = np.empty(CH)  # d loss / d alpha of the accepted pairs
+        GX = np.empty(CH)  # median-depth gradient of the pair that gave the median
+        AC = np.empty(CH, np.bool_)  # accepted pairs of the pixel
+        G = np.zeros((NG, CH))  # per chunk surfel: gradients of the packed rows, normal, features
+        hitj = np.empty(CH, np.bool_)
         ptr = np.empty(Q, np.int64)
+        off = np.empty(Q, np.int64)
         Tq = np.empty(Q)
         Sq = np.empty(Q)
-        lf = np.empty(n_ch)
         for t in range(bounds[b], bounds[b + 1]):
-            n_t = t_count[t]
             s = t_start[t]
             x_base = (t % ntx) * ts
             y_base = (t // ntx) * ts
@@ -778,10 +1174,14 @@ def _k_backward(
                 xi = x_base + q % ts
                 yi = y_base + q // ts
                 ptr[q] = -1
+                off[q] = 0
+                Tq[q] = 1.0
+                Sq[q] = 0.0
                 if xi >= width or yi >= height:
                     continue
                 p = yi * width + xi
                 ptr[q] = count[p] - 1
+                off[q] = pix_off[p]
                 if ptr[q] >= 0:
                     active += 1
                 Tq[q] = T_fin[p]
@@ -789,214 +1189,327 @@ def _k_backward(
                 for c in range(n_ch):
                     acc += g_feat[p, c] * bg[c]
                 Sq[q] = T_fin[p] * acc
-            for e in range(n_t - 1, -1, -1):
-                if active == 0:
-                    break
-                sid = tl_surf[s + e]
-                xa = max(rect[sid, 0], x_base)
-                xb = min(rect[sid, 2], x_base + ts - 1)
-                ya = max(rect[sid, 1], y_base)
-                yb = min(rect[sid, 3], y_base + ts - 1)
-                if xa > xb or ya > yb:
-                    continue
-                a0, a1, a2, b0, b1, b2 = pk[sid, 0], pk[sid, 1], pk[sid, 2], pk[sid, 3], pk[sid, 4], pk[sid, 5]
-                c0, c1, c2, det, tz = pk[sid, 6], pk[sid, 7], pk[sid, 8], pk[sid, 9], pk[sid, 10]
-                cx, cy, opa = pk[sid, 11], pk[sid, 12], pk[sid, 13]
-                g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = g13 = 0.0
-                gn0 = gn1 = gn2 = 0.0
-                for c in range(n_ch):
-                    lf[c] = 0.0
-                hit = False
-                for yi in range(ya, yb + 1):
+            hi = t_last[t]
+            while hi > 0 and active > 0:
+                lo = max(0, hi - CH)
+                n = hi - lo
+                npad = (n + 7) // 8 * 8
+                for j in range(npad):
+                    if j < n:
+                        sid = tl_surf[s + lo + j]
+                        sidj[j] = sid
+                        for k in range(14):
+                            S[k, j] = pk[sid, k]
+                        for k in range(3):
+                            S[14 + k, j] = nrm[sid, k]
+                        for k in range(n_ch):
+                            S[17 + k, j] = feats[sid, k]
+                    else:
+                        for k in range(NG):
+                            S[k, j] = 0.0
+                        S[8, j] = 1.0
+                    hitj[j] = False
+                    for k in range(NG):
+                        G[k, j] = 0.0
+                a0s, a1s, a2s, b0s, b1s, b2s = S[0], S[1], S[2], S[3], S[4], S[5]
+                c0s, c1s, c2s, dets, tzs, cxs, cys, opas = S[6], S[7], S[8], S[9], S[10], S[11], S[12], S[13]
+                n0s, n1s, n2s = S[14], S[15], S[16]
+                for q in range(Q):
+                    if ptr[q] < 0 or pair_e[off[q] + ptr[q]] < lo:
+                        continue
+                    xi = x_base + q % ts
+                    yi = y_base + q // ts
+                    x = float(xi)
                     y = float(yi)
-                    for xi in range(xa, xb + 1):
-                        q = (yi - y_base) * ts + (xi - x_base)
-                        i = ptr[q]
-                        if i < 0:
-                            continue
-                        p = yi * width + xi
-                        if pair_buf[pix_off[p] + i] != sid:
-                            continue
-                        ptr[q] = i - 1
-                        if i == 0:
-                            active -= 1
-                        hit = True
-                        x = float(xi)
-                        pz = c0 * x + c1 * y + c2
-                        inv = 1.0 / pz
-                        u = (a0 * x + a1 * y + a2) * inv
-                        v = (b0 * x + b1 * y + b2) * inv
+                    p = yi * width + xi
+                    ga, gdp, gdi = g_alpha[p], g_depth[p], g_dist[p]
+                    gn0, gn1, gn2 = g_normal[p, 0], g_normal[p, 1], g_normal[p, 2]
+                    Wt = 1.0 - T_fin[p]
+                    M1 = M1t[p]
+                    M2 = M2t[p]
+                    # Lane pass 1: alpha, 1 / (1 - alpha) and d loss / d weight of every surfel of the chunk.
+                    for j in range(npad):
+                        pz = c0s[j] * x + c1s[j] * y + c2s[j]
+                        inv = 1.0 / (pz if pz != 0.0 else 1.0)
+                        u = (a0s[j] * x + a1s[j] * y + a2s[j]) * inv
+                        v = (b0s[j] * x + b1s[j] * y + b2s[j]) * inv
                         r3 = u * u + v * v
-                        dx = cx - x
-                        dy = cy - y
+                        dx = cxs[j] - x
+                        dy = cys[j] - y
                         r2 = 2.0 * (dx * dx + dy * dy)
                         use3 = r3 <= r2
-                        if use3:
-                            rho = r3
-                            depth = det * inv
-                        else:
-                            rho = r2
-                            depth = tz
-                        ex = np.exp(-0.5 * rho)
-                        a = opa * ex
-                        clamped = a > 0.99
-                        if clamped:
-                            a = 0.99
-                        inv1m = 1.0 / (1.0 - a)
-                        T = Tq[q] * inv1m
-                        Tq[q] = T
-                        w = a * T
-                        Wt = 1.0 - T_fin[p]
-                        M1 = M1t[p]
-                        inv_d = 1.0 / depth
-                        m = mscale * (1.0 - near * inv_d)
-                        gDi = g_dist[p]
-                        val = g_alpha[p] + g_depth[p] * depth + gDi * (m * m * Wt - 2.0 * m * M1 + M2t[p])
-                        for c in range(n_ch):
-                            val += g_feat[p, c] * feats[sid, c]
-                            lf[c] += g_feat[p, c] * w
-                        val += g_normal[p, 0] * nrm[sid, 0] + g_normal[p, 1] * nrm[sid, 1]
-                        val += g_normal[p, 2] * nrm[sid, 2]
-                        gn0 += g_normal[p, 0] * w
-                        gn1 += g_normal[p, 1] * w
-                        gn2 += g_normal[p, 2] * w
-                        dA = T * val - Sq[q] * inv1m
-                        Sq[q] += w * val
-                        gdep = g_depth[p] * w + gDi * 2.0 * w * (m * Wt - M1) * mscale * near * inv_d * inv_d
-                        if i == medidx[p]:
-                            gdep += g_med[p]
-                        grho = 0.0
-                        if not clamped:
-                            g13 += dA * ex
-                            grho = -0.5 * a * dA
-                        if use3:
-                            gu = grho * 2.0 * u
-                            gv = grho * 2.0 * v
-                            gpx = gu * inv
-                            gpy = gv * inv
-                            gpz = -(gu * u + gv * v) * inv - gdep * depth * inv
-                            g0 += gpx * x
-                            g1 += gpx * y
-                            g2 += gpx
-                            g3 += gpy * x
-                            g4 += gpy * y
-                            g5 += gpy
-                            g6 += gpz * x
-                            g7 += gpz * y
-                            g8 += gpz
-                            g9 += gdep * inv
-                        else:
-                            g11 += grho * 4.0 * dx
-                            g12 += grho * 4.0 * dy
-                            g10 += gdep
-                if hit:
-                    gp[b, sid, 0] += g0
-                    gp[b, sid, 1] += g1
-                    gp[b, sid, 2] += g2
-                    gp[b, sid, 3] += g3
-                    gp[b, sid, 4] += g4
-                    gp[b, sid, 5] += g5
-                    gp[b, sid, 6] += g6
-                    gp[b, sid, 7] += g7
-                    gp[b, sid, 8] += g8
-                    gp[b, sid, 9] += g9
-                    gp[b, sid, 10] += g10
-                    gp[b, sid, 11] += g11
-                    gp[b, sid, 12] += g12
-                    gp[b, sid, 13] += g13
-                    gn[b, sid, 0] += gn0
-                    gn[b, sid, 1] += gn1
-                    gn[b, sid, 2] += gn2
+                        rho = r3 if use3 else r2
+                        depth = dets[j] * inv if use3 else tzs[j]
+                        ex = _exp_neg(-0.5 * rho if rho < 40.0 else -20.0)
+                        a = opas[j] * ex
+                        a = 0.99 if a > 0.99 else a
+                        EX[j] = ex
+                        INV[j] = inv
+                        AQ[j] = a
+                        IM[j] = 1.0 / (1.0 - a)
+                        val = ga + gdp * depth
+                        if with_dist:
+                            inv_d = 1.0 / depth
+                            m = mscale * (1.0 - near * inv_d)
+                            val += gdi * (m * m * Wt - 2.0 * m * M1 + M2)
+                            DDW[j] = gdi * 2.0 * (m * Wt - M1) * mscale * near * inv_d * inv_d
+                        val += gn0 * n0s[j] + gn1 * n1s[j]
+                        val += gn2 * n2s[j]
+                        VAL[j] = val
                     for c in range(n_ch):
-                        gf[b, sid, c] += lf[c]
+                        gc = g_feat[p, c]
+                        fc = S[17 + c]
+                        for j in range(npad):
+                            VAL[j] += gc * fc[j]
+                    # The pixel's accepted surfels of the chunk, back to front: weight and d loss / d alpha.
+                    for j in range(npad):
+                        WL[j] = 0.0
+                        DA[j] = 0.0
+                        GX[j] = 0.0
+                        AC[j] = False
+                    T = Tq[q]
+                    Sp = Sq[q]
+                    i = ptr[q]
+                    o = off[q]
+                    md = medidx[p]
+                    while i >= 0:
+                        e = pair_e[o + i]
+                        if e < lo:
+                            break
+                        j = e - lo
+                        inv1m = IM[j]
+                        val = VAL[j]
+                        T = T * inv1m
+                        w = AQ[j] * T
+                        DA[j] = T * val - Sp * inv1m
+                        Sp += w * val
+                        WL[j] = w
+                        AC[j] = True
+                        hitj[j] = True
+                        if i == md:
+                            GX[j] = g_med[p]
+                        i -= 1
+                    if i < 0:
+                        active -= 1
+                    ptr[q] = i
+                    Tq[q] = T
+                    Sq[q] = Sp
+                    # Lane pass 2: gradients of the packed rows, normal and features, summed per surfel.
+                    G0, G1, G2, G3, G4, G5, G6 = G[0], G[1], G[2], G[3], G[4], G[5], G[6]
+                    G7, G8, G9, G10, G11, G12, G13 = G[7], G[8], G[9], G[10], G[11], G[12], G[13]
+                    GN0, GN1, GN2 = G[14], G[15], G[16]
+                    for j in range(npad):
+                        ok = AC[j]
+                        inv = INV[j]
+                        u = (a0s[j] * x + a1s[j] * y + a2s[j]) * inv
+                        v = (b0s[j] * x + b1s[j] * y + b2s[j]) * inv
+                        r3 = u * u + v * v
+                        dx = cxs[j] - x
+                        dy = cys[j] - y
+                        r2 = 2.0 * (dx * dx + dy * dy)
+                        use3 = (r3 <= r2) & ok
+                        use2 = (r3 > r2) & ok
+                        w = WL[j]
+                        dA = DA[j]
+                        ex = EX[j]
+                        free = (opas[j] * ex <= 0.99) & ok  # alpha not clamped
+                        grho = -0.5 * (opas[j] * ex) * dA if free else 0.0
+                        gdep = gdp * w
+                        if with_dist:
+                            gdep += DDW[j] * w if ok else 0.0
+                        gdep += GX[j]
+                        depth = dets[j] * inv
+                        gu = grho * 2.0 * u
+                        gv = grho * 2.0 * v
+                        gpx = gu * inv if use3 else 0.0
+                        gpy = gv * inv if use3 else 0.0
+                        gpz = (-(gu * u + gv * v) * inv - gdep * depth * inv) if use3 else 0.0
+                        G0[j] += gpx * x
+                        G1[j] += gpx * y
+                        G2[j] += gpx
+                        G3[j] += gpy * x
+                        G4[j] += gpy * y
+                        G5[j] += gpy
+                        G6[j] += gpz * x
+                        G7[j] += gpz * y
+                        G8[j] += gpz
+                        G9[j] += gdep * inv if use3 else 0.0
+                        G10[j] += gdep if use2 else 0.0
+                        G11[j] += grho * 4.0 * dx if use2 else 0.0
+                        G12[j] += grho * 4.0 * dy if use2 else 0.0
+                        G13[j] += dA * ex if free else 0.0
+                        GN0[j] += gn0 * w
+                        GN1[j] += gn1 * w
+                        GN2[j] += gn2 * w
+                    for c in range(n_ch):
+                        gc = g_feat[p, c]
+                        Gc = G[17 + c]
+                        for j in range(npad):
+                            Gc[j] += gc * WL[j]
+                for j in range(n):
+                    if hitj[j]:
+                        sid = sidj[j]
+                        for k in range(14):
+                            gp[b, sid, k] += G[k, j]
+                        for k in range(3):
+                            gn[b, sid, k] += G[14 + k, j]
+                        for c in range(n_ch):
+                            gf[b, sid, c] += G[17 + c, j]
+                hi = lo
 
 
-def _k_boxes(rows: np.ndarray, width: int, height: int, near: float, rect: np.ndarray, ok: np.ndarray) -> None:
-    """Per-surfel pixel boxes (numba): the same bound as :func:`_pixel_boxes`, one surfel at a time.
-
-    ``rows`` [N, 12] float64: Tu (3), Tv (3), Tw (3), centre x, y, opacity.
+def _k_project_vjp(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    V: np.ndarray,
+    Km: np.ndarray,
+    near: float,
+    far: float,
+    order: np.ndarray,
+    gp: np.ndarray,
+    gn: np.ndarray,
+    gf: np.ndarray,
+    g_means: np.ndarray,
+    g_quats: np.ndarray,
+    g_scales: np.ndarray,
+    g_opac: np.ndarray,
+    g_feats: np.ndarray,
+) -> None:
+    """Backward of :func:`_k_project` (numba): the block sums of ``gp`` [B, K, 14] (packed rows), ``gn``
+    [B, K, 3] (normals) and ``gf`` [B, K, C] (features) of the kept surfels, chained to the inputs'
+    gradients (means, quats, scales, opacities, features) at the rows ``order`` names.
     """
-    big = 1e9
-    z_min = near * (1 - 1e-6) - 1e-9
-    for i in prange(rows.shape[0]):
-        u0, u1, u2, v0, v1, v2, w0, w1, w2, cx, cy, o = (
-            rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4], rows[i, 5],
-            rows[i, 6], rows[i, 7], rows[i, 8], rows[i, 9], rows[i, 10], rows[i, 11],
-        )  # fmt: skip
-        ok[i] = 0
-        rect[i, 0] = 0
-        rect[i, 1] = 0
-        rect[i, 2] = -1
-        rect[i, 3] = -1
-        if not 255.0 * o > 1.0:
-            continue
-        R2 = 2.0 * np.log(255.0 * o) * 1.01 + 1e-3
-        r2d = np.sqrt(R2 / 2.0)
-        lo_x, hi_x, lo_y, hi_y = cx - r2d, cx + r2d, cy - r2d, cy + r2d
-        iR2 = 1.0 / R2
-        c22 = w0 * w0 + w1 * w1 - w2 * w2 * iR2
-        degenerate = False
-        # Tangent points of the lines x = X (row = Tu) and y = Y (row = Tv), then the chord ends.
-        for k in range(6):
-            if k < 4:
-                if k < 2:
-                    a0, a1, a2 = u0, u1, u2
-                else:
-                    a0, a1, a2 = v0, v1, v2
-                c00 = a0 * a0 + a1 * a1 - a2 * a2 * iR2
-                c02 = a0 * w0 + a1 * w1 - a2 * w2 * iR2
-                if abs(c22) < 1e-12 * (abs(c02) + abs(c00) + 1e-30):
-                    degenerate = True
-                    continue
-                disc = np.sqrt(max(c02 * c02 - c00 * c22, 0.0))
-                X = (c02 + (disc if k % 2 else -disc)) / c22
-                L0, L1, L2 = a0 - X * w0, a1 - X * w1, a2 - X * w2
-                if L2 == 0.0:
-                    L2 = 1e-300
-                cu = -L0 * R2 / L2
-                cv = -L1 * R2 / L2
-            else:
-                g2 = w0 * w0 + w1 * w1
-                if not g2 > 0.0:
-                    continue
-                kk = (z_min - w2) / g2
-                fu, fv = kk * w0, kk * w1
-                if not fu * fu + fv * fv < R2:
-                    continue
-                h = np.sqrt(max((R2 - (fu * fu + fv * fv)) / g2, 0.0))
-                sg = 1.0 if k == 4 else -1.0
-                cu = fu - sg * h * w1
-                cv = fv + sg * h * w0
-            zc = w0 * cu + w1 * cv + w2
-            if not (np.isfinite(zc) and zc >= z_min - 1e-9 and zc > 0.0):
-                continue
-            px = (u0 * cu + u1 * cv + u2) / zc
-            py = (v0 * cu + v1 * cv + v2) / zc
-            lo_x = min(lo_x, px)
-            hi_x = max(hi_x, px)
-            lo_y = min(lo_y, py)
-            hi_y = max(hi_y, py)
-        if degenerate:
-            lo_x, lo_y, hi_x, hi_y = -big, -big, big, big
-        if not (np.isfinite(lo_x) and np.isfinite(hi_x) and np.isfinite(lo_y) and np.isfinite(hi_y)):
-            continue
-        x0 = max(np.ceil(max(lo_x, -big) - 0.5), 0.0)
-        x1 = min(np.floor(min(hi_x, big) + 0.5), width - 1.0)
-        y0 = max(np.ceil(max(lo_y, -big) - 0.5), 0.0)
-        y1 = min(np.floor(min(hi_y, big) + 0.5), height - 1.0)
-        if x0 <= x1 and y0 <= y1:
-            ok[i] = 1
-            rect[i, 0] = int(x0)
-            rect[i, 1] = int(y0)
-            rect[i, 2] = int(x1)
-            rect[i, 3] = int(y1)
+    k00, k01, k02, k11, k12 = Km[0, 0], Km[0, 1], Km[0, 2], Km[1, 1], Km[1, 2]
+    nb = gp.shape[0]
+    n_ch = gf.shape[2]
+    for j in prange(order.shape[0]):
+        i = order[j]
+        g = np.zeros(14)
+        gnn = np.zeros(3)
+        for b in range(nb):
+            for k in range(14):
+                g[k] += gp[b, j, k]
+            for k in range(3):
+                gnn[k] += gn[b, j, k]
+        for c in range(n_ch):
+            acc = 0.0
+            for b in range(nb):
+                acc += gf[b, j, c]
+            g_feats[i, c] = acc
+        # Forward quantities (as _k_project).
+        qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        nq = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        nc = max(nq, 1e-12)
+        w, x, y, z = qw / nc, qx / nc, qy / nc, qz / nc
+        tu0, tu1, tu2 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        tv0, tv1, tv2 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        tw0, tw1, tw2 = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        su, sv = scales[i, 0], scales[i, 1]
+        m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
+        ra0 = V[0, 0] * tu0 + V[0, 1] * tu1 + V[0, 2] * tu2
+        ra1 = V[1, 0] * tu0 + V[1, 1] * tu1 + V[1, 2] * tu2
+        ra2 = V[2, 0] * tu0 + V[2, 1] * tu1 + V[2, 2] * tu2
+        rb0 = V[0, 0] * tv0 + V[0, 1] * tv1 + V[0, 2] * tv2
+        rb1 = V[1, 0] * tv0 + V[1, 1] * tv1 + V[1, 2] * tv2
+        rb2 = V[2, 0] * tv0 + V[2, 1] * tv1 + V[2, 2] * tv2
+        a0, a1, a2 = ra0 * su, ra1 * su, ra2 * su
+        b0, b1, b2 = rb0 * sv, rb1 * sv, rb2 * sv
+        c0 = V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2 + V[0, 3]
+        c1 = V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2 + V[1, 3]
+        c2 = V[2, 0] * m0 + V[2, 1] * m1 + V[2, 2] * m2 + V[2, 3]
+        n0 = V[0, 0] * tw0 + V[0, 1] * tw1 + V[0, 2] * tw2
+        n1 = V[1, 0] * tw0 + V[1, 1] * tw1 + V[1, 2] * tw2
+        n2 = V[2, 0] * tw0 + V[2, 1] * tw1 + V[2, 2] * tw2
+        u0, u1, u2 = k00 * a0 + k01 * a1 + k02 * a2, k00 * b0 + k01 * b1 + k02 * b2, k00 * c0 + k01 * c1 + k02 * c2
+        v0, v1, v2 = k11 * a1 + k12 * a2, k11 * b1 + k12 * b2, k11 * c1 + k12 * c2
+        w0, w1, w2 = a2, b2, c2
+        ax2 = u1 * v2 - u2 * v1
+        ay2 = u2 * v0 - u0 * v2
+        az2 = u0 * v1 - u1 * v0
+        in_range = c2 > near and c2 <= far
+        zs = c2 if in_range else 1.0
+        sg = -1.0 if n0 * c0 + n1 * c1 + n2 * c2 > 0 else 1.0
+        # Reverse: packed rows -> Tu (u), Tv (v), Tw (w).
+        gdet = g[9]
+        gax0, gax1, gax2 = g[0], g[1], g[2] + gdet * w0
+        gay0, gay1, gay2 = g[3], g[4], g[5] + gdet * w1
+        gaz0, gaz1, gaz2 = g[6], g[7], g[8] + gdet * w2
+        gw0 = gdet * ax2 + gay0 * v2 - gay1 * u2 - gaz0 * v1 + gaz1 * u1
+        gw1 = gdet * ay2 - gax0 * v2 + gax1 * u2 + gaz0 * v0 - gaz1 * u0
+        gw2 = gdet * az2 + gax0 * v1 - gax1 * u1 - gay0 * v0 + gay1 * u0 + g[10]
+        gu0 = gay1 * w2 - gay2 * v2 - gaz1 * w1 + gaz2 * v1
+        gu1 = -gax1 * w2 + gax2 * v2 + gaz1 * w0 - gaz2 * v0
+        gu2 = gax1 * w1 - gax2 * v1 - gay1 * w0 + gay2 * v0
+        gv0 = -gay0 * w2 + gay2 * u2 + gaz0 * w1 - gaz2 * u1
+        gv1 = gax0 * w2 - gax2 * u2 - gaz0 * w0 + gaz2 * u0
+        gv2 = -gax0 * w1 + gax2 * u1 + gay0 * w0 - gay2 * u0
+        if in_range:
+            gu2 += g[11] / zs
+            gv2 += g[12] / zs
+            gw2 -= (g[11] * (u2 / zs) + g[12] * (v2 / zs)) / zs
+        else:
+            gu2 += g[11]
+            gv2 += g[12]
+        # Tu_j = k00 A0j + k01 A1j + k02 A2j, Tv_j = k11 A1j + k12 A2j, Tw_j = A2j; A = [a b c].
+        ga0, ga1, ga2 = k00 * gu0, k01 * gu0 + k11 * gv0, k02 * gu0 + k12 * gv0 + gw0
+        gb0, gb1, gb2 = k00 * gu1, k01 * gu1 + k11 * gv1, k02 * gu1 + k12 * gv1 + gw1
+        gc0, gc1, gc2 = k00 * gu2, k01 * gu2 + k11 * gv2, k02 * gu2 + k12 * gv2 + gw2
+        g_scales[i, 0] = ga0 * ra0 + ga1 * ra1 + ga2 * ra2
+        g_scales[i, 1] = gb0 * rb0 + gb1 * rb1 + gb2 * rb2
+        g_opac[i] = g[13]
+        for k in range(3):
+            g_means[i, k] = V[0, k] * gc0 + V[1, k] * gc1 + V[2, k] * gc2
+        gtu0 = (V[0, 0] * ga0 + V[1, 0] * ga1 + V[2, 0] * ga2) * su
+        gtu1 = (V[0, 1] * ga0 + V[1, 1] * ga1 + V[2, 1] * ga2) * su
+        gtu2 = (V[0, 2] * ga0 + V[1, 2] * ga1 + V[2, 2] * ga2) * su
+        gtv0 = (V[0, 0] * gb0 + V[1, 0] * gb1 + V[2, 0] * gb2) * sv
+        gtv1 = (V[0, 1] * gb0 + V[1, 1] * gb1 + V[2, 1] * gb2) * sv
+        gtv2 = (V[0, 2] * gb0 + V[1, 2] * gb1 + V[2, 2] * gb2) * sv
+        gtw0 = (V[0, 0] * gnn[0] + V[1, 0] * gnn[1] + V[2, 0] * gnn[2]) * sg
+        gtw1 = (V[0, 1] * gnn[0] + V[1, 1] * gnn[1] + V[2, 1] * gnn[2]) * sg
+        gtw2 = (V[0, 2] * gnn[0] + V[1, 2] * gnn[1] + V[2, 2] * gnn[2]) * sg
+        # Rotation columns of the normalised quaternion (w, x, y, z).
+        gqw = 2.0 * (z * gtu1 - y * gtu2 - z * gtv0 + x * gtv2 + y * gtw0 - x * gtw1)
+        gqx = 2.0 * (y * gtu1 + z * gtu2 + y * gtv0 - 2.0 * x * gtv1 + w * gtv2 + z * gtw0 - w * gtw1 - 2.0 * x * gtw2)
+        gqy = 2.0 * (-2.0 * y * gtu0 + x * gtu1 - w * gtu2 + x * gtv0 + z * gtv2 + w * gtw0 + z * gtw1 - 2.0 * y * gtw2)
+        gqz = 2.0 * (-2.0 * z * gtu0 + w * gtu1 + x * gtu2 - w * gtv0 - 2.0 * z * gtv1 + y * gtv2 + x * gtw0 + y * gtw1)
+        if nq > 1e-12:
+            dot = w * gqw + x * gqx + y * gqy + z * gqz
+            g_quats[i, 0] = (gqw - w * dot) / nq
+            g_quats[i, 1] = (gqx - x * dot) / nq
+            g_quats[i, 2] = (gqy - y * dot) / nq
+            g_quats[i, 3] = (gqz - z * dot) / nq
+        else:
+            g_quats[i, 0] = gqw / nc
+            g_quats[i, 1] = gqx / nc
+            g_quats[i, 2] = gqy / nc
+            g_quats[i, 3] = gqz / nc
 
 
-_KERNELS = Kernels(forward=_k_forward, backward=_k_backward, boxes=_k_boxes)
-"""The compiled forward, backward and pixel-box kernels (compiled on first use)."""
+_KERNELS = Kernels(
+    boxes=_k_boxes,
+    project=_k_project,
+    bin=_k_bin,
+    project_vjp=_k_project_vjp,
+    helpers=(_pixel_box,),
+)
+"""The compiled projection, pixel-box, binning and projection-backward kernels (compiled on first use)."""
+_RASTER_KERNELS = Kernels(
+    # Reassociation lets LLVM vectorise the per-lane sums and contract products into fused
+    # multiply-adds (results move by ~1e-16 relative); no "nnan"/"ninf", so non-finite values keep
+    # IEEE semantics.
+    fastmath={"contract", "reassoc", "nsz", "arcp"},
+    forward=_k_forward,
+    backward=_k_backward,
+    helpers=(_exp_neg,),
+)
+"""The compiled forward and backward compositing kernels (compiled on first use)."""
 
 PAIR_BUFFER_LIMIT = 1 << 25
 """Above this many int32 slots (128 MiB) the forward counts contributions first and stores them compactly."""
+
+
 @dataclass
 class _NumbaResult:
     """Outputs of the numba forward walk (numpy arrays over P pixels) and what the backward needs."""
@@ -1013,8 +1526,10 @@ class _NumbaResult:
     M1: np.ndarray
     M2: np.ndarray
     pair_buf: np.ndarray
+    pair_e: np.ndarray
     pix_off: np.ndarray
     vis: np.ndarray
+    t_last: np.ndarray
 
     def pairs(self) -> Pairs:
         """The accepted pairs as a flat :class:`Pairs` (per pixel, front to back)."""
@@ -1029,6 +1544,122 @@ class _NumbaResult:
         return Pairs(surf=surf, pix=pix, start=start, offsets=offsets)
 
 
+@dataclass
+class _Binned:
+    """Kept surfels of one view as the numba kernels take them (float64 rows, ids in depth order), binned."""
+
+    order: np.ndarray  # [K] input index of each kept surfel, nearest centre first
+    pk: np.ndarray  # [K, 14]
+    nrm: np.ndarray  # [K, 3]
+    rect: np.ndarray  # [K, 4] int32
+    thr: np.ndarray  # [K]
+    feats: np.ndarray  # [K, C]
+    surf: np.ndarray  # tile lists (ids into the K rows), depth order within a tile
+    start: np.ndarray
+    count: np.ndarray
+    bounds: np.ndarray  # tile ranges of the thread blocks
+    size: int
+    ntx: int
+
+
+def _f64(t: Tensor) -> np.ndarray:
+    """A CPU tensor as a contiguous float64 numpy array (no copy when it already is one)."""
+    return t.detach().to(torch.float64).contiguous().numpy()
+
+
+def _project_and_bin(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    opac: np.ndarray,
+    feats: np.ndarray,
+    V: np.ndarray,
+    Km: np.ndarray,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    tile_size: int,
+) -> _Binned:
+    """Project, cull, sort and bin (numba kernels, float64 inputs)."""
+    n = means.shape[0]
+    pk = np.empty((n, NPACK))
+    nrm = np.empty((n, 3))
+    rect = np.empty((n, 4), np.int32)
+    thr = np.empty(n)
+    keep = np.empty(n, np.uint8)
+    ts = int(tile_size)
+    ntx, nty = -(-width // ts), -(-height // ts)
+    with KERNEL_LOCK:
+        _KERNELS["project"](
+            means, quats, scales, opac, V, Km, width, height, float(near), float(far), pk, nrm, rect, thr, keep
+        )
+        out = _KERNELS["bin"](pk, nrm, rect, thr, keep, feats, ts, ntx, nty, n_threads())
+    return _Binned(*out, size=ts, ntx=ntx)
+
+
+def _forward_pass(
+    pk: np.ndarray,
+    feats: np.ndarray,
+    nrm: np.ndarray,
+    bg: np.ndarray,
+    thr: np.ndarray,
+    rect: np.ndarray,
+    surf: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    bounds: np.ndarray,
+    ts: int,
+    ntx: int,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    with_dist: bool,
+) -> _NumbaResult:
+    """The forward kernel on float64 numpy inputs: allocations, the counting pass when needed, the walk."""
+    P = width * height
+    n_ch = feats.shape[1]
+    r = _NumbaResult(
+        feat=np.empty((P, n_ch)),
+        alpha=np.empty(P),
+        depth=np.empty(P),
+        median=np.empty(P),
+        normal=np.empty((P, 3)),
+        dist=np.empty(P),
+        count=np.empty(P, np.int32),
+        medidx=np.empty(P, np.int32),
+        T=np.empty(P),
+        M1=np.empty(P),
+        M2=np.empty(P),
+        pair_buf=np.empty(0, np.int32),
+        pair_e=np.empty(0, np.int32),
+        pix_off=np.zeros(P, np.int64),
+        vis=np.zeros(pk.shape[0], np.uint8),
+        t_last=np.zeros(count.shape[0], np.int64),
+    )
+    bound = ts * ts * surf.shape[0]  # ids one pass can store without counting first
+    compact = bound > PAIR_BUFFER_LIMIT
+
+    def walk(compact: bool, store: bool) -> None:
+        with KERNEL_LOCK:
+            _RASTER_KERNELS["forward"](
+                pk, feats, nrm, bg, thr, rect, surf, start, count, bounds, width, height, ts, ntx,
+                float(near), float(far), with_dist, compact, store,
+                r.feat, r.alpha, r.depth, r.median, r.normal, r.dist, r.count, r.medidx, r.T, r.M1, r.M2,
+                r.pair_buf, r.pair_e, r.pix_off, r.vis, r.t_last,
+            )  # fmt: skip
+
+    if compact:  # counting pass, then exact per-pixel offsets
+        walk(False, False)
+        r.pix_off[:] = np.cumsum(r.count, dtype=np.int64) - r.count
+        bound = int(r.count.sum())
+    r.pair_buf = np.empty(max(1, bound), np.int32)
+    r.pair_e = np.empty(max(1, bound), np.int32)
+    walk(compact, True)
+    return r
+
+
 def numba_forward(
     proj: Projection,
     features: Tensor,
@@ -1038,79 +1669,185 @@ def numba_forward(
     near: float,
     far: float,
     background: Tensor | None,
+    with_distortion: bool = True,
 ) -> _NumbaResult:
-    """Run the forward kernel on detached CPU tensors (always in float64: one compiled specialisation)."""
-    k = _KERNELS
-    f64 = torch.float64
-    pk = proj.packed.detach().T.to(f64).contiguous().numpy()
-    dt = pk.dtype
-    feats = features.detach().to(f64).contiguous().numpy()
-    nrm = proj.normals.detach().to(f64).contiguous().numpy()
+    """Run the forward kernel on the surfels of ``proj`` binned by ``bins`` (detached, float64)."""
+    pk = _f64(proj.packed.T)
+    feats = _f64(features)
     n_ch = feats.shape[1]
-    bg = np.zeros(n_ch, dt) if background is None else background.detach().to(f64).numpy()
-    P = width * height
-    ts = bins.size
-    bounds = balanced_bounds(bins.count + 1, n_threads())
-    rect = proj.rect.to(torch.int32).contiguous().numpy()
+    bg = np.zeros(n_ch) if background is None else _f64(background)
     o64 = proj.packed[_OPA].detach().double()
     thr = (2.0 * torch.log((255.0 * o64).clamp_min(1e-300))).numpy() * (1 + 1e-6) + 1e-6
-    r = _NumbaResult(
-        feat=np.empty((P, n_ch), dt),
-        alpha=np.empty(P, dt),
-        depth=np.empty(P, dt),
-        median=np.empty(P, dt),
-        normal=np.empty((P, 3), dt),
-        dist=np.empty(P, dt),
-        count=np.empty(P, np.int32),
-        medidx=np.empty(P, np.int32),
-        T=np.empty(P, dt),
-        M1=np.empty(P, dt),
-        M2=np.empty(P, dt),
-        pair_buf=np.empty(0, np.int32),
-        pix_off=np.zeros(P, np.int64),
-        vis=np.zeros(pk.shape[0], np.uint8),
-    )
-    bound = ts * ts * bins.surf.numel()  # ids one pass can store without counting first
-    compact = bound > PAIR_BUFFER_LIMIT
-    if compact:  # counting pass, then exact per-pixel offsets
-        with KERNEL_LOCK:
-            _run_forward(k, pk, feats, nrm, bg, bins, bounds, width, height, near, far, r, rect, thr, False, False)
-        r.pix_off[:] = np.cumsum(r.count, dtype=np.int64) - r.count
-        bound = int(r.count.sum())
-    r.pair_buf = np.empty(max(1, bound), np.int32)
-    with KERNEL_LOCK:
-        _run_forward(k, pk, feats, nrm, bg, bins, bounds, width, height, near, far, r, rect, thr, compact, True)
-    return r
+    rect = proj.rect.to(torch.int32).contiguous().numpy()
+    bounds = balanced_bounds(bins.count + 1, n_threads())
+    return _forward_pass(
+        pk, feats, _f64(proj.normals), bg, thr, rect, bins.surf.numpy(), bins.start.numpy(), bins.count.numpy(),
+        bounds, bins.size, bins.ntx, width, height, near, far, with_distortion,
+    )  # fmt: skip
 
 
-def _run_forward(
-    k: dict[str, object],
+def _backward_pass(
+    r: _NumbaResult,
     pk: np.ndarray,
     feats: np.ndarray,
     nrm: np.ndarray,
     bg: np.ndarray,
-    bins: TileBins,
+    surf: np.ndarray,
+    start: np.ndarray,
     bounds: np.ndarray,
+    ts: int,
+    ntx: int,
     width: int,
     height: int,
     near: float,
     far: float,
-    r: _NumbaResult,
-    rect: np.ndarray,
-    thr: np.ndarray,
-    compact: bool,
-    store: bool,
-) -> None:
-    k["forward"](
-        pk, feats, nrm, bg, bins.surf.numpy(), bins.start.numpy(), bins.count.numpy(), bounds,
-        width, height, bins.size, bins.ntx, float(near), float(far),
-        r.feat, r.alpha, r.depth, r.median, r.normal, r.dist, r.count, r.medidx, r.T, r.M1, r.M2,
-        r.pair_buf, r.pix_off, r.vis, rect, thr, compact, store,
-    )  # fmt: skip
+    with_dist: bool,
+    grads: list[np.ndarray],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The backward kernel: per-block gradient sums of the packed rows, features and normals."""
+    nb = bounds.shape[0] - 1
+    n = pk.shape[0]
+    gp = np.zeros((nb, n, NPACK))
+    gf = np.zeros((nb, n, feats.shape[1]))
+    gn = np.zeros((nb, n, 3))
+    with KERNEL_LOCK:
+        _RASTER_KERNELS["backward"](
+            pk, feats, nrm, bg, surf, start, r.t_last, bounds, width, height, ts, ntx,
+            r.pair_e, r.pix_off, r.count, r.medidx, r.T, r.M1, r.M2, float(near), float(far), with_dist,
+            *grads, gp, gf, gn,
+        )  # fmt: skip
+    return gp, gf, gn
+
+
+def _grads_f64(grads: tuple[Tensor, ...]) -> list[np.ndarray]:
+    """The six image gradients (features, alpha, depth, median, normal, distortion) as float64 numpy."""
+    return [_f64(g) for g in grads[:6]]
+
+
+@dataclass(frozen=True)
+class _View:
+    """Camera and settings of one numba render (float64 numpy matrices)."""
+
+    V: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    near: float
+    far: float
+    tile_size: int
+    with_dist: bool
+
+
+class _NumbaRender(torch.autograd.Function):
+    """The whole numba render (projection, culling, binning, compositing) with a hand-written backward."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: object,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        background: Tensor,
+        view: _View,
+    ) -> tuple[Tensor, ...]:
+        dt = means.dtype
+        m64, q64, s64, o64 = _f64(means), _f64(quats), _f64(scales), _f64(opacities)
+        feats = _f64(features)
+        bg = _f64(background)
+        v = view
+        bn = _project_and_bin(m64, q64, s64, o64, feats, v.V, v.K, v.width, v.height, v.near, v.far, v.tile_size)
+        r = _forward_pass(
+            bn.pk, bn.feats, bn.nrm, bg, bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, bn.size, bn.ntx,
+            v.width, v.height, v.near, v.far, v.with_dist,
+        )  # fmt: skip
+        visible = np.zeros(means.shape[0], np.bool_)
+        visible[bn.order[r.vis.view(np.bool_)]] = True
+        ctx.state = (m64, q64, s64, bg, bn, r, view)
+        ctx.dtypes = (dt, features.dtype, background.dtype)
+        count = torch.from_numpy(r.count.astype(np.int64))
+        vis = torch.from_numpy(visible)
+        ctx.mark_non_differentiable(count, vis)
+        outs = (r.feat, r.alpha, r.depth, r.median, r.normal, r.dist)
+        return (*(torch.from_numpy(o).to(dt) for o in outs), count, vis)
+
+    @staticmethod
+    def backward(ctx: object, *grads: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        m64, q64, s64, bg, bn, r, v = ctx.state
+        dt, f_dt, bg_dt = ctx.dtypes
+        g = _grads_f64(grads)
+        gp, gf, gn = _backward_pass(
+            r, bn.pk, bn.feats, bn.nrm, bg, bn.surf, bn.start, bn.bounds, bn.size, bn.ntx,
+            v.width, v.height, v.near, v.far, v.with_dist, g,
+        )  # fmt: skip
+        n = m64.shape[0]
+        g_means, g_quats, g_scales = np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 2))
+        g_opac, g_feats = np.zeros(n), np.zeros((n, bn.feats.shape[1]))
+        with KERNEL_LOCK:
+            _KERNELS["project_vjp"](
+                m64, q64, s64, v.V, v.K, float(v.near), float(v.far), bn.order, gp, gn, gf,
+                g_means, g_quats, g_scales, g_opac, g_feats,
+            )  # fmt: skip
+        g_bg = None
+        if ctx.needs_input_grad[5]:
+            g_bg = torch.from_numpy(g[0].T @ r.T).to(bg_dt)
+        t = torch.from_numpy
+        return (
+            t(g_means).to(dt),
+            t(g_quats).to(dt),
+            t(g_scales).to(dt),
+            t(g_opac).to(dt),
+            t(g_feats).to(f_dt),
+            g_bg,
+            None,
+        )
+
+
+def _render_numba(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    background: Tensor | None,
+    with_distortion: bool,
+    tile_size: int,
+) -> RenderOutput:
+    """The numba path of :func:`rasterize_surfels` (camera without gradient)."""
+    dt = means.dtype
+    C = features.shape[1]
+    bg = torch.zeros(C, dtype=dt) if background is None else background.to(dt)
+    view = _View(
+        _f64(viewmat), _f64(K), int(width), int(height), float(near), float(far), int(tile_size), with_distortion
+    )
+    feat, alpha, depth, median, normal, dist, count, visible = _NumbaRender.apply(
+        means, quats, scales, opacities, features.to(dt), bg, view
+    )
+    hw = (height, width)
+    return RenderOutput(
+        features=feat.reshape(*hw, C),
+        alpha=alpha.reshape(hw),
+        depth=depth.reshape(hw),
+        median_depth=median.reshape(hw),
+        normal=normal.reshape(*hw, 3),
+        distortion=dist.reshape(hw),
+        n_contrib=count.reshape(hw),
+        visible=visible,
+    )
 
 
 class _NumbaRasterize(torch.autograd.Function):
-    """Compositing of projected surfels with the numba kernels (hand-written backward)."""
+    """Compositing of surfels projected by torch with the numba kernels (hand-written backward).
+
+    The path for a camera with gradients: torch autograd handles the projection.
+    """
 
     @staticmethod
     def forward(  # type: ignore[override]
@@ -1125,11 +1862,12 @@ class _NumbaRasterize(torch.autograd.Function):
         height: int,
         near: float,
         far: float,
+        with_dist: bool,
     ) -> tuple[Tensor, ...]:
-        r = numba_forward(proj, features, bins, width, height, near, far, background)
+        r = numba_forward(proj, features, bins, width, height, near, far, background, with_dist)
         ctx.save_for_backward(packed, features, normals, background)
-        ctx.r, ctx.meta = r, (width, near, far)
-        ctx.bins, ctx.height, ctx.rect = bins, height, proj.rect.to(torch.int32).contiguous().numpy()
+        ctx.r, ctx.meta = r, (width, height, near, far, with_dist)
+        ctx.bins = bins
         count = torch.from_numpy(r.count.astype(np.int64))
         visible = torch.from_numpy(r.vis.astype(np.bool_))
         ctx.mark_non_differentiable(count, visible)
@@ -1139,30 +1877,18 @@ class _NumbaRasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx: object, *grads: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         packed, features, normals, background = ctx.saved_tensors
-        r, (width, near, far) = ctx.r, ctx.meta
-        dt = torch.float64  # kernels run in float64 (one compiled specialisation); results cast back
-        g = [gr.to(dt).contiguous().numpy() for gr in grads[:6]]
-        n = packed.shape[1]
-        nb = n_threads()
+        r, (width, height, near, far, with_dist) = ctx.r, ctx.meta
         bins = ctx.bins
-        bounds = balanced_bounds(bins.count + 1, nb)
-        pk = packed.detach().T.to(dt).contiguous().numpy()
-        gp = np.zeros((nb, n, NPACK), pk.dtype)
-        gf = np.zeros((nb, n, features.shape[1]), gp.dtype)
-        gn = np.zeros((nb, n, 3), gp.dtype)
-        with KERNEL_LOCK:
-            _KERNELS["backward"](
-                pk, features.detach().to(dt).contiguous().numpy(), normals.detach().to(dt).contiguous().numpy(),
-                background.detach().to(dt).numpy(), bins.surf.numpy(), bins.start.numpy(), bins.count.numpy(),
-                ctx.rect, bounds, width, ctx.height, bins.size, bins.ntx,
-                r.pair_buf, r.pix_off, r.count, r.medidx, r.T, r.M1, r.M2, float(near), float(far),
-                *g, gp, gf, gn,
-            )  # fmt: skip
+        bounds = balanced_bounds(bins.count + 1, n_threads())
+        gp, gf, gn = _backward_pass(
+            r, _f64(packed.T), _f64(features), _f64(normals), _f64(background), bins.surf.numpy(),
+            bins.start.numpy(), bounds, bins.size, bins.ntx, width, height, near, far, with_dist, _grads_f64(grads),
+        )  # fmt: skip
         g_packed = torch.from_numpy(gp.sum(0)).T.to(packed.dtype)
         g_feat = torch.from_numpy(gf.sum(0)).to(features.dtype)
         g_nrm = torch.from_numpy(gn.sum(0)).to(normals.dtype)
-        g_bg = (grads[0].to(dt) * torch.from_numpy(r.T)[:, None]).sum(0).to(background.dtype)
-        return g_packed, g_feat, g_nrm, g_bg, None, None, None, None, None, None
+        g_bg = (grads[0].double() * torch.from_numpy(r.T)[:, None]).sum(0).to(background.dtype)
+        return g_packed, g_feat, g_nrm, g_bg, None, None, None, None, None, None, None
 
 
 def _composite_numba(
@@ -1174,6 +1900,7 @@ def _composite_numba(
     far: float,
     background: Tensor | None,
     tile_size: int,
+    with_distortion: bool,
 ) -> RenderOutput:
     """Bin, then composite with the numba kernels (autograd through :class:`_NumbaRasterize`)."""
     dt = proj.packed.dtype
@@ -1181,7 +1908,7 @@ def _composite_numba(
     bins = bin_tiles(proj, width, height, tile_size)
     bg = torch.zeros(C, dtype=dt) if background is None else background.to(dt)
     feat, alpha, depth, median, normal, dist, count, visible = _NumbaRasterize.apply(
-        proj.packed, features.to(dt), proj.normals, bg, proj, bins, width, height, near, far
+        proj.packed, features.to(dt), proj.normals, bg, proj, bins, width, height, near, far, with_distortion
     )
     hw = (height, width)
     return RenderOutput(
@@ -1220,10 +1947,16 @@ def rasterize_surfels(
     Matches :func:`roigsf_ros.render.reference.rasterize_surfels` in values and gradients. ``backend``:
     ``"numba"`` (CPU kernels, hand-written backward), ``"torch"`` (plain PyTorch, any device), or
     ``"auto"`` (numba for CPU tensors when it is installed). ``with_distortion=False`` skips the
-    distortion map on the torch path (zeros).
+    distortion map (zeros) and its gradient.
     """
     _check_inputs(means, quats, scales, opacities, features, viewmat, K, width, height, near, far)
     numba_path = use_numba(backend, means)
+    if numba_path and not (viewmat.requires_grad or K.requires_grad):
+        # Everything in numba kernels, the projection's backward included.
+        return _render_numba(
+            means, quats, scales, opacities, features, viewmat, K, width, height, near, far, background,
+            with_distortion, tile_size,
+        )  # fmt: skip
     bk = "numba" if numba_path else "torch"
     # Cull without autograd, then project differentiably only the surfels that can be seen.
     with torch.no_grad():
@@ -1234,7 +1967,7 @@ def rasterize_surfels(
     keep = torch.ones(kept.numel(), dtype=torch.bool, device=means.device)
     proj = Projection(packed=packed, normals=normals, depth=sel(cull.depth), rect=sel(cull.rect), keep=keep)
     if numba_path:
-        out = _composite_numba(proj, sel(features), width, height, near, far, background, tile_size)
+        out = _composite_numba(proj, sel(features), width, height, near, far, background, tile_size, with_distortion)
     else:
         pairs = select_pairs(proj, width, height, near, tile_size=tile_size, backend="torch")
         out = composite_pairs(proj, sel(features), pairs, width, height, near, far, background, with_distortion)
