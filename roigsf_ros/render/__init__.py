@@ -44,6 +44,7 @@ __all__, __getattr__ = lazy_exports(
             "camera_tensors",
             "composite_pairs",
             "numba_forward",
+            "numba_pairs",
             "pair_alpha_depth",
             "project_packed",
             "project_surfels",

@@ -41,9 +41,8 @@ from roigsf_ros.render.rasterize import (
     NPACK,
     Pairs,
     Projection,
-    bin_tiles,
     camera_tensors,
-    numba_forward,
+    numba_pairs,
     pair_alpha_depth,
     project_packed,
     project_surfels,
@@ -136,12 +135,12 @@ def fisher_diag(
     full = idx.numel() == len(m)
     sub = m if full else m.select(idx)
     out = result if full else {k: torch.zeros_like(getattr(sub, k)) for k in names}
-    with torch.no_grad():
-        proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
     cam = (viewmat, K, W, H, near, far)
-    if use_numba(backend, proj.packed):
-        _fisher_numba(sub, names, outs, proj, cam, weights, bg, tile_size, out)
+    if use_numba(backend, sub.means):
+        _fisher_numba(sub, names, outs, cam, weights, bg, tile_size, out)
     else:
+        with torch.no_grad():
+            proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
         pairs = select_pairs(proj, W, H, near, tile_size=tile_size, backend="torch")
         if len(pairs):
             _fisher_torch(sub, names, outs, proj, pairs, cam, weights, bg, pair_chunk, out)
@@ -227,55 +226,61 @@ def _fisher_numba(
     m: SurfelMap,
     names: list[str],
     outs: list[str],
-    proj: Projection,
     cam: tuple,
     weights: Tensor | None,
     bg: Tensor,
     tile_size: int,
     result: dict[str, Tensor],
 ) -> None:
-    """Fisher with the numba kernels: forward walk for the pairs, then one fused backward-style walk.
+    """Fisher with the numba kernels: the render's kernels for the pairs, then one fused backward-style walk.
 
-    ``d packed / d theta`` of the visible surfels comes from :func:`packed_jacobian` (closed form);
-    per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
+    ``d packed / d theta`` of the visible surfels comes from :func:`packed_jacobian`'s kernel (closed
+    form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
     """
     viewmat, K, W, H, near, far = cam
     dt = m.dtype
-    if not bool(proj.keep.any()):
+    means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
+    V, Km = _f64(viewmat), _f64(K)
+    opac = 1.0 / (1.0 + np.exp(-logits))
+    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size)
+    vis_rank = np.flatnonzero(r.vis)
+    if vis_rank.size == 0:
         return
-    bins = bin_tiles(proj, W, H, tile_size)
-    r = numba_forward(proj, proj.packed.new_zeros(len(m), 0), bins, W, H, near, far, None)
-    vis = torch.from_numpy(r.vis.astype(np.bool_)).nonzero().squeeze(1)
-    if vis.numel() == 0:
-        return
+    vis_np = order[vis_rank]
+    vis = torch.from_numpy(vis_np)
     sub = m.select(vis)
     leaves, channels, _ = _channels(sub, names, outs, viewmat, K, near, far, bg, need_packed=False)
     nv = len(sub)
     sizes = [leaves[k][0].numel() for k in names]
     D = sum(sizes)
     cols = {k: slice(sum(sizes[: names.index(k)]), sum(sizes[: names.index(k) + 1])) for k in names}
-    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nv, D, 14].
-    pk, jac_all = packed_jacobian(sub, viewmat, K, near, far)
-    jac = np.zeros((nv, D, NPACK))
+    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nv, 14, D].
+    colmap = np.full(10, -1, np.int64)
     for k, sl in _JAC_COLS.items():
         if k in cols:
-            jac[:, cols[k], :] = jac_all[:, sl, :]
+            colmap[sl] = np.arange(cols[k].start, cols[k].stop)
+    pk = np.empty((nv, NPACK))
+    jac = np.empty((nv, NPACK, D))
+    with KERNEL_LOCK:
+        _KERNELS["jacobian"](
+            means[vis_np], quats[vis_np], log_s[vis_np], logits[vis_np], V, Km, float(near), float(far), colmap, pk, jac
+        )
     nch = len(channels)
-    X = torch.zeros(nv, nch, dtype=torch.float64)
-    B = torch.zeros(nv, nch, D, dtype=torch.float64)
+    X = np.zeros((nv, nch))
+    B = np.zeros((nv, nch, D))
     kind = np.zeros(nch, np.int64)  # 0: per-surfel value, no derivative; 1: with derivative B; 2: depth
     bgs = np.zeros(nch)
     for c, (x, b, bgc) in enumerate(channels):
         if x is None:
             kind[c] = 2
         else:
-            X[:, c] = x
+            X[:, c] = x.double().numpy()
         for k, g in b.items():
-            B[:, c, cols[k]] = g.double()
+            B[:, c, cols[k]] = g.double().numpy()
             kind[c] = 1
         bgs[c] = bgc
-    local = np.full(len(m), -1, np.int64)
-    local[vis.numpy()] = np.arange(nv)
+    local = np.full(order.size, -1, np.int64)
+    local[vis_rank] = np.arange(nv)
     nb = n_threads()
     wts = np.ones(W * H) if weights is None else weights.double().numpy()
     # Split the pixels between the threads by their work: pairs of the pixels with a non-zero weight.
@@ -284,8 +289,7 @@ def _fisher_numba(
     out = np.zeros((nb, nv, D), np.float64)
     with KERNEL_LOCK:
         _FISHER_KERNELS["fisher"](
-            pk, jac, X.numpy(), B.numpy(), kind, bgs, local, r.pair_buf, r.pix_off, r.count,
-            r.T.astype(np.float64), bounds, W, float(near), wts, out,
+            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, float(near), wts, out,
         )  # fmt: skip
     total = torch.from_numpy(out.sum(0)).to(dt)
     for k in names:
@@ -296,6 +300,11 @@ _JAC_COLS = {"means": slice(0, 3), "quats": slice(3, 7), "log_scales": slice(7, 
 """Columns of :func:`packed_jacobian`'s parameter axis."""
 
 
+def _f64(t: Tensor) -> np.ndarray:
+    """A tensor as a contiguous float64 CPU numpy array."""
+    return t.detach().to("cpu", torch.float64).contiguous().numpy()
+
+
 def packed_jacobian(m: SurfelMap, viewmat: Tensor, K: Tensor, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
     """Packed projection rows [N, 14] and their Jacobian [N, 10, 14] w.r.t. each surfel's raw means (3),
     quats (4), log_scales (2) and opacity logit (1), in closed form (numba, float64).
@@ -304,16 +313,15 @@ def packed_jacobian(m: SurfelMap, viewmat: Tensor, K: Tensor, near: float, far: 
     opacity); tested against autograd through it.
     """
     d = m.detach()
-    f64 = lambda t: t.detach().to("cpu", torch.float64).contiguous().numpy()  # noqa: E731
     n = len(d)
     pk = np.empty((n, NPACK))
-    jac = np.empty((n, 10, NPACK))
+    jac = np.empty((n, NPACK, 10))
     with KERNEL_LOCK:
         _KERNELS["jacobian"](
-            f64(d.means), f64(d.quats), f64(d.log_scales), f64(d.opacity_logits), f64(viewmat), f64(K),
-            float(near), float(far), pk, jac,
+            _f64(d.means), _f64(d.quats), _f64(d.log_scales), _f64(d.opacity_logits), _f64(viewmat), _f64(K),
+            float(near), float(far), np.arange(10), pk, jac,
         )  # fmt: skip
-    return pk, jac
+    return pk, np.ascontiguousarray(jac.transpose(0, 2, 1))
 
 
 def _k_jacobian(
@@ -325,116 +333,119 @@ def _k_jacobian(
     K: np.ndarray,
     near: float,
     far: float,
+    colmap: np.ndarray,
     pk: np.ndarray,
     jac: np.ndarray,
 ) -> None:
-    """Forward-mode derivatives of :func:`roigsf_ros.render.rasterize.project_packed`, one surfel at a time (numba)."""
+    """Forward-mode derivatives of :func:`roigsf_ros.render.rasterize.project_packed`, one surfel at a time (numba).
+
+    ``jac`` [N, 14, D]: column ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
+    quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other columns are zero.
+    """
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     for i in prange(means.shape[0]):
+        for r in range(14):
+            for c in range(jac.shape[2]):
+                jac[i, r, c] = 0.0
         qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         nq = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         nc = max(nq, 1e-12)
         w, x, y, z = qw / nc, qx / nc, qy / nc, qz / nc
         su = np.exp(log_scales[i, 0])
         sv = np.exp(log_scales[i, 1])
-        tu = (1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y))
-        tv = (2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x))
-        mu = (means[i, 0], means[i, 1], means[i, 2])
-        a = np.empty(3)
-        b = np.empty(3)
-        c = np.empty(3)
-        for r in range(3):
-            a[r] = (V[r, 0] * tu[0] + V[r, 1] * tu[1] + V[r, 2] * tu[2]) * su
-            b[r] = (V[r, 0] * tv[0] + V[r, 1] * tv[1] + V[r, 2] * tv[2]) * sv
-            c[r] = (V[r, 0] * mu[0] + V[r, 1] * mu[1] + V[r, 2] * mu[2]) + V[r, 3]
-        u0, u1, u2 = (
-            k00 * a[0] + k01 * a[1] + k02 * a[2],
-            k00 * b[0] + k01 * b[1] + k02 * b[2],
-            k00 * c[0] + k01 * c[1] + k02 * c[2],
-        )
-        v0, v1, v2 = k11 * a[1] + k12 * a[2], k11 * b[1] + k12 * b[2], k11 * c[1] + k12 * c[2]
-        w0, w1, w2 = a[2], b[2], c[2]
+        tu0, tu1, tu2 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        tv0, tv1, tv2 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
+        a0 = (V[0, 0] * tu0 + V[0, 1] * tu1 + V[0, 2] * tu2) * su
+        a1 = (V[1, 0] * tu0 + V[1, 1] * tu1 + V[1, 2] * tu2) * su
+        a2 = (V[2, 0] * tu0 + V[2, 1] * tu1 + V[2, 2] * tu2) * su
+        b0 = (V[0, 0] * tv0 + V[0, 1] * tv1 + V[0, 2] * tv2) * sv
+        b1 = (V[1, 0] * tv0 + V[1, 1] * tv1 + V[1, 2] * tv2) * sv
+        b2 = (V[2, 0] * tv0 + V[2, 1] * tv1 + V[2, 2] * tv2) * sv
+        c0 = (V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2) + V[0, 3]
+        c1 = (V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2) + V[1, 3]
+        c2 = (V[2, 0] * m0 + V[2, 1] * m1 + V[2, 2] * m2) + V[2, 3]
+        u0, u1, u2 = k00 * a0 + k01 * a1 + k02 * a2, k00 * b0 + k01 * b1 + k02 * b2, k00 * c0 + k01 * c1 + k02 * c2
+        v0, v1, v2 = k11 * a1 + k12 * a2, k11 * b1 + k12 * b2, k11 * c1 + k12 * c2
+        w0, w1, w2 = a2, b2, c2
         ax0, ax1, ax2 = w2 * v1 - w1 * v2, u2 * w1 - u1 * w2, u1 * v2 - u2 * v1
         ay0, ay1, ay2 = w0 * v2 - w2 * v0, u0 * w2 - u2 * w0, u2 * v0 - u0 * v2
         az0, az1, az2 = w1 * v0 - w0 * v1, u1 * w0 - u0 * w1, u0 * v1 - u1 * v0
         det = w0 * ax2 + w1 * ay2 + w2 * az2
-        zc = c[2]
+        zc = c2
         in_range = zc > near and zc <= far
         zs = zc if in_range else 1.0
         opa = 1.0 / (1.0 + np.exp(-logits[i]))
         pk[i, 0], pk[i, 1], pk[i, 2], pk[i, 3], pk[i, 4], pk[i, 5] = ax0, ax1, ax2, ay0, ay1, ay2
         pk[i, 6], pk[i, 7], pk[i, 8], pk[i, 9], pk[i, 10] = az0, az1, az2, det, zc
         pk[i, 11], pk[i, 12], pk[i, 13] = u2 / zs, v2 / zs, opa
-        # d qn / d q (rows: raw component; columns: w, x, y, z of qn).
-        dqn = np.zeros((4, 4))
-        qn = (w, x, y, z)
-        for e in range(4):
-            for f in range(4):
-                if nq > 1e-12:
-                    dqn[e, f] = ((1.0 if e == f else 0.0) - qn[f] * qn[e]) / nq
-                else:
-                    dqn[e, f] = (1.0 if e == f else 0.0) / 1e-12
-        da = np.empty(3)
-        db = np.empty(3)
-        dc = np.empty(3)
         for j in range(10):
-            for r in range(3):
-                da[r] = 0.0
-                db[r] = 0.0
-                dc[r] = 0.0
+            col = colmap[j]
+            if col < 0:
+                continue
+            if j == 9:
+                jac[i, 13, col] = opa * (1.0 - opa)
+                continue
+            da0 = da1 = da2 = db0 = db1 = db2 = dc0 = dc1 = dc2 = 0.0
             if j < 3:
-                for r in range(3):
-                    dc[r] = V[r, j]
+                dc0, dc1, dc2 = V[0, j], V[1, j], V[2, j]
             elif j < 7:
-                dw, dx, dy, dz = dqn[j - 3, 0], dqn[j - 3, 1], dqn[j - 3, 2], dqn[j - 3, 3]
+                # d qn / d q_e (e = j - 3): (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
+                e = j - 3
+                qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
+                if nq > 1e-12:
+                    dw = ((1.0 if e == 0 else 0.0) - w * qe) / nq
+                    dx = ((1.0 if e == 1 else 0.0) - x * qe) / nq
+                    dy = ((1.0 if e == 2 else 0.0) - y * qe) / nq
+                    dz = ((1.0 if e == 3 else 0.0) - z * qe) / nq
+                else:
+                    dw = (1.0 if e == 0 else 0.0) / 1e-12
+                    dx = (1.0 if e == 1 else 0.0) / 1e-12
+                    dy = (1.0 if e == 2 else 0.0) / 1e-12
+                    dz = (1.0 if e == 3 else 0.0) / 1e-12
                 dtu0 = -4 * (y * dy + z * dz)
                 dtu1 = 2 * (dx * y + x * dy + dw * z + w * dz)
                 dtu2 = 2 * (dx * z + x * dz - dw * y - w * dy)
                 dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
                 dtv1 = -4 * (x * dx + z * dz)
                 dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
-                for r in range(3):
-                    da[r] = (V[r, 0] * dtu0 + V[r, 1] * dtu1 + V[r, 2] * dtu2) * su
-                    db[r] = (V[r, 0] * dtv0 + V[r, 1] * dtv1 + V[r, 2] * dtv2) * sv
+                da0 = (V[0, 0] * dtu0 + V[0, 1] * dtu1 + V[0, 2] * dtu2) * su
+                da1 = (V[1, 0] * dtu0 + V[1, 1] * dtu1 + V[1, 2] * dtu2) * su
+                da2 = (V[2, 0] * dtu0 + V[2, 1] * dtu1 + V[2, 2] * dtu2) * su
+                db0 = (V[0, 0] * dtv0 + V[0, 1] * dtv1 + V[0, 2] * dtv2) * sv
+                db1 = (V[1, 0] * dtv0 + V[1, 1] * dtv1 + V[1, 2] * dtv2) * sv
+                db2 = (V[2, 0] * dtv0 + V[2, 1] * dtv1 + V[2, 2] * dtv2) * sv
             elif j == 7:
-                for r in range(3):
-                    da[r] = a[r]
-            elif j == 8:
-                for r in range(3):
-                    db[r] = b[r]
+                da0, da1, da2 = a0, a1, a2
             else:
-                for r in range(13):
-                    jac[i, j, r] = 0.0
-                jac[i, j, 13] = opa * (1.0 - opa)
-                continue
+                db0, db1, db2 = b0, b1, b2
             du0, du1, du2 = (
-                k00 * da[0] + k01 * da[1] + k02 * da[2],
-                k00 * db[0] + k01 * db[1] + k02 * db[2],
-                k00 * dc[0] + k01 * dc[1] + k02 * dc[2],
+                k00 * da0 + k01 * da1 + k02 * da2,
+                k00 * db0 + k01 * db1 + k02 * db2,
+                k00 * dc0 + k01 * dc1 + k02 * dc2,
             )
-            dv0, dv1, dv2 = k11 * da[1] + k12 * da[2], k11 * db[1] + k12 * db[2], k11 * dc[1] + k12 * dc[2]
-            dw0, dw1, dw2 = da[2], db[2], dc[2]
-            dax0 = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
-            dax1 = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
+            dv0, dv1, dv2 = k11 * da1 + k12 * da2, k11 * db1 + k12 * db2, k11 * dc1 + k12 * dc2
+            dw0, dw1, dw2 = da2, db2, dc2
             dax2 = du1 * v2 + u1 * dv2 - du2 * v1 - u2 * dv1
-            day0 = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
-            day1 = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
             day2 = du2 * v0 + u2 * dv0 - du0 * v2 - u0 * dv2
-            daz0 = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
-            daz1 = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
             daz2 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
-            jac[i, j, 0], jac[i, j, 1], jac[i, j, 2] = dax0, dax1, dax2
-            jac[i, j, 3], jac[i, j, 4], jac[i, j, 5] = day0, day1, day2
-            jac[i, j, 6], jac[i, j, 7], jac[i, j, 8] = daz0, daz1, daz2
-            jac[i, j, 9] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
-            jac[i, j, 10] = dw2
+            jac[i, 0, col] = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
+            jac[i, 1, col] = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
+            jac[i, 2, col] = dax2
+            jac[i, 3, col] = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
+            jac[i, 4, col] = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
+            jac[i, 5, col] = day2
+            jac[i, 6, col] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
+            jac[i, 7, col] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
+            jac[i, 8, col] = daz2
+            jac[i, 9, col] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
+            jac[i, 10, col] = dw2
             if in_range:
-                jac[i, j, 11] = (du2 - u2 / zs * dw2) / zs
-                jac[i, j, 12] = (dv2 - v2 / zs * dw2) / zs
+                jac[i, 11, col] = (du2 - u2 / zs * dw2) / zs
+                jac[i, 12, col] = (dv2 - v2 / zs * dw2) / zs
             else:
-                jac[i, j, 11] = du2
-                jac[i, j, 12] = dv2
-            jac[i, j, 13] = 0.0
+                jac[i, 11, col] = du2
+                jac[i, 12, col] = dv2
 
 
 def _k_fisher(
@@ -457,19 +468,21 @@ def _k_fisher(
 ) -> None:
     """Back-to-front walk per pixel (numba): squared per-pixel gradients, weighted, summed per surfel.
 
-    ``jac`` [Nv, D, 14] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose parameters are not
-    in theta: colour for geometric Fisher, alpha), 1 (per-surfel value with derivative ``B``
-    [Nv, nch, D]) or 2 (the pair's depth). Kind-0 channels share one term ``a^2 sum_c g_c^2``. Per
-    pair, ``d alpha / d packed`` and ``d depth / d packed`` are formed once as coefficients of the
-    packed rows (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` on the ray-splat branch), then dotted
-    with each parameter's Jacobian column.
+    ``jac`` [Nv, 14, D] is d packed / d theta per surfel (parameters last: the loops over them are
+    contiguous); channel ``kind`` 0 (per-surfel value whose parameters are not in theta: colour
+    for geometric Fisher, alpha), 1 (per-surfel value with derivative ``B`` [Nv, nch, D]) or 2 (the
+    pair's depth). Kind-0 channels share one term ``a^2 sum_c g_c^2``. Per pair, ``d alpha / d packed``
+    and ``d depth / d packed`` are formed once as coefficients of the packed rows
+    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` on the ray-splat branch), then dotted with every
+    parameter's Jacobian column in one loop over the parameters.
     """
     nch = X.shape[1]
-    D = jac.shape[1]
+    D = jac.shape[2]
     for b in prange(bounds.shape[0] - 1):
         S = np.zeros(nch)
         g = np.zeros(nch)
         av = np.zeros(D)
+        ob = out[b]
         for p in range(bounds[b], bounds[b + 1]):
             cnt = count[p]
             wp = wts[p]
@@ -483,23 +496,24 @@ def _k_fisher(
             off = pix_off[p]
             for i in range(cnt - 1, -1, -1):
                 sid = local[pair_buf[off + i]]
-                pz = pk[sid, 6] * x + pk[sid, 7] * y + pk[sid, 8]
+                P = pk[sid]
+                pz = P[6] * x + P[7] * y + P[8]
                 inv = 1.0 / pz
-                u = (pk[sid, 0] * x + pk[sid, 1] * y + pk[sid, 2]) * inv
-                v = (pk[sid, 3] * x + pk[sid, 4] * y + pk[sid, 5]) * inv
+                u = (P[0] * x + P[1] * y + P[2]) * inv
+                v = (P[3] * x + P[4] * y + P[5]) * inv
                 r3 = u * u + v * v
-                dx = pk[sid, 11] - x
-                dy = pk[sid, 12] - y
+                dx = P[11] - x
+                dy = P[12] - y
                 r2 = 2.0 * (dx * dx + dy * dy)
                 use3 = r3 <= r2
                 if use3:
                     rho = r3
-                    depth = pk[sid, 9] * inv
+                    depth = P[9] * inv
                 else:
                     rho = r2
-                    depth = pk[sid, 10]
+                    depth = P[10]
                 ex = np.exp(-0.5 * rho)
-                a = pk[sid, 13] * ex
+                a = P[13] * ex
                 clamped = a > 0.99
                 if clamped:
                     a = 0.99
@@ -525,6 +539,7 @@ def _k_fisher(
                 da_o = 0.0 if clamped else ex
                 da_rho = 0.0 if clamped else -0.5 * a
                 wd = w if has_d else 0.0
+                o = ob[sid]
                 if use3:
                     kk = da_rho * 2.0 * inv
                     c0 = kk * u
@@ -534,29 +549,30 @@ def _k_fisher(
                     c0x, c0y, c1x, c1y, c2x, c2y = c0 * x, c0 * y, c1 * x, c1 * y, c2 * x, c2 * y
                     e2x, e2y = e2 * x, e2 * y
                     for j in range(D):
-                        aj = (da_o * jac[sid, j, 13] + c0x * jac[sid, j, 0] + c0y * jac[sid, j, 1] + c0 * jac[sid, j, 2]
-                              + c1x * jac[sid, j, 3] + c1y * jac[sid, j, 4] + c1 * jac[sid, j, 5] + c2x * jac[sid, j, 6]
-                              + c2y * jac[sid, j, 7] + c2 * jac[sid, j, 8])  # fmt: skip
-                        ej = inv * jac[sid, j, 9] + e2x * jac[sid, j, 6] + e2y * jac[sid, j, 7] + e2 * jac[sid, j, 8]
+                        aj = (da_o * jac[sid, 13, j] + c0x * jac[sid, 0, j] + c0y * jac[sid, 1, j]
+                              + c0 * jac[sid, 2, j] + c1x * jac[sid, 3, j] + c1y * jac[sid, 4, j] + c1 * jac[sid, 5, j]
+                              + c2x * jac[sid, 6, j] + c2y * jac[sid, 7, j] + c2 * jac[sid, 8, j])  # fmt: skip
+                        ej = inv * jac[sid, 9, j] + e2x * jac[sid, 6, j] + e2y * jac[sid, 7, j] + e2 * jac[sid, 8, j]
                         Jd = gd * aj + wd * ej
-                        out[b, sid, j] += wp * (aj * aj * g2 + Jd * Jd)
+                        o[j] += wp * (aj * aj * g2 + Jd * Jd)
                         av[j] = aj
                 else:
                     k4 = da_rho * 4.0
                     kx = k4 * dx
                     ky = k4 * dy
                     for j in range(D):
-                        aj = da_o * jac[sid, j, 13] + kx * jac[sid, j, 11] + ky * jac[sid, j, 12]
-                        Jd = gd * aj + wd * jac[sid, j, 10]
-                        out[b, sid, j] += wp * (aj * aj * g2 + Jd * Jd)
+                        aj = da_o * jac[sid, 13, j] + kx * jac[sid, 11, j] + ky * jac[sid, 12, j]
+                        Jd = gd * aj + wd * jac[sid, 10, j]
+                        o[j] += wp * (aj * aj * g2 + Jd * Jd)
                         av[j] = aj
                 if has_b:
                     for c in range(nch):
                         if kind[c] == 1:
                             gc = g[c]
+                            Bc = B[sid, c]
                             for j in range(D):
-                                Jc = gc * av[j] + w * B[sid, c, j]
-                                out[b, sid, j] += wp * (Jc * Jc)
+                                Jc = gc * av[j] + w * Bc[j]
+                                o[j] += wp * (Jc * Jc)
 
 
 _KERNELS = Kernels(jacobian=_k_jacobian)

@@ -747,6 +747,35 @@ def _k_project(
             rect[i, 3] = -1
 
 
+def _argsort_positive(z: np.ndarray) -> np.ndarray:
+    """Stable argsort of positive float64 values (numba helper): LSD radix sort of their bit patterns.
+
+    Positive IEEE doubles order as their bits do; 8-bit digits, a pass skipped when every value has
+    the same digit.
+    """
+    n = z.shape[0]
+    keys = z.view(np.uint64)
+    idx = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    cnt = np.empty(257, np.int64)
+    for shift in range(0, 64, 8):
+        sh = np.uint64(shift)
+        for k in range(257):
+            cnt[k] = 0
+        for i in range(n):
+            cnt[((keys[idx[i]] >> sh) & np.uint64(255)) + 1] += 1
+        if cnt.max() == n:
+            continue
+        for k in range(256):
+            cnt[k + 1] += cnt[k]
+        for i in range(n):
+            d = (keys[idx[i]] >> sh) & np.uint64(255)
+            tmp[cnt[d]] = idx[i]
+            cnt[d] += 1
+        idx, tmp = tmp, idx
+    return idx
+
+
 def _k_bin(
     pk: np.ndarray,
     nrm: np.ndarray,
@@ -778,7 +807,7 @@ def _k_bin(
     z = np.empty(nk)
     for j in range(nk):
         z[j] = pk[kept[j], 10]
-    order = kept[np.argsort(z, kind="mergesort")]
+    order = kept[_argsort_positive(z)]  # kept centres are beyond the near plane: z > 0
     n_ch = feats.shape[1]
     pk_l = np.empty((nk, 14))
     nrm_l = np.empty((nk, 3))
@@ -1385,13 +1414,27 @@ def _k_project_vjp(
     n_ch = gf.shape[2]
     for j in prange(order.shape[0]):
         i = order[j]
-        g = np.zeros(14)
-        gnn = np.zeros(3)
+        g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = g13 = 0.0
+        gn0 = gn1 = gn2 = 0.0
         for b in range(nb):
-            for k in range(14):
-                g[k] += gp[b, j, k]
-            for k in range(3):
-                gnn[k] += gn[b, j, k]
+            gb = gp[b, j]
+            g0 += gb[0]
+            g1 += gb[1]
+            g2 += gb[2]
+            g3 += gb[3]
+            g4 += gb[4]
+            g5 += gb[5]
+            g6 += gb[6]
+            g7 += gb[7]
+            g8 += gb[8]
+            g9 += gb[9]
+            g10 += gb[10]
+            g11 += gb[11]
+            g12 += gb[12]
+            g13 += gb[13]
+            gn0 += gn[b, j, 0]
+            gn1 += gn[b, j, 1]
+            gn2 += gn[b, j, 2]
         for c in range(n_ch):
             acc = 0.0
             for b in range(nb):
@@ -1431,13 +1474,13 @@ def _k_project_vjp(
         zs = c2 if in_range else 1.0
         sg = -1.0 if n0 * c0 + n1 * c1 + n2 * c2 > 0 else 1.0
         # Reverse: packed rows -> Tu (u), Tv (v), Tw (w).
-        gdet = g[9]
-        gax0, gax1, gax2 = g[0], g[1], g[2] + gdet * w0
-        gay0, gay1, gay2 = g[3], g[4], g[5] + gdet * w1
-        gaz0, gaz1, gaz2 = g[6], g[7], g[8] + gdet * w2
+        gdet = g9
+        gax0, gax1, gax2 = g0, g1, g2 + gdet * w0
+        gay0, gay1, gay2 = g3, g4, g5 + gdet * w1
+        gaz0, gaz1, gaz2 = g6, g7, g8 + gdet * w2
         gw0 = gdet * ax2 + gay0 * v2 - gay1 * u2 - gaz0 * v1 + gaz1 * u1
         gw1 = gdet * ay2 - gax0 * v2 + gax1 * u2 + gaz0 * v0 - gaz1 * u0
-        gw2 = gdet * az2 + gax0 * v1 - gax1 * u1 - gay0 * v0 + gay1 * u0 + g[10]
+        gw2 = gdet * az2 + gax0 * v1 - gax1 * u1 - gay0 * v0 + gay1 * u0 + g10
         gu0 = gay1 * w2 - gay2 * v2 - gaz1 * w1 + gaz2 * v1
         gu1 = -gax1 * w2 + gax2 * v2 + gaz1 * w0 - gaz2 * v0
         gu2 = gax1 * w1 - gax2 * v1 - gay1 * w0 + gay2 * v0
@@ -1445,19 +1488,19 @@ def _k_project_vjp(
         gv1 = gax0 * w2 - gax2 * u2 - gaz0 * w0 + gaz2 * u0
         gv2 = -gax0 * w1 + gax2 * u1 + gay0 * w0 - gay2 * u0
         if in_range:
-            gu2 += g[11] / zs
-            gv2 += g[12] / zs
-            gw2 -= (g[11] * (u2 / zs) + g[12] * (v2 / zs)) / zs
+            gu2 += g11 / zs
+            gv2 += g12 / zs
+            gw2 -= (g11 * (u2 / zs) + g12 * (v2 / zs)) / zs
         else:
-            gu2 += g[11]
-            gv2 += g[12]
+            gu2 += g11
+            gv2 += g12
         # Tu_j = k00 A0j + k01 A1j + k02 A2j, Tv_j = k11 A1j + k12 A2j, Tw_j = A2j; A = [a b c].
         ga0, ga1, ga2 = k00 * gu0, k01 * gu0 + k11 * gv0, k02 * gu0 + k12 * gv0 + gw0
         gb0, gb1, gb2 = k00 * gu1, k01 * gu1 + k11 * gv1, k02 * gu1 + k12 * gv1 + gw1
         gc0, gc1, gc2 = k00 * gu2, k01 * gu2 + k11 * gv2, k02 * gu2 + k12 * gv2 + gw2
         g_scales[i, 0] = ga0 * ra0 + ga1 * ra1 + ga2 * ra2
         g_scales[i, 1] = gb0 * rb0 + gb1 * rb1 + gb2 * rb2
-        g_opac[i] = g[13]
+        g_opac[i] = g13
         for k in range(3):
             g_means[i, k] = V[0, k] * gc0 + V[1, k] * gc1 + V[2, k] * gc2
         gtu0 = (V[0, 0] * ga0 + V[1, 0] * ga1 + V[2, 0] * ga2) * su
@@ -1466,9 +1509,9 @@ def _k_project_vjp(
         gtv0 = (V[0, 0] * gb0 + V[1, 0] * gb1 + V[2, 0] * gb2) * sv
         gtv1 = (V[0, 1] * gb0 + V[1, 1] * gb1 + V[2, 1] * gb2) * sv
         gtv2 = (V[0, 2] * gb0 + V[1, 2] * gb1 + V[2, 2] * gb2) * sv
-        gtw0 = (V[0, 0] * gnn[0] + V[1, 0] * gnn[1] + V[2, 0] * gnn[2]) * sg
-        gtw1 = (V[0, 1] * gnn[0] + V[1, 1] * gnn[1] + V[2, 1] * gnn[2]) * sg
-        gtw2 = (V[0, 2] * gnn[0] + V[1, 2] * gnn[1] + V[2, 2] * gnn[2]) * sg
+        gtw0 = (V[0, 0] * gn0 + V[1, 0] * gn1 + V[2, 0] * gn2) * sg
+        gtw1 = (V[0, 1] * gn0 + V[1, 1] * gn1 + V[2, 1] * gn2) * sg
+        gtw2 = (V[0, 2] * gn0 + V[1, 2] * gn1 + V[2, 2] * gn2) * sg
         # Rotation columns of the normalised quaternion (w, x, y, z).
         gqw = 2.0 * (z * gtu1 - y * gtu2 - z * gtv0 + x * gtv2 + y * gtw0 - x * gtw1)
         gqx = 2.0 * (y * gtu1 + z * gtu2 + y * gtv0 - 2.0 * x * gtv1 + w * gtv2 + z * gtw0 - w * gtw1 - 2.0 * x * gtw2)
@@ -1492,7 +1535,7 @@ _KERNELS = Kernels(
     project=_k_project,
     bin=_k_bin,
     project_vjp=_k_project_vjp,
-    helpers=(_pixel_box,),
+    helpers=(_pixel_box, _argsort_positive),
 )
 """The compiled projection, pixel-box, binning and projection-backward kernels (compiled on first use)."""
 _RASTER_KERNELS = Kernels(
@@ -1684,6 +1727,34 @@ def numba_forward(
         pk, feats, _f64(proj.normals), bg, thr, rect, bins.surf.numpy(), bins.start.numpy(), bins.count.numpy(),
         bounds, bins.size, bins.ntx, width, height, near, far, with_distortion,
     )  # fmt: skip
+
+
+def numba_pairs(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    opacities: np.ndarray,
+    viewmat: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    near: float = 0.2,
+    far: float = 100.0,
+    tile_size: int = 4,
+) -> tuple[np.ndarray, _NumbaResult]:
+    """The contributing pairs of a view by the numba kernels (float64 numpy inputs, activated scales and
+    opacities): projection, culling, depth sort, binning and the forward walk (no features).
+
+    Returns ``order`` [K] (the input index of each kept surfel, nearest centre first) and the walk's
+    result, whose surfel ids (``pair_buf``, ``vis``) index ``order``.
+    """
+    feats = np.zeros((means.shape[0], 0))
+    bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
+    r = _forward_pass(
+        bn.pk, bn.feats, bn.nrm, np.zeros(0), bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, bn.size,
+        bn.ntx, width, height, near, far, False,
+    )  # fmt: skip
+    return bn.order, r
 
 
 def _backward_pass(
@@ -2053,6 +2124,7 @@ __all__ = [
     "camera_tensors",
     "composite_pairs",
     "numba_forward",
+    "numba_pairs",
     "pair_alpha_depth",
     "project_packed",
     "project_surfels",
