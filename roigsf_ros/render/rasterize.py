@@ -815,8 +815,7 @@ def _k_bin(
     thr_l = np.empty(nk)
     feats_l = np.empty((nk, n_ch))
     n_tiles = ntx * nty
-    count = np.zeros(n_tiles, np.int64)
-    for j in range(nk):
+    for j in prange(nk):  # a gather in depth order: memory-latency bound, so both threads
         i = order[j]
         for k in range(14):
             pk_l[j, k] = pk[i, k]
@@ -827,6 +826,8 @@ def _k_bin(
         thr_l[j] = thr[i]
         for k in range(n_ch):
             feats_l[j, k] = feats[i, k]
+    count = np.zeros(n_tiles, np.int64)
+    for j in range(nk):
         for ty in range(rect_l[j, 1] // ts, rect_l[j, 3] // ts + 1):
             for tx in range(rect_l[j, 0] // ts, rect_l[j, 2] // ts + 1):
                 count[ty * ntx + tx] += 1
@@ -836,7 +837,7 @@ def _k_bin(
         start[t] = acc
         acc += count[t]
     fill = start.copy()
-    surf = np.empty(acc, np.int64)
+    surf = np.empty(acc, np.int32)
     for j in range(nk):
         for ty in range(rect_l[j, 1] // ts, rect_l[j, 3] // ts + 1):
             for tx in range(rect_l[j, 0] // ts, rect_l[j, 2] // ts + 1):
