@@ -1065,9 +1065,9 @@ def _k_forward(
                             dq += w * (m * m * (1.0 - T) + M2q - 2.0 * m * M1q)
                             M1q += w * m
                             M2q += w * m * m
-                        if T > 0.5:
-                            mq = depq[j]
-                            mi = c
+                        up = T > 0.5  # median: the last surfel hit while T > 0.5 (a select, no branch)
+                        mq = depq[j] if up else mq
+                        mi = c if up else mi
                         if store:
                             pair_buf[base[q] + c] = sidj[j]
                             pair_e[base[q] + c] = lo + j
