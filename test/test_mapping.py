@@ -414,3 +414,52 @@ def test_map_load_errors_name_the_file(saved_map, tmp_path) -> None:
         Mapper.load(folder)
     with pytest.raises(InputError, match=r"nothing/keyframes\.json: not found"):
         Mapper.load(tmp_path / "nothing")
+
+
+def test_sparse_adam_numba_matches_torch() -> None:
+    """The numba sparse Adam (CPU) and the torch one (other devices) update the same rows alike."""
+    from roigsf_ros.mapping.mapper import _SparseAdam
+
+    shapes = {"means": (50, 3), "quats": (50, 4), "opacity_logits": (50,)}
+    results = []
+    for use_numba in (True, False):
+        params = {
+            k: torch.randn(*s, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+            for k, s in shapes.items()
+        }
+        adam = _SparseAdam({"means": 1e-2, "quats": 2e-3, "opacity_logits": 5e-2})
+        adam.sync(params)
+        for step in range(4):
+            rows = torch.randperm(50, generator=torch.Generator().manual_seed(step))[:30]
+            for p in params.values():
+                p.grad = torch.randn(p.shape, generator=torch.Generator().manual_seed(10 + step), dtype=torch.float64)
+            if use_numba:
+                adam.step(params, rows)
+            else:
+                import roigsf_ros.mapping.mapper as mm
+
+                saved = mm._numba_rows_ok
+                mm._numba_rows_ok = lambda *a: False
+                try:
+                    adam.step(params, rows)
+                finally:
+                    mm._numba_rows_ok = saved
+        results.append((params, adam))
+    (pa, aa), (pb, ab) = results
+    assert torch.equal(aa.t, ab.t)
+    for k in shapes:
+        assert torch.allclose(pa[k], pb[k], rtol=1e-12, atol=1e-14), k
+        assert torch.allclose(aa.m[k], ab.m[k], rtol=1e-12, atol=1e-14)
+        assert torch.allclose(aa.v[k], ab.v[k], rtol=1e-12, atol=1e-14)
+
+
+def test_gradient_check_sees_non_finite_rows() -> None:
+    from roigsf_ros.mapping.mapper import Mapper
+
+    p = {"means": torch.zeros(10, 3, requires_grad=True)}
+    p["means"].grad = torch.zeros(10, 3)
+    assert Mapper._grads_finite(p, torch.tensor([1, 2, 3]))
+    p["means"].grad[2, 1] = float("nan")
+    assert not Mapper._grads_finite(p, torch.tensor([1, 2, 3]))
+    p["means"].grad[2, 1] = float("inf")
+    assert not Mapper._grads_finite(p, torch.tensor([2]))

@@ -24,11 +24,25 @@ _C2 = 0.03**2
 @functools.lru_cache(maxsize=8)
 def _gaussian_window(size: int, sigma: float, channels: int, dtype: torch.dtype) -> torch.Tensor:
     """The separable Gaussian window as a depthwise conv kernel [C, 1, size, size]."""
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
+    g = _gaussian_1d(size, sigma)
     w2d = torch.outer(g, g).to(dtype)
     return w2d.expand(channels, 1, size, size).contiguous()
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_pair(size: int, sigma: float, channels: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The window's two 1D factors as depthwise conv kernels: vertical [C, 1, size, 1], horizontal [C, 1, 1, size]."""
+    g = _gaussian_1d(size, sigma).to(dtype)
+    return g.view(1, 1, size, 1).expand(channels, 1, size, 1).contiguous(), g.view(1, 1, 1, size).expand(
+        channels, 1, 1, size
+    ).contiguous()
+
+
+def _gaussian_1d(size: int, sigma: float) -> torch.Tensor:
+    """The normalised 1D Gaussian [size] (float64)."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return g / g.sum()
 
 
 def _to_nchw(img: torch.Tensor) -> torch.Tensor:
@@ -44,11 +58,13 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM of two channel-last images in [0, 1], as [B, C, H, W] (3DGS formulation)."""
     x, y = _to_nchw(img1), _to_nchw(img2)
     c = x.shape[1]
-    w = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA, c, x.dtype).to(x.device)
+    wv, wh = _gaussian_pair(SSIM_WINDOW, SSIM_SIGMA, 5 * c, x.dtype)
     pad = SSIM_WINDOW // 2
-    # One grouped convolution over the five moments instead of five separate passes.
+    # The five moments in one grouped convolution, and the 11x11 window as its two 1D factors (the
+    # same zero-padded result with 2 x 11 instead of 121 taps per pixel).
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    mom = functional.conv2d(stack, w.repeat(5, 1, 1, 1), padding=pad, groups=5 * c)
+    mom = functional.conv2d(stack, wv.to(x.device), padding=(pad, 0), groups=5 * c)
+    mom = functional.conv2d(mom, wh.to(x.device), padding=(0, pad), groups=5 * c)
     mu1, mu2, e11, e22, e12 = mom.split(c, dim=1)
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12

@@ -32,6 +32,7 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping import losses
 from roigsf_ros.mapping.tsdf import tsdf_mesh_from_depths
 from roigsf_ros.render.fisher import fisher_diag, frustum_subset
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
 from roigsf_ros.render.rasterize import RenderOutput, render_map
 from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, surfels_from_rgbd
 
@@ -248,11 +249,28 @@ class _SparseAdam:
 
     @torch.no_grad()
     def step(self, params: dict[str, Tensor], rows: Tensor) -> None:
-        """One Adam update of the surfel ``rows`` (index tensor) of every parameter with a gradient."""
+        """One Adam update of the surfel ``rows`` (index tensor) of every parameter with a gradient.
+
+        CPU float tensors take a numba kernel (one pass over the rows per parameter, in place);
+        other devices the same update in torch ops.
+        """
         if rows.numel() == 0 or self.t is None:
             return
         b1, b2 = self.betas
         self.t.index_add_(0, rows, torch.ones_like(rows))
+        if _numba_rows_ok(params, rows):
+            rows_np, t_np = rows.numpy(), self.t.numpy()
+            for k, p in params.items():
+                if k not in self.lrs or p.grad is None:
+                    continue
+                n = p.shape[0]
+                with KERNEL_LOCK:
+                    _ADAM_KERNELS["adam"](
+                        rows_np, t_np, p.detach().view(n, -1).numpy(), p.grad.view(n, -1).numpy(),
+                        self.m[k].view(n, -1).numpy(), self.v[k].view(n, -1).numpy(),
+                        float(self.lrs[k]), float(b1), float(b2), float(self.eps),
+                    )  # fmt: skip
+            return
         t = self.t.index_select(0, rows).to(next(iter(params.values())).dtype)
         c1, c2 = 1.0 - b1**t, 1.0 - b2**t
         for k, p in params.items():
@@ -266,6 +284,59 @@ class _SparseAdam:
             shape = (-1,) + (1,) * (p.dim() - 1)
             upd = (m / c1.view(shape)) / ((v / c2.view(shape)).sqrt() + self.eps)
             p.index_add_(0, rows, upd, alpha=-self.lrs[k])
+
+
+def _numba_rows_ok(params: dict[str, Tensor], rows: Tensor) -> bool:
+    """Whether the numba row kernels apply: CPU float tensors with contiguous gradients, numba installed."""
+    if rows.device.type != "cpu" or not numba_available():
+        return False
+    for p in params.values():
+        if p.device.type != "cpu" or p.dtype not in (torch.float32, torch.float64) or not p.is_contiguous():
+            return False
+        if p.grad is not None and not p.grad.is_contiguous():
+            return False
+    return True
+
+
+def _k_adam(
+    rows: np.ndarray,
+    t: np.ndarray,
+    p: np.ndarray,
+    g: np.ndarray,
+    m: np.ndarray,
+    v: np.ndarray,
+    lr: float,
+    b1: float,
+    b2: float,
+    eps: float,
+) -> None:
+    """Adam update of the ``rows`` of one parameter [N, k], in place (numba; ``t`` per-row step counts)."""
+    for i in prange(rows.shape[0]):
+        r = rows[i]
+        c1 = 1.0 - b1 ** t[r]
+        c2 = 1.0 - b2 ** t[r]
+        for k in range(p.shape[1]):
+            gk = g[r, k]
+            mk = m[r, k] * b1 + (1.0 - b1) * gk
+            vk = v[r, k] * b2 + (1.0 - b2) * gk * gk
+            m[r, k] = mk
+            v[r, k] = vk
+            p[r, k] -= lr * ((mk / c1) / (np.sqrt(vk / c2) + eps))
+
+
+def _k_rows_finite(rows: np.ndarray, g: np.ndarray) -> bool:
+    """Whether every entry of the ``rows`` of ``g`` [N, k] is finite (numba)."""
+    bad = 0
+    for i in prange(rows.shape[0]):
+        r = rows[i]
+        for k in range(g.shape[1]):
+            if not np.isfinite(g[r, k]):
+                bad += 1
+    return bad == 0
+
+
+_ADAM_KERNELS = Kernels(adam=_k_adam, rows_finite=_k_rows_finite)
+"""The sparse Adam update and the gradient check (compiled on first use)."""
 
 
 class Mapper:
@@ -584,10 +655,11 @@ class Mapper:
                 self._skip_step("loss")
                 continue
             total.backward()
-            if not all(bool(torch.isfinite(p.grad).all()) for p in trainable.values() if p.grad is not None):
+            rows = visible.nonzero().squeeze(1)
+            if not self._grads_finite(trainable, rows):
                 self._skip_step("gradient")
                 continue
-            self._adam.step(trainable, visible.nonzero().squeeze(1))
+            self._adam.step(trainable, rows)
             self._version += 1
             self.stats.steps += 1
             last = terms_acc | {"total": float(total.detach())}
@@ -595,6 +667,20 @@ class Mapper:
             p.grad = None
         self.map.requires_grad_(False)
         return last
+
+    @staticmethod
+    def _grads_finite(params: dict[str, Tensor], rows: Tensor) -> bool:
+        """Whether every gradient is finite.
+
+        Only the ``rows`` of the surfels in view can be non-zero (the render's gradient is exactly zero
+        elsewhere), so on the CPU only those rows are checked (numba).
+        """
+        grads = [p.grad for p in params.values() if p.grad is not None]
+        if _numba_rows_ok(params, rows):
+            rows_np = rows.numpy()
+            with KERNEL_LOCK:
+                return all(_ADAM_KERNELS["rows_finite"](rows_np, g.view(g.shape[0], -1).numpy()) for g in grads)
+        return all(bool(torch.isfinite(g).all()) for g in grads)
 
     def _skip_step(self, what: str) -> None:
         self.stats.steps_skipped_nonfinite += 1
