@@ -343,6 +343,18 @@ def _k_jacobian(
     quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other columns are zero.
     """
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (
+        V[0, 0],
+        V[0, 1],
+        V[0, 2],
+        V[1, 0],
+        V[1, 1],
+        V[1, 2],
+        V[2, 0],
+        V[2, 1],
+        V[2, 2],
+    )
+    t0, t1, t2 = V[0, 3], V[1, 3], V[2, 3]
     for i in prange(means.shape[0]):
         for r in range(14):
             for c in range(jac.shape[2]):
@@ -356,15 +368,15 @@ def _k_jacobian(
         tu0, tu1, tu2 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
         tv0, tv1, tv2 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
         m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
-        a0 = (V[0, 0] * tu0 + V[0, 1] * tu1 + V[0, 2] * tu2) * su
-        a1 = (V[1, 0] * tu0 + V[1, 1] * tu1 + V[1, 2] * tu2) * su
-        a2 = (V[2, 0] * tu0 + V[2, 1] * tu1 + V[2, 2] * tu2) * su
-        b0 = (V[0, 0] * tv0 + V[0, 1] * tv1 + V[0, 2] * tv2) * sv
-        b1 = (V[1, 0] * tv0 + V[1, 1] * tv1 + V[1, 2] * tv2) * sv
-        b2 = (V[2, 0] * tv0 + V[2, 1] * tv1 + V[2, 2] * tv2) * sv
-        c0 = (V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2) + V[0, 3]
-        c1 = (V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2) + V[1, 3]
-        c2 = (V[2, 0] * m0 + V[2, 1] * m1 + V[2, 2] * m2) + V[2, 3]
+        a0 = (r00 * tu0 + r01 * tu1 + r02 * tu2) * su
+        a1 = (r10 * tu0 + r11 * tu1 + r12 * tu2) * su
+        a2 = (r20 * tu0 + r21 * tu1 + r22 * tu2) * su
+        b0 = (r00 * tv0 + r01 * tv1 + r02 * tv2) * sv
+        b1 = (r10 * tv0 + r11 * tv1 + r12 * tv2) * sv
+        b2 = (r20 * tv0 + r21 * tv1 + r22 * tv2) * sv
+        c0 = (r00 * m0 + r01 * m1 + r02 * m2) + t0
+        c1 = (r10 * m0 + r11 * m1 + r12 * m2) + t1
+        c2 = (r20 * m0 + r21 * m1 + r22 * m2) + t2
         u0, u1, u2 = k00 * a0 + k01 * a1 + k02 * a2, k00 * b0 + k01 * b1 + k02 * b2, k00 * c0 + k01 * c1 + k02 * c2
         v0, v1, v2 = k11 * a1 + k12 * a2, k11 * b1 + k12 * b2, k11 * c1 + k12 * c2
         w0, w1, w2 = a2, b2, c2
@@ -376,6 +388,7 @@ def _k_jacobian(
         in_range = zc > near and zc <= far
         zs = zc if in_range else 1.0
         opa = 1.0 / (1.0 + np.exp(-logits[i]))
+        inv_nq = 1.0 / nq if nq > 1e-12 else 0.0
         pk[i, 0], pk[i, 1], pk[i, 2], pk[i, 3], pk[i, 4], pk[i, 5] = ax0, ax1, ax2, ay0, ay1, ay2
         pk[i, 6], pk[i, 7], pk[i, 8], pk[i, 9], pk[i, 10] = az0, az1, az2, det, zc
         pk[i, 11], pk[i, 12], pk[i, 13] = u2 / zs, v2 / zs, opa
@@ -388,16 +401,18 @@ def _k_jacobian(
                 continue
             da0 = da1 = da2 = db0 = db1 = db2 = dc0 = dc1 = dc2 = 0.0
             if j < 3:
-                dc0, dc1, dc2 = V[0, j], V[1, j], V[2, j]
+                dc0 = r00 if j == 0 else (r01 if j == 1 else r02)
+                dc1 = r10 if j == 0 else (r11 if j == 1 else r12)
+                dc2 = r20 if j == 0 else (r21 if j == 1 else r22)
             elif j < 7:
                 # d qn / d q_e (e = j - 3): (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
                 e = j - 3
                 qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
                 if nq > 1e-12:
-                    dw = ((1.0 if e == 0 else 0.0) - w * qe) / nq
-                    dx = ((1.0 if e == 1 else 0.0) - x * qe) / nq
-                    dy = ((1.0 if e == 2 else 0.0) - y * qe) / nq
-                    dz = ((1.0 if e == 3 else 0.0) - z * qe) / nq
+                    dw = ((1.0 if e == 0 else 0.0) - w * qe) * inv_nq
+                    dx = ((1.0 if e == 1 else 0.0) - x * qe) * inv_nq
+                    dy = ((1.0 if e == 2 else 0.0) - y * qe) * inv_nq
+                    dz = ((1.0 if e == 3 else 0.0) - z * qe) * inv_nq
                 else:
                     dw = (1.0 if e == 0 else 0.0) / 1e-12
                     dx = (1.0 if e == 1 else 0.0) / 1e-12
@@ -409,12 +424,12 @@ def _k_jacobian(
                 dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
                 dtv1 = -4 * (x * dx + z * dz)
                 dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
-                da0 = (V[0, 0] * dtu0 + V[0, 1] * dtu1 + V[0, 2] * dtu2) * su
-                da1 = (V[1, 0] * dtu0 + V[1, 1] * dtu1 + V[1, 2] * dtu2) * su
-                da2 = (V[2, 0] * dtu0 + V[2, 1] * dtu1 + V[2, 2] * dtu2) * su
-                db0 = (V[0, 0] * dtv0 + V[0, 1] * dtv1 + V[0, 2] * dtv2) * sv
-                db1 = (V[1, 0] * dtv0 + V[1, 1] * dtv1 + V[1, 2] * dtv2) * sv
-                db2 = (V[2, 0] * dtv0 + V[2, 1] * dtv1 + V[2, 2] * dtv2) * sv
+                da0 = (r00 * dtu0 + r01 * dtu1 + r02 * dtu2) * su
+                da1 = (r10 * dtu0 + r11 * dtu1 + r12 * dtu2) * su
+                da2 = (r20 * dtu0 + r21 * dtu1 + r22 * dtu2) * su
+                db0 = (r00 * dtv0 + r01 * dtv1 + r02 * dtv2) * sv
+                db1 = (r10 * dtv0 + r11 * dtv1 + r12 * dtv2) * sv
+                db2 = (r20 * dtv0 + r21 * dtv1 + r22 * dtv2) * sv
             elif j == 7:
                 da0, da1, da2 = a0, a1, a2
             else:
