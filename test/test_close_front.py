@@ -123,3 +123,43 @@ def test_voxel_keys_and_bad_input() -> None:
     assert mem.add_view(empty, TRAIN, INTR) == 0
     assert mem.fused_weight(empty).shape == (0,)
     assert np.all(mem.fused_weight(PATCH) == 0.0)
+
+
+def _plane_rgbd(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth [H, W] of the square z = 2, |x|, |y| <= 0.6 seen from ``T`` (0 where the ray misses it), black colour."""
+    u, v = np.meshgrid(np.arange(INTR.width, dtype=float), np.arange(INTR.height, dtype=float))
+    d = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1) @ T[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (2.0 - T[2, 3]) / d[..., 2]  # the camera-frame z of the hit (the camera ray has z = 1)
+    hit = T[:3, 3] + t[..., None] * d
+    ok = (t > 0) & (np.abs(hit[..., 0]) <= 0.6) & (np.abs(hit[..., 1]) <= 0.6)
+    return np.where(ok, t, 0.0).astype(np.float32), np.zeros((INTR.height, INTR.width, 3), np.uint8)
+
+
+def test_scoring_state_folds_each_new_keyframe_into_w_f_once_or_rebuilds_it_when_exact() -> None:
+    """Issue 12: W_f was rebuilt from every keyframe pose at each TSDF update (O(keyframes x voxels) per window)."""
+    from dataclasses import replace
+
+    from roigsf_ros.nbv.state import ScoringState
+
+    poses = np.stack([cam((-0.5, 0.0, 0.6), (-0.3, 0.0, 2.0)), cam((0.5, 0.0, 0.6), (0.3, 0.0, 2.0)),
+                      cam((0.0, 0.4, 1.0), (0.0, 0.45, 2.0))])  # fmt: skip
+    for exact in (False, True):
+        state = ScoringState(replace(CFG, close_front_exact=exact), VS, 0.08, 10.0)
+        state.sync(_plane_rgbd, poses[:2], INTR)
+        surf1, mem1 = state.products(poses[:2], INTR, close_front=True)
+        ref1 = CloseFrontMemory.from_poses(surf1, poses[:2], INTR, VS, CFG)
+        np.testing.assert_array_equal(mem1.fused_weight(surf1), ref1.fused_weight(surf1))
+        state.sync(_plane_rgbd, poses, INTR)
+        surf2, mem2 = state.products(poses, INTR, close_front=True)
+        assert len(surf2.centres_m) > len(surf1.centres_m)  # the third keyframe saw new surface
+        assert state.products(poses, INTR, close_front=True)[1] is mem2  # no work without a new keyframe
+        if exact:
+            want = CloseFrontMemory.from_poses(surf2, poses, INTR, VS, CFG)
+            assert (state.close_front_builds, state.close_front_views_added) == (2, 0)
+        else:
+            want = CloseFrontMemory.from_poses(surf1, poses[:2], INTR, VS, CFG)
+            want.add_view(surf2, poses[2], INTR)
+            assert (state.close_front_builds, state.close_front_views_added) == (1, 1)
+        np.testing.assert_array_equal(mem2.fused_weight(surf2), want.fused_weight(surf2))
+        assert (mem2.fused_weight(surf2) > 0).mean() > 0.5

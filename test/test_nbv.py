@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -19,6 +21,7 @@ from roigsf_ros.nbv.scorer import (
     block_mean,
     depth_error_ause,
     downsampled,
+    frustum_meets_box,
     fuse_scores,
     rank_candidates,
     zscore,
@@ -216,6 +219,37 @@ def test_a_candidate_that_sees_nothing_does_not_change_the_others_fused_scores(w
         b = scorer.score(world.map, h, world.tsdf, world.train, cands, INTR, mode=mode)
         m = scorer.score(world.map, h, world.tsdf, world.train, np.stack([*cands, world.view_up]), INTR, mode=mode)
         np.testing.assert_allclose(m.fused[:3], b.fused, rtol=1e-9, atol=1e-12, err_msg=mode)
+
+
+
+def test_candidates_that_cannot_see_the_map_are_skipped_before_any_rendering(world: World, monkeypatch) -> None:
+    """Issue 12: a candidate whose frustum misses the mapped region costs no ROI, Fisher or unseen render."""
+    import roigsf_ros.nbv.scorer as scorer_mod
+
+    lo, hi = np.array([-1.0, -1.0, 0.0]), np.array([1.0, 1.0, 2.0])
+    assert frustum_meets_box(look_at(np.array([0.0, -3.0, 1.0]), np.zeros(3), UP), INTR, lo, hi, 0.2, 10.0)
+    assert not frustum_meets_box(look_at(np.array([0.0, -3.0, 1.0]), np.array([0.0, -6.0, 1.0]), UP), INTR, lo, hi,
+                                 0.2, 10.0)  # fmt: skip
+    assert not frustum_meets_box(look_at(np.array([0.0, -3.0, 1.0]), np.zeros(3), UP), INTR, lo, hi, 0.2, 1.5)
+    away = look_at(np.array([0.0, 0.0, 4.0]), np.array([0.0, 0.0, 9.0]), np.array([1.0, 0.0, 0.0]))  # looking up
+    calls = []
+    real = scorer_mod.fisher_diag
+    monkeypatch.setattr(scorer_mod, "fisher_diag", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cands = np.stack([world.view_a, world.view_b, away])
+    for mode, kw in (("roi-gsurfisher", {}), ("roi-gsurfisher", {"unseen_weight": 1.0}), ("fisherrf", {})):
+        scorer = NBVScorer(replace(NBVConfig(), **kw))
+        h = world.h_train if mode != "fisherrf" else scorer.train_fisher(world.map, world.train, INTR, mode)
+        calls.clear()
+        res = scorer.score(world.map, h, world.tsdf, world.train, cands, INTR, mode=mode)
+        assert res.n_skipped == 1 and res.flagged.tolist() == [False, False, True] and len(calls) == 2, (mode, kw)
+        assert res.fisher[2] == 0.0 and res.n_visible_voxels[2] == 0
+        assert res.unseen is None or res.unseen[2] == 0.0
+        two = scorer.score(world.map, h, world.tsdf, world.train, cands[:2], INTR, mode=mode)
+        np.testing.assert_allclose(res.fused[:2], two.fused, rtol=1e-12, atol=1e-12)
+        assert res.fused[2] == 0.0 and res.ranking[-1] == 2
+    inf_margin = NBVScorer(replace(NBVConfig(), unseen_weight=1.0, unseen_bbox_margin_m=float("inf")))
+    res = inf_margin.score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    assert res.n_skipped == 0 and res.unseen[2] == 1.0  # every pixel counts in U(x): nothing can be skipped
 
 
 def fused_z(x: np.ndarray) -> np.ndarray:

@@ -116,7 +116,8 @@ def test_trigger_every_differs_from_window(frames: list[Frame]) -> None:
 
 
 def test_roi_gsurfisher_choice_matches_the_scorer(frames: list[Frame]) -> None:
-    policy = make_policy("roi-gsurfisher", window=WINDOW)
+    """With ``close_front_exact`` the kept state scores exactly as the scorer from scratch (W_f from every pose)."""
+    policy = make_policy("roi-gsurfisher", window=WINDOW, close_front_exact=True)
     expected: list[tuple[int, np.ndarray]] = []
 
     def check(pol: StreamNBVPolicy, mapper: Mapper, k: int) -> None:
@@ -132,6 +133,10 @@ def test_roi_gsurfisher_choice_matches_the_scorer(frames: list[Frame]) -> None:
     assert len(expected) == 2
     assert [e[0] for e in expected] == policy.inserted_ids
     np.testing.assert_allclose(policy.last_result.fused, expected[-1][1], rtol=1e-9, atol=1e-12)
+    incremental = make_policy("roi-gsurfisher", window=WINDOW)  # the default: each keyframe folded into W_f once
+    run_stream(incremental, frames)
+    assert incremental.inserted_ids == policy.inserted_ids
+    assert incremental.state.close_front_builds == 1 and incremental.state.close_front_views_added >= 1
 
 
 def test_policy_passes_any_nbv_config_field() -> None:

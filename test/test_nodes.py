@@ -742,6 +742,7 @@ def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
         caught_up = planner.status()
         assert caught_up["tsdf_frames"] == 3 and caught_up["h_train_full"] == 1
         assert caught_up["surface_extractions"] == 1 and caught_up["close_front_builds"] == 1
+        assert caught_up["close_front_views_added"] == 0
         cands = [frames[i].T_wc for i in (2, 6, 10)]
         answers = [planner._on_request(_request(cands), GetNextBestView.Response()) for _ in range(2)]
         assert all(a.success for a in answers) and planner.status() == {
@@ -756,13 +757,15 @@ def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
         want = scorer.score(snap.surfel_map, h, planner.state.tsdf, snap.keyframe_poses, cands, INTR)
         np.testing.assert_allclose(answers[1].fused_scores, want.fused, rtol=1e-6, atol=1e-9)
         assert answers[1].best_index == want.best_index
-        # A new keyframe on top: its TSDF frame, one surface/W_f rebuild, one Fisher pass; no full recompute.
+        # A new keyframe on top: its TSDF frame, one surface extraction, W_f folds in that one keyframe (no
+        # rebuild from every pose), one Fisher pass; no full recompute.
         with shared.lock:
             assert shared.mapper.add_keyframe(frames[11], optimise=False)
             shared.touch()
         assert planner._on_request(_request(cands), GetNextBestView.Response()).success
         after = planner.status()
         assert after["tsdf_frames"] == 4 and after["h_train_full"] == 1 and after["h_train_poses_added"] == 1
-        assert after["surface_extractions"] == 2 and after["close_front_builds"] == 2
+        assert after["surface_extractions"] == 2 and after["close_front_builds"] == 1
+        assert after["close_front_views_added"] == 1
     finally:
         planner.destroy_node()

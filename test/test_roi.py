@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import open3d as o3d
@@ -13,8 +15,10 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.scene import look_at
 from roigsf_ros.evaluation.metrics import raycast_depth, raycasting_scene
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
+from roigsf_ros.nbv.close_front import close_front_gain
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.roi import (
+    batch_roi,
     coverage_weight,
     footprint_weight,
     incidence_weight,
@@ -229,6 +233,49 @@ def test_numba_visibility_equals_the_numpy_reference() -> None:
     assert 0 < len(hidden) < len(occluded.centres_m)
     with pytest.raises(InputError, match="backend"):
         voxel_visibility(vox, EYE, intr, 0.04, CFG, backend="cuda")
+
+
+
+def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> None:
+    """The candidates' ROI (Eq. 7-8) and I_vis (Eq. 14) in one parallel numba pass equal the per-candidate reference."""
+    pytest.importorskip("numba")
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((-0.5, -0.5, -0.5))
+    scene = raycasting_scene(box)
+    intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
+    vol = TSDFVolume(voxel_size_m=0.04)
+    for k in range(4):
+        a = 2 * np.pi * k / 4 + 0.3
+        T = look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 1.0 if k % 2 else -1.0]), np.zeros(3), UP)
+        vol.integrate(raycast_depth(scene, T, intr), T, intr)
+    vox = vol.surface_voxels()
+    rng = np.random.default_rng(3)
+    m = len(vox.centres_m)
+    textured, frontier, w_f = rng.random(m) < 0.4, rng.random(m) < 0.2, rng.random(m) * 0.5
+    poses = np.stack([
+        look_at(np.array([2.2, 1.0, 0.8]), np.zeros(3), UP),  # oblique
+        look_at(np.array([0.9, 0.3, 0.6]), np.zeros(3), UP),  # close: wide splats, capped ones
+        look_at(np.array([3.0, 0.0, 0.0]), np.array([6.0, 0.0, 0.0]), UP),  # looking away: empty
+        look_at(np.array([-1.5, -1.8, -0.4]), np.zeros(3), UP),
+        look_at(np.array([0.2, -2.0, 1.5]), np.array([0.0, 0.0, 0.3]), UP),
+    ])  # fmt: skip
+    for cfg in (CFG, replace(CFG, frontier_weight=0.5, beta=2.0, mu=0.5)):
+        fast = batch_roi(vox, 0.04, poses, intr, cfg, textured, frontier, w_f, backend="numba")
+        ref = batch_roi(vox, 0.04, poses, intr, cfg, textured, frontier, w_f, backend="numpy")
+        for i, T in enumerate(poses):
+            r = view_roi(vox, 0.04, T, intr, cfg, textured, frontier=frontier)
+            assert fast.n_visible_voxels[i] == ref.n_visible_voxels[i] == len(r.view)
+            assert fast.n_pixels[i] == ref.n_pixels[i] == r.n_pixels
+            np.testing.assert_allclose(fast.weights[i], r.weights, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(ref.weights[i], r.weights, rtol=0, atol=0)
+            assert fast.mass[i] == pytest.approx(r.mass, rel=1e-12, abs=1e-15)
+            gain = close_front_gain(r.view, w_f)
+            assert fast.close_front[i] == pytest.approx(gain, rel=1e-12) and ref.close_front[i] == pytest.approx(gain)
+    assert fast.n_visible_voxels[2] == 0 and (fast.n_visible_voxels[[0, 1, 3, 4]] > 50).all()
+    assert (fast.close_front[[0, 1, 3, 4]] > 0).all()
+    no_wf = batch_roi(vox, 0.04, poses, intr, CFG)
+    assert not no_wf.close_front.any() and no_wf.mass[0] > 0
+    with pytest.raises(InputError, match="fused_weight"):
+        batch_roi(vox, 0.04, poses, intr, CFG, fused_weight=np.zeros(3))
 
 
 # ---------------------------------------------------------------------------------- texture

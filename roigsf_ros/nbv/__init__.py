@@ -9,8 +9,10 @@ __all__, __getattr__ = lazy_exports(
         "config": ["MODES", "NBVConfig"],
         "roi": [
             "LUMA_RGB",
+            "BatchROI",
             "ViewROI",
             "VoxelView",
+            "batch_roi",
             "coverage_weight",
             "footprint_weight",
             "incidence_weight",
@@ -30,6 +32,7 @@ __all__, __getattr__ = lazy_exports(
             "check_stop",
             "depth_error_ause",
             "downsampled",
+            "frustum_meets_box",
             "fuse_scores",
             "information_gain",
             "rank_candidates",

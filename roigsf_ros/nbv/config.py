@@ -95,6 +95,11 @@ class NBVConfig(Config):
     """FisherRF's parameters: all of them (sh_rest only where the map has it)."""
     fisher_downsample: int = 1
     """Candidate Fisher passes at 1/this resolution (ROI block-averaged, weights x this^2): a speed knob, 1 = exact."""
+    close_front_exact: bool = False
+    """How a kept scoring state (planner, stream policies) updates W_f of Eq. 12 when keyframes are added: True
+    re-evaluates every keyframe pose on the current surface voxels (exact, O(keyframes x voxels) per update);
+    False folds each new keyframe in once (:meth:`CloseFrontMemory.add_view`), so a voxel keeps what earlier
+    keyframes gave it and one that enters the surface later gets only the newer keyframes' values."""
 
     # ---- beyond the paper (0 / off by default = the paper's method)
     unseen_weight: float = 0.0

@@ -42,7 +42,7 @@ from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.mapping.tsdf import SurfaceVoxels
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.render.numba_setup import Kernels, numba_available
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, n_threads, numba_available, prange
 from roigsf_ros.render.surfels import SurfelMap
 
 _N_WORKERS = 2
@@ -294,7 +294,7 @@ def _visibility_numba(
                      g[:, 4].copy(), (pix[:n_e], row[:n_e], kv[:n_e]) if n_keep else None)  # fmt: skip
 
 
-def _k_geometry(
+def _geometry(
     centres: np.ndarray,
     normals: np.ndarray,
     R: np.ndarray,
@@ -311,7 +311,7 @@ def _k_geometry(
     rows: np.ndarray,
     geo: np.ndarray,
 ) -> int:
-    """In-frustum voxels (numba), as :func:`_camera_geometry`: rows, then u, v, z, cos, footprint per row."""
+    """In-frustum voxels (numba helper), as :func:`_camera_geometry`: rows, then u, v, z, cos, footprint per row."""
     n = 0
     for i in range(centres.shape[0]):
         r0 = centres[i, 0] - c[0]
@@ -335,8 +335,9 @@ def _k_geometry(
     return n
 
 
-def _k_visibility(
+def _visibility(
     geo: np.ndarray,
+    n: int,
     width: int,
     height: int,
     max_r: float,
@@ -346,11 +347,10 @@ def _k_visibility(
     zbuf: np.ndarray,
     keep: np.ndarray,
 ) -> int:
-    """Z-buffer of the tent splats of every in-frustum voxel, then the occlusion test (numba).
+    """Z-buffer of the tent splats of the first ``n`` in-frustum voxels, then the occlusion test (numba helper).
 
     Marks ``keep`` and returns the number of splat entries of the kept voxels (an upper bound).
     """
-    n = geo.shape[0]
     any_front = False
     for i in range(n):
         if geo[i, 3] > 0.0:
@@ -400,6 +400,42 @@ def _k_visibility(
     return total
 
 
+def _k_geometry(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    R: np.ndarray,
+    c: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    f_vox: float,
+    rows: np.ndarray,
+    geo: np.ndarray,
+) -> int:
+    """Kernel of :func:`_geometry` (one camera)."""
+    return _geometry(centres, normals, R, c, fx, fy, cx, cy, width, height, near, far, f_vox, rows, geo)
+
+
+def _k_visibility(
+    geo: np.ndarray,
+    width: int,
+    height: int,
+    max_r: float,
+    f: float,
+    tol0: float,
+    min_cos: float,
+    zbuf: np.ndarray,
+    keep: np.ndarray,
+) -> int:
+    """Kernel of :func:`_visibility` (one camera, every row of ``geo``)."""
+    return _visibility(geo, geo.shape[0], width, height, max_r, f, tol0, min_cos, zbuf, keep)
+
+
 def _k_splat(
     geo: np.ndarray,
     keep: np.ndarray,
@@ -437,7 +473,120 @@ def _k_splat(
     return e
 
 
-_KERNELS = Kernels(parallel=False, geometry=_k_geometry, visibility=_k_visibility, splat=_k_splat)
+def _k_batch(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    tsdf_w: np.ndarray,
+    textured: np.ndarray,
+    frontier: np.ndarray,
+    w_f: np.ndarray,
+    poses: np.ndarray,
+    bounds: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    voxel_size: float,
+    max_r: float,
+    tol0: float,
+    min_cos: float,
+    prm: np.ndarray,
+    use_frontier: bool,
+    use_wf: bool,
+    roi: np.ndarray,
+    stats: np.ndarray,
+) -> None:
+    """ROI (Eq. 7-8) and close-front gain (Eq. 14) of many cameras, blocks of cameras in parallel (numba).
+
+    Per camera the same passes as :func:`view_roi` (:func:`_geometry`, :func:`_visibility`) and, per kept
+    voxel, Eq. 7's weight accumulated into the tent-splat sums of Eq. 8 directly. ``prm``: pref poor, pref
+    rich, angle sigma (deg), footprint pref (px), footprint sigma (ln), beta, gamma, mu, frontier weight.
+    Writes ``roi`` [C, H W] and ``stats`` [C, 4]: visible voxels, ROI pixels, ROI mass, I_vis.
+    """
+    m = centres.shape[0]
+    npix = width * height
+    f = np.sqrt(fx * fy)
+    f_vox = f * voxel_size
+    p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
+        prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
+    )  # fmt: skip
+    for b in prange(bounds.shape[0] - 1):
+        rows = np.empty(m, np.int64)
+        geo = np.empty((m, 5))
+        keep = np.zeros(m, np.bool_)
+        zbuf = np.empty(npix)
+        num = np.empty(npix)
+        den = np.empty(npix)
+        for ci in range(bounds[b], bounds[b + 1]):
+            R = poses[ci, :3, :3]
+            c = poses[ci, :3, 3]
+            n_in = _geometry(centres, normals, R, c, fx, fy, cx, cy, width, height, near, far, f_vox, rows, geo)
+            for p in range(npix):
+                zbuf[p] = np.inf
+                num[p] = 0.0
+                den[p] = 0.0
+            for i in range(n_in):
+                keep[i] = False
+            _visibility(geo, n_in, width, height, max_r, f, tol0, min_cos, zbuf, keep)
+            n_vis = 0
+            gain = 0.0
+            for i in range(n_in):
+                if not keep[i]:
+                    continue
+                n_vis += 1
+                idx = rows[i]
+                u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
+                theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
+                pref = p_rich if textured[idx] else p_poor
+                ta = (theta - pref) / a_sig
+                wa = np.exp(-0.5 * ta * ta)
+                tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
+                ws = np.exp(-0.5 * tf * tf)
+                wc = 1.0 / max(tsdf_w[idx], 1.0)
+                w = wa**beta * ws**gamma * (1.0 + mu * wc)
+                if use_frontier:
+                    w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
+                if use_wf:
+                    gain += max(cos / z - w_f[idx], 0.0)
+                s = min(max(fp, 1.0), max_r)
+                r = int(np.ceil(s - 1e-9))
+                bx = int(np.floor(u))
+                by = int(np.floor(v))
+                for oy in range(-r + 1, r + 1):
+                    y = by + oy
+                    ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0
+                    if ky <= 0.0:
+                        continue
+                    for ox in range(-r + 1, r + 1):
+                        x = bx + ox
+                        kx = max(0.0, 1.0 - abs(x - u) / s) if 0 <= x < width else 0.0
+                        k = ky * kx
+                        if k > 0.0:
+                            q = y * width + x
+                            num[q] += k * w
+                            den[q] += k
+            n_roi = 0
+            mass = 0.0
+            for p in range(npix):
+                val = num[p] / max(den[p], 1.0) / (1.0 + mu)
+                val = min(max(val, 0.0), 1.0)
+                roi[ci, p] = val
+                if val > 0.0:
+                    n_roi += 1
+                    mass += val
+            stats[ci, 0] = n_vis
+            stats[ci, 1] = n_roi
+            stats[ci, 2] = mass
+            stats[ci, 3] = gain
+
+
+_KERNELS = Kernels(parallel=False, helpers=(_geometry, _visibility), geometry=_k_geometry,
+                   visibility=_k_visibility, splat=_k_splat)  # fmt: skip
+_BATCH_KERNELS = Kernels(helpers=(_geometry, _visibility), batch=_k_batch)
 
 
 # ------------------------------------------------------------------------------------------ ROI
@@ -494,10 +643,98 @@ def view_roi(
     return ViewROI(splat_roi(view, w, intr, cfg), view, w, wa, ws, wc, tex)
 
 
+@dataclass
+class BatchROI:
+    """ROI and close-front of C candidates (:func:`batch_roi`): what scoring needs, without per-voxel parts.
+
+    ``weights`` [C, H, W] W_roi; ``n_visible_voxels`` [C]; ``n_pixels`` [C] ROI pixels (> 0); ``mass`` [C] the
+    ROI's sum; ``close_front`` [C] I_vis of Eq. 14 (0 without W_f).
+    """
+
+    weights: np.ndarray
+    n_visible_voxels: np.ndarray
+    n_pixels: np.ndarray
+    mass: np.ndarray
+    close_front: np.ndarray
+
+
+def batch_roi(
+    voxels: SurfaceVoxels,
+    voxel_size_m: float,
+    poses: np.ndarray,
+    intr: Intrinsics,
+    cfg: NBVConfig,
+    textured: np.ndarray | None = None,
+    frontier: np.ndarray | None = None,
+    fused_weight: np.ndarray | None = None,
+    backend: str = "auto",
+) -> BatchROI:
+    """:func:`view_roi` and :func:`~roigsf_ros.nbv.close_front.close_front_gain` of every pose of ``poses`` [C, 4, 4].
+
+    The candidates are independent, so the numba backend splits them between the threads (one compiled
+    pass per candidate, no per-voxel temporaries); ``"numpy"`` loops over :func:`view_roi` (the reference;
+    equal up to float summation order, tested). ``fused_weight`` [M] is W_f (None: close-front 0).
+    """
+    if backend not in ("auto", "numba", "numpy"):
+        raise InputError("backend", f"must be 'auto', 'numba' or 'numpy', got {backend!r}")
+    if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
+        raise InputError("voxel_size_m", f"must be a positive number, got {voxel_size_m}")
+    P = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    P = np.stack([check_pose(T, f"poses[{i}]") for i, T in enumerate(P)]) if len(P) else P
+    m = len(voxels.centres_m)
+    for name, arr in (("textured", textured), ("frontier", frontier), ("fused_weight", fused_weight)):
+        if arr is not None and np.shape(arr) != (m,):
+            raise InputError(name, f"expected shape [{m}], got {list(np.shape(arr))}")
+    C, H, W = len(P), intr.height, intr.width
+    out = BatchROI(np.zeros((C, H, W)), np.zeros(C, np.int64), np.zeros(C, np.int64), np.zeros(C), np.zeros(C))
+    if C == 0 or m == 0:
+        return out
+    use_frontier = frontier is not None and float(cfg.frontier_weight) > 0
+    if backend == "numpy" or (backend == "auto" and not numba_available()):
+        for i, T in enumerate(P):
+            r = view_roi(voxels, voxel_size_m, T, intr, cfg, textured, frontier=frontier if use_frontier else None)
+            out.weights[i] = r.weights
+            out.n_visible_voxels[i], out.n_pixels[i], out.mass[i] = len(r.view), r.n_pixels, r.mass
+            if fused_weight is not None and len(r.view):
+                out.close_front[i] = float(
+                    np.maximum(r.view.cos_incidence / r.view.z_m - np.asarray(fused_weight)[r.view.index], 0.0).sum()
+                )
+        return out
+    prm = np.array([cfg.angle_pref_texture_poor_deg, cfg.angle_pref_texture_rich_deg, cfg.angle_sigma_deg,
+                    cfg.footprint_pref_px, cfg.footprint_sigma_ln, cfg.beta, cfg.gamma, cfg.mu,
+                    float(cfg.frontier_weight)], dtype=np.float64)  # fmt: skip
+    nb = max(1, min(n_threads(), C))
+    bounds = np.linspace(0, C, nb + 1).round().astype(np.int64)
+    roi = np.zeros((C, H * W))
+    stats = np.zeros((C, 4))
+    flag = np.zeros(1, np.bool_)
+    with KERNEL_LOCK:
+        _BATCH_KERNELS["batch"](
+            np.ascontiguousarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(voxels.normals, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(voxels.weight, dtype=np.float64),
+            flag if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
+            np.ascontiguousarray(frontier, dtype=np.bool_) if use_frontier else flag,
+            np.zeros(1) if fused_weight is None else np.ascontiguousarray(fused_weight, dtype=np.float64),
+            np.ascontiguousarray(P), bounds, float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H,
+            float(cfg.near_m), float(cfg.far_m), float(voxel_size_m), float(cfg.max_splat_radius_px),
+            float(cfg.occlusion_tol_voxels) * voxel_size_m, float(cfg.occlusion_min_cos), prm, use_frontier,
+            fused_weight is not None, roi, stats,
+        )  # fmt: skip
+    out.weights = roi.reshape(C, H, W)
+    out.n_visible_voxels = stats[:, 0].astype(np.int64)
+    out.n_pixels = stats[:, 1].astype(np.int64)
+    out.mass = stats[:, 2].copy()
+    out.close_front = stats[:, 3].copy()
+    return out
+
+
 __all__ = [
     "LUMA_RGB",
+    "BatchROI",
     "ViewROI",
     "VoxelView",
+    "batch_roi",
     "coverage_weight",
     "footprint_weight",
     "incidence_weight",

@@ -42,9 +42,9 @@ from roigsf_ros.core.camera import Intrinsics, check_pose, pose_from_position_qu
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.evaluation.metrics import ause
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
-from roigsf_ros.nbv.close_front import CloseFrontMemory, close_front_gain
+from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import MODES, NBVConfig
-from roigsf_ros.nbv.roi import ViewROI, view_roi, voxel_texture
+from roigsf_ros.nbv.roi import ViewROI, batch_roi, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap
@@ -55,6 +55,10 @@ ShouldStop = Callable[[], bool] | None
 
 class ScoringStoppedError(RuntimeError):
     """Raised by scoring when its ``should_stop`` turned true (a node shutting down): no result, nothing half-kept."""
+
+
+_ROI_CHUNK = 16
+"""Candidates whose ROI one parallel pass computes (a stop request waits at most one chunk's pass)."""
 
 
 def check_stop(should_stop: ShouldStop) -> None:
@@ -211,8 +215,10 @@ class NBVResult:
     ``ranking`` [M]: best first, flagged candidates last, ties by index; ``flagged`` [M]: candidates that
     see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
     degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
-    ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi``,
-    ``close_front``, ``fisher``; ``roi_close_front`` their ROI sum) and process CPU seconds (``<phase>_cpu``).
+    ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi`` (with close-front:
+    one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher`` (and the unseen render);
+    ``roi_close_front`` their ROI sum) and process CPU seconds (``<phase>_cpu``). ``n_skipped``: candidates
+    whose frustum cannot meet the mapped region, flagged before any work.
     """
 
     mode: str
@@ -230,6 +236,7 @@ class NBVResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     unseen: np.ndarray | None = None
     """[M] fraction of unseen pixels U(x) (``NBVConfig.unseen_weight`` > 0 in the ROI modes), else None."""
+    n_skipped: int = 0
 
 
 def downsampled(intr: Intrinsics, factor: int) -> Intrinsics:
@@ -453,50 +460,35 @@ class NBVScorer:
         flagged = np.zeros(m, dtype=bool)
         use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
         unseen = np.ones(m) if use_unseen else None
+        # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
+        # score nothing: they are flagged without any rendering.
+        box = _mapped_region(vox, voxel_size, None if empty_map or not need_fisher else surfel_map, cfg, use_unseen)
+        sees = np.array([box is None or frustum_meets_box(T, intr, box[0], box[1], cfg.near_m, cfg.far_m)
+                         for T in cands], dtype=bool)  # fmt: skip
+        live = np.flatnonzero(sees)
         acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
-        for i, T in enumerate(cands):
+        for lo in range(0, len(live), _ROI_CHUNK):  # chunks: a stop is seen soon, ROI images stay few
+            chunk = live[lo : lo + _ROI_CHUNK]
             check_stop(should_stop)
             t0 = _clock()
-            roi = None
-            if vox is not None:
-                roi = view_roi(vox, voxel_size, T, intr, cfg, textured, frontier=frontier)
-                n_vox[i], n_pix[i], mass[i] = len(roi.view), roi.n_pixels, roi.mass
-            t1 = _clock()
-            acc["roi"] += np.subtract(t1, t0)
-            if roi is not None and w_f is not None:
-                cf[i] = close_front_gain(roi.view, w_f)
-            acc["close_front"] += _since(t1)
-            t0 = _clock()
-            if h is not None:
-                if mode == "fisherrf":
-                    w = None
-                    if ds > 1:
-                        w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
-                    f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisherrf_outputs, params=params,
-                                    pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                    fisher[i] = information_gain(f, h, cfg.fisherrf_lambda)
-                    flagged[i] = not any(bool(t.any()) for t in f.values())
-                elif roi is not None and mass[i] > 0:
-                    w = block_mean(roi.weights, ds) * (ds * ds / cfg.sigma_p**2)
-                    w = torch.as_tensor(w, dtype=surfel_map.dtype)
-                    f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
-                                    pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                    fisher[i] = information_gain(f, h, cfg.phi)
-            if unseen is not None and not empty_map:
-                with torch.no_grad():
-                    alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
-                                       with_distortion=False).alpha  # fmt: skip
-                hole = (alpha < cfg.unseen_alpha).cpu().numpy()
-                if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
-                    meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
-                                          vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
-                    unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
-                else:
-                    unseen[i] = float(hole.mean())
-            acc["fisher"] += _since(t0)
+            rois = None
+            if vox is not None:  # the ROI and close-front of the chunk's candidates, in parallel (numba)
+                rois = batch_roi(vox, voxel_size, np.stack([cands[i] for i in chunk]), intr, cfg, textured,
+                                 frontier=frontier, fused_weight=w_f)  # fmt: skip
+                n_vox[chunk], n_pix[chunk], mass[chunk] = rois.n_visible_voxels, rois.n_pixels, rois.mass
+                if w_f is not None:
+                    cf[chunk] = rois.close_front
+            acc["roi"] += _since(t0)
+            for j, i in enumerate(chunk):
+                self._fisher_and_unseen(surfel_map, h, params if h is not None else [], cands[i], i, mode, intr_f,
+                                        rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
+                                        unseen, should_stop, acc)  # fmt: skip
+        if unseen is not None:
+            unseen[~sees] = 0.0
+        for i in range(m):
             if need_voxels:
                 flagged[i] = n_vox[i] == 0 and (unseen is None or unseen[i] == 0)
-            elif h is None:
+            elif h is None or not sees[i]:
                 flagged[i] = True
         for k, (wall, proc) in acc.items():
             timings[k], cpu[k] = float(wall), float(proc)
@@ -536,7 +528,60 @@ class NBVScorer:
             reason="; ".join(reasons),
             timings_s=timings,
             unseen=unseen,
+            n_skipped=int(m - len(live)),
         )
+
+    def _fisher_and_unseen(
+        self,
+        surfel_map: SurfelMap,
+        h: dict[str, Tensor] | None,
+        params: list[str],
+        T: np.ndarray,
+        i: int,
+        mode: str,
+        intr_f: Intrinsics,
+        roi_weights: np.ndarray | None,
+        mass: float,
+        vox: SurfaceVoxels | None,
+        fisher: np.ndarray,
+        flagged: np.ndarray,
+        unseen: np.ndarray | None,
+        should_stop: ShouldStop,
+        acc: dict[str, np.ndarray],
+    ) -> None:
+        """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays."""
+        cfg = self.config
+        ds = cfg.fisher_downsample
+        check_stop(should_stop)
+        t0 = _clock()
+        if h is not None:
+            if mode == "fisherrf":
+                w = None
+                if ds > 1:
+                    w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
+                f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisherrf_outputs, params=params,
+                                pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
+                fisher[i] = information_gain(f, h, cfg.fisherrf_lambda)
+                flagged[i] = not any(bool(t.any()) for t in f.values())
+            elif roi_weights is not None and mass > 0:
+                w = block_mean(roi_weights, ds) * (ds * ds / cfg.sigma_p**2)
+                w = torch.as_tensor(w, dtype=surfel_map.dtype)
+                f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
+                                pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
+                fisher[i] = information_gain(f, h, cfg.phi)
+        if unseen is not None and len(surfel_map) > 0:
+            with torch.no_grad():
+                alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
+                                   with_distortion=False).alpha  # fmt: skip
+            hole = (alpha < cfg.unseen_alpha).cpu().numpy()
+            if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
+                meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
+                                      vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
+                unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
+            else:
+                unseen[i] = float(hole.mean())
+        acc["fisher"] += _since(t0)
+
 
 
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -551,6 +596,56 @@ def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.nda
     t_near = np.minimum(t1, t2).max(-1)
     t_far = np.maximum(t1, t2).min(-1)
     return t_far >= np.maximum(t_near, 0.0)
+
+
+def frustum_meets_box(
+    T_wc: np.ndarray,
+    intr: Intrinsics,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    near_m: float,
+    far_m: float,
+    margin_px: float = 3.0,
+) -> bool:
+    """Whether the frustum of ``T_wc`` (``near_m``..``far_m``, image grown by ``margin_px``) may meet box [lo, hi].
+
+    Conservative: False only when all 8 corners lie outside one of the frustum's 6 planes (a box that misses
+    the frustum near one of its edges can still give True).
+    """
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    T = np.asarray(T_wc, dtype=np.float64)
+    pc = (corners - T[:3, 3]) @ T[:3, :3]  # camera frame
+    x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+    if (z < near_m).all() or (z > far_m).all():
+        return False
+    for coord, c, f, size in ((x, intr.cx, intr.fx, intr.width), (y, intr.cy, intr.fy, intr.height)):
+        a_lo = (-0.5 - margin_px - c) / f  # side planes coord = a z through the camera centre
+        a_hi = (size - 0.5 + margin_px - c) / f
+        if (coord < a_lo * z).all() or (coord > a_hi * z).all():
+            return False
+    return True
+
+
+def _mapped_region(
+    vox: SurfaceVoxels | None, voxel_size_m: float, surfel_map: SurfelMap | None, cfg: NBVConfig, unseen: bool
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Box (lo, hi) holding all a candidate can score: surface voxels (grown by a voxel, and by the unseen term's
+    margin), surfels' reach (3.4 sigma, as :func:`~roigsf_ros.render.fisher.frustum_subset`); None: no skipping.
+    """
+    boxes = []
+    if vox is not None:
+        if unseen and not np.isfinite(cfg.unseen_bbox_margin_m):
+            return None  # every pixel counts in U(x): a candidate looking anywhere scores
+        grow = voxel_size_m + (cfg.unseen_bbox_margin_m if unseen else 0.0)
+        boxes.append((vox.centres_m.min(0) - grow, vox.centres_m.max(0) + grow))
+    if surfel_map is not None:
+        with torch.no_grad():
+            means = surfel_map.means.detach().to("cpu", torch.float64).numpy()
+            reach = 3.4 * float(surfel_map.log_scales.detach().max().exp()) + 1e-6
+        boxes.append((means.min(0) - reach, means.max(0) + reach))
+    if not boxes:
+        return None
+    return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
 
 def _clock() -> tuple[float, float]:
@@ -587,6 +682,7 @@ __all__ = [
     "check_stop",
     "depth_error_ause",
     "downsampled",
+    "frustum_meets_box",
     "fuse_scores",
     "information_gain",
     "rank_candidates",

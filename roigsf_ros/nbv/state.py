@@ -8,7 +8,8 @@
 - :class:`ScoringState`: everything scoring keeps between calls on a growing map, shared by the stream
   policies and the planner node: the scoring TSDF fused incrementally from the map's rendered depth at each
   keyframe pose (rebuilt when the keyframe set is not an extension of the fused one), its near-surface
-  voxels and close-front memory (rebuilt only when a keyframe is fused), and the choice of H_train.
+  voxels (re-extracted only when a keyframe is fused), the close-front memory W_f (each new keyframe folded
+  in once, or with ``NBVConfig.close_front_exact`` re-evaluated from every keyframe), and the choice of H_train.
 """
 
 from __future__ import annotations
@@ -187,8 +188,12 @@ class ScoringState:
         self._fused: list[bytes] = []
         self._surface: SurfaceVoxels | None = None
         self._close_front: CloseFrontMemory | None = None
+        self._close_front_fresh = False  # W_f matches the current surface voxels (exact mode)
         self.surface_extractions = 0
         self.close_front_builds = 0
+        """Close-front memories built from every keyframe pose (once, or at each TSDF update when exact)."""
+        self.close_front_views_added = 0
+        """Keyframes folded into the kept close-front memory one at a time (not exact mode)."""
 
     @property
     def n_fused(self) -> int:
@@ -198,6 +203,7 @@ class ScoringState:
     def reset(self) -> None:
         """Forget the TSDF and what derives from it (the H_train cache is kept: it checks its own poses)."""
         self.tsdf, self._fused, self._surface, self._close_front = None, [], None, None
+        self._close_front_fresh = False
 
     def sync(self, render_rgbd: RenderRGBD, poses: np.ndarray, intr: Intrinsics) -> int:
         """Fuse the map's rendered RGB-D at every keyframe pose not fused yet; returns how many were fused now.
@@ -218,23 +224,36 @@ class ScoringState:
             depth, rgb = render_rgbd(T)
             self.tsdf.integrate(depth, T, intr, rgb)
             self._fused.append(keys[i])
-            self._surface = self._close_front = None
+            self._surface = None
+            self._close_front_fresh = False
         return len(new)
 
     def products(
         self, poses: np.ndarray, intr: Intrinsics, close_front: bool
     ) -> tuple[SurfaceVoxels | None, CloseFrontMemory | None]:
-        """Near-surface voxels of the TSDF and (``close_front``) W_f of the fused ``poses``, built once per TSDF."""
+        """Near-surface voxels of the TSDF and (``close_front``) W_f of the fused ``poses`` (see the module docstring).
+
+        Not exact: the first call with a surface builds W_f from every fused pose, later ones fold in only the
+        poses fused since (one visibility pass each, on the surface after their fusion).
+        """
         if self.tsdf is None:
             return None, None
         if self._surface is None:
             self._surface = NBVScorer(self.config).surface(self.tsdf)
             self.surface_extractions += 1
-        if close_front and self._close_front is None and len(self._surface.centres_m) > 0:
-            self._close_front = CloseFrontMemory.from_poses(
-                self._surface, poses, intr, self.tsdf.voxel_size_m, self.config
-            )
+        if not close_front or len(self._surface.centres_m) == 0:
+            return self._surface, self._close_front if close_front else None
+        fused = np.asarray(poses).reshape(-1, 4, 4)[: self.n_fused]
+        mem = self._close_front
+        rebuild = mem is None or (self.config.close_front_exact and not self._close_front_fresh)
+        if rebuild:
+            mem = CloseFrontMemory.from_poses(self._surface, fused, intr, self.tsdf.voxel_size_m, self.config)
             self.close_front_builds += 1
+        else:
+            for T in fused[len(mem.poses) :]:
+                mem.add_view(self._surface, T, intr)
+                self.close_front_views_added += 1
+        self._close_front, self._close_front_fresh = mem, True
         return self._surface, self._close_front
 
     def h_train(

@@ -404,6 +404,7 @@ class NBVPlannerNode(SystemNode):
                 **self.counters,
                 "surface_extractions": st.surface_extractions,
                 "close_front_builds": st.close_front_builds,
+                "close_front_views_added": st.close_front_views_added,
                 "tsdf_frames": st.n_fused,
                 "h_train_full": c.full_computations,
                 "h_train_poses_added": c.poses_added,
