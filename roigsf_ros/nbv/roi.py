@@ -42,7 +42,7 @@ from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.mapping.tsdf import SurfaceVoxels
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, n_threads, numba_available, prange
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
 from roigsf_ros.render.surfels import SurfelMap
 
 _N_WORKERS = 2
@@ -481,7 +481,6 @@ def _k_batch(
     frontier: np.ndarray,
     w_f: np.ndarray,
     poses: np.ndarray,
-    bounds: np.ndarray,
     fx: float,
     fy: float,
     cx: float,
@@ -500,7 +499,7 @@ def _k_batch(
     roi: np.ndarray,
     stats: np.ndarray,
 ) -> None:
-    """ROI (Eq. 7-8) and close-front gain (Eq. 14) of many cameras, blocks of cameras in parallel (numba).
+    """ROI (Eq. 7-8) and close-front gain (Eq. 14) of many cameras, the cameras in parallel (numba).
 
     Per camera the same passes as :func:`view_roi` (:func:`_geometry`, :func:`_visibility`) and, per kept
     voxel, Eq. 7's weight accumulated into the tent-splat sums of Eq. 8 directly. ``prm``: pref poor, pref
@@ -514,74 +513,71 @@ def _k_batch(
     p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
         prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
     )  # fmt: skip
-    for b in prange(bounds.shape[0] - 1):
+    for ci in prange(poses.shape[0]):  # one candidate per iteration, with its own scratch
         rows = np.empty(m, np.int64)
         geo = np.empty((m, 5))
         keep = np.zeros(m, np.bool_)
         zbuf = np.empty(npix)
         num = np.empty(npix)
         den = np.empty(npix)
-        for ci in range(bounds[b], bounds[b + 1]):
-            R = poses[ci, :3, :3]
-            c = poses[ci, :3, 3]
-            n_in = _geometry(centres, normals, R, c, fx, fy, cx, cy, width, height, near, far, f_vox, rows, geo)
-            for p in range(npix):
-                zbuf[p] = np.inf
-                num[p] = 0.0
-                den[p] = 0.0
-            for i in range(n_in):
-                keep[i] = False
-            _visibility(geo, n_in, width, height, max_r, f, tol0, min_cos, zbuf, keep)
-            n_vis = 0
-            gain = 0.0
-            for i in range(n_in):
-                if not keep[i]:
+        R = poses[ci, :3, :3]
+        c = poses[ci, :3, 3]
+        n_in = _geometry(centres, normals, R, c, fx, fy, cx, cy, width, height, near, far, f_vox, rows, geo)
+        for p in range(npix):
+            zbuf[p] = np.inf
+            num[p] = 0.0
+            den[p] = 0.0
+        _visibility(geo, n_in, width, height, max_r, f, tol0, min_cos, zbuf, keep)
+        n_vis = 0
+        gain = 0.0
+        for i in range(n_in):
+            if not keep[i]:
+                continue
+            n_vis += 1
+            idx = rows[i]
+            u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
+            theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
+            pref = p_rich if textured[idx] else p_poor
+            ta = (theta - pref) / a_sig
+            wa = np.exp(-0.5 * ta * ta)
+            tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
+            ws = np.exp(-0.5 * tf * tf)
+            wc = 1.0 / max(tsdf_w[idx], 1.0)
+            w = wa**beta * ws**gamma * (1.0 + mu * wc)
+            if use_frontier:
+                w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
+            if use_wf:
+                gain += max(cos / z - w_f[idx], 0.0)
+            s = min(max(fp, 1.0), max_r)
+            r = int(np.ceil(s - 1e-9))
+            bx = int(np.floor(u))
+            by = int(np.floor(v))
+            for oy in range(-r + 1, r + 1):
+                y = by + oy
+                ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0
+                if ky <= 0.0:
                     continue
-                n_vis += 1
-                idx = rows[i]
-                u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
-                theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
-                pref = p_rich if textured[idx] else p_poor
-                ta = (theta - pref) / a_sig
-                wa = np.exp(-0.5 * ta * ta)
-                tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
-                ws = np.exp(-0.5 * tf * tf)
-                wc = 1.0 / max(tsdf_w[idx], 1.0)
-                w = wa**beta * ws**gamma * (1.0 + mu * wc)
-                if use_frontier:
-                    w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
-                if use_wf:
-                    gain += max(cos / z - w_f[idx], 0.0)
-                s = min(max(fp, 1.0), max_r)
-                r = int(np.ceil(s - 1e-9))
-                bx = int(np.floor(u))
-                by = int(np.floor(v))
-                for oy in range(-r + 1, r + 1):
-                    y = by + oy
-                    ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0
-                    if ky <= 0.0:
-                        continue
-                    for ox in range(-r + 1, r + 1):
-                        x = bx + ox
-                        kx = max(0.0, 1.0 - abs(x - u) / s) if 0 <= x < width else 0.0
-                        k = ky * kx
-                        if k > 0.0:
-                            q = y * width + x
-                            num[q] += k * w
-                            den[q] += k
-            n_roi = 0
-            mass = 0.0
-            for p in range(npix):
-                val = num[p] / max(den[p], 1.0) / (1.0 + mu)
-                val = min(max(val, 0.0), 1.0)
-                roi[ci, p] = val
-                if val > 0.0:
-                    n_roi += 1
-                    mass += val
-            stats[ci, 0] = n_vis
-            stats[ci, 1] = n_roi
-            stats[ci, 2] = mass
-            stats[ci, 3] = gain
+                for ox in range(-r + 1, r + 1):
+                    x = bx + ox
+                    kx = max(0.0, 1.0 - abs(x - u) / s) if 0 <= x < width else 0.0
+                    k = ky * kx
+                    if k > 0.0:
+                        q = y * width + x
+                        num[q] += k * w
+                        den[q] += k
+        n_roi = 0
+        mass = 0.0
+        for p in range(npix):
+            val = num[p] / max(den[p], 1.0) / (1.0 + mu)
+            val = min(max(val, 0.0), 1.0)
+            roi[ci, p] = val
+            if val > 0.0:
+                n_roi += 1
+                mass += val
+        stats[ci, 0] = n_vis
+        stats[ci, 1] = n_roi
+        stats[ci, 2] = mass
+        stats[ci, 3] = gain
 
 
 _KERNELS = Kernels(parallel=False, helpers=(_geometry, _visibility), geometry=_k_geometry,
@@ -703,8 +699,6 @@ def batch_roi(
     prm = np.array([cfg.angle_pref_texture_poor_deg, cfg.angle_pref_texture_rich_deg, cfg.angle_sigma_deg,
                     cfg.footprint_pref_px, cfg.footprint_sigma_ln, cfg.beta, cfg.gamma, cfg.mu,
                     float(cfg.frontier_weight)], dtype=np.float64)  # fmt: skip
-    nb = max(1, min(n_threads(), C))
-    bounds = np.linspace(0, C, nb + 1).round().astype(np.int64)
     roi = np.zeros((C, H * W))
     stats = np.zeros((C, 4))
     flag = np.zeros(1, np.bool_)
@@ -716,7 +710,7 @@ def batch_roi(
             flag if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
             np.ascontiguousarray(frontier, dtype=np.bool_) if use_frontier else flag,
             np.zeros(1) if fused_weight is None else np.ascontiguousarray(fused_weight, dtype=np.float64),
-            np.ascontiguousarray(P), bounds, float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H,
+            np.ascontiguousarray(P), float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H,
             float(cfg.near_m), float(cfg.far_m), float(voxel_size_m), float(cfg.max_splat_radius_px),
             float(cfg.occlusion_tol_voxels) * voxel_size_m, float(cfg.occlusion_min_cos), prm, use_frontier,
             fused_weight is not None, roi, stats,
