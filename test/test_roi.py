@@ -21,6 +21,7 @@ from roigsf_ros.nbv.roi import (
     batch_roi,
     coverage_weight,
     footprint_weight,
+    frustum_union,
     incidence_weight,
     view_roi,
     voxel_texture,
@@ -272,6 +273,19 @@ def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> N
             assert fast.close_front[i] == pytest.approx(gain, rel=1e-12) and ref.close_front[i] == pytest.approx(gain)
     assert fast.n_visible_voxels[2] == 0 and (fast.n_visible_voxels[[0, 1, 3, 4]] > 50).all()
     assert (fast.close_front[[0, 1, 3, 4]] > 0).all()
+    union = frustum_union(vox, poses, intr, CFG)  # where texture is needed: in some candidate's frustum
+    want = np.zeros(m, bool)
+    for T in poses:
+        want[voxel_visibility(vox, T, intr, 0.04, CFG, backend="numpy").index] = True
+    assert (union >= want).all() and union[~want].any()
+    one = frustum_union(vox, poses[1:2], intr, CFG)  # the close view: part of the box
+    assert one.any() and not one.all() and (union >= one).all()
+    ref = np.zeros(m, bool)
+    for T in poses:  # in front within near..far and projecting into the image, as the ROI's frustum test
+        pc = (vox.centres_m - T[:3, 3]) @ T[:3, :3]
+        u, v = intr.fx * pc[:, 0] / pc[:, 2] + intr.cx, intr.fy * pc[:, 1] / pc[:, 2] + intr.cy
+        ref |= (pc[:, 2] > CFG.near_m) & (pc[:, 2] <= CFG.far_m) & (u >= -0.5) & (u < 79.5) & (v >= -0.5) & (v < 59.5)
+    np.testing.assert_array_equal(union, ref)
     no_wf = batch_roi(vox, 0.04, poses, intr, CFG)
     assert not no_wf.close_front.any() and no_wf.mass[0] > 0
     with pytest.raises(InputError, match="fused_weight"):
@@ -298,6 +312,11 @@ def test_texture_test_separates_textured_from_flat_surface() -> None:
     np.testing.assert_array_equal(tex, [True, False, False])  # noisy, flat, no surfels nearby
     assert not voxel_texture(centres, None, 0.02, CFG).any()
     assert not voxel_texture(centres, SurfelMap.empty(dtype=torch.float64), 0.02, CFG).any()
+    only = np.array([True, False, True])  # classified voxels equal the full test's; the others come back False
+    np.testing.assert_array_equal(voxel_texture(centres, smap, 0.02, CFG, only=only), [True, False, False])
+    np.testing.assert_array_equal(voxel_texture(centres, smap, 0.02, CFG, only=~only), [False, False, False])
+    with pytest.raises(InputError, match="only"):
+        voxel_texture(centres, smap, 0.02, CFG, only=np.ones(2, bool))
 
 
 # -------------------------------------------------------------------------------- bad input

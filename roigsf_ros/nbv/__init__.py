@@ -15,6 +15,7 @@ __all__, __getattr__ = lazy_exports(
             "batch_roi",
             "coverage_weight",
             "footprint_weight",
+            "frustum_union",
             "incidence_weight",
             "splat_roi",
             "view_roi",

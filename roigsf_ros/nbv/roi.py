@@ -130,7 +130,11 @@ def voxel_weight(
 
 
 def voxel_texture(
-    centres_m: np.ndarray, surfel_map: SurfelMap | None, voxel_size_m: float, cfg: NBVConfig
+    centres_m: np.ndarray,
+    surfel_map: SurfelMap | None,
+    voxel_size_m: float,
+    cfg: NBVConfig,
+    only: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bool [M]: voxels on texture-rich surface (luma std of nearby surfel colours >= threshold).
 
@@ -139,9 +143,17 @@ def voxel_texture(
     ``texture_max_neighbours`` nearest surfels within ``texture_radius_voxels`` voxels of the voxel. It is
     a property of the surface, as the paper's texture-poor/rich regions are, and costs one KD-tree query
     instead of a render per candidate. Fewer than ``texture_min_neighbours`` surfels: texture-poor.
+    ``only`` [M] bool: classify just these voxels (the rest come back False), e.g. :func:`frustum_union`'s.
     """
     centres = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(centres), dtype=bool)
+    if only is not None:
+        if np.shape(only) != (len(centres),):
+            raise InputError("only", f"expected shape [{len(centres)}], got {list(np.shape(only))}")
+        sel = np.flatnonzero(only)
+        if len(sel) < len(centres):
+            out[sel] = voxel_texture(centres[sel], surfel_map, voxel_size_m, cfg)
+            return out
     if surfel_map is None or len(surfel_map) < cfg.texture_min_neighbours or len(centres) == 0:
         return out
     with torch.no_grad():
@@ -580,9 +592,58 @@ def _k_batch(
         stats[ci, 3] = gain
 
 
+def _k_frustum_union(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    poses: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    mask: np.ndarray,
+) -> None:
+    """Marks ``mask`` [M] for the voxels in the frustum of any of ``poses`` [C, 4, 4] (:func:`_geometry`'s test)."""
+    m = centres.shape[0]
+    for ci in prange(poses.shape[0]):
+        rows = np.empty(m, np.int64)
+        geo = np.empty((m, 5))
+        n = _geometry(centres, normals, poses[ci, :3, :3], poses[ci, :3, 3], fx, fy, cx, cy, width, height, near, far,
+                      1.0, rows, geo)  # fmt: skip
+        for i in range(n):
+            mask[rows[i]] = True  # the same value from every thread
+
+
 _KERNELS = Kernels(parallel=False, helpers=(_geometry, _visibility), geometry=_k_geometry,
                    visibility=_k_visibility, splat=_k_splat)  # fmt: skip
-_BATCH_KERNELS = Kernels(helpers=(_geometry, _visibility), batch=_k_batch)
+_BATCH_KERNELS = Kernels(helpers=(_geometry, _visibility), batch=_k_batch, union=_k_frustum_union)
+
+
+def frustum_union(voxels: SurfaceVoxels, poses: np.ndarray, intr: Intrinsics, cfg: NBVConfig) -> np.ndarray:
+    """Bool [M]: the surface voxels in the frustum (``near_m``..``far_m``, the image) of any of ``poses`` [C, 4, 4].
+
+    A superset of what any of those cameras can see: :func:`batch_roi` and :func:`view_roi` read per-voxel inputs
+    (texture) only there.
+    """
+    centres = np.ascontiguousarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3)
+    P = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+    mask = np.zeros(len(centres), np.bool_)
+    if len(centres) == 0 or len(P) == 0:
+        return mask
+    if not numba_available():
+        for T in P:
+            mask[_camera_geometry(voxels, T, intr, 1.0, cfg)["rows"]] = True
+        return mask
+    with KERNEL_LOCK:
+        _BATCH_KERNELS["union"](
+            centres, np.ascontiguousarray(voxels.normals, dtype=np.float64).reshape(-1, 3), P, float(intr.fx),
+            float(intr.fy), float(intr.cx), float(intr.cy), intr.width, intr.height, float(cfg.near_m),
+            float(cfg.far_m), mask,
+        )  # fmt: skip
+    return mask
 
 
 # ------------------------------------------------------------------------------------------ ROI
@@ -731,6 +792,7 @@ __all__ = [
     "batch_roi",
     "coverage_weight",
     "footprint_weight",
+    "frustum_union",
     "incidence_weight",
     "splat_roi",
     "view_roi",

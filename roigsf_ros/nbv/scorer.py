@@ -44,7 +44,7 @@ from roigsf_ros.evaluation.metrics import ause
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import MODES, NBVConfig
-from roigsf_ros.nbv.roi import ViewROI, batch_roi, view_roi, voxel_texture
+from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap
@@ -427,9 +427,6 @@ class NBVScorer:
                 vox = None
             else:
                 voxel_size = tsdf.voxel_size_m
-        textured = None
-        if vox is not None and mode in ("roi-gsurfisher", "roi-fisher"):
-            textured = voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg)
         frontier = None
         if vox is not None and cfg.frontier_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher"):
             frontier = tsdf.frontier_mask(vox)
@@ -466,6 +463,13 @@ class NBVScorer:
         sees = np.array([box is None or frustum_meets_box(T, intr, box[0], box[1], cfg.near_m, cfg.far_m)
                          for T in cands], dtype=bool)  # fmt: skip
         live = np.flatnonzero(sees)
+        textured = None
+        if vox is not None and mode in ("roi-gsurfisher", "roi-fisher") and len(live):
+            t1 = _clock()  # texture only where a candidate may look (an in-frustum voxel set per candidate)
+            near_any = frustum_union(vox, np.stack([cands[i] for i in live]), intr, cfg)
+            textured = voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg, only=near_any)
+            timings["setup"] += float(_since(t1)[0])
+            cpu["setup"] += float(_since(t1)[1])
         acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
         for lo in range(0, len(live), _ROI_CHUNK):  # chunks: a stop is seen soon, ROI images stay few
             chunk = live[lo : lo + _ROI_CHUNK]
