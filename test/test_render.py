@@ -413,3 +413,31 @@ def test_polynomial_exp_is_accurate() -> None:
         got = np.array([render._exp_neg(float(v)) for v in x])
         ref = np.exp(x.astype(np.longdouble))
         assert float(np.max(np.abs(got - ref) / ref)) < tol, lo
+
+
+def test_numba_frustum_culling_equals_torch_and_culls_only_surfels_that_reach_no_pixel() -> None:
+    """Issue 12: the frustum cull (each mapper render, each Fisher) in one numba pass instead of ~15 torch ops."""
+    pytest.importorskip("numba")
+    from roigsf_ros.data.scene import look_at
+    from roigsf_ros.render.fisher import frustum_subset
+
+    intr = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
+    rng = np.random.default_rng(5)
+    n = 4000
+    for dtype in (torch.float32, torch.float64):
+        m = SurfelMap(
+            means=torch.as_tensor(rng.uniform(-4.0, 4.0, (n, 3)), dtype=dtype),
+            quats=torch.as_tensor(rng.normal(size=(n, 4)), dtype=dtype),
+            log_scales=torch.as_tensor(np.log(rng.uniform(0.005, 0.3, (n, 2))), dtype=dtype),
+            opacity_logits=torch.full((n,), 4.0, dtype=dtype),
+            sh_dc=torch.zeros(n, 3, dtype=dtype),
+        )
+        for T in (np.eye(4), look_at(np.array([1.0, -0.5, -3.0]), np.zeros(3), np.array([0.0, -1.0, 0.0]))):
+            viewmat, _ = camera_tensors(T, intr, dtype=dtype)
+            fast = frustum_subset(m, viewmat, intr, 0.2, 5.0, backend="numba")
+            ref = frustum_subset(m, viewmat, intr, 0.2, 5.0, backend="torch")
+            assert torch.equal(fast, ref) and 0 < len(fast) < n
+            culled = torch.ones(n, dtype=torch.bool)
+            culled[fast] = False
+            out = render_map(m.select(torch.nonzero(culled).squeeze(1)), T, intr, near=0.2, far=5.0)
+            assert float(out.alpha.max()) == 0.0  # what the cull drops reaches no pixel

@@ -151,28 +151,71 @@ def fisher_diag(
 
 
 @torch.no_grad()
-def frustum_subset(m: SurfelMap, viewmat: Tensor, intr: Intrinsics, near: float, far: float) -> Tensor:
+def frustum_subset(
+    m: SurfelMap, viewmat: Tensor, intr: Intrinsics, near: float, far: float, backend: str = "auto"
+) -> Tensor:
     """Indices [K] of the surfels whose bounding sphere (alpha >= 1/255 reach) meets the view frustum.
 
     Conservative for the renderer's rules (a culled surfel reaches no pixel, so results are unchanged): a
     surfel reaches at most ``sqrt(2.02 ln 255 + 1e-3) < 3.4`` sigma from its centre, and the screen-space
     fallback at most 2.4 px from its projection (the side planes get a 3 px margin). The mapper culls with it too.
+    ``backend``: numba (one pass, float64) for CPU tensors, else torch (in the map's dtype); both cull the same
+    surfels but for ones within float rounding of a plane (which reach no pixel either way).
     """
     n = len(m)
     if n == 0:
         return torch.zeros(0, dtype=torch.long, device=m.device)
+    margin = 3.0
+    planes = []
+    for c, f, size in ((intr.cx, intr.fx, intr.width), (intr.cy, intr.fy, intr.height)):
+        planes += [(-0.5 - margin - c) / f, (size - 0.5 + margin - c) / f]  # side planes coord = a z
+    if use_numba(backend, m.means):
+        keep = np.empty(n, np.bool_)
+        with KERNEL_LOCK:
+            _KERNELS["frustum"](
+                m.means.detach().contiguous().numpy(), m.log_scales.detach().contiguous().numpy(), _f64(viewmat),
+                float(near), float(far), np.array(planes), keep,
+            )  # fmt: skip
+        return torch.from_numpy(np.flatnonzero(keep))
     V = viewmat.to(m.means)
     p = m.means @ V[:3, :3].T + V[:3, 3]  # camera frame
     r = 3.4 * m.log_scales.max(dim=-1).values.exp()
     x, y, z = p.unbind(-1)
     keep = (z + r > near) & (z - r <= far)
-    margin = 3.0
-    for coord, c, f, size in ((x, intr.cx, intr.fx, intr.width), (y, intr.cy, intr.fy, intr.height)):
-        a_lo = (-0.5 - margin - c) / f  # side planes coord = a z through the camera centre
-        a_hi = (size - 0.5 + margin - c) / f
+    for coord, a_lo, a_hi in ((x, planes[0], planes[1]), (y, planes[2], planes[3])):
         keep &= (coord - a_lo * z) / math.sqrt(1 + a_lo * a_lo) > -r
         keep &= (a_hi * z - coord) / math.sqrt(1 + a_hi * a_hi) > -r
     return keep.nonzero().squeeze(1)
+
+
+def _k_frustum(
+    means: np.ndarray,
+    log_scales: np.ndarray,
+    V: np.ndarray,
+    near: float,
+    far: float,
+    planes: np.ndarray,
+    keep: np.ndarray,
+) -> None:
+    """:func:`frustum_subset`'s test per surfel (numba, float64): ``keep`` [N]."""
+    nx_lo = 1.0 / np.sqrt(1.0 + planes[0] * planes[0])
+    nx_hi = 1.0 / np.sqrt(1.0 + planes[1] * planes[1])
+    ny_lo = 1.0 / np.sqrt(1.0 + planes[2] * planes[2])
+    ny_hi = 1.0 / np.sqrt(1.0 + planes[3] * planes[3])
+    for i in prange(means.shape[0]):
+        m0, m1, m2 = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
+        x = V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2 + V[0, 3]
+        y = V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2 + V[1, 3]
+        z = V[2, 0] * m0 + V[2, 1] * m1 + V[2, 2] * m2 + V[2, 3]
+        r = 3.4 * np.exp(max(float(log_scales[i, 0]), float(log_scales[i, 1])))
+        keep[i] = (
+            z + r > near
+            and z - r <= far
+            and (x - planes[0] * z) * nx_lo > -r
+            and (planes[1] * z - x) * nx_hi > -r
+            and (y - planes[2] * z) * ny_lo > -r
+            and (planes[3] * z - y) * ny_hi > -r
+        )
 
 
 def _channels(
@@ -590,7 +633,7 @@ def _k_fisher(
                                 o[j] += wp * (Jc * Jc)
 
 
-_KERNELS = Kernels(jacobian=_k_jacobian)
+_KERNELS = Kernels(jacobian=_k_jacobian, frustum=_k_frustum)
 _FISHER_KERNELS = Kernels(
     # Reassociation lets LLVM vectorise and fuse the per-parameter sums (results move by ~1e-15
     # relative); no "nnan"/"ninf", so non-finite values keep IEEE semantics.
