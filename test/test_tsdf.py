@@ -86,6 +86,32 @@ def test_surface_voxels_normals_point_outward(sphere_volume: tuple) -> None:
     assert len(volume.surface_voxels(min_weight=3).tsdf) < len(tsdf)
 
 
+
+def test_numba_neighbour_lookup_equals_the_vectorised_reference(sphere_volume: tuple) -> None:
+    """Issue 12: the 6-neighbour lookup behind surface normals (every scoring TSDF update) as one numba pass."""
+    vol = sphere_volume[0]
+    res = vol.block_resolution
+    _, keys = vol._active_blocks()
+    rng = np.random.default_rng(0)
+    b_idx = rng.integers(0, len(keys), 5000)
+    local = rng.integers(0, res, (5000, 3))
+    local[:64] = [[0, 0, 0], [res - 1, res - 1, res - 1]] * 32  # block corners: neighbours in other blocks
+    fast = vol._neighbour_flat_indices(keys, b_idx, local)
+    # The reference: every voxel's 6 offsets at once, block steps by floor division (the code before issue 12).
+    shifts = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(27, 3)
+    found_buf, found = vol.vbg.hashmap().find(o3d.core.Tensor((keys[:, None, :] + shifts[None]).reshape(-1, 3)
+                                                              .astype(np.int32)))  # fmt: skip
+    table = np.where(found.numpy().reshape(-1), found_buf.numpy().reshape(-1).astype(np.int64), -1).reshape(-1, 27)
+    offsets = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+    moved = local[:, None, :] + offsets[None]
+    step = np.floor_divide(moved, res)
+    moved -= step * res
+    nb = table[b_idx[:, None], (step[..., 0] + 1) * 9 + (step[..., 1] + 1) * 3 + (step[..., 2] + 1)]
+    ref = np.where(nb >= 0, nb * res**3 + moved[..., 0] + res * moved[..., 1] + res * res * moved[..., 2], -1)
+    np.testing.assert_array_equal(fast, ref)
+    assert (ref == -1).any() and (ref >= 0).mean() > 0.5
+
+
 def test_plane_from_tilted_views_normals_face_the_cameras() -> None:
     """A wall z = 2 m seen from three positions: voxels on it, normals -z, toward every camera."""
     plane = o3d.geometry.TriangleMesh.create_box(4.0, 4.0, 0.01).translate((-2.0, -2.0, 2.0))

@@ -29,6 +29,7 @@ import open3d as o3d
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
 
 o3c = o3d.core
 
@@ -173,13 +174,15 @@ class TSDFVolume:
         adjacent = (keys[:, None, :] + shifts[None]).reshape(-1, 3)
         found_buf, found = self.vbg.hashmap().find(o3c.Tensor(adjacent.astype(np.int32)))
         table = np.where(found.numpy().reshape(-1), found_buf.numpy().reshape(-1).astype(np.int64), -1)
-        table = table.reshape(len(keys), 27)
-        moved = local[:, None, :] + _NEIGHBOUR_OFFSETS[None, :, :]  # [M, 6, 3]
-        step = np.floor_divide(moved, res)  # block offset in {-1, 0, 1}
-        moved -= step * res
-        buf = table[b_idx[:, None], (step[..., 0] + 1) * 9 + (step[..., 1] + 1) * 3 + (step[..., 2] + 1)]
-        flat = buf * res**3 + moved[..., 0] + res * moved[..., 1] + res * res * moved[..., 2]
-        return np.where(buf >= 0, flat, -1)
+        table = np.ascontiguousarray(table.reshape(len(keys), 27))
+        flat = np.empty((len(b_idx), 6), np.int64)
+        if numba_available():
+            with KERNEL_LOCK:
+                _KERNELS["neighbours"](table, np.ascontiguousarray(b_idx, np.int64),
+                                       np.ascontiguousarray(local, np.int64), res, flat)  # fmt: skip
+            return flat
+        _k_neighbours(table, b_idx, local, res, flat)  # the same loops, interpreted (slow; numba is a dependency)
+        return flat
 
     def surface_voxels(self, max_abs_tsdf: float | None = None, min_weight: float = 1.0) -> SurfaceVoxels:
         """Voxels with ``|tsdf| <= max_abs_tsdf`` and ``weight >= min_weight``, with outward normals.
@@ -256,6 +259,38 @@ class TSDFVolume:
         observed[ok] = weight_all[flat[ok]] > 0
         return ~observed.all(axis=1)
 
+
+def _k_neighbours(table: np.ndarray, b_idx: np.ndarray, local: np.ndarray, res: int, flat: np.ndarray) -> None:
+    """Flat attribute index of each voxel's 6 face neighbours (numba): ``flat`` [M, 6], -1 where unallocated.
+
+    ``table`` [B, 27]: buffer index of each active block's 3x3x3 neighbourhood (-1: unallocated), ``b_idx`` [M]
+    the voxel's block row, ``local`` [M, 3] its (x, y, z) in the block.
+    """
+    for i in prange(b_idx.shape[0]):
+        for j in range(6):
+            axis = j // 2
+            step = 1 if j % 2 == 0 else -1  # the order of _NEIGHBOUR_OFFSETS: +x, -x, +y, -y, +z, -z
+            c0, c1, c2 = local[i, 0], local[i, 1], local[i, 2]
+            if axis == 0:
+                c0 += step
+            elif axis == 1:
+                c1 += step
+            else:
+                c2 += step
+            s0 = -1 if c0 < 0 else (1 if c0 >= res else 0)
+            s1 = -1 if c1 < 0 else (1 if c1 >= res else 0)
+            s2 = -1 if c2 < 0 else (1 if c2 >= res else 0)
+            buf = table[b_idx[i], (s0 + 1) * 9 + (s1 + 1) * 3 + (s2 + 1)]
+            if buf < 0:
+                flat[i, j] = -1
+            else:
+                c0 -= s0 * res
+                c1 -= s1 * res
+                c2 -= s2 * res
+                flat[i, j] = buf * res * res * res + c0 + res * c1 + res * res * c2
+
+
+_KERNELS = Kernels(neighbours=_k_neighbours)
 
 def _empty_surface_voxels() -> SurfaceVoxels:
     return SurfaceVoxels(
