@@ -245,7 +245,9 @@ def _fisher_numba(
     means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
     V, Km = _f64(viewmat), _f64(K)
     opac = 1.0 / (1.0 + np.exp(-logits))
-    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size)
+    # Pixels with zero weight need no pairs: tiles with none of the others are not walked.
+    mask = None if weights is None else (weights != 0).numpy()
+    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size, mask)
     vis_rank = np.flatnonzero(r.vis)
     if vis_rank.size == 0:
         return

@@ -1742,15 +1742,25 @@ def numba_pairs(
     near: float = 0.2,
     far: float = 100.0,
     tile_size: int = 4,
+    pixel_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, _NumbaResult]:
     """The contributing pairs of a view by the numba kernels (float64 numpy inputs, activated scales and
     opacities): projection, culling, depth sort, binning and the forward walk (no features).
 
     Returns ``order`` [K] (the input index of each kept surfel, nearest centre first) and the walk's
-    result, whose surfel ids (``pair_buf``, ``vis``) index ``order``.
+    result, whose surfel ids (``pair_buf``, ``vis``) index ``order``. With ``pixel_mask`` [H * W] (bool),
+    only the tiles with a pixel in the mask are walked: the pixels of the others get no pairs.
     """
     feats = np.zeros((means.shape[0], 0))
     bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
+    if pixel_mask is not None:
+        ts = bn.size
+        nty = -(-height // ts)
+        grid = np.zeros((nty * ts, bn.ntx * ts), np.bool_)
+        grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
+        on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
+        bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
+        bn.bounds = balanced_bounds(torch.from_numpy(bn.count.astype(np.int64) + 1), n_threads())
     r = _forward_pass(
         bn.pk, bn.feats, bn.nrm, np.zeros(0), bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, bn.size,
         bn.ntx, width, height, near, far, False,
