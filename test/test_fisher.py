@@ -241,9 +241,16 @@ def test_numba_blocks_match_torch_on_a_larger_view() -> None:
     w = torch.rand(intr.height, intr.width, generator=g, dtype=F64) + 0.5
     w[w < 0.8] = 0  # scattered zero weights (whole blocks and single pixels)
     w[:8, :12] = 0
-    cases = ((("color", "depth"), GEOMETRIC_PARAMS), (("color", "depth", "alpha", "normal"), ALL_PARAMS))
-    for outputs, params in cases:
-        got = fisher_diag(m, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="numba")
-        want = fisher_diag(m, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="torch")
+    flat = SurfelMap(**{k: getattr(m, k) for k in ("means", "quats", "log_scales", "opacity_logits", "sh_dc")})
+    cases = (
+        (m, ("color", "depth"), GEOMETRIC_PARAMS),
+        (m, ("color", "depth", "alpha", "normal"), ALL_PARAMS),
+        (flat, ("color", "depth"), GEOMETRIC_PARAMS),  # colour without derivatives: the walk's fast path
+        (flat, ("color",), GEOMETRIC_PARAMS),
+        (flat, ("depth", "alpha"), GEOMETRIC_PARAMS),
+    )
+    for mp, outputs, params in cases:
+        got = fisher_diag(mp, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="numba")
+        want = fisher_diag(mp, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="torch")
         assert_close(got, want)
         assert all(bool(v.abs().sum() > 0) for k, v in want.items() if k != "sh_dc" or "color" in outputs)

@@ -522,6 +522,18 @@ def _k_fisher(
         if kind[c] == 1:
             ch1[n1] = c
             n1 += 1
+    ch0 = np.empty(nch, np.int64)  # the kind-0 channels
+    n0 = 0
+    idep = -1  # the depth channel
+    for c in range(nch):
+        if kind[c] == 0:
+            ch0[n0] = c
+            n0 += 1
+        elif kind[c] == 2:
+            idep = c
+    # The common case (colour and depth of the geometric Fisher) has a walk with its sums in registers.
+    rgb = n0 == 3 and n1 == 0 and nch == 3 + (idep >= 0)
+    i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
     cap = 1  # slots a block can need: its pairs, at most every surfel
     for blk in range(bounds[-1]):
         x_base = (blk % nbx) * QB
@@ -626,6 +638,34 @@ def _k_fisher(
                     continue
                 off = pix_off[p]
                 T = T_fin[p]
+                if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
+                    S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
+                    for i in range(count[p] - 1, -1, -1):
+                        sid = local[pair_buf[off + i]]
+                        Cs = C[slot_of[sid]]
+                        im = Cs[2, q]
+                        T = T * im
+                        w = Cs[1, q] * T
+                        x0, x1, x2 = X[sid, i0], X[sid, i1], X[sid, i2]
+                        g0 = T * x0 - S0 * im
+                        g1 = T * x1 - S1 * im
+                        g2 = T * x2 - S2 * im
+                        S0 += w * x0
+                        S1 += w * x1
+                        S2 += w * x2
+                        wd = 0.0
+                        if idep >= 0:
+                            d = Cs[3, q]
+                            Cs[13, q] = T * d - Sd * im
+                            Sd += w * d
+                            wd = w
+                        Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
+                        Cs[11, q] *= wd
+                        Cs[12, q] *= wd
+                        Cs[15, q] = wp * (g0 * g0 + g1 * g1 + g2 * g2)
+                        Cs[16, q] = wp
+                        Cs[17, q] = w
+                    continue
                 for c in range(nch):
                     S[c] = T * bg[c]
                 for i in range(count[p] - 1, -1, -1):
@@ -636,6 +676,7 @@ def _k_fisher(
                     T = T * im
                     w = Cs[1, q] * T
                     g2 = 0.0
+                    wd = 0.0
                     f = 0
                     for c in range(nch):
                         val = Cs[3, q] if kind[c] == 2 else X[sid, c]
@@ -645,10 +686,13 @@ def _k_fisher(
                             g2 += gc * gc
                         elif kind[c] == 2:
                             Cs[13, q] = gc
-                            Cs[14, q] = w
+                            wd = w
                         else:
                             G[s, f, q] = gc
                             f += 1
+                    Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
+                    Cs[11, q] *= wd
+                    Cs[12, q] *= wd
                     Cs[15, q] = wp * g2
                     Cs[16, q] = wp
                     Cs[17, q] = w
@@ -658,7 +702,7 @@ def _k_fisher(
                 slot_of[sid] = -1
                 Cs = C[s]
                 c0s, c1s, c2s, aos, kxs, kys = Cs[4], Cs[5], Cs[6], Cs[7], Cs[8], Cs[9]
-                eis, ees, efs, gds, wds, As, wps, ws = Cs[10], Cs[11], Cs[12], Cs[13], Cs[14], Cs[15], Cs[16], Cs[17]
+                eis, ees, efs, gds, As, wps, ws = Cs[10], Cs[11], Cs[12], Cs[13], Cs[15], Cs[16], Cs[17]
                 Js = jac[sid]
                 o = ob[sid]
                 for j in range(D):
@@ -672,7 +716,7 @@ def _k_fisher(
                         p2 = x * J6 + y * J7 + J8
                         aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
                               + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
-                        Jd = gds[q] * aj + wds[q] * (eis[q] * J9 + ees[q] * p2 + efs[q] * J10)
+                        Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
                         acc += As[q] * aj * aj + wps[q] * Jd * Jd
                     for f in range(n1):
                         Gf = G[s, f]
