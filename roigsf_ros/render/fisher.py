@@ -535,6 +535,7 @@ def _k_fisher(
     rgb = n0 == 3 and n1 == 0 and nch == 3 + (idep >= 0)
     i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
     cap = 1  # slots a block can need: its pairs, at most every surfel
+    capp = 1  # pairs of a block
     for blk in range(bounds[-1]):
         x_base = (blk % nbx) * QB
         y_base = (blk // nbx) * QB
@@ -545,10 +546,13 @@ def _k_fisher(
             if xi < width and yi < height:
                 tot += count[yi * width + xi]
         cap = max(cap, min(tot, nv))
+        capp = max(capp, tot)
     for b in prange(bounds.shape[0] - 1):
         S = np.zeros(nch)
         slot_of = np.full(nv, -1, np.int64)
         s_sid = np.empty(cap, np.int64)
+        ps = np.empty(capp, np.int64)  # the slot of each pair of the block's weighted pixels
+        p0 = np.zeros(Q, np.int64)  # each pixel's first pair in ps
         C = np.zeros((cap, _NF, Q))
         G = np.zeros((cap, max(n1, 1), Q))
         ob = out[b]
@@ -556,8 +560,10 @@ def _k_fisher(
             x_base = (blk % nbx) * QB
             y_base = (blk // nbx) * QB
             ns = 0
+            npair = 0
             # (0) Slots and lanes.
             for q in range(Q):
+                p0[q] = npair
                 xi = x_base + q % QB
                 yi = y_base + q // QB
                 if xi >= width or yi >= height:
@@ -581,6 +587,8 @@ def _k_fisher(
                             for k in range(Q):
                                 Cs[f, k] = 0.0
                     C[s, 0, q] = 1.0
+                    ps[npair] = s
+                    npair += 1
             # (1) Per slot, every lane at once (vectorised); unmarked lanes get zeros.
             for s in range(ns):
                 sid = s_sid[s]
@@ -636,13 +644,12 @@ def _k_fisher(
                 wp = wts[p]
                 if wp == 0.0:
                     continue
-                off = pix_off[p]
                 T = T_fin[p]
                 if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
                     S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
-                    for i in range(count[p] - 1, -1, -1):
-                        sid = local[pair_buf[off + i]]
-                        Cs = C[slot_of[sid]]
+                    for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
+                        sid = s_sid[ps[i]]
+                        Cs = C[ps[i]]
                         im = Cs[2, q]
                         T = T * im
                         w = Cs[1, q] * T
@@ -668,9 +675,9 @@ def _k_fisher(
                     continue
                 for c in range(nch):
                     S[c] = T * bg[c]
-                for i in range(count[p] - 1, -1, -1):
-                    sid = local[pair_buf[off + i]]
-                    s = slot_of[sid]
+                for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
+                    s = ps[i]
+                    sid = s_sid[s]
                     Cs = C[s]
                     im = Cs[2, q]
                     T = T * im
