@@ -503,12 +503,15 @@ def _k_fisher(
     ``jac`` [Nv, 14, D] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose
     parameters are not in theta: colour for geometric Fisher, alpha), 1 (per-surfel value with
     derivative ``B`` [Nv, nch, D]) or 2 (the pair's depth). Kind-0 channels share one term
-    ``a^2 sum_c g_c^2``. Per block: (0) a slot per surfel that a pixel with a non-zero weight accepted,
-    marking its lanes; (1) per slot, for all lanes at once, alpha and the few scalars of ``d alpha /
-    d packed`` and ``d depth / d packed`` (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the
-    opacity on the ray-splat branch, the centre offset on the fallback; zeros on unmarked lanes);
-    (2) per pixel, the back-to-front walk over its pairs for the compositing derivatives ``g``;
-    (3) per slot, its Jacobian read once, and per parameter the chain rule and the weighted squares
+    ``a^2 sum_c g_c^2`` (``a = d alpha / d theta_j``), which also holds the ``(g_c a)^2`` of the kind-1
+    channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where ``B_cj != 0``, and an
+    all-zero Jacobian column (colour parameters) skips the chain rule. Per block: (0) a slot per
+    surfel that a pixel with a non-zero weight accepted, marking its lanes; (1) per slot, for all
+    lanes at once, alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
+    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre
+    offset on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its
+    pairs for the compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per
+    parameter the chain rule and the weighted squares
     summed over the lanes.
     """
     nch = X.shape[1]
@@ -694,7 +697,8 @@ def _k_fisher(
                         elif kind[c] == 2:
                             Cs[13, q] = gc
                             wd = w
-                        else:
+                        else:  # kind 1: gc^2 joins the kind-0 term, gc the cross term with B
+                            g2 += gc * gc
                             G[s, f, q] = gc
                             f += 1
                     Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
@@ -710,6 +714,7 @@ def _k_fisher(
                 Cs = C[s]
                 c0s, c1s, c2s, aos, kxs, kys = Cs[4], Cs[5], Cs[6], Cs[7], Cs[8], Cs[9]
                 eis, ees, efs, gds, As, wps, ws = Cs[10], Cs[11], Cs[12], Cs[13], Cs[15], Cs[16], Cs[17]
+                avs = Cs[14]  # aj of the current parameter
                 Js = jac[sid]
                 o = ob[sid]
                 for j in range(D):
@@ -717,25 +722,30 @@ def _k_fisher(
                     J5, J6, J7, J8, J9 = Js[5, j], Js[6, j], Js[7, j], Js[8, j], Js[9, j]
                     J10, J11, J12, J13 = Js[10, j], Js[11, j], Js[12, j], Js[13, j]
                     acc = 0.0
-                    for q in range(Q):
-                        x = float(x_base + q % QB)
-                        y = float(y_base + q // QB)
-                        p2 = x * J6 + y * J7 + J8
-                        aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
-                              + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
-                        Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
-                        acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                    for f in range(n1):
-                        Gf = G[s, f]
-                        Bj = B[sid, ch1[f], j]
+                    # A zero column (colour parameters: the rows do not depend on them) has aj = 0.
+                    live = J0 != 0.0 or J1 != 0.0 or J2 != 0.0 or J3 != 0.0 or J4 != 0.0 or J5 != 0.0 or J6 != 0.0
+                    live = live or J7 != 0.0 or J8 != 0.0 or J9 != 0.0 or J10 != 0.0 or J11 != 0.0 or J12 != 0.0
+                    live = live or J13 != 0.0
+                    if live:
                         for q in range(Q):
                             x = float(x_base + q % QB)
                             y = float(y_base + q // QB)
                             p2 = x * J6 + y * J7 + J8
                             aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
                                   + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
-                            Jc = Gf[q] * aj + ws[q] * Bj
-                            acc += wps[q] * Jc * Jc
+                            Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
+                            acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                            avs[q] = aj
+                    else:
+                        for q in range(Q):
+                            avs[q] = 0.0
+                    for f in range(n1):  # (g aj + w B)^2 - (g aj)^2 of the kind-1 channels
+                        Bj = B[sid, ch1[f], j]
+                        if Bj == 0.0:
+                            continue
+                        Gf = G[s, f]
+                        for q in range(Q):
+                            acc += wps[q] * ws[q] * Bj * (2.0 * Gf[q] * avs[q] + ws[q] * Bj)
                     o[j] += acc
 
 
