@@ -43,6 +43,7 @@ __all__, __getattr__ = lazy_exports(
             "bin_tiles",
             "camera_tensors",
             "composite_pairs",
+            "exp_neg",
             "numba_forward",
             "numba_pairs",
             "pair_alpha_depth",

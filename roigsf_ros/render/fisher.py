@@ -14,9 +14,11 @@ of per-surfel features (colour, normal) comes from a small per-surfel graph. Squ
 and summed per surfel. ``d alpha / d theta`` and ``d depth / d theta`` per (pixel, surfel) pair:
 
 - numba backend (CPU): the chain rule through the per-surfel Jacobian of the projected rows
-  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the visible surfels), inside
-  one back-to-front walk per pixel that also forms ``g`` and the squares; pixels with zero weight
-  (outside the ROI) are skipped;
+  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the visible surfels), in one
+  kernel over 4x4 pixel blocks: per block, each surfel its pixels accepted has the block's pixels as
+  vector lanes (alpha and the coefficients of ``d alpha / d packed`` and ``d depth / d packed`` for
+  all lanes at once), a back-to-front walk per pixel forms ``g``, and the surfel's Jacobian is read
+  once per block for the squares of all its pixels; pixels with zero weight (outside the ROI) are skipped;
 - torch backend (any device): one backward pass over a graph in which every pair has its own leaf
   copy of its surfel's parameters (two passes with depth), in chunks of pairs.
 
@@ -42,6 +44,7 @@ from roigsf_ros.render.rasterize import (
     Pairs,
     Projection,
     camera_tensors,
+    exp_neg,
     numba_pairs,
     pair_alpha_depth,
     project_packed,
@@ -275,7 +278,7 @@ def _fisher_numba(
     tile_size: int,
     result: dict[str, Tensor],
 ) -> None:
-    """Fisher with the numba kernels: the render's kernels for the pairs, then one fused backward-style walk.
+    """Fisher with the numba kernels: the render's kernels for the pairs, then the block-major Fisher kernel.
 
     ``d packed / d theta`` of the visible surfels comes from :func:`packed_jacobian`'s kernel (closed
     form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
@@ -285,7 +288,9 @@ def _fisher_numba(
     means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
     V, Km = _f64(viewmat), _f64(K)
     opac = 1.0 / (1.0 + np.exp(-logits))
-    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size)
+    # Pixels with zero weight need no pairs: tiles with none of the others are not walked.
+    mask = None if weights is None else (weights != 0).numpy()
+    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size, mask)
     vis_rank = np.flatnonzero(r.vis)
     if vis_rank.size == 0:
         return
@@ -326,13 +331,17 @@ def _fisher_numba(
     local[vis_rank] = np.arange(nv)
     nb = n_threads()
     wts = np.ones(W * H) if weights is None else weights.double().numpy()
-    # Split the pixels between the threads by their work: pairs of the pixels with a non-zero weight.
-    work = np.where(wts != 0.0, r.count.astype(np.int64), 0) + 1
+    # Split the kernel's pixel blocks between the threads by their work: pairs of the pixels with a non-zero weight.
+    qb = _BLOCK
+    nbx, nby = -(-W // qb), -(-H // qb)
+    work = np.zeros((nby * qb, nbx * qb), np.int64)
+    work[:H, :W] = np.where(wts != 0.0, r.count, 0).reshape(H, W)
+    work = work.reshape(nby, qb, nbx, qb).sum((1, 3)).reshape(-1) + 1
     bounds = balanced_bounds(torch.from_numpy(work), nb)
     out = np.zeros((nb, nv, D), np.float64)
     with KERNEL_LOCK:
         _FISHER_KERNELS["fisher"](
-            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, float(near), wts, out,
+            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, H, nbx, wts, out,
         )  # fmt: skip
     total = torch.from_numpy(out.sum(0)).to(dt)
     for k in names:
@@ -506,6 +515,12 @@ def _k_jacobian(
                 jac[i, 12, col] = dv2
 
 
+_BLOCK = 4
+"""Side of the pixel blocks of the Fisher kernel (its lanes: ``_BLOCK ** 2`` pixels)."""
+_NF = 18
+"""Per (surfel, pixel) lane fields of the Fisher kernel."""
+
+
 def _k_fisher(
     pk: np.ndarray,
     jac: np.ndarray,
@@ -520,117 +535,261 @@ def _k_fisher(
     T_fin: np.ndarray,
     bounds: np.ndarray,
     width: int,
-    near: float,
+    height: int,
+    nbx: int,
     wts: np.ndarray,
     out: np.ndarray,
 ) -> None:
-    """Back-to-front walk per pixel (numba): squared per-pixel gradients, weighted, summed per surfel.
+    """Block-major Fisher (numba): per 4x4 pixel block, the surfels its pixels accepted, each with
+    the block's pixels as vector lanes.
 
-    ``jac`` [Nv, 14, D] is d packed / d theta per surfel (parameters last: the loops over them are
-    contiguous); channel ``kind`` 0 (per-surfel value whose parameters are not in theta: colour
-    for geometric Fisher, alpha), 1 (per-surfel value with derivative ``B`` [Nv, nch, D]) or 2 (the
-    pair's depth). Kind-0 channels share one term ``a^2 sum_c g_c^2``. Per pair, ``d alpha / d packed``
-    and ``d depth / d packed`` are formed once as coefficients of the packed rows
-    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` on the ray-splat branch), then dotted with every
-    parameter's Jacobian column in one loop over the parameters.
+    ``jac`` [Nv, 14, D] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose
+    parameters are not in theta: colour for geometric Fisher, alpha), 1 (per-surfel value with
+    derivative ``B`` [Nv, nch, D]) or 2 (the pair's depth). Kind-0 channels share one term
+    ``a^2 sum_c g_c^2`` (``a = d alpha / d theta_j``), which also holds the ``(g_c a)^2`` of the kind-1
+    channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where ``B_cj != 0``, and an
+    all-zero Jacobian column (colour parameters) skips the chain rule. Per block: (0) a slot per
+    surfel that a pixel with a non-zero weight accepted, marking its lanes; (1) per slot, for all
+    lanes at once, alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
+    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre
+    offset on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its
+    pairs for the compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per
+    parameter the chain rule and the weighted squares
+    summed over the lanes.
     """
     nch = X.shape[1]
     D = jac.shape[2]
+    nv = jac.shape[0]
+    QB = _BLOCK
+    Q = QB * QB
+    ch1 = np.empty(nch, np.int64)  # the kind-1 channels
+    n1 = 0
+    for c in range(nch):
+        if kind[c] == 1:
+            ch1[n1] = c
+            n1 += 1
+    ch0 = np.empty(nch, np.int64)  # the kind-0 channels
+    n0 = 0
+    idep = -1  # the depth channel
+    for c in range(nch):
+        if kind[c] == 0:
+            ch0[n0] = c
+            n0 += 1
+        elif kind[c] == 2:
+            idep = c
+    # The common case (colour and depth of the geometric Fisher) has a walk with its sums in registers.
+    rgb = n0 == 3 and n1 == 0 and nch == 3 + (idep >= 0)
+    i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
+    cap = 1  # slots a block can need: its pairs, at most every surfel
+    capp = 1  # pairs of a block
+    for blk in range(bounds[-1]):
+        x_base = (blk % nbx) * QB
+        y_base = (blk // nbx) * QB
+        tot = 0
+        for q in range(Q):
+            xi = x_base + q % QB
+            yi = y_base + q // QB
+            if xi < width and yi < height:
+                tot += count[yi * width + xi]
+        cap = max(cap, min(tot, nv))
+        capp = max(capp, tot)
     for b in prange(bounds.shape[0] - 1):
         S = np.zeros(nch)
-        g = np.zeros(nch)
-        av = np.zeros(D)
+        slot_of = np.full(nv, -1, np.int64)
+        s_sid = np.empty(cap, np.int64)
+        ps = np.empty(capp, np.int64)  # the slot of each pair of the block's weighted pixels
+        p0 = np.zeros(Q, np.int64)  # each pixel's first pair in ps
+        C = np.zeros((cap, _NF, Q))
+        G = np.zeros((cap, max(n1, 1), Q))
         ob = out[b]
-        for p in range(bounds[b], bounds[b + 1]):
-            cnt = count[p]
-            wp = wts[p]
-            if cnt == 0 or wp == 0.0:
-                continue
-            x = float(p % width)
-            y = float(p // width)
-            T = T_fin[p]
-            for c in range(nch):
-                S[c] = T * bg[c]
-            off = pix_off[p]
-            for i in range(cnt - 1, -1, -1):
-                sid = local[pair_buf[off + i]]
-                P = pk[sid]
-                pz = P[6] * x + P[7] * y + P[8]
-                inv = 1.0 / pz
-                u = (P[0] * x + P[1] * y + P[2]) * inv
-                v = (P[3] * x + P[4] * y + P[5]) * inv
-                r3 = u * u + v * v
-                dx = P[11] - x
-                dy = P[12] - y
-                r2 = 2.0 * (dx * dx + dy * dy)
-                use3 = r3 <= r2
-                if use3:
-                    rho = r3
-                    depth = P[9] * inv
-                else:
-                    rho = r2
-                    depth = P[10]
-                ex = np.exp(-0.5 * rho)
-                a = P[13] * ex
-                clamped = a > 0.99
-                if clamped:
-                    a = 0.99
-                inv1m = 1.0 / (1.0 - a)
-                T = T * inv1m
-                w = a * T
-                g2 = 0.0
-                gd = 0.0
-                has_d = False
-                has_b = False
+        for blk in range(bounds[b], bounds[b + 1]):
+            x_base = (blk % nbx) * QB
+            y_base = (blk // nbx) * QB
+            ns = 0
+            npair = 0
+            # (0) Slots and lanes.
+            for q in range(Q):
+                p0[q] = npair
+                xi = x_base + q % QB
+                yi = y_base + q // QB
+                if xi >= width or yi >= height:
+                    continue
+                p = yi * width + xi
+                if wts[p] == 0.0:
+                    continue
+                off = pix_off[p]
+                for i in range(count[p]):
+                    sid = local[pair_buf[off + i]]
+                    s = slot_of[sid]
+                    if s < 0:
+                        s = ns
+                        ns += 1
+                        slot_of[sid] = s
+                        s_sid[s] = sid
+                        Cs = C[s]
+                        for k in range(Q):
+                            Cs[0, k] = 0.0
+                        for f in range(13, _NF):
+                            for k in range(Q):
+                                Cs[f, k] = 0.0
+                    C[s, 0, q] = 1.0
+                    ps[npair] = s
+                    npair += 1
+            # (1) Per slot, every lane at once (vectorised); unmarked lanes get zeros.
+            for s in range(ns):
+                sid = s_sid[s]
+                P0, P1, P2, P3, P4 = pk[sid, 0], pk[sid, 1], pk[sid, 2], pk[sid, 3], pk[sid, 4]
+                P5, P6, P7, P8, P9 = pk[sid, 5], pk[sid, 6], pk[sid, 7], pk[sid, 8], pk[sid, 9]
+                P10, P11, P12, P13 = pk[sid, 10], pk[sid, 11], pk[sid, 12], pk[sid, 13]
+                Cs = C[s]
+                mem, als, ims, deps, c0s, c1s, c2s = Cs[0], Cs[1], Cs[2], Cs[3], Cs[4], Cs[5], Cs[6]
+                aos, kxs, kys, eis, ees, efs = Cs[7], Cs[8], Cs[9], Cs[10], Cs[11], Cs[12]
+                for q in range(Q):
+                    x = float(x_base + q % QB)
+                    y = float(y_base + q // QB)
+                    on = mem[q] != 0.0
+                    pz = P6 * x + P7 * y + P8
+                    on = on & (pz != 0.0)
+                    inv = 1.0 / (pz if on else 1.0)
+                    u = (P0 * x + P1 * y + P2) * inv
+                    v = (P3 * x + P4 * y + P5) * inv
+                    r3 = u * u + v * v
+                    dx = P11 - x
+                    dy = P12 - y
+                    r2 = 2.0 * (dx * dx + dy * dy)
+                    use3 = r3 <= r2
+                    rho = r3 if use3 else r2
+                    depth = P9 * inv if use3 else P10
+                    ex = exp_neg(-0.5 * rho if on else 0.0)
+                    a = P13 * ex
+                    clamped = a > 0.99
+                    a = 0.99 if clamped else a
+                    # d alpha / d packed: through rho (and the opacity), zero where alpha is clamped.
+                    live = on & ~clamped
+                    kk = -a * inv if live else 0.0
+                    k4 = -2.0 * a if live else 0.0
+                    als[q] = a
+                    ims[q] = 1.0 / (1.0 - a)
+                    deps[q] = depth
+                    c0s[q] = kk * u if use3 else 0.0
+                    c1s[q] = kk * v if use3 else 0.0
+                    c2s[q] = -kk * r3 if use3 else 0.0
+                    aos[q] = ex if live else 0.0
+                    kxs[q] = 0.0 if use3 else k4 * dx
+                    kys[q] = 0.0 if use3 else k4 * dy
+                    eis[q] = inv if use3 and on else 0.0
+                    ees[q] = -depth * inv if use3 and on else 0.0
+                    efs[q] = 0.0 if use3 or not on else 1.0
+            # (2) Per pixel, the walk back to front: transmittance, suffix sums and g per pair.
+            for q in range(Q):
+                xi = x_base + q % QB
+                yi = y_base + q // QB
+                if xi >= width or yi >= height:
+                    continue
+                p = yi * width + xi
+                wp = wts[p]
+                if wp == 0.0:
+                    continue
+                T = T_fin[p]
+                if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
+                    S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
+                    for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
+                        sid = s_sid[ps[i]]
+                        Cs = C[ps[i]]
+                        im = Cs[2, q]
+                        T = T * im
+                        w = Cs[1, q] * T
+                        x0, x1, x2 = X[sid, i0], X[sid, i1], X[sid, i2]
+                        g0 = T * x0 - S0 * im
+                        g1 = T * x1 - S1 * im
+                        g2 = T * x2 - S2 * im
+                        S0 += w * x0
+                        S1 += w * x1
+                        S2 += w * x2
+                        wd = 0.0
+                        if idep >= 0:
+                            d = Cs[3, q]
+                            Cs[13, q] = T * d - Sd * im
+                            Sd += w * d
+                            wd = w
+                        Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
+                        Cs[11, q] *= wd
+                        Cs[12, q] *= wd
+                        Cs[15, q] = wp * (g0 * g0 + g1 * g1 + g2 * g2)
+                        Cs[16, q] = wp
+                        Cs[17, q] = w
+                    continue
                 for c in range(nch):
-                    val = depth if kind[c] == 2 else X[sid, c]
-                    g[c] = T * val - S[c] * inv1m
-                    S[c] += w * val
-                    if kind[c] == 0:
-                        g2 += g[c] * g[c]
-                    elif kind[c] == 2:
-                        gd = g[c]
-                        has_d = True
-                    else:
-                        has_b = True
-                # d alpha / d packed: through rho (and the opacity), zero where alpha is clamped.
-                da_o = 0.0 if clamped else ex
-                da_rho = 0.0 if clamped else -0.5 * a
-                wd = w if has_d else 0.0
-                o = ob[sid]
-                if use3:
-                    kk = da_rho * 2.0 * inv
-                    c0 = kk * u
-                    c1 = kk * v
-                    c2 = -kk * r3
-                    e2 = -depth * inv
-                    c0x, c0y, c1x, c1y, c2x, c2y = c0 * x, c0 * y, c1 * x, c1 * y, c2 * x, c2 * y
-                    e2x, e2y = e2 * x, e2 * y
-                    for j in range(D):
-                        aj = (da_o * jac[sid, 13, j] + c0x * jac[sid, 0, j] + c0y * jac[sid, 1, j]
-                              + c0 * jac[sid, 2, j] + c1x * jac[sid, 3, j] + c1y * jac[sid, 4, j] + c1 * jac[sid, 5, j]
-                              + c2x * jac[sid, 6, j] + c2y * jac[sid, 7, j] + c2 * jac[sid, 8, j])  # fmt: skip
-                        ej = inv * jac[sid, 9, j] + e2x * jac[sid, 6, j] + e2y * jac[sid, 7, j] + e2 * jac[sid, 8, j]
-                        Jd = gd * aj + wd * ej
-                        o[j] += wp * (aj * aj * g2 + Jd * Jd)
-                        av[j] = aj
-                else:
-                    k4 = da_rho * 4.0
-                    kx = k4 * dx
-                    ky = k4 * dy
-                    for j in range(D):
-                        aj = da_o * jac[sid, 13, j] + kx * jac[sid, 11, j] + ky * jac[sid, 12, j]
-                        Jd = gd * aj + wd * jac[sid, 10, j]
-                        o[j] += wp * (aj * aj * g2 + Jd * Jd)
-                        av[j] = aj
-                if has_b:
+                    S[c] = T * bg[c]
+                for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
+                    s = ps[i]
+                    sid = s_sid[s]
+                    Cs = C[s]
+                    im = Cs[2, q]
+                    T = T * im
+                    w = Cs[1, q] * T
+                    g2 = 0.0
+                    wd = 0.0
+                    f = 0
                     for c in range(nch):
-                        if kind[c] == 1:
-                            gc = g[c]
-                            Bc = B[sid, c]
-                            for j in range(D):
-                                Jc = gc * av[j] + w * Bc[j]
-                                o[j] += wp * (Jc * Jc)
+                        val = Cs[3, q] if kind[c] == 2 else X[sid, c]
+                        gc = T * val - S[c] * im
+                        S[c] += w * val
+                        if kind[c] == 0:
+                            g2 += gc * gc
+                        elif kind[c] == 2:
+                            Cs[13, q] = gc
+                            wd = w
+                        else:  # kind 1: gc^2 joins the kind-0 term, gc the cross term with B
+                            g2 += gc * gc
+                            G[s, f, q] = gc
+                            f += 1
+                    Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
+                    Cs[11, q] *= wd
+                    Cs[12, q] *= wd
+                    Cs[15, q] = wp * g2
+                    Cs[16, q] = wp
+                    Cs[17, q] = w
+            # (3) Per slot: its Jacobian once; per parameter the chain rule and weighted squares over the lanes.
+            for s in range(ns):
+                sid = s_sid[s]
+                slot_of[sid] = -1
+                Cs = C[s]
+                c0s, c1s, c2s, aos, kxs, kys = Cs[4], Cs[5], Cs[6], Cs[7], Cs[8], Cs[9]
+                eis, ees, efs, gds, As, wps, ws = Cs[10], Cs[11], Cs[12], Cs[13], Cs[15], Cs[16], Cs[17]
+                avs = Cs[14]  # aj of the current parameter
+                Js = jac[sid]
+                o = ob[sid]
+                for j in range(D):
+                    J0, J1, J2, J3, J4 = Js[0, j], Js[1, j], Js[2, j], Js[3, j], Js[4, j]
+                    J5, J6, J7, J8, J9 = Js[5, j], Js[6, j], Js[7, j], Js[8, j], Js[9, j]
+                    J10, J11, J12, J13 = Js[10, j], Js[11, j], Js[12, j], Js[13, j]
+                    acc = 0.0
+                    # A zero column (colour parameters: the rows do not depend on them) has aj = 0.
+                    live = J0 != 0.0 or J1 != 0.0 or J2 != 0.0 or J3 != 0.0 or J4 != 0.0 or J5 != 0.0 or J6 != 0.0
+                    live = live or J7 != 0.0 or J8 != 0.0 or J9 != 0.0 or J10 != 0.0 or J11 != 0.0 or J12 != 0.0
+                    live = live or J13 != 0.0
+                    if live:
+                        for q in range(Q):
+                            x = float(x_base + q % QB)
+                            y = float(y_base + q // QB)
+                            p2 = x * J6 + y * J7 + J8
+                            aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
+                                  + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
+                            Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
+                            acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                            avs[q] = aj
+                    else:
+                        for q in range(Q):
+                            avs[q] = 0.0
+                    for f in range(n1):  # (g aj + w B)^2 - (g aj)^2 of the kind-1 channels
+                        Bj = B[sid, ch1[f], j]
+                        if Bj == 0.0:
+                            continue
+                        Gf = G[s, f]
+                        for q in range(Q):
+                            acc += wps[q] * ws[q] * Bj * (2.0 * Gf[q] * avs[q] + ws[q] * Bj)
+                    o[j] += acc
 
 
 _KERNELS = Kernels(jacobian=_k_jacobian, frustum=_k_frustum)
@@ -639,6 +798,7 @@ _FISHER_KERNELS = Kernels(
     # relative); no "nnan"/"ninf", so non-finite values keep IEEE semantics.
     fastmath={"contract", "arcp", "nsz", "reassoc", "afn"},
     fisher=_k_fisher,
+    helpers=(exp_neg,),
 )
 
 

@@ -107,6 +107,7 @@ class Kernels:
         if not self._compiled:
             numba = configure_numba()
             for h in self._helpers:
+                h = getattr(h, "py_func", h)  # a helper another Kernels has compiled (and swapped in) already
                 jitted = numba.njit(
                     cache=self._options["cache"], nogil=True, inline="always", fastmath=self._options["fastmath"]
                 )(h)

@@ -553,7 +553,7 @@ _CHUNK = 64
 """Surfels of a tile's list per lane pass of the forward kernel (a multiple of 8)."""
 
 
-def _exp_neg(x: float) -> float:
+def exp_neg(x: float) -> float:
     """``exp(x)`` for ``-20 <= x <= 0`` in straight-line code (vectorises inside loops; within 2 ulp).
 
     Range reduction ``x = k ln 2 + r``, ``|r| <= ln(2) / 2``, a degree-13 Taylor polynomial, and ``2^k``
@@ -1025,7 +1025,7 @@ def _k_forward(
                         depth = dets[j] * inv if use3 else tzs[j]
                         ok = (x >= bx0[j]) & (x <= bx1[j]) & (y >= by0[j]) & (y <= by1[j])
                         ok = ok & nz & (rho <= ths[j]) & (depth >= near)
-                        a = opas[j] * _exp_neg(-0.5 * rho if ok else 0.0)
+                        a = opas[j] * exp_neg(-0.5 * rho if ok else 0.0)
                         a = 0.99 if a > 0.99 else a
                         ok = ok & (a >= 1.0 / 255.0)
                         alq[j] = a if ok else 0.0
@@ -1270,7 +1270,7 @@ def _k_backward(
                         use3 = r3 <= r2
                         rho = r3 if use3 else r2
                         depth = dets[j] * inv if use3 else tzs[j]
-                        ex = _exp_neg(-0.5 * rho if rho < 40.0 else -20.0)
+                        ex = exp_neg(-0.5 * rho if rho < 40.0 else -20.0)
                         a = opas[j] * ex
                         a = 0.99 if a > 0.99 else a
                         EX[j] = ex
@@ -1546,7 +1546,7 @@ _RASTER_KERNELS = Kernels(
     fastmath={"contract", "reassoc", "nsz", "arcp"},
     forward=_k_forward,
     backward=_k_backward,
-    helpers=(_exp_neg,),
+    helpers=(exp_neg,),
 )
 """The compiled forward and backward compositing kernels (compiled on first use)."""
 
@@ -1742,15 +1742,25 @@ def numba_pairs(
     near: float = 0.2,
     far: float = 100.0,
     tile_size: int = 4,
+    pixel_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, _NumbaResult]:
     """The contributing pairs of a view by the numba kernels (float64 numpy inputs, activated scales and
     opacities): projection, culling, depth sort, binning and the forward walk (no features).
 
     Returns ``order`` [K] (the input index of each kept surfel, nearest centre first) and the walk's
-    result, whose surfel ids (``pair_buf``, ``vis``) index ``order``.
+    result, whose surfel ids (``pair_buf``, ``vis``) index ``order``. With ``pixel_mask`` [H * W] (bool),
+    only the tiles with a pixel in the mask are walked: the pixels of the others get no pairs.
     """
     feats = np.zeros((means.shape[0], 0))
     bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
+    if pixel_mask is not None:
+        ts = bn.size
+        nty = -(-height // ts)
+        grid = np.zeros((nty * ts, bn.ntx * ts), np.bool_)
+        grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
+        on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
+        bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
+        bn.bounds = balanced_bounds(torch.from_numpy(bn.count.astype(np.int64) + 1), n_threads())
     r = _forward_pass(
         bn.pk, bn.feats, bn.nrm, np.zeros(0), bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, bn.size,
         bn.ntx, width, height, near, far, False,
@@ -2124,6 +2134,7 @@ __all__ = [
     "bin_tiles",
     "camera_tensors",
     "composite_pairs",
+    "exp_neg",
     "numba_forward",
     "numba_pairs",
     "pair_alpha_depth",
