@@ -15,6 +15,9 @@
 # Writes runs/office0_120_s20/, runs/synth_room_120/ (scenes, reused when present) and
 # runs/bench_pool_office0_<W>/, runs/bench_pool_synth/, runs/bench_pool_object/ (results.json, results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
+# Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
+#   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
+# (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
@@ -25,7 +28,7 @@ SEEDS="${SEEDS:-3}"
 SCENES="${SCENES:-office0 synth object}"
 SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE)
 W=$((120 * SCALE)); H=$((68 * SCALE))
-COMMON=(--setting pool --policies "$POLICIES" --seeds "$SEEDS" --overwrite
+COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
         --pool-set mesh_samples=50000 --uncertainty-views 6 --uncertainty-maps 3)
@@ -39,19 +42,28 @@ for scene in $SCENES; do
                 --cam "$DATA/cam_params.json" --out "runs/office0_${W}_s20" --width "$W" --height "$H" --stride 20 \
                 --overwrite
         fi
-        roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --out "runs/bench_pool_office0_${W}"
+        if [ "${SPLIT:-0}" = 1 ]; then  # one bench per policy (a finished policy is kept if a later one stops)
+            IFS=, read -ra PS <<< "$POLICIES"
+            for p in "${PS[@]}"; do
+                nice -n "${NICE:-0}" roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$p" \
+                    --out "runs/bench_pool_office0_${W}/$(echo "$p" | tr ':=' '__')"
+            done
+        else
+            roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$POLICIES" \
+                --out "runs/bench_pool_office0_${W}"
+        fi
         ;;
     synth)
         if [ ! -f runs/synth_room_120/mesh.ply ]; then
             roigsf scene synth --out runs/synth_room_120 --frames 96 --width 120 --height 90 --overwrite
         fi
-        roigsf bench --scene runs/synth_room_120 "${COMMON[@]}" --out runs/bench_pool_synth
+        roigsf bench --scene runs/synth_room_120 "${COMMON[@]}" --policies "$POLICIES" --out runs/bench_pool_synth
         ;;
     object)
         if [ ! -f runs/object_120/mesh.ply ]; then
             roigsf scene synth --kind object --out runs/object_120 --frames 96 --width 120 --height 90 --overwrite
         fi
-        roigsf bench --scene runs/object_120 "${COMMON[@]}" --out runs/bench_pool_object
+        roigsf bench --scene runs/object_120 "${COMMON[@]}" --policies "$POLICIES" --out runs/bench_pool_object
         ;;
     *) echo "unknown scene $scene (office0, synth, object)" >&2; exit 2 ;;
     esac

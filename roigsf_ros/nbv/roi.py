@@ -555,7 +555,11 @@ def _k_batch(
             tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
             ws = np.exp(-0.5 * tf * tf)
             wc = 1.0 / max(tsdf_w[idx], 1.0)
-            w = wa**beta * ws**gamma * (1.0 + mu * wc)
+            if beta != 1.0:  # pow() is the costliest call here; x ** 1.0 == x exactly
+                wa = wa**beta
+            if gamma != 1.0:
+                ws = ws**gamma
+            w = wa * ws * (1.0 + mu * wc)
             if use_frontier:
                 w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
             if use_wf:
