@@ -40,9 +40,10 @@ if TYPE_CHECKING:
 DEFAULT_BAG = Path("bags/synth_room")
 DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
 DEFAULT_RATE = 0.25
-"""Playback rate of the demo: a window of 8 frames every 3.2 s, about what one planner call (ROI, Fisher of 8
-candidates, the chosen view's uncertainty) takes at 160x120 on 2 cores; a window that comes while the planner
-is still busy is decided by the fallback policy and counted."""
+"""Playback rate of the demo: a window of 8 frames every 3.2 s. A planner call (ROI, Fisher of 8 candidates, the
+chosen view's uncertainty) takes about 0.65 s at 160x120 on 2 cores, but beside the mapper in one process rate
+1.0 (0.8 s a window) still sent 6 of 18 windows to the fallback (README, "Issue 12 in the SLAM loop"); a window
+that comes while the planner is still busy is decided by the fallback policy and counted."""
 DEFAULT_FINAL_ITERS = 150
 """Refinement steps over all keyframes after the stream (the mapper's ``final_iters`` for offline runs)."""
 DEFAULT_POLICY = "roi-gsurfisher"
