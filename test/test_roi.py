@@ -288,6 +288,9 @@ def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> N
     np.testing.assert_array_equal(union, ref)
     no_wf = batch_roi(vox, 0.04, poses, intr, CFG)
     assert not no_wf.close_front.any() and no_wf.mass[0] > 0
+    for i in (0, 1, 3):  # no texture given: every voxel texture-poor, as view_roi
+        np.testing.assert_allclose(no_wf.weights[i], view_roi(vox, 0.04, poses[i], intr, CFG).weights,
+                                   rtol=1e-12, atol=1e-15)  # fmt: skip
     with pytest.raises(InputError, match="fused_weight"):
         batch_roi(vox, 0.04, poses, intr, CFG, fused_weight=np.zeros(3))
 

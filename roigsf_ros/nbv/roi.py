@@ -772,7 +772,7 @@ def batch_roi(
             np.ascontiguousarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3),
             np.ascontiguousarray(voxels.normals, dtype=np.float64).reshape(-1, 3),
             np.ascontiguousarray(voxels.weight, dtype=np.float64),
-            flag if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
+            np.zeros(m, np.bool_) if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
             np.ascontiguousarray(frontier, dtype=np.bool_) if use_frontier else flag,
             np.zeros(1) if fused_weight is None else np.ascontiguousarray(fused_weight, dtype=np.float64),
             np.ascontiguousarray(P), float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H,
