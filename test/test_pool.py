@@ -87,7 +87,9 @@ def test_config_errors(source: MemoryFrameSource, tmp_path) -> None:
 
 
 def test_greedy_picks_are_scorer_argmax(source: MemoryFrameSource) -> None:
-    cfg = pool_config(policy="roi-gsurfisher")
+    """With W_f re-evaluated from every keyframe (``close_front_exact``) the policy's kept state scores exactly as the
+    scorer does from scratch (by default each keyframe is folded into W_f once: a different, cheaper W_f)."""
+    cfg = pool_config(policy="roi-gsurfisher", policy_params={"close_front_exact": True})
     expected: list[int] = []
     seen_images: list[int] = []
 
