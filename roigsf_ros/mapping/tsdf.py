@@ -292,6 +292,7 @@ def _k_neighbours(table: np.ndarray, b_idx: np.ndarray, local: np.ndarray, res: 
 
 _KERNELS = Kernels(neighbours=_k_neighbours)
 
+
 def _empty_surface_voxels() -> SurfaceVoxels:
     return SurfaceVoxels(
         centres_m=np.zeros((0, 3)),

@@ -587,7 +587,6 @@ class NBVScorer:
         acc["fisher"] += _since(t0)
 
 
-
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Bool [H, W]: pixels whose viewing ray (from the camera centre, forward) meets the box [lo, hi] (slab test)."""
     u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))

@@ -233,8 +233,9 @@ class ScoringState:
     ) -> tuple[SurfaceVoxels | None, CloseFrontMemory | None]:
         """Near-surface voxels of the TSDF and (``close_front``) W_f of the fused ``poses`` (see the module docstring).
 
-        Not exact: the first call with a surface builds W_f from every fused pose, later ones fold in only the
-        poses fused since (one visibility pass each, on the surface after their fusion).
+        By default the first call with a surface builds W_f from every fused pose and later ones fold in only the
+        poses fused since (one visibility pass each, on the surface after their fusion); with
+        ``close_front_exact`` every TSDF update rebuilds it from every fused pose.
         """
         if self.tsdf is None:
             return None, None
