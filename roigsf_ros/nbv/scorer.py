@@ -463,17 +463,22 @@ class NBVScorer:
         sees = np.array([box is None or frustum_meets_box(T, intr, box[0], box[1], cfg.near_m, cfg.far_m)
                          for T in cands], dtype=bool)  # fmt: skip
         live = np.flatnonzero(sees)
-        textured = None
-        if vox is not None and mode in ("roi-gsurfisher", "roi-fisher") and len(live):
-            t1 = _clock()  # texture only where a candidate may look (an in-frustum voxel set per candidate)
-            near_any = frustum_union(vox, np.stack([cands[i] for i in live]), intr, cfg)
-            textured = voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg, only=near_any)
-            timings["setup"] += float(_since(t1)[0])
-            cpu["setup"] += float(_since(t1)[1])
-        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher")}
+        # Texture only where a candidate may look (the chunk's in-frustum voxels), classified once per voxel.
+        use_texture = vox is not None and mode in ("roi-gsurfisher", "roi-fisher")
+        textured = np.zeros(len(vox.centres_m), dtype=bool) if use_texture else None
+        classified = np.zeros(len(vox.centres_m), dtype=bool) if use_texture else None
+        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher", "texture")}
         for lo in range(0, len(live), _ROI_CHUNK):  # chunks: a stop is seen soon, ROI images stay few
             chunk = live[lo : lo + _ROI_CHUNK]
             check_stop(should_stop)
+            t0 = _clock()
+            if use_texture:
+                need = frustum_union(vox, np.stack([cands[i] for i in chunk]), intr, cfg) & ~classified
+                if need.any():
+                    textured |= voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg,
+                                              only=need)  # fmt: skip
+                    classified |= need
+            acc["texture"] += _since(t0)
             t0 = _clock()
             rois = None
             if vox is not None:  # the ROI and close-front of the chunk's candidates, in parallel (numba)
@@ -494,6 +499,9 @@ class NBVScorer:
                 flagged[i] = n_vox[i] == 0 and (unseen is None or unseen[i] == 0)
             elif h is None or not sees[i]:
                 flagged[i] = True
+        tex = acc.pop("texture")
+        timings["setup"] += float(tex[0])
+        cpu["setup"] += float(tex[1])
         for k, (wall, proc) in acc.items():
             timings[k], cpu[k] = float(wall), float(proc)
         timings["roi_close_front"] = timings["roi"] + timings["close_front"]
