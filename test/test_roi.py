@@ -204,8 +204,8 @@ def _views_equal(a: object, b: object) -> None:
         np.testing.assert_allclose(x[oa], y[ob], rtol=1e-12, atol=1e-14)
 
 
-def test_numba_visibility_equals_the_numpy_reference() -> None:
-    pytest.importorskip("numba")
+def _box_voxels() -> tuple[SurfaceVoxels, Intrinsics]:
+    """Surface voxels (4 cm) of a 1 m box fused from 4 views around it, and the 80x60 camera used."""
     box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((-0.5, -0.5, -0.5))
     scene = raycasting_scene(box)
     intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
@@ -214,7 +214,12 @@ def test_numba_visibility_equals_the_numpy_reference() -> None:
         a = 2 * np.pi * k / 4 + 0.3
         T = look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 1.0 if k % 2 else -1.0]), np.zeros(3), UP)
         vol.integrate(raycast_depth(scene, T, intr), T, intr)
-    vox = vol.surface_voxels()
+    return vol.surface_voxels(), intr
+
+
+def test_numba_visibility_equals_the_numpy_reference() -> None:
+    pytest.importorskip("numba")
+    vox, intr = _box_voxels()
     occluded = cat_voxels(plane_voxels(1.0, (-0.2, 0.2), (-0.2, 0.2)), plane_voxels(2.0, (-1.0, 1.0), (-1.0, 1.0)))
     cases = [
         (vox, look_at(np.array([2.2, 1.0, 0.8]), np.zeros(3), UP), intr),  # oblique, ~1 px footprints
@@ -236,19 +241,10 @@ def test_numba_visibility_equals_the_numpy_reference() -> None:
         voxel_visibility(vox, EYE, intr, 0.04, CFG, backend="cuda")
 
 
-
 def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> None:
     """The candidates' ROI (Eq. 7-8) and I_vis (Eq. 14) in one parallel numba pass equal the per-candidate reference."""
     pytest.importorskip("numba")
-    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate((-0.5, -0.5, -0.5))
-    scene = raycasting_scene(box)
-    intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
-    vol = TSDFVolume(voxel_size_m=0.04)
-    for k in range(4):
-        a = 2 * np.pi * k / 4 + 0.3
-        T = look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 1.0 if k % 2 else -1.0]), np.zeros(3), UP)
-        vol.integrate(raycast_depth(scene, T, intr), T, intr)
-    vox = vol.surface_voxels()
+    vox, intr = _box_voxels()
     rng = np.random.default_rng(3)
     m = len(vox.centres_m)
     textured, frontier, w_f = rng.random(m) < 0.4, rng.random(m) < 0.2, rng.random(m) * 0.5

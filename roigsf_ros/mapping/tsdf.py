@@ -33,8 +33,6 @@ from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available,
 
 o3c = o3d.core
 
-_NEIGHBOUR_OFFSETS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
-
 
 class SurfaceVoxels(NamedTuple):
     """Near-surface voxels of a TSDF volume as numpy arrays (M voxels); unpacks as a tuple."""
@@ -269,7 +267,7 @@ def _k_neighbours(table: np.ndarray, b_idx: np.ndarray, local: np.ndarray, res: 
     for i in prange(b_idx.shape[0]):
         for j in range(6):
             axis = j // 2
-            step = 1 if j % 2 == 0 else -1  # the order of _NEIGHBOUR_OFFSETS: +x, -x, +y, -y, +z, -z
+            step = 1 if j % 2 == 0 else -1  # neighbour order: +x, -x, +y, -y, +z, -z
             c0, c1, c2 = local[i, 0], local[i, 1], local[i, 2]
             if axis == 0:
                 c0 += step

@@ -470,10 +470,11 @@ class NBVScorer:
         acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher", "texture")}
         for lo in range(0, len(live), _ROI_CHUNK):  # chunks: a stop is seen soon, ROI images stay few
             chunk = live[lo : lo + _ROI_CHUNK]
+            chunk_poses = np.stack([cands[i] for i in chunk])
             check_stop(should_stop)
             t0 = _clock()
             if use_texture:
-                need = frustum_union(vox, np.stack([cands[i] for i in chunk]), intr, cfg) & ~classified
+                need = frustum_union(vox, chunk_poses, intr, cfg) & ~classified
                 if need.any():
                     textured |= voxel_texture(vox.centres_m, None if empty_map else surfel_map, voxel_size, cfg,
                                               only=need)  # fmt: skip
@@ -482,7 +483,7 @@ class NBVScorer:
             t0 = _clock()
             rois = None
             if vox is not None:  # the ROI and close-front of the chunk's candidates, in parallel (numba)
-                rois = batch_roi(vox, voxel_size, np.stack([cands[i] for i in chunk]), intr, cfg, textured,
+                rois = batch_roi(vox, voxel_size, chunk_poses, intr, cfg, textured,
                                  frontier=frontier, fused_weight=w_f)  # fmt: skip
                 n_vox[chunk], n_pix[chunk], mass[chunk] = rois.n_visible_voxels, rois.n_pixels, rois.mass
                 if w_f is not None:
