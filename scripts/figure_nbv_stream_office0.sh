@@ -12,6 +12,10 @@
 #   random/      random:window=13 (seeded pick per window, the control)
 #   paper/       roi-gsurfisher:window=13 (the paper's fused score as published)
 #   roi-fisher/  roi-fisher:window=13 (the Fisher term alone)
+#   every-n/     every-n:n=13 (every 13th frame: the same count at a fixed cadence, no scoring)
+#   budget/      roi-gsurfisher:window=13:trigger_every=4:trigger=budget:unseen_weight=1 (the same budget, keyframes
+#                placed where the unseen fraction is high; its settings fixed before any run, checked on the synthetic
+#                room by scripts/figure_nbv_stream_synth.sh)
 # Each folder: results.json, results.md, quality_vs_views.png, chosen_views.png, runs/.
 # Measured wall time (2026-11-25, commit 3d0251f code, 2 cores shared with two other jobs, every bench under
 # nice -n 10, so these are inflated): unseen 248 s (load avg 3-4.5; 129 s in a rerun at load ~1),
@@ -48,6 +52,8 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     stream_bench "$W13/random" "random:window=$WINDOW10"
     stream_bench "$W13/paper" "roi-gsurfisher:window=$WINDOW10"
     stream_bench "$W13/roi-fisher" "roi-fisher:window=$WINDOW10"
+    stream_bench "$W13/every-n" "every-n:n=$WINDOW10"
+    stream_bench "$W13/budget" "roi-gsurfisher:window=$WINDOW10:trigger_every=4:trigger=budget:unseen_weight=1"
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"

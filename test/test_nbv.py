@@ -221,7 +221,6 @@ def test_a_candidate_that_sees_nothing_does_not_change_the_others_fused_scores(w
         np.testing.assert_allclose(m.fused[:3], b.fused, rtol=1e-9, atol=1e-12, err_msg=mode)
 
 
-
 def test_candidates_that_cannot_see_the_map_are_skipped_before_any_rendering(world: World, monkeypatch) -> None:
     """Issue 12: a candidate whose frustum misses the mapped region costs no ROI, Fisher or unseen render."""
     import roigsf_ros.nbv.scorer as scorer_mod

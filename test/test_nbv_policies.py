@@ -173,3 +173,46 @@ def test_adaptive_trigger_inserts_only_high_gain_windows(frames: list[Frame], mo
     with pytest.raises(InputError):
         make_policy("roi-fisher", trigger="sometimes")
     assert make_policy("roi-fisher").trigger == "window"
+
+
+def test_budget_trigger_spends_a_fixed_keyframe_budget_on_high_gain_windows(
+    frames: list[Frame], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Beyond the paper: trigger="budget" earns 1 / budget_every keyframe per frame, scores only when a whole one
+    is banked, inserts when the gain (here the unseen fraction) reaches the median of the recent ones or when the
+    bank would overflow by the next trigger; never more than 1 + (F - 1) // budget_every keyframes."""
+    from types import SimpleNamespace
+
+    gains = iter([0.5, 0.4, 0.1, 0.9, 0.1, 0.2, 0.0, 0.8])
+
+    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper) -> int:
+        g = np.array([next(gains)])
+        self.last_result = SimpleNamespace(fisher=np.ones(1), close_front=np.zeros(1), unseen=g)
+        return 0
+
+    monkeypatch.setattr(StreamNBVPolicy, "choose", fake_choose)
+    pol = make_policy("roi-gsurfisher", window=3, trigger_every=1, trigger="budget", budget_every=2, budget_burst=2)
+    assert pol.params()["trigger"] == "budget" and pol.params()["budget_every"] == 2.0
+    mapper = run_stream(pol, frames)
+    # frames 1..11 bank 0.5 each; scored at frames 2, 4, 6, 7, 8, 9, 10, 11 (a whole keyframe banked):
+    # 0.5, 0.4 (first two: in), 0.1 < 0.45 out, 0.9 > 0.4 in, 0.1 < 0.45 out, 0.2 < 0.4 out, 0.0 forced (bank 2 + 0.5
+    # would overflow 2) in, 0.8 > 0.2 in
+    assert pol.triggers == 8 and pol.skipped_triggers == 3 + 3
+    assert len(pol.inserted_ids) == 5 == (N_FRAMES - 1) // 2 and len(mapper.keyframe_ids) == 6
+    assert pol.tokens == pytest.approx(0.5)
+    with pytest.raises(InputError):
+        make_policy("random", trigger="budget")
+    with pytest.raises(InputError):  # a bank that cannot hold one keyframe plus a trigger's earnings
+        make_policy("roi-fisher", window=4, trigger="budget", budget_every=4, budget_burst=1.5)
+    with pytest.raises(InputError):  # more than one keyframe per trigger
+        make_policy("roi-fisher", window=4, trigger_every=4, trigger="budget", budget_every=2)
+
+
+def test_budget_trigger_with_the_real_scorer_keeps_its_budget(frames: list[Frame]) -> None:
+    """The budget trigger on the real scorer with the unseen term: the count bound holds and the gain is U."""
+    pol = make_policy("roi-gsurfisher", window=4, trigger_every=2, trigger="budget", budget_every=4, unseen_weight=1.0)
+    mapper = run_stream(pol, frames)
+    assert 2 <= len(mapper.keyframe_ids) <= 1 + (N_FRAMES - 1) // 4
+    assert pol.last_result is not None and pol.last_result.unseen is not None
+    pick = int(pol.last_result.best_index)
+    assert pol.gain(pick) == pytest.approx(float(pol.last_result.unseen[pick]))

@@ -120,8 +120,7 @@ def test_the_checks_catch_what_they_look_for(tmp_path: Path) -> None:
     """The AST reading sees upward, private and lazy imports (a check that cannot fail is no check)."""
     src = tmp_path / "m.py"
     src.write_text(
-        "from roigsf_ros.nbv.scorer import _private, NBVScorer\n"
-        "def f():\n    from roigsf_ros.cli import main\n"
+        "from roigsf_ros.nbv.scorer import _private, NBVScorer\ndef f():\n    from roigsf_ros.cli import main\n"
     )
     found = package_imports(src)
     assert ("roigsf_ros.nbv.scorer", ["_private", "NBVScorer"], True) in found

@@ -86,7 +86,6 @@ def test_surface_voxels_normals_point_outward(sphere_volume: tuple) -> None:
     assert len(volume.surface_voxels(min_weight=3).tsdf) < len(tsdf)
 
 
-
 def test_numba_neighbour_lookup_equals_the_vectorised_reference(sphere_volume: tuple) -> None:
     """Issue 12: the 6-neighbour lookup behind surface normals (every scoring TSDF update) as one numba pass."""
     vol = sphere_volume[0]

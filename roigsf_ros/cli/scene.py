@@ -191,10 +191,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         + ", ".join(f"{name} ({c.width}x{c.height}, fx = fy = {c.fx:g})" for name, c in CAMERAS.items()),
     )
     p.add_argument("--out", required=True, metavar="OUT", help="output folder (must not exist unless --overwrite)")
-    p.add_argument("--width", type=int, metavar="W", help="output width in px; intrinsics are scaled (alone: "
-                   "the height keeps CAM_JSON's aspect ratio)")
-    p.add_argument("--height", type=int, metavar="H", help="output height in px; intrinsics are scaled (alone: "
-                   "the width keeps CAM_JSON's aspect ratio)")
+    p.add_argument(
+        "--width",
+        type=int,
+        metavar="W",
+        help="output width in px; intrinsics are scaled (alone: the height keeps CAM_JSON's aspect ratio)",
+    )
+    p.add_argument(
+        "--height",
+        type=int,
+        metavar="H",
+        help="output height in px; intrinsics are scaled (alone: the width keeps CAM_JSON's aspect ratio)",
+    )
     p.add_argument("--stride", type=int, default=1, metavar="S", help="render every S-th pose of TRAJ (default 1)")
     p.add_argument("--max-frames", type=int, metavar="N", help="render at most N frames (after --stride; default all)")
     p.add_argument(

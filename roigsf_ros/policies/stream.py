@@ -105,6 +105,12 @@ class StreamNBVPolicy(KeyframePolicy):
       ``adaptive_ratio`` (1.0) x the median of the last ``adaptive_history`` (8) triggers' best gains, or
       after ``adaptive_max_gap`` (4) triggers without a keyframe; a skipped window's frames stay candidates.
       Use it with ``trigger_every`` < ``window`` so that the keyframe rate adapts around 1 / (2 trigger_every).
+      "budget" (beyond the paper) keeps the paper's keyframe count but not its spacing: each frame earns
+      1 / ``budget_every`` (None: ``window``) of a keyframe, at most ``budget_burst`` (3) are banked, and a trigger
+      holding a whole one inserts its best when the gain reaches ``adaptive_ratio`` x the median of the recent
+      triggers' gains, or when the next trigger would overflow the bank; so a sequence of F frames yields at most
+      1 + (F - 1) // ``budget_every`` keyframes, placed where the gain is high. The gain is the unseen fraction
+      U when ``unseen_weight`` > 0 (new space is what a keyframe should bring), else F (Eq. 10) / I_vis.
     - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m`` and any
       other :class:`roigsf_ros.nbv.config.NBVConfig` field by name (e.g. ``unseen_weight``): passed to the
       scorer's config (None: its default). The mode is the policy name; unknown names raise InputError.
@@ -141,6 +147,8 @@ class StreamNBVPolicy(KeyframePolicy):
         adaptive_ratio: float = 1.0,
         adaptive_history: int = 8,
         adaptive_max_gap: int = 4,
+        budget_every: float | None = None,
+        budget_burst: float = 3.0,
         **nbv_options: Any,
     ) -> None:
         self.candidates = CandidateWindow(window, trigger_every)
@@ -148,13 +156,22 @@ class StreamNBVPolicy(KeyframePolicy):
             raise InputError("min_alpha", f"must be in [0, 1], got {min_alpha}")
         if trigger not in TRIGGERS:
             raise InputError("trigger", f"must be one of {', '.join(TRIGGERS)}, got {trigger!r}")
-        if trigger == "adaptive" and self.mode is None:
-            raise InputError("trigger", "'adaptive' needs a scored mode (random has no gain)")
+        if trigger != "window" and self.mode is None:
+            raise InputError("trigger", f"{trigger!r} needs a scored mode (random has no gain)")
         if not (np.isfinite(adaptive_ratio) and adaptive_ratio >= 0):
             raise InputError("adaptive_ratio", f"must be a finite number >= 0, got {adaptive_ratio!r}")
         for name, v in (("adaptive_history", adaptive_history), ("adaptive_max_gap", adaptive_max_gap)):
             if int(v) != v or int(v) < 1:
                 raise InputError(name, f"must be a positive integer, got {v!r}")
+        budget_every = float(self.candidates.window if budget_every is None else budget_every)
+        every = self.candidates.trigger_every
+        if trigger == "budget" and not (np.isfinite(budget_every) and budget_every >= every):
+            raise InputError("budget_every", f"must be >= trigger_every ({every}), got {budget_every!r}")
+        if trigger == "budget" and not (np.isfinite(budget_burst) and budget_burst >= 1 + every / budget_every):
+            raise InputError("budget_burst", f"must be >= 1 + trigger_every / budget_every "
+                             f"({1 + every / budget_every:g}), got {budget_burst!r}")  # fmt: skip
+        self.budget_every = budget_every
+        self.budget_burst = float(budget_burst)
         self.trigger = trigger
         self.adaptive_ratio = float(adaptive_ratio)
         self.adaptive_history = int(adaptive_history)
@@ -193,13 +210,19 @@ class StreamNBVPolicy(KeyframePolicy):
         self.skipped_triggers = 0
         """Triggers that inserted no keyframe (``trigger="adaptive"``)."""
         self._gap = 0
+        self.tokens = 0.0
+        """Keyframes banked (``trigger="budget"``): + 1 / ``budget_every`` per frame after the first."""
 
     def params(self) -> dict[str, Any]:
         """Window, trigger, seed, TSDF settings and the NBV overrides, for metrics.json."""
         out: dict[str, Any] = {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed}
-        if self.trigger != "window":
+        if self.trigger == "adaptive":
             out |= {"trigger": self.trigger, "adaptive_ratio": self.adaptive_ratio,
                     "adaptive_history": self.adaptive_history, "adaptive_max_gap": self.adaptive_max_gap}  # fmt: skip
+        elif self.trigger == "budget":
+            out |= {"trigger": self.trigger, "adaptive_ratio": self.adaptive_ratio,
+                    "adaptive_history": self.adaptive_history, "budget_every": self.budget_every,
+                    "budget_burst": self.budget_burst}  # fmt: skip
         out |= {"voxel_size_m": self.voxel_size_m, "sdf_trunc_m": self.sdf_trunc_m, "min_alpha": self.min_alpha}
         return out | dict(self._nbv_overrides)
 
@@ -282,43 +305,57 @@ class StreamNBVPolicy(KeyframePolicy):
             return []
         self.sync_tsdf(keyframe_map)
         candidates, first = self.candidates.push(frame)
+        if not first:
+            self.tokens = min(self.tokens + 1.0 / self.budget_every, self.budget_burst)
         if first or not candidates:
             return candidates
+        if self.trigger == "budget" and self.tokens < 1.0 - 1e-9:
+            self.skipped_triggers += 1  # nothing banked: not even scored; the window's frames stay candidates
+            return []
         self.last_candidate_ids = [f.index for f in candidates]
         pick = self.choose(candidates, keyframe_map)
         winner = candidates[pick]
         self.triggers += 1
-        if self.trigger == "adaptive" and not self._accept(pick):
+        if self.trigger != "window" and not self._accept(pick):
             self.skipped_triggers += 1  # the window's frames stay candidates
             return []
+        if self.trigger == "budget":
+            self.tokens -= 1.0
         self.candidates.remove(winner)
         self.inserted_ids.append(int(winner.index))
         return [winner]
 
     def gain(self, pick: int) -> float:
         """Raw (not z-scored, so comparable across windows) expected gain of candidate ``pick`` of the last
-        trigger: F of Eq. 10 for the Fisher modes, I_vis of Eq. 14 for close-front.
+        trigger: F of Eq. 10 for the Fisher modes, I_vis of Eq. 14 for close-front; for ``trigger="budget"``
+        with the unseen term on, its unseen fraction U.
         """
         r = self.last_result
         if r is None:
             return 0.0
+        if self.trigger == "budget" and getattr(r, "unseen", None) is not None:
+            return float(r.unseen[pick])
         return float(r.close_front[pick] if self.mode == "close-front" else r.fisher[pick])
 
     def _accept(self, pick: int) -> bool:
-        """Adaptive trigger (beyond the paper): insert the window's best only when its raw gain reaches
-        ``adaptive_ratio`` x the median of the last ``adaptive_history`` triggers' best gains, or when
-        ``adaptive_max_gap`` triggers in a row inserted nothing. The first two triggers always insert.
+        """Adaptive and budget triggers (beyond the paper): insert the window's best only when its raw gain reaches
+        ``adaptive_ratio`` x the median of the last ``adaptive_history`` triggers' best gains, or when forced:
+        ``adaptive_max_gap`` triggers in a row inserted nothing ("adaptive"), or the bank would overflow by the
+        next trigger ("budget"). The first two triggers always insert.
         """
         g = self.gain(pick)
         ok = len(self.gains) < 2 or g >= self.adaptive_ratio * float(np.median(self.gains))
-        ok = ok or self._gap + 1 >= self.adaptive_max_gap
+        if self.trigger == "budget":
+            ok = ok or self.tokens + self.trigger_every / self.budget_every > self.budget_burst + 1e-9
+        else:
+            ok = ok or self._gap + 1 >= self.adaptive_max_gap
         self.gains.append(g)
         self._gap = 0 if ok else self._gap + 1
         return ok
 
 
-TRIGGERS = ("window", "adaptive")
-"""Stream triggers: ``window`` (the paper's setting: one keyframe per trigger) or ``adaptive`` (see
+TRIGGERS = ("window", "adaptive", "budget")
+"""Stream triggers: ``window`` (the paper's setting: one keyframe per trigger), ``adaptive`` or ``budget`` (see
 :meth:`StreamNBVPolicy._accept`)."""
 
 
