@@ -23,6 +23,9 @@ from roigsf_ros.nbv.scorer import (
     downsampled,
     frustum_meets_box,
     fuse_scores,
+    gain_with,
+    information_gain,
+    inverse_denominators,
     rank_candidates,
     zscore,
 )
@@ -473,3 +476,18 @@ def test_unseen_term_ignores_rays_that_miss_the_mapped_region(world: World) -> N
         world.map, world.h_train, world.tsdf, world.train, cands, INTR
     )
     assert res.unseen[2] == 1.0 and not res.flagged[2]  # without the box every empty pixel counts
+
+
+def test_information_gain_is_eq10_summed_over_the_parameters() -> None:
+    """Eq. 10 with the denominators precomputed once per score() call equals the plain per-entry formula."""
+    g = torch.Generator().manual_seed(3)
+    f = {"means": torch.rand(50, 3, generator=g), "log_scales": torch.rand(50, 2, generator=g)}
+    h = {k: torch.rand(v.shape, generator=g) * 10 for k, v in f.items()} | {"quats": torch.ones(50, 4)}
+    plain = sum(float((f[k].double() / (h[k].double() + 0.1)).sum()) for k in f)
+    assert information_gain(f, h, 0.1) == pytest.approx(plain, rel=1e-12)
+    inv = inverse_denominators(h, {k: tuple(v.shape) for k, v in f.items()}, 0.1)
+    assert gain_with(f, inv) == pytest.approx(plain, rel=1e-12)
+    with pytest.raises(InputError, match="no entry 'opacity_logits'"):
+        information_gain(f | {"opacity_logits": torch.ones(50, 1)}, h, 0.1)
+    with pytest.raises(InputError, match="'means' has shape"):
+        information_gain({"means": torch.ones(49, 3)}, h, 0.1)

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import ast
 import importlib
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -137,3 +140,14 @@ def test_layer_exports_are_its_modules_public_names() -> None:
             if path.name != "__init__.py" and module_name(path) != "roigsf_ros.render.reference":
                 union |= set(importlib.import_module(module_name(path)).__all__)
         assert set(pkg.__all__) == union, f"roigsf_ros.{name}: {sorted(set(pkg.__all__) ^ union)}"
+
+
+def test_importing_torch_first_warns_that_openmp_will_spin() -> None:
+    """OMP_WAIT_POLICY=PASSIVE only takes effect before torch loads: importing torch first must say so."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = "import os, warnings; warnings.simplefilter('error'); {}; import roigsf_ros\n"
+    code += "print(os.environ['OMP_WAIT_POLICY'])"
+    late = subprocess.run([sys.executable, "-c", code.format("import torch")], env=env, capture_output=True, text=True)
+    assert late.returncode != 0 and "import roigsf_ros first" in late.stderr
+    first = subprocess.run([sys.executable, "-c", code.format("pass")], env=env, capture_output=True, text=True)
+    assert first.returncode == 0 and first.stdout.strip() == "PASSIVE", first.stderr

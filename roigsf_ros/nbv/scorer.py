@@ -97,14 +97,33 @@ def rank_candidates(scores: np.ndarray, flagged: np.ndarray | None = None) -> np
 # ------------------------------------------------------------------------------ Fisher scores
 def information_gain(f_cand: dict[str, Tensor], h_train: dict[str, Tensor], prior: float) -> float:
     """Eq. 10 / Eq. 5 (FisherRF reading): ``sum_k F_cand_k / (H_train_k + prior)`` over ``f_cand``'s entries."""
-    total = 0.0
-    for name, f in f_cand.items():
+    return gain_with(f_cand, inverse_denominators(h_train, {k: tuple(f.shape) for k, f in f_cand.items()}, prior))
+
+
+def inverse_denominators(
+    h_train: dict[str, Tensor], shapes: dict[str, tuple[int, ...]], prior: float
+) -> dict[str, np.ndarray]:
+    """``1 / (H_train_k + prior)`` (float64, flat) for each parameter of ``shapes``: Eq. 10's per-entry weights.
+
+    Computed once per ``score()`` call, not once per candidate, and as numpy arrays: the per-candidate sum is
+    then one conversion and one dot product (0.15 ms against 0.37 ms for the per-candidate torch formula).
+    """
+    out = {}
+    for name, shape in shapes.items():
         h = h_train.get(name)
         if h is None:
             raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
-        if h.shape != f.shape:
-            raise InputError("h_train", f"'{name}' has shape {list(h.shape)}, the map needs {list(f.shape)}")
-        total += float((f.double() / (h.double().to(f.device) + prior)).sum())
+        if tuple(h.shape) != tuple(shape):
+            raise InputError("h_train", f"'{name}' has shape {list(h.shape)}, the map needs {list(shape)}")
+        out[name] = 1.0 / (h.detach().to("cpu", torch.float64).numpy().reshape(-1) + prior)
+    return out
+
+
+def gain_with(f_cand: dict[str, Tensor], inv: dict[str, np.ndarray]) -> float:
+    """``sum_k F_cand_k * inv_k`` over ``f_cand``'s entries (``inv`` from :func:`inverse_denominators`)."""
+    total = 0.0
+    for name, f in f_cand.items():
+        total += float(np.dot(f.detach().cpu().numpy().reshape(-1).astype(np.float64), inv[name]))
     return total
 
 
@@ -438,6 +457,7 @@ class NBVScorer:
 
         t0 = _clock()
         h = None
+        inv: dict[str, np.ndarray] = {}
         if need_fisher and not empty_map:
             if mode == "fisherrf":
                 params = [p for p in cfg.fisherrf_params if p != "sh_rest" or surfel_map.sh_rest is not None]
@@ -445,6 +465,8 @@ class NBVScorer:
                 params = [p for p in cfg.fisher_params if p != "sh_rest" or surfel_map.sh_rest is not None]
             h = h_train if h_train is not None else self.train_fisher(surfel_map, poses, intr, mode, should_stop)
             _check_h_train(h, surfel_map, params)
+            prior = cfg.fisherrf_lambda if mode == "fisherrf" else cfg.phi
+            inv = inverse_denominators(h, {k: tuple(getattr(surfel_map, k).shape) for k in params}, prior)
         timings["h_train"], cpu["h_train"] = map(float, _since(t0))
 
         ds = cfg.fisher_downsample
@@ -490,9 +512,9 @@ class NBVScorer:
                     cf[chunk] = rois.close_front
             acc["roi"] += _since(t0)
             for j, i in enumerate(chunk):
-                self._fisher_and_unseen(surfel_map, h, params if h is not None else [], cands[i], i, mode, intr_f,
-                                        rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
-                                        unseen, should_stop, acc)  # fmt: skip
+                self._fisher_and_unseen(surfel_map, h, inv, params if h is not None else [], cands[i], i, mode,
+                                        intr_f, rois.weights[j] if rois is not None else None, mass[i], vox, fisher,
+                                        flagged, unseen, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -548,6 +570,7 @@ class NBVScorer:
         self,
         surfel_map: SurfelMap,
         h: dict[str, Tensor] | None,
+        inv: dict[str, np.ndarray],
         params: list[str],
         T: np.ndarray,
         i: int,
@@ -574,14 +597,14 @@ class NBVScorer:
                     w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
                 f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisherrf_outputs, params=params,
                                 pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                fisher[i] = information_gain(f, h, cfg.fisherrf_lambda)
+                fisher[i] = gain_with(f, inv)
                 flagged[i] = not any(bool(t.any()) for t in f.values())
             elif roi_weights is not None and mass > 0:
                 w = block_mean(roi_weights, ds) * (ds * ds / cfg.sigma_p**2)
                 w = torch.as_tensor(w, dtype=surfel_map.dtype)
                 f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
                                 pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                fisher[i] = information_gain(f, h, cfg.phi)
+                fisher[i] = gain_with(f, inv)
         if unseen is not None and len(surfel_map) > 0:
             with torch.no_grad():
                 alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
@@ -696,7 +719,9 @@ __all__ = [
     "downsampled",
     "frustum_meets_box",
     "fuse_scores",
+    "gain_with",
     "information_gain",
+    "inverse_denominators",
     "rank_candidates",
     "rays_meet_box",
     "render_surfel_scalar",
