@@ -432,3 +432,21 @@ def test_synth_object_scene_is_an_orbit_around_primitives_with_an_empty_backgrou
     again = scene.synth_object(0)
     assert np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_object(0).vertices))
     assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_object(1).vertices))
+
+
+def test_synth_object_dome_views_the_objects_from_a_hemisphere(tmp_path: Path) -> None:
+    """``scene synth --kind object-dome``: the same objects, every view sees them, from 10-75 deg elevation."""
+    out = tmp_path / "dome"
+    assert main(["scene", "synth", "--kind", "object-dome", "--frames", "8", "--width", "48", "--out", str(out)]) == 0
+    seq = ReplicaSequence(out)
+    assert len(seq) == 8
+    elev, azim = [], []
+    for frame in seq:
+        assert (frame.depth_m > 0).mean() > 0.05  # the object is in view
+        rel = frame.T_wc[:3, 3] - np.array([0.0, 0.0, 0.1])
+        r = np.linalg.norm(rel)
+        assert 1.0 - 1e-9 <= r <= 1.3 + 1e-9
+        elev.append(np.degrees(np.arcsin(rel[2] / r)))
+        azim.append(np.degrees(np.arctan2(rel[1], rel[0])))
+    assert min(elev) >= 10.0 and max(elev) <= 75.0 and np.all(np.diff(elev) > 0)  # rising along the sequence
+    assert len({round(a) for a in azim}) == 8  # golden-angle azimuths: no two views from one direction

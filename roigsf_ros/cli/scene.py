@@ -110,7 +110,14 @@ def _render(args: argparse.Namespace) -> int:
 
 def _synth(args: argparse.Namespace) -> int:
     """Handler of ``scene synth``."""
-    from roigsf_ros.data.scene import orbit_trajectory, render_sequence, synth_object, synth_room, synth_trajectory
+    from roigsf_ros.data.scene import (
+        dome_trajectory,
+        orbit_trajectory,
+        render_sequence,
+        synth_object,
+        synth_room,
+        synth_trajectory,
+    )
 
     out = Path(args.out)
     check_out(out, args.overwrite)
@@ -122,6 +129,8 @@ def _synth(args: argparse.Namespace) -> int:
     intr = synth_intrinsics(*derive_size(*size, (SYNTH_WIDTH, SYNTH_HEIGHT)))
     if args.kind == "object":
         mesh, poses = synth_object(args.seed), orbit_trajectory(args.frames)
+    elif args.kind == "object-dome":
+        mesh, poses = synth_object(args.seed), dome_trajectory(args.frames)
     else:
         mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
@@ -235,10 +244,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--kind",
-        choices=("room", "object"),
+        choices=("room", "object", "object-dome"),
         default="room",
         help="room: the procedural room and a handheld loop inside it (default); object: an object-centric scene "
-        "(five primitives on a disc) and one orbit around it, the background empty (no depth)",
+        "(five primitives on a disc) and one orbit around it, the background empty (no depth); object-dome: the "
+        "same objects seen from a hemisphere of viewpoints (10-75 deg elevation, 1.0-1.3 m)",
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(

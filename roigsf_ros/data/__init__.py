@@ -66,6 +66,7 @@ __all__, __getattr__ = lazy_exports(
             "ROOM_MAX",
             "ROOM_MIN",
             "camera_rays",
+            "dome_trajectory",
             "load_mesh",
             "look_at",
             "orbit_trajectory",

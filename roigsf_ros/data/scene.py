@@ -703,12 +703,33 @@ def orbit_trajectory(n_frames: int) -> np.ndarray:
     return np.stack(poses)
 
 
+def dome_trajectory(n_frames: int) -> np.ndarray:
+    """[N, 4, 4] cameras on a hemisphere over :func:`synth_object`, looking at it: 10-75 deg elevation, 1.0-1.3 m.
+
+    Golden-angle azimuths with the elevation rising along the sequence (equal area per view), so the views see
+    the parts' tops, sides and the gaps between them (one orbit at one height leaves little to choose).
+    """
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    lo, hi = np.sin(np.radians(10.0)), np.sin(np.radians(75.0))
+    poses = []
+    for i in range(int(n_frames)):
+        u = (i + 0.5) / n_frames
+        elev = np.arcsin(lo + (hi - lo) * u)
+        a = golden * i
+        r = 1.0 + 0.3 * ((i * 0.618034) % 1.0)
+        eye = np.array([r * np.cos(elev) * np.cos(a), r * np.cos(elev) * np.sin(a), 0.1 + r * np.sin(elev)])
+        target = np.array([0.15 * np.cos(3 * a), 0.15 * np.sin(3 * a), 0.15])
+        poses.append(look_at(eye, target, np.array([0.0, 0.0, 1.0])))
+    return np.stack(poses)
+
+
 __all__ = [
     "REPLICA_PIXEL_OFFSET",
     "ROOM_MAX",
     "ROOM_MIN",
     "MeshRenderer",
     "camera_rays",
+    "dome_trajectory",
     "load_mesh",
     "look_at",
     "orbit_trajectory",
