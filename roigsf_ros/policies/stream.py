@@ -206,9 +206,10 @@ class StreamNBVPolicy(KeyframePolicy):
         self.last_result: NBVResult | None = None
         self.last_candidate_ids: list[int] = []
         self.gains: deque[float] = deque(maxlen=self.adaptive_history)
-        """Raw gains of the recent triggers' best candidates (``trigger="adaptive"``)."""
+        """Raw gains of the recent triggers' best candidates (``trigger="adaptive"`` or ``"budget"``)."""
         self.skipped_triggers = 0
-        """Triggers that inserted no keyframe (``trigger="adaptive"``)."""
+        """Triggers that inserted no keyframe (``trigger="adaptive"`` or ``"budget"``; with "budget" also those
+        that were not scored because less than a whole keyframe was banked)."""
         self._gap = 0
         self.tokens = 0.0
         """Keyframes banked (``trigger="budget"``): + 1 / ``budget_every`` per frame after the first."""
