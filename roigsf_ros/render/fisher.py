@@ -302,13 +302,13 @@ def _fisher_numba(
     sizes = [leaves[k][0].numel() for k in names]
     D = sum(sizes)
     cols = {k: slice(sum(sizes[: names.index(k)]), sum(sizes[: names.index(k) + 1])) for k in names}
-    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nv, 14, D].
+    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nv, D, 14].
     colmap = np.full(10, -1, np.int64)
     for k, sl in _JAC_COLS.items():
         if k in cols:
             colmap[sl] = np.arange(cols[k].start, cols[k].stop)
     pk = np.empty((nv, NPACK))
-    jac = np.empty((nv, NPACK, D))
+    jac = np.empty((nv, D, NPACK))
     with KERNEL_LOCK:
         _KERNELS["jacobian"](
             means[vis_np], quats[vis_np], log_s[vis_np], logits[vis_np], V, Km, float(near), float(far), colmap, pk, jac
@@ -339,9 +339,12 @@ def _fisher_numba(
     work = work.reshape(nby, qb, nbx, qb).sum((1, 3)).reshape(-1) + 1
     bounds = balanced_bounds(torch.from_numpy(work), nb)
     out = np.zeros((nb, nv, D), np.float64)
+    zero_col = np.ones(D, np.bool_)  # the parameters the packed rows do not depend on
+    zero_col[colmap[colmap >= 0]] = False
     with KERNEL_LOCK:
         _FISHER_KERNELS["fisher"](
-            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, H, nbx, wts, out,
+            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, H, nbx, wts, zero_col,
+            out,
         )  # fmt: skip
     total = torch.from_numpy(out.sum(0)).to(dt)
     for k in names:
@@ -367,13 +370,13 @@ def packed_jacobian(m: SurfelMap, viewmat: Tensor, K: Tensor, near: float, far: 
     d = m.detach()
     n = len(d)
     pk = np.empty((n, NPACK))
-    jac = np.empty((n, NPACK, 10))
+    jac = np.empty((n, 10, NPACK))
     with KERNEL_LOCK:
         _KERNELS["jacobian"](
             _f64(d.means), _f64(d.quats), _f64(d.log_scales), _f64(d.opacity_logits), _f64(viewmat), _f64(K),
             float(near), float(far), np.arange(10), pk, jac,
         )  # fmt: skip
-    return pk, np.ascontiguousarray(jac.transpose(0, 2, 1))
+    return pk, jac
 
 
 def _k_jacobian(
@@ -391,8 +394,9 @@ def _k_jacobian(
 ) -> None:
     """Forward-mode derivatives of :func:`roigsf_ros.render.rasterize.project_packed`, one surfel at a time (numba).
 
-    ``jac`` [N, 14, D]: column ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
-    quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other columns are zero.
+    ``jac`` [N, D, 14]: row ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
+    quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other rows are zero. Parameter-major, so
+    that the Fisher kernel reads one parameter's 14 derivatives from one cache line pair.
     """
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = (
@@ -408,9 +412,9 @@ def _k_jacobian(
     )
     t0, t1, t2 = V[0, 3], V[1, 3], V[2, 3]
     for i in prange(means.shape[0]):
-        for r in range(14):
-            for c in range(jac.shape[2]):
-                jac[i, r, c] = 0.0
+        for c in range(jac.shape[1]):
+            for r in range(14):
+                jac[i, c, r] = 0.0
         qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         nq = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         nc = max(nq, 1e-12)
@@ -449,7 +453,7 @@ def _k_jacobian(
             if col < 0:
                 continue
             if j == 9:
-                jac[i, 13, col] = opa * (1.0 - opa)
+                jac[i, col, 13] = opa * (1.0 - opa)
                 continue
             da0 = da1 = da2 = db0 = db1 = db2 = dc0 = dc1 = dc2 = 0.0
             if j < 3:
@@ -496,23 +500,23 @@ def _k_jacobian(
             dax2 = du1 * v2 + u1 * dv2 - du2 * v1 - u2 * dv1
             day2 = du2 * v0 + u2 * dv0 - du0 * v2 - u0 * dv2
             daz2 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
-            jac[i, 0, col] = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
-            jac[i, 1, col] = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
-            jac[i, 2, col] = dax2
-            jac[i, 3, col] = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
-            jac[i, 4, col] = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
-            jac[i, 5, col] = day2
-            jac[i, 6, col] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
-            jac[i, 7, col] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
-            jac[i, 8, col] = daz2
-            jac[i, 9, col] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
-            jac[i, 10, col] = dw2
+            jac[i, col, 0] = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
+            jac[i, col, 1] = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
+            jac[i, col, 2] = dax2
+            jac[i, col, 3] = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
+            jac[i, col, 4] = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
+            jac[i, col, 5] = day2
+            jac[i, col, 6] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
+            jac[i, col, 7] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
+            jac[i, col, 8] = daz2
+            jac[i, col, 9] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
+            jac[i, col, 10] = dw2
             if in_range:
-                jac[i, 11, col] = (du2 - u2 / zs * dw2) / zs
-                jac[i, 12, col] = (dv2 - v2 / zs * dw2) / zs
+                jac[i, col, 11] = (du2 - u2 / zs * dw2) / zs
+                jac[i, col, 12] = (dv2 - v2 / zs * dw2) / zs
             else:
-                jac[i, 11, col] = du2
-                jac[i, 12, col] = dv2
+                jac[i, col, 11] = du2
+                jac[i, col, 12] = dv2
 
 
 _BLOCK = 4
@@ -538,18 +542,19 @@ def _k_fisher(
     height: int,
     nbx: int,
     wts: np.ndarray,
+    zero_col: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """Block-major Fisher (numba): per 4x4 pixel block, the surfels its pixels accepted, each with
     the block's pixels as vector lanes.
 
-    ``jac`` [Nv, 14, D] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose
+    ``jac`` [Nv, D, 14] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose
     parameters are not in theta: colour for geometric Fisher, alpha), 1 (per-surfel value with
     derivative ``B`` [Nv, nch, D]) or 2 (the pair's depth). Kind-0 channels share one term
     ``a^2 sum_c g_c^2`` (``a = d alpha / d theta_j``), which also holds the ``(g_c a)^2`` of the kind-1
-    channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where ``B_cj != 0``, and an
-    all-zero Jacobian column (colour parameters) skips the chain rule. Per block: (0) a slot per
-    surfel that a pixel with a non-zero weight accepted, marking its lanes; (1) per slot, for all
+    channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where ``B_cj != 0``, and a
+    parameter the rows do not depend on (``zero_col`` [D]: colour parameters) skips the chain rule. Per
+    block: (0) a slot per surfel that a pixel with a non-zero weight accepted, marking its lanes; (1) per slot, for all
     lanes at once, alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
     (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre
     offset on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its
@@ -558,7 +563,7 @@ def _k_fisher(
     summed over the lanes.
     """
     nch = X.shape[1]
-    D = jac.shape[2]
+    D = jac.shape[1]
     nv = jac.shape[0]
     QB = _BLOCK
     Q = QB * QB
@@ -621,17 +626,16 @@ def _k_fisher(
                 for i in range(count[p]):
                     sid = local[pair_buf[off + i]]
                     s = slot_of[sid]
-                    if s < 0:
+                    if s < 0:  # (no array views in this per-pair loop: each would cost a refcount call)
                         s = ns
                         ns += 1
                         slot_of[sid] = s
                         s_sid[s] = sid
-                        Cs = C[s]
                         for k in range(Q):
-                            Cs[0, k] = 0.0
+                            C[s, 0, k] = 0.0
                         for f in range(13, _NF):
                             for k in range(Q):
-                                Cs[f, k] = 0.0
+                                C[s, f, k] = 0.0
                     C[s, 0, q] = 1.0
                     ps[npair] = s
                     npair += 1
@@ -761,15 +765,14 @@ def _k_fisher(
                 Js = jac[sid]
                 o = ob[sid]
                 for j in range(D):
-                    J0, J1, J2, J3, J4 = Js[0, j], Js[1, j], Js[2, j], Js[3, j], Js[4, j]
-                    J5, J6, J7, J8, J9 = Js[5, j], Js[6, j], Js[7, j], Js[8, j], Js[9, j]
-                    J10, J11, J12, J13 = Js[10, j], Js[11, j], Js[12, j], Js[13, j]
                     acc = 0.0
-                    # A zero column (colour parameters: the rows do not depend on them) has aj = 0.
-                    live = J0 != 0.0 or J1 != 0.0 or J2 != 0.0 or J3 != 0.0 or J4 != 0.0 or J5 != 0.0 or J6 != 0.0
-                    live = live or J7 != 0.0 or J8 != 0.0 or J9 != 0.0 or J10 != 0.0 or J11 != 0.0 or J12 != 0.0
-                    live = live or J13 != 0.0
-                    if live:
+                    if zero_col[j]:  # no geometric parameter (colour): the rows do not depend on it, aj = 0
+                        for q in range(Q):
+                            avs[q] = 0.0
+                    else:
+                        Jj = Js[j]
+                        J0, J1, J2, J3, J4, J5, J6 = Jj[0], Jj[1], Jj[2], Jj[3], Jj[4], Jj[5], Jj[6]
+                        J7, J8, J9, J10, J11, J12, J13 = Jj[7], Jj[8], Jj[9], Jj[10], Jj[11], Jj[12], Jj[13]
                         for q in range(Q):
                             x = float(x_base + q % QB)
                             y = float(y_base + q // QB)
@@ -779,9 +782,6 @@ def _k_fisher(
                             Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
                             acc += As[q] * aj * aj + wps[q] * Jd * Jd
                             avs[q] = aj
-                    else:
-                        for q in range(Q):
-                            avs[q] = 0.0
                     for f in range(n1):  # (g aj + w B)^2 - (g aj)^2 of the kind-1 channels
                         Bj = B[sid, ch1[f], j]
                         if Bj == 0.0:
