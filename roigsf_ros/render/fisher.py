@@ -622,7 +622,7 @@ def _k_fisher(
         s_e = np.empty(cap, np.int64)  # per slot: list position
         ps = np.empty(Q * cap, np.int64)  # the slot of each pair of the tile's pixels
         p0 = np.zeros(Q, np.int64)  # each pixel's first pair in ps
-        C = np.zeros((cap, _NF, Q))
+        C = np.empty((cap, _NF, Q))  # per slot: fields 0 and 13-17 zeroed in (0), the others written for all lanes
         G = np.zeros((cap, max(n1, 1), Q))
         ob = out[b]
         for t in range(bounds[b], bounds[b + 1]):
@@ -817,8 +817,7 @@ def _k_fisher(
                         Cs[11, q] *= wd
                         Cs[12, q] *= wd
                         Cs[15, q] = wp * (g0 * g0 + g1 * g1 + g2 * g2)
-                        Cs[16, q] = wp
-                        Cs[17, q] = w
+                        Cs[16, q] = wp  # (w, field 17, only serves kind-1 channels: none here)
                     continue
                 for c in range(nch):
                     Sg[c] = T * bg[c]
