@@ -404,7 +404,8 @@ def _k_jacobian(
 
     ``jac`` [N, D, 14]: row ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
     quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other rows are zero. Parameter-major, so
-    that the Fisher kernel reads one parameter's 14 derivatives from one cache line pair.
+    that the Fisher kernel reads one parameter's 14 derivatives from one cache line pair. Each kind of parameter
+    gets only the rows it moves, in closed form (the others stay exactly zero: :data:`_JAC_KINDS`).
     """
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = (
@@ -456,68 +457,27 @@ def _k_jacobian(
         pk[i, 0], pk[i, 1], pk[i, 2], pk[i, 3], pk[i, 4], pk[i, 5] = ax0, ax1, ax2, ay0, ay1, ay2
         pk[i, 6], pk[i, 7], pk[i, 8], pk[i, 9], pk[i, 10] = az0, az1, az2, det, zc
         pk[i, 11], pk[i, 12], pk[i, 13] = u2 / zs, v2 / zs, opa
-        for j in range(10):
+        if colmap[9] >= 0:
+            jac[i, colmap[9], 13] = opa * (1.0 - opa)
+        # The means move only the centre column (u2, v2, w2) of the splat-to-pixel matrix: by K R e_j.
+        for j in range(3):
             col = colmap[j]
             if col < 0:
                 continue
-            if j == 9:
-                jac[i, col, 13] = opa * (1.0 - opa)
-                continue
-            da0 = da1 = da2 = db0 = db1 = db2 = dc0 = dc1 = dc2 = 0.0
-            if j < 3:
-                dc0 = r00 if j == 0 else (r01 if j == 1 else r02)
-                dc1 = r10 if j == 0 else (r11 if j == 1 else r12)
-                dc2 = r20 if j == 0 else (r21 if j == 1 else r22)
-            elif j < 7:
-                # d qn / d q_e (e = j - 3): (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
-                e = j - 3
-                qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
-                if nq > 1e-12:
-                    dw = ((1.0 if e == 0 else 0.0) - w * qe) * inv_nq
-                    dx = ((1.0 if e == 1 else 0.0) - x * qe) * inv_nq
-                    dy = ((1.0 if e == 2 else 0.0) - y * qe) * inv_nq
-                    dz = ((1.0 if e == 3 else 0.0) - z * qe) * inv_nq
-                else:
-                    dw = (1.0 if e == 0 else 0.0) / 1e-12
-                    dx = (1.0 if e == 1 else 0.0) / 1e-12
-                    dy = (1.0 if e == 2 else 0.0) / 1e-12
-                    dz = (1.0 if e == 3 else 0.0) / 1e-12
-                dtu0 = -4 * (y * dy + z * dz)
-                dtu1 = 2 * (dx * y + x * dy + dw * z + w * dz)
-                dtu2 = 2 * (dx * z + x * dz - dw * y - w * dy)
-                dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
-                dtv1 = -4 * (x * dx + z * dz)
-                dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
-                da0 = (r00 * dtu0 + r01 * dtu1 + r02 * dtu2) * su
-                da1 = (r10 * dtu0 + r11 * dtu1 + r12 * dtu2) * su
-                da2 = (r20 * dtu0 + r21 * dtu1 + r22 * dtu2) * su
-                db0 = (r00 * dtv0 + r01 * dtv1 + r02 * dtv2) * sv
-                db1 = (r10 * dtv0 + r11 * dtv1 + r12 * dtv2) * sv
-                db2 = (r20 * dtv0 + r21 * dtv1 + r22 * dtv2) * sv
-            elif j == 7:
-                da0, da1, da2 = a0, a1, a2
-            else:
-                db0, db1, db2 = b0, b1, b2
-            du0, du1, du2 = (
-                k00 * da0 + k01 * da1 + k02 * da2,
-                k00 * db0 + k01 * db1 + k02 * db2,
-                k00 * dc0 + k01 * dc1 + k02 * dc2,
-            )
-            dv0, dv1, dv2 = k11 * da1 + k12 * da2, k11 * db1 + k12 * db2, k11 * dc1 + k12 * dc2
-            dw0, dw1, dw2 = da2, db2, dc2
-            dax2 = du1 * v2 + u1 * dv2 - du2 * v1 - u2 * dv1
-            day2 = du2 * v0 + u2 * dv0 - du0 * v2 - u0 * dv2
-            daz2 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
-            jac[i, col, 0] = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
-            jac[i, col, 1] = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
-            jac[i, col, 2] = dax2
-            jac[i, col, 3] = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
-            jac[i, col, 4] = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
-            jac[i, col, 5] = day2
-            jac[i, col, 6] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
-            jac[i, col, 7] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
-            jac[i, col, 8] = daz2
-            jac[i, col, 9] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
+            dc0 = r00 if j == 0 else (r01 if j == 1 else r02)
+            dc1 = r10 if j == 0 else (r11 if j == 1 else r12)
+            dw2 = r20 if j == 0 else (r21 if j == 1 else r22)
+            du2 = k00 * dc0 + k01 * dc1 + k02 * dw2
+            dv2 = k11 * dc1 + k12 * dw2
+            J2 = u1 * dv2 - du2 * v1
+            J5 = du2 * v0 - u0 * dv2
+            jac[i, col, 0] = dw2 * v1 - w1 * dv2
+            jac[i, col, 1] = du2 * w1 - u1 * dw2
+            jac[i, col, 2] = J2
+            jac[i, col, 3] = w0 * dv2 - dw2 * v0
+            jac[i, col, 4] = u0 * dw2 - du2 * w0
+            jac[i, col, 5] = J5
+            jac[i, col, 9] = w0 * J2 + w1 * J5 + dw2 * az2
             jac[i, col, 10] = dw2
             if in_range:
                 jac[i, col, 11] = (du2 - u2 / zs * dw2) / zs
@@ -525,6 +485,59 @@ def _k_jacobian(
             else:
                 jac[i, col, 11] = du2
                 jac[i, col, 12] = dv2
+        # The quaternion moves the axis columns (u0, v0, w0) and (u1, v1, w1): K R (d t_u / d q) s_u and the same for v.
+        for e in range(4):
+            col = colmap[3 + e]
+            if col < 0:
+                continue
+            # d qn / d q_e: (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
+            qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
+            if nq > 1e-12:
+                dw = ((1.0 if e == 0 else 0.0) - w * qe) * inv_nq
+                dx = ((1.0 if e == 1 else 0.0) - x * qe) * inv_nq
+                dy = ((1.0 if e == 2 else 0.0) - y * qe) * inv_nq
+                dz = ((1.0 if e == 3 else 0.0) - z * qe) * inv_nq
+            else:
+                dw = (1.0 if e == 0 else 0.0) / 1e-12
+                dx = (1.0 if e == 1 else 0.0) / 1e-12
+                dy = (1.0 if e == 2 else 0.0) / 1e-12
+                dz = (1.0 if e == 3 else 0.0) / 1e-12
+            dtu0 = -4 * (y * dy + z * dz)
+            dtu1 = 2 * (dx * y + x * dy + dw * z + w * dz)
+            dtu2 = 2 * (dx * z + x * dz - dw * y - w * dy)
+            dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
+            dtv1 = -4 * (x * dx + z * dz)
+            dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
+            da0 = (r00 * dtu0 + r01 * dtu1 + r02 * dtu2) * su
+            da1 = (r10 * dtu0 + r11 * dtu1 + r12 * dtu2) * su
+            dw0 = (r20 * dtu0 + r21 * dtu1 + r22 * dtu2) * su
+            db0 = (r00 * dtv0 + r01 * dtv1 + r02 * dtv2) * sv
+            db1 = (r10 * dtv0 + r11 * dtv1 + r12 * dtv2) * sv
+            dw1 = (r20 * dtv0 + r21 * dtv1 + r22 * dtv2) * sv
+            du0, dv0 = k00 * da0 + k01 * da1 + k02 * dw0, k11 * da1 + k12 * dw0
+            du1, dv1 = k00 * db0 + k01 * db1 + k02 * dw1, k11 * db1 + k12 * dw1
+            J2 = du1 * v2 - u2 * dv1
+            J5 = u2 * dv0 - du0 * v2
+            J8 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
+            jac[i, col, 0] = w2 * dv1 - dw1 * v2
+            jac[i, col, 1] = u2 * dw1 - du1 * w2
+            jac[i, col, 2] = J2
+            jac[i, col, 3] = dw0 * v2 - w2 * dv0
+            jac[i, col, 4] = du0 * w2 - u2 * dw0
+            jac[i, col, 5] = J5
+            jac[i, col, 6] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
+            jac[i, col, 7] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
+            jac[i, col, 8] = J8
+            jac[i, col, 9] = dw0 * ax2 + w0 * J2 + dw1 * ay2 + w1 * J5 + w2 * J8
+        # The log scales scale one axis column each: d/d log s_u keeps rows ay, az, det; d/d log s_v rows ax, az, det.
+        col = colmap[7]
+        if col >= 0:
+            jac[i, col, 3], jac[i, col, 4], jac[i, col, 5] = ay0, ay1, ay2
+            jac[i, col, 6], jac[i, col, 7], jac[i, col, 8], jac[i, col, 9] = az0, az1, az2, det
+        col = colmap[8]
+        if col >= 0:
+            jac[i, col, 0], jac[i, col, 1], jac[i, col, 2] = ax0, ax1, ax2
+            jac[i, col, 6], jac[i, col, 7], jac[i, col, 8], jac[i, col, 9] = az0, az1, az2, det
 
 
 _BLOCK = 4
