@@ -585,12 +585,13 @@ def _k_fisher(
 
     Per tile: (W) the render's forward walk (the lane pass and front-to-back compositing of
     :func:`roigsf_ros.render.rasterize._k_forward`, same acceptance and early stop) over the pixels with a
-    non-zero weight, keeping each pixel's accepted list positions and final transmittance; (0) a slot per
-    accepted surfel, marking its lanes; (1) per slot, for all lanes at once, alpha and the few scalars of
-    ``d alpha / d packed`` and ``d depth / d packed`` (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the
-    opacity on the ray-splat branch, the centre offset on the fallback; zeros on unmarked lanes); (2) per
-    pixel, the back-to-front walk over its pairs for the compositing derivatives ``g``; (3) per slot, its
-    Jacobian read once, and per parameter the chain rule and the weighted squares summed over the lanes.
+    non-zero weight, keeping each pixel's final transmittance and, front to back, its accepted surfels as
+    (0) slots, one per accepted surfel of the tile, marking its lanes; (1) per slot, for all lanes at once,
+    alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
+    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre offset
+    on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its pairs for the
+    compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per parameter the chain rule
+    and the weighted squares summed over the lanes.
     Walking inside the kernel spares a separate forward pass and its stored pairs.
     """
     nch = X.shape[1]
@@ -627,14 +628,12 @@ def _k_fisher(
         Tq = np.empty(Q)
         cnt = np.zeros(Q, np.int64)
         done = np.empty(Q, np.bool_)
-        acc_e = np.empty((Q, cap), np.int64)  # each pixel's accepted list positions, front to back
         Sg = np.zeros(nch)  # the general walk's suffix sums
         slot_e = np.full(cap, -1, np.int64)  # the slot of each list position of the tile
         s_kid = np.empty(cap, np.int64)  # per slot: kept id (rows of pk)
         s_loc = np.empty(cap, np.int64)  # per slot: row of jac, X, B, out
         s_e = np.empty(cap, np.int64)  # per slot: list position
-        ps = np.empty(Q * cap, np.int64)  # the slot of each pair of the tile's pixels
-        p0 = np.zeros(Q, np.int64)  # each pixel's first pair in ps
+        ps = np.empty((Q, cap), np.int64)  # each pixel's accepted surfels (slots), front to back
         C = np.empty((cap, _NF, Q))  # per slot: fields 0 and 13-17 zeroed in (0), the others written for all lanes
         G = np.zeros((cap, max(n1, 1), Q))
         ob = out[b]
@@ -655,6 +654,7 @@ def _k_fisher(
                 done[q] = xi >= width or yi >= height or wts[min(yi, height - 1) * width + min(xi, width - 1)] == 0.0
                 if done[q]:
                     n_done += 1
+            ns = 0
             # (W) The walk: chunks of the depth-sorted list, a lane pass for alpha, then each pixel front to back.
             for lo in range(0, n_t, CH):
                 if n_done == Q:
@@ -720,35 +720,29 @@ def _k_fisher(
                             done[q] = True
                             n_done += 1
                             break
-                        acc_e[q, c] = lo + j
+                        # (0) A slot per accepted surfel, its lanes marked (no array views in this per-pair
+                        # loop: each would cost a refcount call).
+                        e = lo + j
+                        s = slot_e[e]
+                        if s < 0:
+                            s = ns
+                            ns += 1
+                            slot_e[e] = s
+                            s_e[s] = e
+                            kid = tl_surf[s0 + e]
+                            s_kid[s] = kid
+                            s_loc[s] = local[kid]
+                            for k in range(Q):
+                                C[s, 0, k] = 0.0
+                            for f in range(13, _NF):
+                                for k in range(Q):
+                                    C[s, f, k] = 0.0
+                        C[s, 0, q] = 1.0
+                        ps[q, c] = s
                         c += 1
                         T = test_T
                     Tq[q] = T
                     cnt[q] = c
-            # (0) Slots and lanes (no array views in this per-pair loop: each would cost a refcount call).
-            ns = 0
-            npair = 0
-            for q in range(Q):
-                p0[q] = npair
-                for i in range(cnt[q]):
-                    e = acc_e[q, i]
-                    s = slot_e[e]
-                    if s < 0:
-                        s = ns
-                        ns += 1
-                        slot_e[e] = s
-                        s_e[s] = e
-                        kid = tl_surf[s0 + e]
-                        s_kid[s] = kid
-                        s_loc[s] = local[kid]
-                        for k in range(Q):
-                            C[s, 0, k] = 0.0
-                        for f in range(13, _NF):
-                            for k in range(Q):
-                                C[s, f, k] = 0.0
-                    C[s, 0, q] = 1.0
-                    ps[npair] = s
-                    npair += 1
             # (1) Per slot, every lane at once (vectorised); unmarked lanes get zeros.
             for s in range(ns):
                 kid = s_kid[s]
@@ -807,9 +801,9 @@ def _k_fisher(
                 T = Tq[q]
                 if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
                     S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
-                    for i in range(p0[q] + cnt[q] - 1, p0[q] - 1, -1):
-                        sid = s_loc[ps[i]]
-                        Cs = C[ps[i]]
+                    for i in range(cnt[q] - 1, -1, -1):
+                        sid = s_loc[ps[q, i]]
+                        Cs = C[ps[q, i]]
                         im = Cs[2, q]
                         T = T * im
                         w = Cs[1, q] * T
@@ -834,8 +828,8 @@ def _k_fisher(
                     continue
                 for c in range(nch):
                     Sg[c] = T * bg[c]
-                for i in range(p0[q] + cnt[q] - 1, p0[q] - 1, -1):
-                    s = ps[i]
+                for i in range(cnt[q] - 1, -1, -1):
+                    s = ps[q, i]
                     sid = s_loc[s]
                     Cs = C[s]
                     im = Cs[2, q]
