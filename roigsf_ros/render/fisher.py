@@ -14,11 +14,12 @@ of per-surfel features (colour, normal) comes from a small per-surfel graph. Squ
 and summed per surfel. ``d alpha / d theta`` and ``d depth / d theta`` per (pixel, surfel) pair:
 
 - numba backend (CPU): the chain rule through the per-surfel Jacobian of the projected rows
-  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the visible surfels), in one
-  kernel over 4x4 pixel blocks: per block, each surfel its pixels accepted has the block's pixels as
-  vector lanes (alpha and the coefficients of ``d alpha / d packed`` and ``d depth / d packed`` for
-  all lanes at once), a back-to-front walk per pixel forms ``g``, and the surfel's Jacobian is read
-  once per block for the squares of all its pixels; pixels with zero weight (outside the ROI) are skipped;
+  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the surfels binned into a walked
+  tile), in one kernel over the render's 4x4 tiles: per tile, the render's forward walk finds the pairs
+  (no separate forward pass), each surfel its pixels accepted has the tile's pixels as vector lanes
+  (alpha and the coefficients of ``d alpha / d packed`` and ``d depth / d packed`` for all lanes at
+  once), a back-to-front walk per pixel forms ``g``, and the surfel's Jacobian is read once per tile for
+  the squares of all its pixels; pixels with zero weight (outside the ROI) are neither walked nor summed;
 - torch backend (any device): one backward pass over a graph in which every pair has its own leaf
   copy of its surfel's parameters (two passes with depth), in chunks of pairs.
 
@@ -112,7 +113,8 @@ def fisher_diag(
     Returns ``{name: tensor shaped like surfel_map.<name>}`` (detached, the map's dtype); surfels
     that contribute to no pixel get zeros. Colours are the map's (view-dependent with degree-1 SH).
     ``backend`` as in :func:`roigsf_ros.render.rasterize.rasterize_surfels` (numba: one fused CPU kernel;
-    torch: per-pair leaf copies, processed ``pair_chunk`` pairs at a time).
+    torch: per-pair leaf copies, processed ``pair_chunk`` pairs at a time). ``tile_size``: the torch backend's
+    pair search (the numba kernel walks 4x4 tiles; the pairs, so the result, do not depend on it).
     """
     outs = list(dict.fromkeys(outputs))
     bad = [o for o in outs if o not in OUTPUTS]
