@@ -215,7 +215,7 @@ def test_frustum_culling_keeps_every_surfel_that_reaches_a_pixel() -> None:
 
 @pytest.mark.skipif(not numba_available(), reason="no numba")
 def test_numba_blocks_match_torch_on_a_larger_view() -> None:
-    """The block-major numba kernel on many 4x4 pixel blocks (partial ones at the edges), ROI weights with
+    """The tile-major numba kernel on many 4x4 pixel tiles (partial ones at the edges), ROI weights with
     zeros, view-dependent colours and normals (channels with their own derivatives), alpha clamping and
     both alpha branches (ray-splat and the screen-space fallback), against the torch backend."""
     intr = Intrinsics(37, 29, 30.0, 30.5, 18.0, 14.0)
@@ -254,3 +254,95 @@ def test_numba_blocks_match_torch_on_a_larger_view() -> None:
         want = fisher_diag(mp, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="torch")
         assert_close(got, want)
         assert all(bool(v.abs().sum() > 0) for k, v in want.items() if k != "sh_dc" or "color" in outputs)
+
+
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_numba_tile_walk_matches_torch_on_long_lists_and_early_stop() -> None:
+    """The kernel's own walk: tile lists longer than one lane pass (several chunks), pixels that stop once
+    transmittance would drop below 1e-4, surfels behind the camera and beyond the far plane, ROI weights
+    with zero tiles and single zero pixels, partial edge tiles; against the torch backend."""
+    from roigsf_ros.render.rasterize import numba_bins
+
+    intr = Intrinsics(22, 17, 18.0, 18.5, 10.5, 8.0)
+    g = torch.Generator().manual_seed(13)
+    n = 320
+    m = scene(13, n=n)
+    m.means = torch.randn(n, 3, generator=g, dtype=F64) * torch.tensor([0.25, 0.2, 0.6], dtype=F64)
+    m.means[:, 2] += 2.0
+    m.log_scales = torch.log(torch.rand(n, 2, generator=g, dtype=F64) * 0.25 + 0.15)  # large: long lists
+    m.opacity_logits = torch.randn(n, generator=g, dtype=F64) * 0.5 + 1.0
+    m.means[:6, 2] = -1.0  # behind the camera
+    m.means[6:9, 2] = 150.0  # beyond the far plane
+    T = pose(13)
+    viewmat, K = camera_tensors(T, intr, dtype=F64)
+    f64 = [t.detach().numpy() for t in (m.means, m.quats, m.scales(), m.opacities())]
+    bn = numba_bins(*f64, viewmat.numpy(), K.numpy(), intr.width, intr.height)
+    assert bn.count.max() > 2 * 64  # lists of three lane passes and more
+    with torch.no_grad():
+        proj = project_packed(m.means, m.quats, m.scales(), m.opacities(), viewmat, K, 0.2, 100.0)[0]
+    ys, xs = torch.meshgrid(torch.arange(intr.height, dtype=F64), torch.arange(intr.width, dtype=F64), indexing="ij")
+    alpha, _, _ = pair_alpha_depth([r[:, None] for r in proj.unbind(0)], xs.reshape(1, -1), ys.reshape(1, -1))
+    T_all = torch.prod(1 - torch.where(alpha >= 1 / 255, alpha, 0.0), 0)
+    assert bool((T_all < 1e-4).any())  # some pixels stop before their last surfel
+    w = torch.rand(intr.height, intr.width, generator=g, dtype=F64) + 0.25
+    w[:4, :8] = 0  # two whole tiles
+    w[w < 0.4] = 0  # single pixels
+    for outputs, params, weights in (
+        (("color", "depth"), GEOMETRIC_PARAMS, w),
+        (("color", "depth"), GEOMETRIC_PARAMS, None),
+        (("color", "depth", "alpha", "normal"), ALL_PARAMS, w),
+    ):
+        got = fisher_diag(m, T, intr, outputs=outputs, params=params, pixel_weights=weights, backend="numba")
+        want = fisher_diag(m, T, intr, outputs=outputs, params=params, pixel_weights=weights, backend="torch")
+        assert_close(got, want)
+        assert all(torch.all(v[:9] == 0) for v in got.values())  # behind the camera, beyond the far plane
+        assert all(bool(v.abs().sum() > 0) for v in want.values())
+
+
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_numba_empty_and_sparse_views_match_torch() -> None:
+    """Views where the walk finds nothing (every surfel behind the camera; weights only where no surfel
+    reaches) give zeros, and one weighted pixel gives what the torch backend gives."""
+    m = scene(14, n=12)
+    T = pose(14)
+    behind = m.clone()
+    behind.means[:, 2] = -2.0
+    for backend in ("numba", "torch"):
+        got = fisher_diag(behind, T, INTR, params=ALL_PARAMS, backend=backend)
+        assert all(torch.all(v == 0) for v in got.values())
+    viewmat, K = camera_tensors(T, INTR, dtype=F64)
+    with torch.no_grad():
+        proj = project_packed(m.means, m.quats, m.scales(), m.opacities(), viewmat, K, 0.2, 100.0)[0]
+    ys, xs = torch.meshgrid(torch.arange(INTR.height, dtype=F64), torch.arange(INTR.width, dtype=F64), indexing="ij")
+    alpha, _, _ = pair_alpha_depth([r[:, None] for r in proj.unbind(0)], xs.reshape(1, -1), ys.reshape(1, -1))
+    reached = (alpha >= 1 / 255).any(0).reshape(INTR.height, INTR.width)
+    assert bool(reached.any()) and bool((~reached).any())
+    empty = torch.where(reached, 0.0, 1.0).to(F64)  # weights only on pixels no surfel reaches
+    got = fisher_diag(m, T, INTR, params=ALL_PARAMS, pixel_weights=empty, backend="numba")
+    assert all(torch.all(v == 0) for v in got.values())
+    one = torch.zeros(INTR.height, INTR.width, dtype=F64)
+    iy, ix = (int(i[0]) for i in torch.nonzero(reached, as_tuple=True))
+    one[iy, ix] = 3.0
+    for outputs in (("color", "depth"), ("alpha", "normal")):
+        got = fisher_diag(m, T, INTR, outputs=outputs, params=ALL_PARAMS, pixel_weights=one, backend="numba")
+        want = fisher_diag(m, T, INTR, outputs=outputs, params=ALL_PARAMS, pixel_weights=one, backend="torch")
+        assert_close(got, want)
+
+
+def test_packed_jacobian_zero_rows_per_parameter_kind() -> None:
+    """The packed rows a parameter cannot move are exactly zero in the closed-form Jacobian (the numba Fisher
+    kernel leaves them out of its chain rule): a mean moves neither the rows of the splat's axes (6-8) nor the
+    opacity, a quaternion or log scale neither the centre rows (10-12) nor the opacity, log scale u not rows
+    0-2, log scale v not rows 3-5, the opacity logit only the opacity."""
+    pytest.importorskip("numba")
+    m = scene(15, n=40, sh_rest=False)
+    m.means[0, 2] = 0.1  # centre nearer than the near plane (the centre rows use z = 1)
+    m.quats[1] *= 3.0
+    viewmat, K = camera_tensors(pose(15), INTR, dtype=F64)
+    _, jac = packed_jacobian(m, viewmat, K, 0.2, 100.0)  # [N, 10 parameters, 14 rows]
+    zero_rows = {(0, 1, 2): (6, 7, 8, 13), (3, 4, 5, 6): (10, 11, 12, 13), (7,): (0, 1, 2, 10, 11, 12, 13)}
+    zero_rows |= {(8,): (3, 4, 5, 10, 11, 12, 13), (9,): tuple(range(13))}
+    for params, rows in zero_rows.items():
+        block = jac[:, list(params)][:, :, list(rows)]
+        assert np.all(block == 0.0), (params, rows)
+    assert np.all(np.abs(jac).sum((0, 2)) > 0)  # every parameter moves some row

@@ -44,6 +44,7 @@ __all__, __getattr__ = lazy_exports(
             "camera_tensors",
             "composite_pairs",
             "exp_neg",
+            "numba_bins",
             "numba_forward",
             "numba_pairs",
             "pair_alpha_depth",

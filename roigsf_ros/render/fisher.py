@@ -14,11 +14,12 @@ of per-surfel features (colour, normal) comes from a small per-surfel graph. Squ
 and summed per surfel. ``d alpha / d theta`` and ``d depth / d theta`` per (pixel, surfel) pair:
 
 - numba backend (CPU): the chain rule through the per-surfel Jacobian of the projected rows
-  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the visible surfels), in one
-  kernel over 4x4 pixel blocks: per block, each surfel its pixels accepted has the block's pixels as
-  vector lanes (alpha and the coefficients of ``d alpha / d packed`` and ``d depth / d packed`` for
-  all lanes at once), a back-to-front walk per pixel forms ``g``, and the surfel's Jacobian is read
-  once per block for the squares of all its pixels; pixels with zero weight (outside the ROI) are skipped;
+  (``d packed / d theta`` in closed form, :func:`packed_jacobian`, for the surfels binned into a walked
+  tile), in one kernel over the render's 4x4 tiles: per tile, the render's forward walk finds the pairs
+  (no separate forward pass), each surfel its pixels accepted has the tile's pixels as vector lanes
+  (alpha and the coefficients of ``d alpha / d packed`` and ``d depth / d packed`` for all lanes at
+  once), a back-to-front walk per pixel forms ``g``, and the surfel's Jacobian is read once per tile for
+  the squares of all its pixels; pixels with zero weight (outside the ROI) are neither walked nor summed;
 - torch backend (any device): one backward pass over a graph in which every pair has its own leaf
   copy of its surfel's parameters (two passes with depth), in chunks of pairs.
 
@@ -38,14 +39,14 @@ from torch import Tensor
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, balanced_bounds, n_threads, prange, use_numba
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, prange, use_numba
 from roigsf_ros.render.rasterize import (
     NPACK,
     Pairs,
     Projection,
     camera_tensors,
     exp_neg,
-    numba_pairs,
+    numba_bins,
     pair_alpha_depth,
     project_packed,
     project_surfels,
@@ -112,7 +113,8 @@ def fisher_diag(
     Returns ``{name: tensor shaped like surfel_map.<name>}`` (detached, the map's dtype); surfels
     that contribute to no pixel get zeros. Colours are the map's (view-dependent with degree-1 SH).
     ``backend`` as in :func:`roigsf_ros.render.rasterize.rasterize_surfels` (numba: one fused CPU kernel;
-    torch: per-pair leaf copies, processed ``pair_chunk`` pairs at a time).
+    torch: per-pair leaf copies, processed ``pair_chunk`` pairs at a time). ``tile_size``: the torch backend's
+    pair search (the numba kernel walks 4x4 tiles; the pairs, so the result, do not depend on it).
     """
     outs = list(dict.fromkeys(outputs))
     bad = [o for o in outs if o not in OUTPUTS]
@@ -140,7 +142,7 @@ def fisher_diag(
     out = result if full else {k: torch.zeros_like(getattr(sub, k)) for k in names}
     cam = (viewmat, K, W, H, near, far)
     if use_numba(backend, sub.means):
-        _fisher_numba(sub, names, outs, cam, weights, bg, tile_size, out)
+        _fisher_numba(sub, names, outs, cam, weights, bg, out)
     else:
         with torch.no_grad():
             proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
@@ -275,47 +277,58 @@ def _fisher_numba(
     cam: tuple,
     weights: Tensor | None,
     bg: Tensor,
-    tile_size: int,
     result: dict[str, Tensor],
 ) -> None:
-    """Fisher with the numba kernels: the render's kernels for the pairs, then the block-major Fisher kernel.
+    """Fisher with the numba kernels: the render's projection and binning, then the tile-major Fisher kernel,
+    which walks each tile for its pairs itself (no separate forward pass).
 
-    ``d packed / d theta`` of the visible surfels comes from :func:`packed_jacobian`'s kernel (closed
-    form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
+    ``d packed / d theta`` of the surfels listed in a walked tile comes from :func:`packed_jacobian`'s kernel
+    (closed form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
     """
     viewmat, K, W, H, near, far = cam
     dt = m.dtype
     means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
     V, Km = _f64(viewmat), _f64(K)
     opac = 1.0 / (1.0 + np.exp(-logits))
-    # Pixels with zero weight need no pairs: tiles with none of the others are not walked.
+    # Pixels with zero weight need no pairs: tiles with none of the others get empty lists. The kernel's
+    # tiles are its 4x4 lane blocks (the pairs do not depend on the tile size).
     mask = None if weights is None else (weights != 0).numpy()
-    order, r = numba_pairs(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, tile_size, mask)
-    vis_rank = np.flatnonzero(r.vis)
-    if vis_rank.size == 0:
+    bn = numba_bins(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, _BLOCK, mask)
+    # Only the surfels listed in a walked tile can get a pair: Jacobians, features and outputs of those.
+    on = np.flatnonzero(bn.count > 0)
+    marks = np.zeros(bn.surf.size + 1, np.int64)
+    marks[bn.start[on]] += 1
+    marks[bn.start[on] + bn.count[on]] -= 1
+    listed = np.zeros(bn.order.size, np.bool_)
+    listed[bn.surf[np.cumsum(marks[:-1]) > 0]] = True
+    kept = np.flatnonzero(listed)  # kept ids (rows of bn.pk)
+    if kept.size == 0:
         return
-    vis_np = order[vis_rank]
-    vis = torch.from_numpy(vis_np)
-    sub = m.select(vis)
+    local = np.full(bn.order.size, -1, np.int64)
+    local[kept] = np.arange(kept.size)
+    rows_np = bn.order[kept]  # rows of m
+    rows = torch.from_numpy(rows_np)
+    sub = m.select(rows)
     leaves, channels, _ = _channels(sub, names, outs, viewmat, K, near, far, bg, need_packed=False)
-    nv = len(sub)
+    nl = len(sub)
     sizes = [leaves[k][0].numel() for k in names]
     D = sum(sizes)
     cols = {k: slice(sum(sizes[: names.index(k)]), sum(sizes[: names.index(k) + 1])) for k in names}
-    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nv, 14, D].
+    # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nl, D, 14].
     colmap = np.full(10, -1, np.int64)
     for k, sl in _JAC_COLS.items():
         if k in cols:
             colmap[sl] = np.arange(cols[k].start, cols[k].stop)
-    pk = np.empty((nv, NPACK))
-    jac = np.empty((nv, NPACK, D))
+    pk = np.empty((nl, NPACK))
+    jac = np.empty((nl, D, NPACK))
     with KERNEL_LOCK:
         _KERNELS["jacobian"](
-            means[vis_np], quats[vis_np], log_s[vis_np], logits[vis_np], V, Km, float(near), float(far), colmap, pk, jac
-        )
+            means[rows_np], quats[rows_np], log_s[rows_np], logits[rows_np], V, Km, float(near), float(far), colmap,
+            pk, jac,
+        )  # fmt: skip
     nch = len(channels)
-    X = np.zeros((nv, nch))
-    B = np.zeros((nv, nch, D))
+    X = np.zeros((nl, nch))
+    B = np.zeros((nl, nch, D))
     kind = np.zeros(nch, np.int64)  # 0: per-surfel value, no derivative; 1: with derivative B; 2: depth
     bgs = np.zeros(nch)
     for c, (x, b, bgc) in enumerate(channels):
@@ -327,29 +340,29 @@ def _fisher_numba(
             B[:, c, cols[k]] = g.double().numpy()
             kind[c] = 1
         bgs[c] = bgc
-    local = np.full(order.size, -1, np.int64)
-    local[vis_rank] = np.arange(nv)
-    nb = n_threads()
     wts = np.ones(W * H) if weights is None else weights.double().numpy()
-    # Split the kernel's pixel blocks between the threads by their work: pairs of the pixels with a non-zero weight.
-    qb = _BLOCK
-    nbx, nby = -(-W // qb), -(-H // qb)
-    work = np.zeros((nby * qb, nbx * qb), np.int64)
-    work[:H, :W] = np.where(wts != 0.0, r.count, 0).reshape(H, W)
-    work = work.reshape(nby, qb, nbx, qb).sum((1, 3)).reshape(-1) + 1
-    bounds = balanced_bounds(torch.from_numpy(work), nb)
-    out = np.zeros((nb, nv, D), np.float64)
+    col_kind = np.zeros(D, np.int64)  # per parameter, which packed rows depend on it (the kernel's _K_* kinds)
+    for k, kinds in _JAC_KINDS.items():
+        for c, ck in zip(colmap[_JAC_COLS[k]], kinds, strict=True):
+            if c >= 0:
+                col_kind[c] = ck
+    out = np.zeros((bn.bounds.size - 1, nl, D), np.float64)
     with KERNEL_LOCK:
         _FISHER_KERNELS["fisher"](
-            pk, jac, X, B, kind, bgs, local, r.pair_buf, r.pix_off, r.count, r.T, bounds, W, H, nbx, wts, out,
+            bn.pk, bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, W, H, bn.ntx, float(near),
+            local, jac, X, B, kind, bgs, wts, col_kind, out,
         )  # fmt: skip
     total = torch.from_numpy(out.sum(0)).to(dt)
     for k in names:
-        result[k].view(len(m), -1).index_copy_(0, vis, total[:, cols[k]])
+        result[k].view(len(m), -1).index_copy_(0, rows, total[:, cols[k]])
 
 
 _JAC_COLS = {"means": slice(0, 3), "quats": slice(3, 7), "log_scales": slice(7, 9), "opacity_logits": slice(9, 10)}
 """Columns of :func:`packed_jacobian`'s parameter axis."""
+_JAC_KINDS = {"means": (1, 1, 1), "quats": (2, 2, 2, 2), "log_scales": (3, 4), "opacity_logits": (5,)}
+"""Per column of :func:`packed_jacobian`, which packed rows can depend on it (the Fisher kernel skips the others,
+which the Jacobian kernel leaves exactly zero): 1 a mean (not rows 6-8, 13), 2 a quaternion component (not rows
+10-13), 3 and 4 the log scales u and v (not rows 0-2 resp. 3-5, nor 10-13), 5 the opacity logit (any; 0: none)."""
 
 
 def _f64(t: Tensor) -> np.ndarray:
@@ -367,13 +380,13 @@ def packed_jacobian(m: SurfelMap, viewmat: Tensor, K: Tensor, near: float, far: 
     d = m.detach()
     n = len(d)
     pk = np.empty((n, NPACK))
-    jac = np.empty((n, NPACK, 10))
+    jac = np.empty((n, 10, NPACK))
     with KERNEL_LOCK:
         _KERNELS["jacobian"](
             _f64(d.means), _f64(d.quats), _f64(d.log_scales), _f64(d.opacity_logits), _f64(viewmat), _f64(K),
             float(near), float(far), np.arange(10), pk, jac,
         )  # fmt: skip
-    return pk, np.ascontiguousarray(jac.transpose(0, 2, 1))
+    return pk, jac
 
 
 def _k_jacobian(
@@ -391,8 +404,10 @@ def _k_jacobian(
 ) -> None:
     """Forward-mode derivatives of :func:`roigsf_ros.render.rasterize.project_packed`, one surfel at a time (numba).
 
-    ``jac`` [N, 14, D]: column ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
-    quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other columns are zero.
+    ``jac`` [N, D, 14]: row ``colmap[j]`` holds d packed / d theta_j of raw parameter j (means 0-2,
+    quats 3-6, log_scales 7-8, opacity logit 9; -1: not wanted); the other rows are zero. Parameter-major, so
+    that the Fisher kernel reads one parameter's 14 derivatives from one cache line pair. Each kind of parameter
+    gets only the rows it moves, in closed form (the others stay exactly zero: :data:`_JAC_KINDS`).
     """
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = (
@@ -408,9 +423,9 @@ def _k_jacobian(
     )
     t0, t1, t2 = V[0, 3], V[1, 3], V[2, 3]
     for i in prange(means.shape[0]):
-        for r in range(14):
-            for c in range(jac.shape[2]):
-                jac[i, r, c] = 0.0
+        for c in range(jac.shape[1]):
+            for r in range(14):
+                jac[i, c, r] = 0.0
         qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         nq = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         nc = max(nq, 1e-12)
@@ -444,124 +459,148 @@ def _k_jacobian(
         pk[i, 0], pk[i, 1], pk[i, 2], pk[i, 3], pk[i, 4], pk[i, 5] = ax0, ax1, ax2, ay0, ay1, ay2
         pk[i, 6], pk[i, 7], pk[i, 8], pk[i, 9], pk[i, 10] = az0, az1, az2, det, zc
         pk[i, 11], pk[i, 12], pk[i, 13] = u2 / zs, v2 / zs, opa
-        for j in range(10):
+        if colmap[9] >= 0:
+            jac[i, colmap[9], 13] = opa * (1.0 - opa)
+        # The means move only the centre column (u2, v2, w2) of the splat-to-pixel matrix: by K R e_j.
+        for j in range(3):
             col = colmap[j]
             if col < 0:
                 continue
-            if j == 9:
-                jac[i, 13, col] = opa * (1.0 - opa)
-                continue
-            da0 = da1 = da2 = db0 = db1 = db2 = dc0 = dc1 = dc2 = 0.0
-            if j < 3:
-                dc0 = r00 if j == 0 else (r01 if j == 1 else r02)
-                dc1 = r10 if j == 0 else (r11 if j == 1 else r12)
-                dc2 = r20 if j == 0 else (r21 if j == 1 else r22)
-            elif j < 7:
-                # d qn / d q_e (e = j - 3): (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
-                e = j - 3
-                qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
-                if nq > 1e-12:
-                    dw = ((1.0 if e == 0 else 0.0) - w * qe) * inv_nq
-                    dx = ((1.0 if e == 1 else 0.0) - x * qe) * inv_nq
-                    dy = ((1.0 if e == 2 else 0.0) - y * qe) * inv_nq
-                    dz = ((1.0 if e == 3 else 0.0) - z * qe) * inv_nq
-                else:
-                    dw = (1.0 if e == 0 else 0.0) / 1e-12
-                    dx = (1.0 if e == 1 else 0.0) / 1e-12
-                    dy = (1.0 if e == 2 else 0.0) / 1e-12
-                    dz = (1.0 if e == 3 else 0.0) / 1e-12
-                dtu0 = -4 * (y * dy + z * dz)
-                dtu1 = 2 * (dx * y + x * dy + dw * z + w * dz)
-                dtu2 = 2 * (dx * z + x * dz - dw * y - w * dy)
-                dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
-                dtv1 = -4 * (x * dx + z * dz)
-                dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
-                da0 = (r00 * dtu0 + r01 * dtu1 + r02 * dtu2) * su
-                da1 = (r10 * dtu0 + r11 * dtu1 + r12 * dtu2) * su
-                da2 = (r20 * dtu0 + r21 * dtu1 + r22 * dtu2) * su
-                db0 = (r00 * dtv0 + r01 * dtv1 + r02 * dtv2) * sv
-                db1 = (r10 * dtv0 + r11 * dtv1 + r12 * dtv2) * sv
-                db2 = (r20 * dtv0 + r21 * dtv1 + r22 * dtv2) * sv
-            elif j == 7:
-                da0, da1, da2 = a0, a1, a2
-            else:
-                db0, db1, db2 = b0, b1, b2
-            du0, du1, du2 = (
-                k00 * da0 + k01 * da1 + k02 * da2,
-                k00 * db0 + k01 * db1 + k02 * db2,
-                k00 * dc0 + k01 * dc1 + k02 * dc2,
-            )
-            dv0, dv1, dv2 = k11 * da1 + k12 * da2, k11 * db1 + k12 * db2, k11 * dc1 + k12 * dc2
-            dw0, dw1, dw2 = da2, db2, dc2
-            dax2 = du1 * v2 + u1 * dv2 - du2 * v1 - u2 * dv1
-            day2 = du2 * v0 + u2 * dv0 - du0 * v2 - u0 * dv2
-            daz2 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
-            jac[i, 0, col] = dw2 * v1 + w2 * dv1 - dw1 * v2 - w1 * dv2
-            jac[i, 1, col] = du2 * w1 + u2 * dw1 - du1 * w2 - u1 * dw2
-            jac[i, 2, col] = dax2
-            jac[i, 3, col] = dw0 * v2 + w0 * dv2 - dw2 * v0 - w2 * dv0
-            jac[i, 4, col] = du0 * w2 + u0 * dw2 - du2 * w0 - u2 * dw0
-            jac[i, 5, col] = day2
-            jac[i, 6, col] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
-            jac[i, 7, col] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
-            jac[i, 8, col] = daz2
-            jac[i, 9, col] = dw0 * ax2 + w0 * dax2 + dw1 * ay2 + w1 * day2 + dw2 * az2 + w2 * daz2
-            jac[i, 10, col] = dw2
+            dc0 = r00 if j == 0 else (r01 if j == 1 else r02)
+            dc1 = r10 if j == 0 else (r11 if j == 1 else r12)
+            dw2 = r20 if j == 0 else (r21 if j == 1 else r22)
+            du2 = k00 * dc0 + k01 * dc1 + k02 * dw2
+            dv2 = k11 * dc1 + k12 * dw2
+            J2 = u1 * dv2 - du2 * v1
+            J5 = du2 * v0 - u0 * dv2
+            jac[i, col, 0] = dw2 * v1 - w1 * dv2
+            jac[i, col, 1] = du2 * w1 - u1 * dw2
+            jac[i, col, 2] = J2
+            jac[i, col, 3] = w0 * dv2 - dw2 * v0
+            jac[i, col, 4] = u0 * dw2 - du2 * w0
+            jac[i, col, 5] = J5
+            jac[i, col, 9] = w0 * J2 + w1 * J5 + dw2 * az2
+            jac[i, col, 10] = dw2
             if in_range:
-                jac[i, 11, col] = (du2 - u2 / zs * dw2) / zs
-                jac[i, 12, col] = (dv2 - v2 / zs * dw2) / zs
+                jac[i, col, 11] = (du2 - u2 / zs * dw2) / zs
+                jac[i, col, 12] = (dv2 - v2 / zs * dw2) / zs
             else:
-                jac[i, 11, col] = du2
-                jac[i, 12, col] = dv2
+                jac[i, col, 11] = du2
+                jac[i, col, 12] = dv2
+        # The quaternion moves the axis columns (u0, v0, w0) and (u1, v1, w1): K R (d t_u / d q) s_u and the same for v.
+        for e in range(4):
+            col = colmap[3 + e]
+            if col < 0:
+                continue
+            # d qn / d q_e: (delta_ef - qn_f qn_e) / |q| (clamped norm: delta_ef / 1e-12).
+            qe = w if e == 0 else (x if e == 1 else (y if e == 2 else z))
+            if nq > 1e-12:
+                dw = ((1.0 if e == 0 else 0.0) - w * qe) * inv_nq
+                dx = ((1.0 if e == 1 else 0.0) - x * qe) * inv_nq
+                dy = ((1.0 if e == 2 else 0.0) - y * qe) * inv_nq
+                dz = ((1.0 if e == 3 else 0.0) - z * qe) * inv_nq
+            else:
+                dw = (1.0 if e == 0 else 0.0) / 1e-12
+                dx = (1.0 if e == 1 else 0.0) / 1e-12
+                dy = (1.0 if e == 2 else 0.0) / 1e-12
+                dz = (1.0 if e == 3 else 0.0) / 1e-12
+            dtu0 = -4 * (y * dy + z * dz)
+            dtu1 = 2 * (dx * y + x * dy + dw * z + w * dz)
+            dtu2 = 2 * (dx * z + x * dz - dw * y - w * dy)
+            dtv0 = 2 * (dx * y + x * dy - dw * z - w * dz)
+            dtv1 = -4 * (x * dx + z * dz)
+            dtv2 = 2 * (dy * z + y * dz + dw * x + w * dx)
+            da0 = (r00 * dtu0 + r01 * dtu1 + r02 * dtu2) * su
+            da1 = (r10 * dtu0 + r11 * dtu1 + r12 * dtu2) * su
+            dw0 = (r20 * dtu0 + r21 * dtu1 + r22 * dtu2) * su
+            db0 = (r00 * dtv0 + r01 * dtv1 + r02 * dtv2) * sv
+            db1 = (r10 * dtv0 + r11 * dtv1 + r12 * dtv2) * sv
+            dw1 = (r20 * dtv0 + r21 * dtv1 + r22 * dtv2) * sv
+            du0, dv0 = k00 * da0 + k01 * da1 + k02 * dw0, k11 * da1 + k12 * dw0
+            du1, dv1 = k00 * db0 + k01 * db1 + k02 * dw1, k11 * db1 + k12 * dw1
+            J2 = du1 * v2 - u2 * dv1
+            J5 = u2 * dv0 - du0 * v2
+            J8 = du0 * v1 + u0 * dv1 - du1 * v0 - u1 * dv0
+            jac[i, col, 0] = w2 * dv1 - dw1 * v2
+            jac[i, col, 1] = u2 * dw1 - du1 * w2
+            jac[i, col, 2] = J2
+            jac[i, col, 3] = dw0 * v2 - w2 * dv0
+            jac[i, col, 4] = du0 * w2 - u2 * dw0
+            jac[i, col, 5] = J5
+            jac[i, col, 6] = dw1 * v0 + w1 * dv0 - dw0 * v1 - w0 * dv1
+            jac[i, col, 7] = du1 * w0 + u1 * dw0 - du0 * w1 - u0 * dw1
+            jac[i, col, 8] = J8
+            jac[i, col, 9] = dw0 * ax2 + w0 * J2 + dw1 * ay2 + w1 * J5 + w2 * J8
+        # The log scales scale one axis column each: d/d log s_u keeps rows ay, az, det; d/d log s_v rows ax, az, det.
+        col = colmap[7]
+        if col >= 0:
+            jac[i, col, 3], jac[i, col, 4], jac[i, col, 5] = ay0, ay1, ay2
+            jac[i, col, 6], jac[i, col, 7], jac[i, col, 8], jac[i, col, 9] = az0, az1, az2, det
+        col = colmap[8]
+        if col >= 0:
+            jac[i, col, 0], jac[i, col, 1], jac[i, col, 2] = ax0, ax1, ax2
+            jac[i, col, 6], jac[i, col, 7], jac[i, col, 8], jac[i, col, 9] = az0, az1, az2, det
 
 
 _BLOCK = 4
-"""Side of the pixel blocks of the Fisher kernel (its lanes: ``_BLOCK ** 2`` pixels)."""
+"""Side of the pixel tiles of the Fisher kernel (its lanes: ``_BLOCK ** 2`` pixels)."""
 _NF = 18
 """Per (surfel, pixel) lane fields of the Fisher kernel."""
+_CHUNK = 64
+"""Surfels of a tile's list per lane pass of the Fisher kernel's walk (a multiple of 8)."""
 
 
 def _k_fisher(
     pk: np.ndarray,
+    thr: np.ndarray,
+    rect: np.ndarray,
+    tl_surf: np.ndarray,
+    t_start: np.ndarray,
+    t_count: np.ndarray,
+    bounds: np.ndarray,
+    width: int,
+    height: int,
+    ntx: int,
+    near: float,
+    local: np.ndarray,
     jac: np.ndarray,
     X: np.ndarray,
     B: np.ndarray,
     kind: np.ndarray,
     bg: np.ndarray,
-    local: np.ndarray,
-    pair_buf: np.ndarray,
-    pix_off: np.ndarray,
-    count: np.ndarray,
-    T_fin: np.ndarray,
-    bounds: np.ndarray,
-    width: int,
-    height: int,
-    nbx: int,
     wts: np.ndarray,
+    col_kind: np.ndarray,
     out: np.ndarray,
 ) -> None:
-    """Block-major Fisher (numba): per 4x4 pixel block, the surfels its pixels accepted, each with
-    the block's pixels as vector lanes.
+    """Tile-major Fisher (numba): per 4x4 pixel tile, its walk for the pairs, then the surfels its pixels
+    accepted, each with the tile's pixels as vector lanes.
 
-    ``jac`` [Nv, 14, D] is d packed / d theta per surfel; channel ``kind`` 0 (per-surfel value whose
-    parameters are not in theta: colour for geometric Fisher, alpha), 1 (per-surfel value with
-    derivative ``B`` [Nv, nch, D]) or 2 (the pair's depth). Kind-0 channels share one term
-    ``a^2 sum_c g_c^2`` (``a = d alpha / d theta_j``), which also holds the ``(g_c a)^2`` of the kind-1
-    channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where ``B_cj != 0``, and an
-    all-zero Jacobian column (colour parameters) skips the chain rule. Per block: (0) a slot per
-    surfel that a pixel with a non-zero weight accepted, marking its lanes; (1) per slot, for all
-    lanes at once, alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
-    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre
-    offset on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its
-    pairs for the compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per
-    parameter the chain rule and the weighted squares
-    summed over the lanes.
+    Takes the binned view (:func:`roigsf_ros.render.rasterize.numba_bins`: rows ``pk`` [K, 14], alpha
+    thresholds, pixel boxes, depth-sorted tile lists); ``local`` [K] maps a kept surfel to its row of ``jac``
+    [Nl, D, 14] (d packed / d theta), ``X``, ``B`` and ``out`` [blocks, Nl, D] (-1: in no walked tile).
+    Channel ``kind`` 0 (per-surfel value whose parameters are not in theta: colour for geometric Fisher,
+    alpha), 1 (per-surfel value with derivative ``B`` [Nl, nch, D]) or 2 (the pair's depth). Kind-0 channels
+    share one term ``a^2 sum_c g_c^2`` (``a = d alpha / d theta_j``), which also holds the ``(g_c a)^2`` of
+    the kind-1 channels; their ``(g_c a + w B_cj)^2`` adds ``w B_cj (2 g_c a + w B_cj)`` where
+    ``B_cj != 0``. ``col_kind`` [D] says which packed rows can depend on a parameter (:data:`_JAC_KINDS`;
+    0: none, the colour parameters, whose chain rule is skipped); the chain rule leaves out the others.
+
+    Per tile: (W) the render's forward walk (the lane pass and front-to-back compositing of
+    :func:`roigsf_ros.render.rasterize._k_forward`, same acceptance and early stop) over the pixels with a
+    non-zero weight, keeping each pixel's final transmittance and, front to back, its accepted surfels as
+    (0) slots, one per accepted surfel of the tile, marking its lanes; (1) per slot, for all lanes at once,
+    alpha and the few scalars of ``d alpha / d packed`` and ``d depth / d packed``
+    (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre offset
+    on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its pairs for the
+    compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per parameter the chain rule
+    and the weighted squares summed over the lanes.
+    Walking inside the kernel spares a separate forward pass and its stored pairs.
     """
     nch = X.shape[1]
-    D = jac.shape[2]
-    nv = jac.shape[0]
+    D = jac.shape[1]
     QB = _BLOCK
     Q = QB * QB
+    CH = _CHUNK
     ch1 = np.empty(nch, np.int64)  # the kind-1 channels
     n1 = 0
     for c in range(nch):
@@ -580,67 +619,138 @@ def _k_fisher(
     # The common case (colour and depth of the geometric Fisher) has a walk with its sums in registers.
     rgb = n0 == 3 and n1 == 0 and nch == 3 + (idep >= 0)
     i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
-    cap = 1  # slots a block can need: its pairs, at most every surfel
-    capp = 1  # pairs of a block
-    for blk in range(bounds[-1]):
-        x_base = (blk % nbx) * QB
-        y_base = (blk // nbx) * QB
-        tot = 0
-        for q in range(Q):
-            xi = x_base + q % QB
-            yi = y_base + q // QB
-            if xi < width and yi < height:
-                tot += count[yi * width + xi]
-        cap = max(cap, min(tot, nv))
-        capp = max(capp, tot)
+    cap = 1  # the longest tile list: slots (accepted surfels) and accepted positions per pixel
+    for t in range(t_count.shape[0]):
+        cap = max(cap, t_count[t])
     for b in prange(bounds.shape[0] - 1):
-        S = np.zeros(nch)
-        slot_of = np.full(nv, -1, np.int64)
-        s_sid = np.empty(cap, np.int64)
-        ps = np.empty(capp, np.int64)  # the slot of each pair of the block's weighted pixels
-        p0 = np.zeros(Q, np.int64)  # each pixel's first pair in ps
-        C = np.zeros((cap, _NF, Q))
+        S = np.zeros((15, CH))  # the chunk's packed rows (14) and alpha threshold
+        box = np.zeros((4, CH))
+        al = np.empty((Q, CH))
+        idx = np.empty(CH, np.int64)
+        Tq = np.empty(Q)
+        cnt = np.zeros(Q, np.int64)
+        done = np.empty(Q, np.bool_)
+        Sg = np.zeros(nch)  # the general walk's suffix sums
+        slot_e = np.full(cap, -1, np.int64)  # the slot of each list position of the tile
+        s_kid = np.empty(cap, np.int64)  # per slot: kept id (rows of pk)
+        s_loc = np.empty(cap, np.int64)  # per slot: row of jac, X, B, out
+        s_e = np.empty(cap, np.int64)  # per slot: list position
+        ps = np.empty((Q, cap), np.int64)  # each pixel's accepted surfels (slots), front to back
+        C = np.empty((cap, _NF, Q))  # per slot: fields 0 and 13-17 zeroed in (0), the others written for all lanes
         G = np.zeros((cap, max(n1, 1), Q))
         ob = out[b]
-        for blk in range(bounds[b], bounds[b + 1]):
-            x_base = (blk % nbx) * QB
-            y_base = (blk // nbx) * QB
-            ns = 0
-            npair = 0
-            # (0) Slots and lanes.
+        for t in range(bounds[b], bounds[b + 1]):
+            n_t = t_count[t]
+            if n_t == 0:
+                continue
+            s0 = t_start[t]
+            x_base = (t % ntx) * QB
+            y_base = (t // ntx) * QB
+            n_done = 0
             for q in range(Q):
-                p0[q] = npair
                 xi = x_base + q % QB
                 yi = y_base + q // QB
-                if xi >= width or yi >= height:
-                    continue
-                p = yi * width + xi
-                if wts[p] == 0.0:
-                    continue
-                off = pix_off[p]
-                for i in range(count[p]):
-                    sid = local[pair_buf[off + i]]
-                    s = slot_of[sid]
-                    if s < 0:
-                        s = ns
-                        ns += 1
-                        slot_of[sid] = s
-                        s_sid[s] = sid
-                        Cs = C[s]
-                        for k in range(Q):
-                            Cs[0, k] = 0.0
-                        for f in range(13, _NF):
+                Tq[q] = 1.0
+                cnt[q] = 0
+                # Pixels outside the image or with zero weight need no pairs.
+                done[q] = xi >= width or yi >= height or wts[min(yi, height - 1) * width + min(xi, width - 1)] == 0.0
+                if done[q]:
+                    n_done += 1
+            ns = 0
+            # (W) The walk: chunks of the depth-sorted list, a lane pass for alpha, then each pixel front to back.
+            for lo in range(0, n_t, CH):
+                if n_done == Q:
+                    break
+                n = min(CH, n_t - lo)
+                npad = (n + 7) // 8 * 8
+                for j in range(npad):
+                    if j < n:
+                        kid = tl_surf[s0 + lo + j]
+                        for k in range(14):
+                            S[k, j] = pk[kid, k]
+                        S[14, j] = thr[kid]
+                        box[0, j] = float(max(rect[kid, 0], x_base))
+                        box[1, j] = float(min(rect[kid, 2], x_base + QB - 1))
+                        box[2, j] = float(max(rect[kid, 1], y_base))
+                        box[3, j] = float(min(rect[kid, 3], y_base + QB - 1))
+                    else:  # padding: an empty box
+                        box[0, j] = 1.0
+                        box[1, j] = 0.0
+                a0s, a1s, a2s, b0s, b1s, b2s = S[0], S[1], S[2], S[3], S[4], S[5]
+                z0s, z1s, z2s, dets, tzs = S[6], S[7], S[8], S[9], S[10]
+                cxs, cys, opas, ths = S[11], S[12], S[13], S[14]
+                bx0, bx1, by0, by1 = box[0], box[1], box[2], box[3]
+                for q in range(Q):
+                    if done[q]:
+                        continue
+                    x = float(x_base + q % QB)
+                    y = float(y_base + q // QB)
+                    alq = al[q]
+                    for j in range(npad):
+                        pz = z0s[j] * x + z1s[j] * y + z2s[j]
+                        nz = pz != 0.0
+                        inv = 1.0 / (pz if nz else 1.0)
+                        u = (a0s[j] * x + a1s[j] * y + a2s[j]) * inv
+                        v = (b0s[j] * x + b1s[j] * y + b2s[j]) * inv
+                        r3 = u * u + v * v
+                        dx = cxs[j] - x
+                        dy = cys[j] - y
+                        r2 = 2.0 * (dx * dx + dy * dy)
+                        use3 = r3 <= r2
+                        rho = r3 if use3 else r2
+                        depth = dets[j] * inv if use3 else tzs[j]
+                        ok = (x >= bx0[j]) & (x <= bx1[j]) & (y >= by0[j]) & (y <= by1[j])
+                        ok = ok & nz & (rho <= ths[j]) & (depth >= near)
+                        a = opas[j] * exp_neg(-0.5 * rho if ok else 0.0)
+                        a = 0.99 if a > 0.99 else a
+                        ok = ok & (a >= 1.0 / 255.0)
+                        alq[j] = a if ok else 0.0
+                for q in range(Q):
+                    if done[q]:
+                        continue
+                    T = Tq[q]
+                    c = cnt[q]
+                    alq = al[q]
+                    nacc = 0  # the accepted lanes first (branch-free), then the walk over them
+                    for j in range(n):
+                        idx[nacc] = j
+                        nacc += alq[j] > 0.0
+                    for kk in range(nacc):
+                        j = idx[kk]
+                        test_T = T * (1.0 - alq[j])
+                        if test_T < 1e-4:
+                            done[q] = True
+                            n_done += 1
+                            break
+                        # (0) A slot per accepted surfel, its lanes marked (no array views in this per-pair
+                        # loop: each would cost a refcount call).
+                        e = lo + j
+                        s = slot_e[e]
+                        if s < 0:
+                            s = ns
+                            ns += 1
+                            slot_e[e] = s
+                            s_e[s] = e
+                            kid = tl_surf[s0 + e]
+                            s_kid[s] = kid
+                            s_loc[s] = local[kid]
                             for k in range(Q):
-                                Cs[f, k] = 0.0
-                    C[s, 0, q] = 1.0
-                    ps[npair] = s
-                    npair += 1
+                                C[s, 0, k] = 0.0
+                            for f in range(13, _NF):
+                                for k in range(Q):
+                                    C[s, f, k] = 0.0
+                        C[s, 0, q] = 1.0
+                        ps[q, c] = s
+                        c += 1
+                        T = test_T
+                    Tq[q] = T
+                    cnt[q] = c
             # (1) Per slot, every lane at once (vectorised); unmarked lanes get zeros.
             for s in range(ns):
-                sid = s_sid[s]
-                P0, P1, P2, P3, P4 = pk[sid, 0], pk[sid, 1], pk[sid, 2], pk[sid, 3], pk[sid, 4]
-                P5, P6, P7, P8, P9 = pk[sid, 5], pk[sid, 6], pk[sid, 7], pk[sid, 8], pk[sid, 9]
-                P10, P11, P12, P13 = pk[sid, 10], pk[sid, 11], pk[sid, 12], pk[sid, 13]
+                kid = s_kid[s]
+                P0, P1, P2, P3, P4 = pk[kid, 0], pk[kid, 1], pk[kid, 2], pk[kid, 3], pk[kid, 4]
+                P5, P6, P7, P8, P9 = pk[kid, 5], pk[kid, 6], pk[kid, 7], pk[kid, 8], pk[kid, 9]
+                P10, P11, P12, P13 = pk[kid, 10], pk[kid, 11], pk[kid, 12], pk[kid, 13]
                 Cs = C[s]
                 mem, als, ims, deps, c0s, c1s, c2s = Cs[0], Cs[1], Cs[2], Cs[3], Cs[4], Cs[5], Cs[6]
                 aos, kxs, kys, eis, ees, efs = Cs[7], Cs[8], Cs[9], Cs[10], Cs[11], Cs[12]
@@ -690,12 +800,12 @@ def _k_fisher(
                 wp = wts[p]
                 if wp == 0.0:
                     continue
-                T = T_fin[p]
+                T = Tq[q]
                 if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
                     S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
-                    for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
-                        sid = s_sid[ps[i]]
-                        Cs = C[ps[i]]
+                    for i in range(cnt[q] - 1, -1, -1):
+                        sid = s_loc[ps[q, i]]
+                        Cs = C[ps[q, i]]
                         im = Cs[2, q]
                         T = T * im
                         w = Cs[1, q] * T
@@ -716,14 +826,13 @@ def _k_fisher(
                         Cs[11, q] *= wd
                         Cs[12, q] *= wd
                         Cs[15, q] = wp * (g0 * g0 + g1 * g1 + g2 * g2)
-                        Cs[16, q] = wp
-                        Cs[17, q] = w
+                        Cs[16, q] = wp  # (w, field 17, only serves kind-1 channels: none here)
                     continue
                 for c in range(nch):
-                    S[c] = T * bg[c]
-                for i in range(p0[q] + count[p] - 1, p0[q] - 1, -1):
-                    s = ps[i]
-                    sid = s_sid[s]
+                    Sg[c] = T * bg[c]
+                for i in range(cnt[q] - 1, -1, -1):
+                    s = ps[q, i]
+                    sid = s_loc[s]
                     Cs = C[s]
                     im = Cs[2, q]
                     T = T * im
@@ -733,8 +842,8 @@ def _k_fisher(
                     f = 0
                     for c in range(nch):
                         val = Cs[3, q] if kind[c] == 2 else X[sid, c]
-                        gc = T * val - S[c] * im
-                        S[c] += w * val
+                        gc = T * val - Sg[c] * im
+                        Sg[c] += w * val
                         if kind[c] == 0:
                             g2 += gc * gc
                         elif kind[c] == 2:
@@ -752,8 +861,8 @@ def _k_fisher(
                     Cs[17, q] = w
             # (3) Per slot: its Jacobian once; per parameter the chain rule and weighted squares over the lanes.
             for s in range(ns):
-                sid = s_sid[s]
-                slot_of[sid] = -1
+                sid = s_loc[s]
+                slot_e[s_e[s]] = -1
                 Cs = C[s]
                 c0s, c1s, c2s, aos, kxs, kys = Cs[4], Cs[5], Cs[6], Cs[7], Cs[8], Cs[9]
                 eis, ees, efs, gds, As, wps, ws = Cs[10], Cs[11], Cs[12], Cs[13], Cs[15], Cs[16], Cs[17]
@@ -761,27 +870,62 @@ def _k_fisher(
                 Js = jac[sid]
                 o = ob[sid]
                 for j in range(D):
-                    J0, J1, J2, J3, J4 = Js[0, j], Js[1, j], Js[2, j], Js[3, j], Js[4, j]
-                    J5, J6, J7, J8, J9 = Js[5, j], Js[6, j], Js[7, j], Js[8, j], Js[9, j]
-                    J10, J11, J12, J13 = Js[10, j], Js[11, j], Js[12, j], Js[13, j]
                     acc = 0.0
-                    # A zero column (colour parameters: the rows do not depend on them) has aj = 0.
-                    live = J0 != 0.0 or J1 != 0.0 or J2 != 0.0 or J3 != 0.0 or J4 != 0.0 or J5 != 0.0 or J6 != 0.0
-                    live = live or J7 != 0.0 or J8 != 0.0 or J9 != 0.0 or J10 != 0.0 or J11 != 0.0 or J12 != 0.0
-                    live = live or J13 != 0.0
-                    if live:
-                        for q in range(Q):
-                            x = float(x_base + q % QB)
-                            y = float(y_base + q // QB)
-                            p2 = x * J6 + y * J7 + J8
-                            aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
-                                  + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
-                            Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
-                            acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                            avs[q] = aj
-                    else:
+                    ck = col_kind[j]
+                    if ck == 0:  # no geometric parameter (colour): the rows do not depend on it, aj = 0
                         for q in range(Q):
                             avs[q] = 0.0
+                    else:
+                        Jj = Js[j]
+                        J0, J1, J2, J3, J4, J5, J6 = Jj[0], Jj[1], Jj[2], Jj[3], Jj[4], Jj[5], Jj[6]
+                        J7, J8, J9, J10, J11, J12, J13 = Jj[7], Jj[8], Jj[9], Jj[10], Jj[11], Jj[12], Jj[13]
+                        # The chain rule without the rows that are zero for the parameter's kind (fewer vector ops).
+                        if ck == 1:  # a mean: the splat's axes (rows 6-8) and the opacity do not move
+                            for q in range(Q):
+                                x = float(x_base + q % QB)
+                                y = float(y_base + q // QB)
+                                aj = (kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
+                                      + c1s[q] * (x * J3 + y * J4 + J5))  # fmt: skip
+                                Jd = gds[q] * aj + eis[q] * J9 + efs[q] * J10
+                                acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                                avs[q] = aj
+                        elif ck == 2:  # a quaternion component: the centre (rows 10-12) and the opacity do not move
+                            for q in range(Q):
+                                x = float(x_base + q % QB)
+                                y = float(y_base + q // QB)
+                                p2 = x * J6 + y * J7 + J8
+                                aj = c0s[q] * (x * J0 + y * J1 + J2) + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2
+                                Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
+                                acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                                avs[q] = aj
+                        elif ck == 3:  # log scale u: neither rows 0-2 nor the centre and opacity move
+                            for q in range(Q):
+                                x = float(x_base + q % QB)
+                                y = float(y_base + q // QB)
+                                p2 = x * J6 + y * J7 + J8
+                                aj = c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2
+                                Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
+                                acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                                avs[q] = aj
+                        elif ck == 4:  # log scale v: neither rows 3-5 nor the centre and opacity move
+                            for q in range(Q):
+                                x = float(x_base + q % QB)
+                                y = float(y_base + q // QB)
+                                p2 = x * J6 + y * J7 + J8
+                                aj = c0s[q] * (x * J0 + y * J1 + J2) + c2s[q] * p2
+                                Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
+                                acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                                avs[q] = aj
+                        else:  # any row (the opacity logit)
+                            for q in range(Q):
+                                x = float(x_base + q % QB)
+                                y = float(y_base + q // QB)
+                                p2 = x * J6 + y * J7 + J8
+                                aj = (aos[q] * J13 + kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
+                                      + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
+                                Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
+                                acc += As[q] * aj * aj + wps[q] * Jd * Jd
+                                avs[q] = aj
                     for f in range(n1):  # (g aj + w B)^2 - (g aj)^2 of the kind-1 channels
                         Bj = B[sid, ch1[f], j]
                         if Bj == 0.0:

@@ -1730,6 +1730,39 @@ def numba_forward(
     )  # fmt: skip
 
 
+def numba_bins(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    opacities: np.ndarray,
+    viewmat: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    near: float = 0.2,
+    far: float = 100.0,
+    tile_size: int = 4,
+    pixel_mask: np.ndarray | None = None,
+) -> _Binned:
+    """The kept surfels of a view binned into tiles by the numba kernels (float64 numpy inputs, activated
+    scales and opacities): projection, culling, depth sort and binning, as the render's forward walk takes them.
+
+    With ``pixel_mask`` [H * W] (bool), the tiles without a pixel in the mask get empty lists (``count`` 0;
+    ``bounds`` split the others). Surfel ids in the lists index the returned ``order`` (input indices).
+    """
+    feats = np.zeros((means.shape[0], 0))
+    bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
+    if pixel_mask is not None:
+        ts = bn.size
+        nty = -(-height // ts)
+        grid = np.zeros((nty * ts, bn.ntx * ts), np.bool_)
+        grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
+        on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
+        bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
+        bn.bounds = balanced_bounds(torch.from_numpy(bn.count.astype(np.int64) + 1), n_threads())
+    return bn
+
+
 def numba_pairs(
     means: np.ndarray,
     quats: np.ndarray,
@@ -1745,22 +1778,13 @@ def numba_pairs(
     pixel_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, _NumbaResult]:
     """The contributing pairs of a view by the numba kernels (float64 numpy inputs, activated scales and
-    opacities): projection, culling, depth sort, binning and the forward walk (no features).
+    opacities): :func:`numba_bins`, then the forward walk (no features).
 
     Returns ``order`` [K] (the input index of each kept surfel, nearest centre first) and the walk's
     result, whose surfel ids (``pair_buf``, ``vis``) index ``order``. With ``pixel_mask`` [H * W] (bool),
     only the tiles with a pixel in the mask are walked: the pixels of the others get no pairs.
     """
-    feats = np.zeros((means.shape[0], 0))
-    bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
-    if pixel_mask is not None:
-        ts = bn.size
-        nty = -(-height // ts)
-        grid = np.zeros((nty * ts, bn.ntx * ts), np.bool_)
-        grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
-        on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
-        bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
-        bn.bounds = balanced_bounds(torch.from_numpy(bn.count.astype(np.int64) + 1), n_threads())
+    bn = numba_bins(means, quats, scales, opacities, viewmat, K, width, height, near, far, tile_size, pixel_mask)
     r = _forward_pass(
         bn.pk, bn.feats, bn.nrm, np.zeros(0), bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, bn.size,
         bn.ntx, width, height, near, far, False,
@@ -2135,6 +2159,7 @@ __all__ = [
     "camera_tensors",
     "composite_pairs",
     "exp_neg",
+    "numba_bins",
     "numba_forward",
     "numba_pairs",
     "pair_alpha_depth",
