@@ -414,6 +414,8 @@ def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) ->
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("fallback_policy", value="fisherrf")])
     with pytest.raises(InputError, match=r"mapper\.near_m"):
         MapperNode(context=ros_context, parameter_overrides=[Parameter("near_m", value=-1.0)])
+    with pytest.raises(InputError, match=r"'nbv_planner\.tsdf_sync_period_s'.*float.*e\.g\. 0\.0"):  # an int
+        NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("tsdf_sync_period_s", value=0)])
     with pytest.raises(InputError, match="mode"):
         NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("mode", value="best")])
 
@@ -750,6 +752,7 @@ def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
             "requests": 2,
             "answered": 2,
             "last_scoring_s": planner.status()["last_scoring_s"],
+            "max_scoring_s": planner.status()["max_scoring_s"],
         }  # no map work at all in the requests
         # The cached products score exactly as the library does from scratch with the same inputs.
         scorer = NBVScorer(replace(NBVConfig(), top_k=3))
@@ -769,3 +772,40 @@ def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
         assert after["close_front_views_added"] == 1
     finally:
         planner.destroy_node()
+
+
+def test_the_mapper_pauses_while_the_in_process_planner_answers(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    """The planner marks its requests as answering; the mapper's pause between slices waits for them (capped)."""
+    frames, _ = scene
+    shared = _shared(mapped)
+    assert shared.yield_to_answers(5.0) < 0.05  # nobody answering: no pause
+    release = threading.Event()
+
+    def answer() -> None:
+        with shared.answering():
+            release.wait(5.0)
+
+    t = threading.Thread(target=answer)
+    t.start()
+    try:
+        time.sleep(0.05)
+        assert 0.09 <= shared.yield_to_answers(0.1) < 1.0  # capped at max_s
+        threading.Timer(0.3, release.set).start()
+        assert 0.2 <= shared.yield_to_answers(5.0) < 2.0  # until the answer is done
+    finally:
+        release.set()
+        t.join()
+    planner = NBVPlannerNode(context=ros_context, shared=shared)
+    seen: list[int] = []
+    real_score = planner.state.score
+
+    def score(*args: Any, **kwargs: Any) -> Any:
+        seen.append(shared._answering)
+        return real_score(*args, **kwargs)
+
+    planner.state.score = score  # type: ignore[method-assign]
+    client_node = Node("nbv_test_client_pause", context=ros_context)
+    client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    with _spinning(ros_context, planner, client_node):
+        res = _call(client, _request([frames[1].T_wc, frames[2].T_wc]))
+    assert res.success and seen == [1] and shared._answering == 0

@@ -206,6 +206,7 @@ class KeyframeSelectorNode(SystemNode):
 
     # ------------------------------------------------------------------------------ planner
     def _ask_planner(self, candidates: list[Frame], intr: Intrinsics) -> None:
+        self._check_request()  # an answer that came since the last timer tick (50 ms) is taken, not called busy
         with self._lock:
             if self._request is not None:
                 self._fall_back(candidates, intr, "is still busy with the previous window")

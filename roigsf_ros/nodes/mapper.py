@@ -7,7 +7,9 @@ keyframe whose frame has not arrived yet waits up to ``keyframe_wait_s``; one wh
 or never received is counted and warned about. A worker thread inserts each keyframe
 (:meth:`Mapper.add_keyframe`: densify, then ``iters_per_keyframe`` steps), then spends up to
 ``idle_iters_per_keyframe`` further steps over random keyframes while no keyframe waits, always in
-slices of ``optimise_slice_iters`` steps under the shared lock, so readers never wait long.
+slices of ``optimise_slice_iters`` steps under the shared lock, so readers never wait long. Between two
+slices it pauses (at most ``yield_to_planner_s``) while an in-process planner answers a request: the answer
+is what the robot waits for, the optimisation can lag and catch up.
 
 Keyframe ids are the frames' header stamps in nanoseconds: unique across processes and restarts.
 
@@ -155,6 +157,9 @@ class MapperNode(SystemNode):
             declare(self, "keyframe_wait_s", 10.0, "seconds a keyframe waits for its frame (unless a newer one came)")
         )
         self.slice_iters = int(declare(self, "optimise_slice_iters", 2, "optimiser steps per hold of the map lock"))
+        self.yield_s = float(
+            declare(self, "yield_to_planner_s", 2.0, "longest pause between slices while the in-process planner works")
+        )
         self.idle_iters = int(
             declare(self, "idle_iters_per_keyframe", 10, "extra steps over random keyframes per keyframe, when idle")
         )
@@ -173,6 +178,7 @@ class MapperNode(SystemNode):
         for name, value in (("frame_buffer_size", self.buffer_size), ("max_pending_keyframes", self.max_pending)):
             check_positive(name, value)
         check_positive("optimise_slice_iters", self.slice_iters)
+        check_positive("yield_to_planner_s", self.yield_s, allow_zero=True)
         check_positive("qos_depth", qos_depth)
         for name, value in (("keyframe_wait_s", self.wait_s), ("idle_iters_per_keyframe", self.idle_iters)):
             check_positive(name, value, allow_zero=True)
@@ -219,6 +225,7 @@ class MapperNode(SystemNode):
             ),
             0,
         )
+        self.counters["paused_for_planner_s"] = 0.0  # type: ignore[assignment]
 
         inputs = MutuallyExclusiveCallbackGroup()
         keyframes = MutuallyExclusiveCallbackGroup()
@@ -364,11 +371,20 @@ class MapperNode(SystemNode):
                         if m is not None and m.keyframes:
                             m.optimise(n, newest=None)
                             self.shared.touch()
-                    self.shared.yield_to_readers()
+                    self._yield()
             except Exception as exc:  # keep mapping: one bad keyframe must not stop the node
                 with self._lock:
                     self.counters["keyframes_failed"] += 1
                 self.get_logger().error(f"mapping step failed: {exc}")
+
+    def _yield(self) -> None:
+        """Between two slices: let waiting readers take the lock, and pause while the planner answers a request."""
+        self.shared.yield_to_readers()
+        if self.yield_s > 0:
+            paused = self.shared.yield_to_answers(self.yield_s)
+            if paused > 0.001:
+                with self._lock:
+                    self.counters["paused_for_planner_s"] += paused
 
     def _insert(self, frame: Frame) -> None:
         """Run the library's keyframe schedule, releasing the map lock between its slices (readers never wait long)."""
@@ -394,7 +410,7 @@ class MapperNode(SystemNode):
                 finally:
                     self.shared.touch()
                     n_kf = len(m.keyframes) + len(m.loaded_keyframe_ids)
-            self.shared.yield_to_readers()
+            self._yield()
         if not ok:
             if not self._stop.is_set():
                 with self._lock:

@@ -49,6 +49,7 @@ candidate coloured by its fused score, best in green and larger, and its score a
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -155,6 +156,7 @@ class NBVPlannerNode(SystemNode):
         self.last_result: NBVResult | None = None
         self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
         self.counters["last_scoring_s"] = 0.0
+        self.counters["max_scoring_s"] = 0.0
         self.counters["warm_up_s"] = 0.0
         if warm_up:  # before the service exists: no request waits behind the compiler
             try:
@@ -252,6 +254,10 @@ class NBVPlannerNode(SystemNode):
             snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, snap.intrinsics, self._render(snap), mode
         )
 
+    def _answering(self) -> contextlib.AbstractContextManager[None]:
+        """The in-process mapper pauses its optimisation while this is held (its ``yield_to_planner_s``)."""
+        return self.shared.answering() if self.shared is not None else contextlib.nullcontext()
+
     def stopping(self) -> bool:
         """True once :meth:`stop` was called or the context shut down: long scoring gives up."""
         return self._stop.is_set() or not self.context.ok()
@@ -266,7 +272,8 @@ class NBVPlannerNode(SystemNode):
         if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0 or self.stopping():
             return
         try:
-            self._update(snap, self.nbv.mode)
+            with self._answering():  # the next answer's work, done ahead
+                self._update(snap, self.nbv.mode)
         except ScoringStoppedError:
             return
         except InputError as exc:
@@ -278,7 +285,8 @@ class NBVPlannerNode(SystemNode):
         with self._lock:
             self.counters["requests"] += 1
         try:
-            result, snap, cands = self.score_request(req)
+            with self._answering():
+                result, snap, cands = self.score_request(req)
         except ScoringStoppedError:
             res.success, res.message, res.best_index = False, "nbv_planner: shutting down, not scored", -1
             with self._lock:
@@ -309,6 +317,7 @@ class NBVPlannerNode(SystemNode):
         with self._lock:
             self.counters["answered"] += 1
             self.counters["last_scoring_s"] = time.perf_counter() - t0
+            self.counters["max_scoring_s"] = max(self.counters["max_scoring_s"], self.counters["last_scoring_s"])
         return res
 
     def score_request(self, req: GetNextBestView.Request) -> tuple[NBVResult, MapSnapshot, np.ndarray]:

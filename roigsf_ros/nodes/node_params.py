@@ -68,7 +68,14 @@ def field_docs(cls: type) -> dict[str, str]:
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
     """Declare one parameter with a default and a description; returns its (possibly overridden) value."""
     value = list(default) if isinstance(default, tuple) else default
-    return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
+    try:
+        return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
+    except InvalidParameterTypeException as exc:  # e.g. `-p near_m:=0`: an int where the default is a float
+        hint = " (write a float with a point, e.g. 0.0)" if isinstance(default, float) else ""
+        raise InputError(
+            f"parameter '{node.get_name()}.{name}'",
+            f"must be a {type(default).__name__} like its default {default!r}{hint}; {exc}",
+        ) from None
 
 
 def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str, Any]:

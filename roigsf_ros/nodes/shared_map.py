@@ -77,6 +77,7 @@ class SharedMapper:
         self.version = 0
         self._readers_waiting = 0
         self._count_lock = threading.Lock()
+        self._answering = 0
 
     @contextlib.contextmanager
     def reading(self) -> Iterator[None]:
@@ -102,6 +103,29 @@ class SharedMapper:
         deadline = time.monotonic() + timeout_s
         while self._readers_waiting > 0 and time.monotonic() < deadline:
             time.sleep(0.001)
+
+    @contextlib.contextmanager
+    def answering(self) -> Iterator[None]:
+        """Mark a latency-bound read in progress (the planner answering a request): see :meth:`yield_to_answers`."""
+        with self._count_lock:
+            self._answering += 1
+        try:
+            yield
+        finally:
+            with self._count_lock:
+                self._answering -= 1
+
+    def yield_to_answers(self, max_s: float) -> float:
+        """Called by the writer between two slices: pause while a request is being answered, at most ``max_s``.
+
+        On shared cores the planner's answer is what a robot waits for, while the optimisation can lag and catch
+        up: without the pause the two split the cores and the answer comes about twice as late. Returns the
+        seconds paused.
+        """
+        t0 = time.monotonic()
+        while self._answering > 0 and time.monotonic() - t0 < max_s:
+            time.sleep(0.002)
+        return time.monotonic() - t0
 
     # ----------------------------------------------------------------------------- writing
     def ensure(self, intr: Intrinsics) -> Mapper:
