@@ -791,6 +791,7 @@ def test_the_mapper_pauses_while_the_in_process_planner_answers(ros_context: Any
         time.sleep(0.05)
         assert 0.09 <= shared.yield_to_answers(0.1) < 1.0  # capped at max_s
         threading.Timer(0.3, release.set).start()
+        assert shared.yield_to_answers(5.0, stop=lambda: True) < 0.05  # a node stopping does not wait
         assert 0.2 <= shared.yield_to_answers(5.0) < 2.0  # until the answer is done
     finally:
         release.set()

@@ -8,8 +8,8 @@ or never received is counted and warned about. A worker thread inserts each keyf
 (:meth:`Mapper.add_keyframe`: densify, then ``iters_per_keyframe`` steps), then spends up to
 ``idle_iters_per_keyframe`` further steps over random keyframes while no keyframe waits, always in
 slices of ``optimise_slice_iters`` steps under the shared lock, so readers never wait long. Between two
-slices it pauses (at most ``yield_to_planner_s``) while an in-process planner answers a request: the answer
-is what the robot waits for, the optimisation can lag and catch up.
+slices it pauses (at most ``yield_to_planner_s``) while an in-process planner answers a request or prepares
+the next one: the answer is what the robot waits for, the optimisation can lag and catch up.
 
 Keyframe ids are the frames' header stamps in nanoseconds: unique across processes and restarts.
 
@@ -378,10 +378,10 @@ class MapperNode(SystemNode):
                 self.get_logger().error(f"mapping step failed: {exc}")
 
     def _yield(self) -> None:
-        """Between two slices: let waiting readers take the lock, and pause while the planner answers a request."""
+        """Between two slices: let waiting readers take the lock, and pause while the in-process planner works."""
         self.shared.yield_to_readers()
         if self.yield_s > 0:
-            paused = self.shared.yield_to_answers(self.yield_s)
+            paused = self.shared.yield_to_answers(self.yield_s, self._stop.is_set)
             if paused > 0.001:
                 with self._lock:
                     self.counters["paused_for_planner_s"] += paused

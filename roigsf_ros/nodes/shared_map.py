@@ -13,7 +13,7 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -115,15 +115,15 @@ class SharedMapper:
             with self._count_lock:
                 self._answering -= 1
 
-    def yield_to_answers(self, max_s: float) -> float:
+    def yield_to_answers(self, max_s: float, stop: Callable[[], bool] | None = None) -> float:
         """Called by the writer between two slices: pause while a request is being answered, at most ``max_s``.
 
         On shared cores the planner's answer is what a robot waits for, while the optimisation can lag and catch
-        up: without the pause the two split the cores and the answer comes about twice as late. Returns the
-        seconds paused.
+        up: without the pause the two split the cores and the answer comes about twice as late. ``stop()`` true
+        ends the pause at once (a node shutting down). Returns the seconds paused.
         """
         t0 = time.monotonic()
-        while self._answering > 0 and time.monotonic() - t0 < max_s:
+        while self._answering > 0 and time.monotonic() - t0 < max_s and not (stop is not None and stop()):
             time.sleep(0.002)
         return time.monotonic() - t0
 
