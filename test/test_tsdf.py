@@ -195,3 +195,19 @@ def test_office0_raycast_fusion_recall(office0: Path) -> None:
     assert m["recall@5cm"] > 0.97 and m["precision@5cm"] > 0.97
     assert m["recall@1cm"] > 0.85 and m["precision@1cm"] > 0.85
     assert 0.05 < m["gt_observed_fraction"] < 0.95
+
+
+def test_reserve_ahead_grows_the_block_map_before_it_is_full_and_changes_no_value() -> None:
+    """The block hash map doubles once more than half of it is used (the rehash out of a time-critical fusion)."""
+    intr = Intrinsics(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
+    depth = np.full((24, 32), 1.5, np.float32)
+    a, b = TSDFVolume(0.05, block_count=8), TSDFVolume(0.05, block_count=8)
+    assert not a.reserve_ahead()  # empty: nothing to do
+    a.integrate(depth, np.eye(4), intr)
+    b.integrate(depth, np.eye(4), intr)
+    hm = a.vbg.hashmap()
+    cap = hm.capacity()
+    assert hm.size() > cap // 2 and a.reserve_ahead() and hm.capacity() == 2 * cap
+    assert not a.reserve_ahead(max_fill=1.0)
+    va, vb = a.surface_voxels(), b.surface_voxels()
+    np.testing.assert_array_equal(va.centres_m, vb.centres_m)

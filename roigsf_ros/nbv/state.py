@@ -228,6 +228,10 @@ class ScoringState:
             self._close_front_fresh = False
         return len(new)
 
+    def reserve_ahead(self) -> bool:
+        """Grow the TSDF's block map ahead of need (:meth:`TSDFVolume.reserve_ahead`); call between requests."""
+        return self.tsdf is not None and self.tsdf.reserve_ahead()
+
     def products(
         self, poses: np.ndarray, intr: Intrinsics, close_front: bool
     ) -> tuple[SurfaceVoxels | None, CloseFrontMemory | None]:

@@ -388,7 +388,7 @@ class MapperNode(SystemNode):
 
     def _insert(self, frame: Frame) -> None:
         """Run the library's keyframe schedule, releasing the map lock between its slices (readers never wait long)."""
-        self.shared.yield_to_readers()
+        self._yield()  # not even the densification starts while the planner works
         with self.shared.lock:
             m = self.shared.mapper
             if m is None:
