@@ -108,15 +108,8 @@ def inverse_denominators(
     Computed once per ``score()`` call, not once per candidate, and as numpy arrays: the per-candidate sum is
     then one conversion, product and sum (0.15 ms against 0.37 ms for the per-candidate torch formula).
     """
-    out = {}
-    for name, shape in shapes.items():
-        h = h_train.get(name)
-        if h is None:
-            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
-        if tuple(h.shape) != tuple(shape):
-            raise InputError("h_train", f"'{name}' has shape {list(h.shape)}, the map needs {list(shape)}")
-        out[name] = 1.0 / (h.detach().to("cpu", torch.float64).numpy().reshape(-1) + prior)
-    return out
+    _check_entries(h_train, shapes)
+    return {k: 1.0 / (h_train[k].detach().to("cpu", torch.float64).numpy().reshape(-1) + prior) for k in shapes}
 
 
 def gain_with(f_cand: dict[str, Tensor], inv: dict[str, np.ndarray]) -> float:
@@ -459,6 +452,7 @@ class NBVScorer:
         t0 = _clock()
         h = None
         inv: dict[str, np.ndarray] = {}
+        params: list[str] = []
         if need_fisher and not empty_map:
             if mode == "fisherrf":
                 params = [p for p in cfg.fisherrf_params if p != "sh_rest" or surfel_map.sh_rest is not None]
@@ -513,9 +507,9 @@ class NBVScorer:
                     cf[chunk] = rois.close_front
             acc["roi"] += _since(t0)
             for j, i in enumerate(chunk):
-                self._fisher_and_unseen(surfel_map, h, inv, params if h is not None else [], cands[i], i, mode,
-                                        intr_f, rois.weights[j] if rois is not None else None, mass[i], vox, fisher,
-                                        flagged, unseen, should_stop, acc)  # fmt: skip
+                self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
+                                        rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
+                                        unseen, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -570,7 +564,6 @@ class NBVScorer:
     def _fisher_and_unseen(
         self,
         surfel_map: SurfelMap,
-        h: dict[str, Tensor] | None,
         inv: dict[str, np.ndarray],
         params: list[str],
         T: np.ndarray,
@@ -591,7 +584,7 @@ class NBVScorer:
         ds = cfg.fisher_downsample
         check_stop(should_stop)
         t0 = _clock()
-        if h is not None:
+        if inv:  # a Fisher mode with a map: Eq. 10 weights made once per score() call
             if mode == "fisherrf":
                 w = None
                 if ds > 1:
@@ -698,14 +691,19 @@ def _check_h_train(h_train: dict[str, Tensor], surfel_map: SurfelMap, params: Se
     """InputError unless ``h_train`` has every parameter in ``params`` shaped like the map's tensor."""
     if not isinstance(h_train, dict):
         raise InputError("h_train", f"expected a dict of tensors, got {type(h_train).__name__}")
+    _check_entries(h_train, {name: tuple(getattr(surfel_map, name).shape) for name in params})
     for name in params:
-        if name not in h_train:
-            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
-        want = tuple(getattr(surfel_map, name).shape)
-        if tuple(h_train[name].shape) != want:
-            raise InputError("h_train", f"'{name}' has shape {list(h_train[name].shape)}, the map has {list(want)}")
         if not bool(torch.isfinite(h_train[name]).all()) or bool((h_train[name] < 0).any()):
             raise InputError("h_train", f"'{name}' must be finite and >= 0")
+
+
+def _check_entries(h_train: dict[str, Tensor], shapes: dict[str, tuple[int, ...]]) -> None:
+    """InputError unless ``h_train`` has an entry of each shape in ``shapes`` (parameter name -> the map's shape)."""
+    for name, want in shapes.items():
+        if name not in h_train:
+            raise InputError("h_train", f"has no entry '{name}' (it covers {', '.join(h_train) or 'nothing'})")
+        if tuple(h_train[name].shape) != tuple(want):
+            raise InputError("h_train", f"'{name}' has shape {list(h_train[name].shape)}, the map has {list(want)}")
 
 
 __all__ = [
