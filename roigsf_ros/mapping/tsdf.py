@@ -134,8 +134,9 @@ class TSDFVolume:
     def reserve_ahead(self, max_fill: float = 0.5) -> bool:
         """Double the block hash map's capacity when more than ``max_fill`` of it is used; True if it grew.
 
-        open3d grows the map itself when an ``integrate`` needs more blocks, but that rehash costs about 0.4 s at
-        2000 blocks (measured here): called between frames, this keeps the growth out of a time-critical fusion.
+        open3d grows the map itself when an ``integrate`` needs more blocks, but that rehash took 30x a plain
+        integrate at 2000 blocks (``scripts/measure_nbv_stalls.py``): called between frames, this keeps the growth
+        out of a time-critical fusion.
         """
         hm = self.vbg.hashmap()
         if hm.size() <= max_fill * hm.capacity():

@@ -106,7 +106,8 @@ def inverse_denominators(
     """``1 / (H_train_k + prior)`` (float64, flat) for each parameter of ``shapes``: Eq. 10's per-entry weights.
 
     Computed once per ``score()`` call, not once per candidate, and as numpy arrays: the per-candidate sum is
-    then one conversion, product and sum (0.15 ms against 0.37 ms for the per-candidate torch formula).
+    then one conversion, product and sum (a third of the per-candidate torch formula's time:
+    ``scripts/measure_nbv_stalls.py``).
     """
     _check_entries(h_train, shapes)
     return {k: 1.0 / (h_train[k].detach().to("cpu", torch.float64).numpy().reshape(-1) + prior) for k in shapes}
@@ -116,7 +117,7 @@ def gain_with(f_cand: dict[str, Tensor], inv: dict[str, np.ndarray]) -> float:
     """``sum_k F_cand_k * inv_k`` over ``f_cand``'s entries (``inv`` from :func:`inverse_denominators`)."""
     total = 0.0
     for name, f in f_cand.items():
-        # Not np.dot: BLAS's own threads stall next to the numba pool (23 ms a call measured in score()).
+        # Not np.dot: BLAS's own threads stalled next to the numba pool in a profiled score().
         total += float((f.detach().cpu().numpy().reshape(-1).astype(np.float64) * inv[name]).sum())
     return total
 

@@ -274,7 +274,7 @@ class NBVPlannerNode(SystemNode):
         try:
             with self._answering():  # the next answer's work, done ahead
                 self._update(snap, self.nbv.mode)
-                self.state.reserve_ahead()  # a TSDF block-map rehash (0.4 s) here, not inside a request
+                self.state.reserve_ahead()  # a TSDF block-map rehash here, not inside a request
         except ScoringStoppedError:
             return
         except InputError as exc:
