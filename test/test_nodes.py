@@ -385,6 +385,72 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
     assert status["keyframe_ids"] == published
 
 
+def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context: Any, scene: Any) -> None:
+    """A window due while the previous one is in flight waits for its answer (no fallback); of two, the older
+    waiting one goes to the fallback, so the selector is never more than one window behind."""
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value="roi-fisher"),
+        Parameter("window", value=2),
+        Parameter("planner_service", value="/test_planner_wait/nbv"),
+        Parameter("planner_timeout_s", value=10.0),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    published: list[int] = []
+    cam.node.create_subscription(
+        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+    )
+    release = threading.Event()
+    sizes: list[int] = []
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        sizes.append(len(req.candidates.poses))
+        release.wait(10.0)  # answer only when the test says so
+        res.success, res.best_index = True, 1
+        return res
+
+    def window(k: int) -> None:  # frames 2k+1, 2k+2 fill one window of 2
+        for i in (2 * k + 1, 2 * k + 2):
+            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
+
+    planner = Node("test_planner_wait", context=ros_context)
+    planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
+    ex2 = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    ex2.add_node(planner)
+    spin2 = BackgroundSpin(ex2, "test_planner_wait_executor").start()
+    try:
+        with _spinning(ros_context, selector, cam.node):
+            cam.wait_for()
+            _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+            cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
+            window(0)  # sent; held by the planner
+            _wait(lambda: len(sizes) == 1, 10.0, "the first request")
+            window(1)  # due while window 0 is in flight: waits
+            _wait(lambda: selector.status()["planner_window_waiting"], 10.0, "a waiting window")
+            assert selector.status()["fallbacks"] == 0 and len(published) == 1
+            release.set()  # window 0 answered (frame 2, stamp 3000), then window 1 sent and answered (stamp 5000)
+            _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "both answers")
+            release.clear()
+            window(2)  # sent, held
+            _wait(lambda: len(sizes) == 3, 10.0, "the third request")
+            window(3)  # waits
+            window(4)  # a second waiting window: the older one (window 3) goes to the fallback
+            _wait(lambda: selector.status()["fallbacks"] == 1, 10.0, "the older waiting window decided alone")
+            release.set()
+            _wait(lambda: selector.status()["planner_answers"] == 4, 10.0, "the answers to windows 2 and 4")
+            _wait(lambda: len(published) == 6, 10.0, "six keyframes")
+            status = selector.status()
+    finally:
+        release.set()
+        spin2.stop()
+        planner.destroy_node()
+    assert published[:3] == [1000, 3000, 5000] and published[3] in (8000, 9000)  # window 3's fallback
+    assert sorted(published[4:]) == [7000, 11000]
+    assert status["planner_calls"] == 4 and status["planner_waited"] == 3 and status["fallbacks"] == 1
+    assert not status["planner_pending"] and not status["planner_window_waiting"]
+
+
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
     mapper = MapperNode(
         context=ros_context,

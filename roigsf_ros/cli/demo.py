@@ -39,11 +39,12 @@ if TYPE_CHECKING:
 
 DEFAULT_BAG = Path("bags/synth_room")
 DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
-DEFAULT_RATE = 0.25
-"""Playback rate of the demo: a window of 8 frames every 3.2 s. A planner call (ROI, Fisher of 8 candidates, the
-chosen view's uncertainty) takes about 0.65 s at 160x120 on 2 cores, but beside the mapper in one process rate
-1.0 (0.8 s a window) still sent 6 of 18 windows to the fallback (README, "Issue 12 in the SLAM loop"); a window
-that comes while the planner is still busy is decided by the fallback policy and counted."""
+DEFAULT_RATE = 1.0
+"""Playback rate of the demo: real time, a window of 8 frames every 0.8 s. A planner call (ROI, Fisher of 8
+candidates, the chosen view's uncertainty) takes 0.3-0.7 s at 160x120 on 2 cores beside the mapper; a window
+that comes while the previous one is still being answered waits for that answer, and only a second one behind
+it is decided by the fallback policy (counted; README, "Issue 12 in the SLAM loop"). ``--rate 0.25`` gives the
+mapper four times the optimisation per frame."""
 DEFAULT_FINAL_ITERS = 150
 """Refinement steps over all keyframes after the stream (the mapper's ``final_iters`` for offline runs)."""
 DEFAULT_POLICY = "roi-gsurfisher"
@@ -387,7 +388,12 @@ def run_demo(
                 settled_since, last = time.monotonic(), key
             handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
             handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
-            busy = sel["planner_pending"] or mp["pending_keyframes"] or mp["waiting_keyframes"]
+            busy = (
+                sel["planner_pending"]
+                or sel["planner_window_waiting"]
+                or mp["pending_keyframes"]
+                or mp["waiting_keyframes"]
+            )
             busy = busy or handled < mp["keyframe_msgs"] or mp["keyframe_msgs"] < sel["keyframes_published"]
             # Done when nothing moved for a while: 1 s once every frame is in, 5 s if some never came.
             quiet_s = 1.0 if sel["frames"] >= len(frames) else 5.0

@@ -6,7 +6,11 @@ The first frame is always a keyframe. Then, by ``policy``:
   setting of :class:`roigsf_ros.policies.stream.StreamNBVPolicy`. The node keeps the last ``window``
   frames that are not keyframes; every ``trigger_every`` frames (0 = ``window``) it sends their poses
   to the planner's service (asynchronously: ``call_async`` and a timer that checks the answer, never a
-  blocking call in a callback) and names the winner. When the planner is not available, answers
+  blocking call in a callback) and names the winner. A window that comes while the previous one is still
+  being answered waits for that answer (at most one waits: when a third comes, the older waiting window
+  is decided by the fallback); the answer may only be late by a few milliseconds (a process-wide stall,
+  such as open3d growing the scoring TSDF's block map with Python's GIL held, delays the reply's delivery
+  behind the frames that trigger the next window). When the planner is not available, answers
   ``success: false`` or does not answer within ``planner_timeout_s``, the window is decided by
   ``fallback_policy`` instead (logged "planner ... did not answer ...: fallback ..."); the next window
   asks the planner again, so the selector resumes using it as soon as it answers.
@@ -16,7 +20,8 @@ The first frame is always a keyframe. Then, by ``policy``:
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
-planner calls, failures, timeouts and fallbacks.
+planner calls, failures, timeouts, windows that waited for the previous answer (``planner_waited``) and
+fallbacks.
 
     keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
 """
@@ -109,11 +114,14 @@ class KeyframeSelectorNode(SystemNode):
         self._seen = 0
         self._request: tuple[Future, list[Frame], float] | None = None
         self._request_intr: Intrinsics | None = None
+        self._waiting: tuple[list[Frame], Intrinsics] | None = None
+        """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
         self.keyframe_ids: list[int] = []
         """Stamps (ns) of the keyframes published, in order."""
         self.counters: dict[str, int] = dict.fromkeys(
-            ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "fallbacks"), 0
+            ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "planner_waited", "fallbacks"),
+            0,
         )
 
         inputs = MutuallyExclusiveCallbackGroup()
@@ -208,9 +216,18 @@ class KeyframeSelectorNode(SystemNode):
     def _ask_planner(self, candidates: list[Frame], intr: Intrinsics) -> None:
         self._check_request()  # an answer that came since the last timer tick (50 ms) is taken, not called busy
         with self._lock:
-            if self._request is not None:
-                self._fall_back(candidates, intr, "is still busy with the previous window")
+            if self._request is not None:  # wait for the answer in flight; at most one window waits
+                if self._waiting is not None:
+                    older, older_intr = self._waiting
+                    self._fall_back(older, older_intr, "is still busy with two windows before this one")
+                self._waiting = (candidates, intr)
+                self.counters["planner_waited"] += 1
                 return
+            self._send(candidates, intr)
+
+    def _send(self, candidates: list[Frame], intr: Intrinsics) -> None:
+        """Send a window's poses to the planner (call with the lock held and no request in flight)."""
+        with self._lock:
             if not self._client.service_is_ready():
                 self._fall_back(candidates, intr, "is not available")
                 return
@@ -222,7 +239,19 @@ class KeyframeSelectorNode(SystemNode):
             self._request_intr = intr
 
     def _check_request(self) -> None:
-        """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed."""
+        """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
+
+        Once the request in flight is settled either way, a window that waited for it is sent.
+        """
+        with self._lock:
+            self._settle_request()
+            if self._request is None and self._waiting is not None:
+                candidates, intr = self._waiting
+                self._waiting = None
+                self._send(candidates, intr)
+
+    def _settle_request(self) -> None:
+        """Take the answer of the request in flight, or fall back on a timeout (call with the lock held)."""
         with self._lock:
             if self._request is None:
                 return
@@ -294,6 +323,7 @@ class KeyframeSelectorNode(SystemNode):
                 "keyframe_ids": list(self.keyframe_ids),
                 "window": self._window.pending_ids,
                 "planner_pending": self._request is not None,
+                "planner_window_waiting": self._waiting is not None,
                 **self.counters,
             }
 
@@ -302,8 +332,9 @@ class KeyframeSelectorNode(SystemNode):
         self._status_pub.publish(String(data=json.dumps(self.status())))
 
     def destroy_node(self) -> None:
-        """Drop a planner request still in flight, then destroy the node."""
+        """Drop a planner request still in flight (and a window waiting for it), then destroy the node."""
         with self._lock:
+            self._waiting = None
             if self._request is not None:
                 self._client.remove_pending_request(self._request[0])
                 self._request[0].cancel()

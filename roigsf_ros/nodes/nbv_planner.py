@@ -157,6 +157,8 @@ class NBVPlannerNode(SystemNode):
         self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
         self.counters["last_scoring_s"] = 0.0
         self.counters["max_scoring_s"] = 0.0
+        self.counters["max_request_wait_s"] = 0.0
+        self.counters["max_sync_s"] = 0.0
         self.counters["warm_up_s"] = 0.0
         if warm_up:  # before the service exists: no request waits behind the compiler
             try:
@@ -271,6 +273,7 @@ class NBVPlannerNode(SystemNode):
         snap = self.snapshot()
         if snap is None or len(snap.keyframe_poses) == 0 or snap.n_surfels == 0 or self.stopping():
             return
+        t0 = time.perf_counter()
         try:
             with self._answering():  # the next answer's work, done ahead
                 self._update(snap, self.nbv.mode)
@@ -279,12 +282,18 @@ class NBVPlannerNode(SystemNode):
             return
         except InputError as exc:
             self.get_logger().warning(f"map update failed: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+        dt = time.perf_counter() - t0
+        with self._lock:
+            self.counters["max_sync_s"] = max(self.counters["max_sync_s"], dt)
 
     # ------------------------------------------------------------------------------ service
     def _on_request(self, req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
         t0 = time.perf_counter()
+        stamp_ns = stamp_to_ns(req.candidates.header.stamp)
+        wait_s = (self.get_clock().now().nanoseconds - stamp_ns) * 1e-9 if stamp_ns > 0 else 0.0
         with self._lock:
             self.counters["requests"] += 1
+            self.counters["max_request_wait_s"] = max(self.counters["max_request_wait_s"], wait_s)
         try:
             with self._answering():
                 result, snap, cands = self.score_request(req)
@@ -406,7 +415,12 @@ class NBVPlannerNode(SystemNode):
         self._uncertainty_pub.publish(img)
 
     def status(self) -> dict[str, Any]:
-        """Counters: requests, answered, failed (of which stale), last scoring time, TSDF work, H_train work."""
+        """Counters: requests, answered, failed (of which stale), scoring times, TSDF work, H_train work.
+
+        ``max_request_wait_s``: the longest time from a request's stamp to the start of its handling (for the
+        selector, which stamps at sending: the transport and the wait behind the planner's other work);
+        ``max_sync_s``: the longest run of the sync timer (keyframes fused, TSDF products, H_train, block map grown).
+        """
         st, c = self.state, self.state.train_fisher_cache
         assert c is not None  # the planner always keeps one
         with self._lock:
