@@ -1,7 +1,8 @@
 """Re-measure the three stalls the README's "NBV scoring speed" section names (issue 12), as medians.
 
 1. The scoring TSDF's block-map growth: open3d rehashes the map when an ``integrate`` needs more blocks than it
-   holds; the time of the integrate that grew it against the median integrate (synthetic room, 160x120, 2 cm).
+   holds; the time of the integrate that grew it against the median integrate (synthetic room, 160x120, 2 cm),
+   and how long another Python thread was stalled meanwhile (open3d holds the GIL throughout).
 2. Eq. 10's sum per candidate: the per-candidate torch formula against ``gain_with`` with the denominators made
    once (the 20k-surfel room of ``roigsf perf nbv``).
 3. Importing torch before ``roigsf_ros`` (OpenMP threads spin) against after, beside one busy process: a float32
@@ -16,6 +17,7 @@ import os
 import statistics
 import subprocess
 import sys
+import threading
 import time
 
 # roigsf_ros first (it sets OMP_WAIT_POLICY, read when torch loads): torch is imported only through it.
@@ -37,14 +39,30 @@ def block_map_growth() -> None:
     renderer, poses = MeshRenderer(synth_room(7)), synth_trajectory(7, 400)[::10]
     tsdf = TSDFVolume(0.02, 0.08)
     hm, times, grown = tsdf.vbg.hashmap(), [], []
-    for T in poses:
-        rgb, depth = renderer.render(T, intr)
-        cap, t0 = hm.capacity(), time.perf_counter()
-        tsdf.integrate(depth, T, intr, rgb)
-        dt = time.perf_counter() - t0
-        (grown if hm.capacity() != cap else times).append((dt, cap, hm.capacity()))
-    print(f"1. TSDF integrate: median {statistics.median(t for t, _, _ in times) * 1e3:.1f} ms; the ones that grew "
-          "the block map: " + ", ".join(f"{dt * 1e3:.0f} ms ({a} -> {b} blocks)" for dt, a, b in grown))  # fmt: skip
+    ticks: list[float] = []
+    done = threading.Event()
+
+    def tick() -> None:  # another Python thread: its longest gap is how long the integrate held the GIL
+        while not done.is_set():
+            ticks.append(time.perf_counter())
+            time.sleep(0.001)
+
+    ticker = threading.Thread(target=tick)
+    ticker.start()
+    try:
+        for T in poses:
+            rgb, depth = renderer.render(T, intr)
+            cap, n0, t0 = hm.capacity(), len(ticks), time.perf_counter()
+            tsdf.integrate(depth, T, intr, rgb)
+            dt = time.perf_counter() - t0
+            gap = max((b - a for a, b in zip(ticks[n0 - 1 :], ticks[n0:], strict=False)), default=dt)
+            (grown if hm.capacity() != cap else times).append((dt, cap, hm.capacity(), gap))
+    finally:
+        done.set()
+        ticker.join()
+    print(f"1. TSDF integrate: median {statistics.median(t[0] for t in times) * 1e3:.1f} ms; the ones that grew "
+          "the block map: " + ", ".join(f"{dt * 1e3:.0f} ms ({a} -> {b} blocks; another thread stalled "
+                                        f"{gap * 1e3:.0f} ms)" for dt, a, b, gap in grown))  # fmt: skip
 
 
 def gain_per_candidate() -> None:

@@ -422,7 +422,8 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
     assert rows == {(m, d) for m in ("roi-gsurfisher", "fisherrf") for d in (1, 2)}
     for r in data["rows"]:
         assert r["n_candidates"] == 4 and r["n_flagged"] == 0  # every candidate in the room sees surface
-        assert r["train_fwd_bwd_ms"] > 0 and r["fisher_ms"] > 0 and r["score_s"] > 0
+        assert r["train_fwd_bwd_ms"] > 0 and r["fisher_ms"] > 0 and r["score_s"] > 0 and r["score_state_s"] > 0
+        assert r["state_best_index"] == r["best_index"]  # the planner's kept state scores as the one-shot call
         parts = r["roi_ms"] + r["close_front_ms"] + r["fisher_ms"]
         assert r["candidate_ms"] == pytest.approx(parts, rel=1e-9)  # one repeat: the median is the sum
         if r["mode"] == "roi-gsurfisher":

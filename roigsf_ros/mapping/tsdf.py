@@ -44,10 +44,13 @@ class SurfaceVoxels(NamedTuple):
 
 
 class TSDFVolume:
-    """Sparse TSDF volume (open3d ``VoxelBlockGrid`` with ``tsdf``, ``weight``, ``color``) on the CPU.
+    """Sparse TSDF volume (open3d ``VoxelBlockGrid`` with ``tsdf``, ``weight`` and, unless ``with_color`` is
+    false, ``color``) on the CPU.
 
     ``sdf_trunc_m`` defaults to 4 voxels; depth beyond ``depth_max_m`` is ignored; ``block_count`` is
     the initial hash-map capacity in blocks of ``block_resolution``^3 voxels and grows as needed.
+    A volume without colour (``with_color=False``: 8 bytes a voxel instead of 20) serves readers of the
+    geometry alone, such as the NBV scoring; its block map is 2.5x cheaper to allocate and to grow.
     """
 
     def __init__(
@@ -57,6 +60,7 @@ class TSDFVolume:
         depth_max_m: float = 10.0,
         block_resolution: int = 16,
         block_count: int = 1000,
+        with_color: bool = True,
     ) -> None:
         if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
             raise InputError("voxel_size_m", f"must be a positive number, got {voxel_size_m}")
@@ -77,11 +81,14 @@ class TSDFVolume:
         """Frames skipped because they had no valid depth (finite, > 0, <= depth_max_m)."""
         self.has_color = False
         """Whether any fused frame carried colour (the mesh gets vertex colours only then)."""
+        self.with_color = bool(with_color)
+        """Whether the volume stores colour (``integrate`` refuses ``rgb`` otherwise)."""
         self._device = o3c.Device("CPU:0")
+        names = ("tsdf", "weight", "color") if self.with_color else ("tsdf", "weight")
         self.vbg = o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight", "color"),
-            attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-            attr_channels=((1), (1), (3)),
+            attr_names=names,
+            attr_dtypes=(o3c.float32,) * len(names),
+            attr_channels=((1), (1), (3))[: len(names)],
             voxel_size=self.voxel_size_m,
             block_resolution=self.block_resolution,
             block_count=int(block_count),
@@ -96,9 +103,11 @@ class TSDFVolume:
     def integrate(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, rgb: np.ndarray | None = None) -> bool:
         """Fuse one depth map [H, W] (metres, 0/NaN = invalid) seen from ``T_wc``; True if fused.
 
-        ``rgb`` is [H, W, 3] uint8 (or float in [0, 1]). A frame with no valid depth is skipped and
-        counted in ``n_skipped``; a non-finite or non-rigid pose raises InputError.
+        ``rgb`` is [H, W, 3] uint8 (or float in [0, 1]); a volume made ``with_color=False`` takes none. A frame
+        with no valid depth is skipped and counted in ``n_skipped``; a non-finite or non-rigid pose raises InputError.
         """
+        if rgb is not None and not self.with_color:
+            raise InputError("rgb", "this TSDF volume stores no colour (with_color=False): pass rgb=None")
         T = check_pose(T_wc, "T_wc")
         depth = np.asarray(depth_m, dtype=np.float32)
         if depth.shape != (intr.height, intr.width):

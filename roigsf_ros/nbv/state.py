@@ -130,6 +130,12 @@ class PreparedScorer(NBVScorer):
 RenderRGBD = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """The map's own RGB-D at a pose ``T_wc`` [4, 4]: (depth_m [H, W] float32, 0 = no surface; rgb [H, W, 3] uint8)."""
 
+SCORING_TSDF_BLOCKS = 2000
+"""Initial block-map capacity of the scoring TSDF (blocks of 16^3 voxels; 64 MB without colour, the memory 1000
+blocks with colour took). Growing it holds Python's GIL for the whole copy (open3d), stalling every thread of the
+process: the synthetic room's 1200-1300 blocks at 2 cm then never need a growth."""
+SCORING_TSDF_MAX_FILL = 0.75
+"""The scoring TSDF's block map is grown between requests once more than this share of it is used."""
 CLOSE_FRONT_MODES = ("roi-gsurfisher", "close-front")
 """Modes that need the close-front memory W_f."""
 
@@ -216,13 +222,14 @@ class ScoringState:
         new = range(len(self._fused), len(keys))
         if not new:
             return 0
-        if self.tsdf is None:
-            self.tsdf = TSDFVolume(self.voxel_size_m, self.sdf_trunc_m, self.depth_max_m)
+        if self.tsdf is None:  # geometry only: the scorer reads no TSDF colour (texture comes from the surfels)
+            self.tsdf = TSDFVolume(self.voxel_size_m, self.sdf_trunc_m, self.depth_max_m,
+                                   block_count=SCORING_TSDF_BLOCKS, with_color=False)  # fmt: skip
         for i in new:
             check_stop(self.should_stop)
             T = np.asarray(poses)[i]
-            depth, rgb = render_rgbd(T)
-            self.tsdf.integrate(depth, T, intr, rgb)
+            depth, _ = render_rgbd(T)
+            self.tsdf.integrate(depth, T, intr)
             self._fused.append(keys[i])
             self._surface = None
             self._close_front_fresh = False
@@ -230,7 +237,7 @@ class ScoringState:
 
     def reserve_ahead(self) -> bool:
         """Grow the TSDF's block map ahead of need (:meth:`TSDFVolume.reserve_ahead`); call between requests."""
-        return self.tsdf is not None and self.tsdf.reserve_ahead()
+        return self.tsdf is not None and self.tsdf.reserve_ahead(SCORING_TSDF_MAX_FILL)
 
     def products(
         self, poses: np.ndarray, intr: Intrinsics, close_front: bool
