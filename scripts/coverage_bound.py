@@ -15,17 +15,26 @@ Reported (table ``coverage.md`` and ``coverage.json``, written atomically under 
 every ``window``-th frame; an offline greedy max-coverage pick of the same count (frame 0 forced); the
 stream oracle (frame 0, then from each trigger window of ``window`` frames the frame adding the most new
 coverage given the earlier picks, the windows of ``StreamNBVPolicy``: frames 1..W, W+1..2W, ..., full
-windows only), the same refined by coordinate ascent (each window's pick re-chosen given all the other
-picks, until nothing changes), the stream oracle with ``--ref-window``; the offline greedy coverage
-curve (frames needed for each ``--targets`` coverage); and, for every ``--bench`` folder of
-``roigsf bench --setting stream``, each run's keyframes with their coverage next to the run's measured
-recall, and for window policies the per-window coverage lost against a perfect window scorer. With
-``--map NAME`` (oracle, ascent, cadence) that window-feasible set is also mapped (``run_offline`` with the
-bench's defaults, each pick inserted at its window's trigger as a window policy would) and its measured
-recall reported beside its coverage (about 2 min each; the coverage part alone takes under a minute).
+windows only); the same deciding one window late (:func:`delayed_oracle`); the same refined by coordinate
+ascent (each window's pick re-chosen given all the other picks, until nothing changes: hindsight, not
+causal); the stream oracle with ``--ref-window``; two causal adaptive oracles, not one pick per window: the
+threshold oracle (:func:`threshold_picks`: frame 0, then every frame whose new coverage reaches a threshold, a
+keyframe as it arrives; the smallest threshold for each ``--threshold-budgets`` count found by bisection) and
+the budget-trigger oracle (:func:`budget_oracle`: ``StreamNBVPolicy``'s ``trigger="budget"`` with the GT new
+coverage as score and gain, one per ``--budget-ratios`` value); the offline greedy coverage curve (frames
+needed for each ``--targets`` coverage); and, for every ``--bench`` folder of ``roigsf bench --setting
+stream``, each run's keyframes with their coverage next to the run's measured recall, F@5cm and PSNR, and for
+window policies the per-window coverage lost against a perfect window scorer. With ``--map NAME`` (oracle,
+delayed, ascent, cadence, threshold, budget) that set is also mapped (``run_offline`` with the bench's
+defaults, each pick inserted when its policy would insert it: at its window's trigger, on arrival for the
+threshold oracle at the ``--window`` budget, at its trigger for every budget oracle) and its measured recall,
+F@5cm and PSNR reported beside its coverage (under a minute each here; the coverage part alone takes about
+30 s).
 
     nice -n 19 .venv/bin/python scripts/coverage_bound.py --scene runs/office0_240_s5 --out runs/coverage_office0 \
-        --bench runs/cov_bench/gaus-slam --bench runs/cov_bench/unseen --map ascent --map oracle --map cadence
+        --bench runs/cov_bench/gaus-slam --bench runs/cov_bench/unseen --bench runs/cov_bench/gaus-slam_tau0.1 \
+        --bench runs/cov_bench/gaus-slam_tau0.14 --bench runs/cov_bench/gaus-slam_tau0.15 --map ascent \
+        --map oracle --map delayed --map cadence --map threshold --map budget
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,10 +65,15 @@ from roigsf_ros.evaluation.metrics import (
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy
-from roigsf_ros.policies.stream import CandidateWindow
 
-MAPPABLE = ("oracle", "ascent", "cadence")
-"""Window-feasible sets ``--map`` can map: the stream oracle, its coordinate ascent, every window-th frame."""
+MAPPABLE = ("oracle", "delayed", "ascent", "cadence", "threshold", "budget")
+"""Sets ``--map`` can map: the window-feasible stream oracle, one-window-late oracle, coordinate ascent and every
+window-th frame (inserted at their triggers), and the causal threshold oracle (at the threshold for the window
+budget; each pick inserted as it arrives) and budget-trigger oracle (each pick inserted at its trigger)."""
+
+
+METRICS = ("recall@5cm", "recall@1cm", "fscore@5cm", "psnr")
+"""Measured metrics a row carries when it was mapped (here or by a bench)."""
 
 
 @dataclass
@@ -158,6 +173,29 @@ def stream_oracle(obs: np.ndarray, windows: list[list[int]], first: int = 0) -> 
     return picks
 
 
+def delayed_oracle(obs: np.ndarray, windows: list[list[int]], first: int = 0) -> list[int]:
+    """A window scorer deciding one window late: window t's pick is chosen once window t+1 has been seen.
+
+    Its score is the new coverage (given the earlier picks) that no frame of window t+1 sees, ties broken by
+    the plain new coverage: surface the next window shows again is left to it. Causal with a delay of one
+    window (a candidate buffer of two windows, one keyframe per window); the last window decides alone.
+    """
+    picks = [first]
+    covered = obs[first].copy()
+    for t, win in enumerate(windows):
+        new = obs[win] & ~covered
+        plain = np.count_nonzero(new, axis=1).astype(np.float64)
+        if t + 1 < len(windows):
+            later = obs[windows[t + 1]].any(axis=0)
+            score = np.count_nonzero(new & ~later, axis=1) + plain / (plain.max() + 1.0)
+        else:
+            score = plain
+        best = win[int(np.argmax(score))]
+        picks.append(best)
+        covered |= obs[best]
+    return picks
+
+
 def refine_windows(obs: np.ndarray, picks: list[int], windows: list[list[int]], max_rounds: int = 20) -> list[int]:
     """Coordinate ascent under the window constraint: re-choose each window's pick given all others (picks[0] kept)."""
     picks = list(picks)
@@ -174,6 +212,91 @@ def refine_windows(obs: np.ndarray, picks: list[int], windows: list[list[int]], 
         if not changed:
             break
     return picks
+
+
+def threshold_picks(obs: np.ndarray, min_new: int, first: int = 0) -> list[int]:
+    """Causal threshold oracle: ``first``, then each later frame, as it arrives, if it observes at least ``min_new``
+    GT samples that no earlier pick observes (its new coverage >= ``min_new`` / N).
+    """
+    picks = [first]
+    covered = obs[first].copy()
+    for f in range(first + 1, obs.shape[0]):
+        if np.count_nonzero(obs[f] & ~covered) >= min_new:
+            picks.append(f)
+            covered |= obs[f]
+    return picks
+
+
+def threshold_for(obs: np.ndarray, k_max: int) -> tuple[int, list[int]]:
+    """Bisection: the smallest ``min_new`` (a count of GT samples) whose :func:`threshold_picks` has <= ``k_max``
+    frames, and those picks. Assumes the count falls as the threshold rises (checked: a warning if not).
+    """
+    lo, hi = 1, obs.shape[1] + 1  # n(hi) = 1 <= k_max; find the smallest c with n(c) <= k_max
+    if len(threshold_picks(obs, lo)) <= k_max:
+        return lo, threshold_picks(obs, lo)
+    while hi - lo > 1:  # invariant: n(lo) > k_max >= n(hi)
+        mid = (lo + hi) // 2
+        if len(threshold_picks(obs, mid)) <= k_max:
+            hi = mid
+        else:
+            lo = mid
+    picks = threshold_picks(obs, hi)
+    above = [c for c in range(hi + 1, min(hi + 200, obs.shape[1] + 1)) if len(threshold_picks(obs, c)) > k_max]
+    if above:
+        print(f"warning: threshold for <= {k_max} keyframes is not monotone: {above[0]} gives more again")
+    return hi, picks
+
+
+def budget_oracle(
+    obs: np.ndarray,
+    window: int,
+    trigger_every: int,
+    budget_every: float,
+    burst: float = 3.0,
+    ratio: float = 1.0,
+    history: int = 8,
+    first: int = 0,
+) -> tuple[list[int], dict[int, int], float]:
+    """``StreamNBVPolicy``'s ``trigger="budget"`` with the GT new coverage as both score and gain.
+
+    Replays ``CandidateWindow`` (the last ``window`` frames not chosen, a trigger every ``trigger_every`` frames
+    after the first) and ``observe`` / ``_accept``: each frame after the first earns 1 / ``budget_every`` of a
+    keyframe (at most ``burst`` banked); a trigger with less than one banked is skipped unscored; otherwise the
+    window's frame with the most new coverage (given the keyframes inserted so far; ties: the oldest) is
+    inserted if its gain reaches ``ratio`` x the median of the last ``history`` triggers' gains (the first two
+    always), or if the next trigger would overflow the bank; every scored trigger's gain enters the history.
+    Returns the picks in insertion order (``first`` first), per pick the position at which it is inserted, and the
+    keyframes still banked at the end.
+    """
+    picks, when = [first], {first: first}
+    covered = obs[first].copy()
+    buffer: deque[int] = deque(maxlen=window)
+    gains: deque[float] = deque(maxlen=history)
+    tokens, since = 0.0, 0
+    for f in range(first + 1, obs.shape[0]):
+        buffer.append(f)
+        since += 1
+        tokens = min(tokens + 1.0 / budget_every, burst)
+        if since < trigger_every:
+            continue
+        since = 0
+        if tokens < 1.0 - 1e-9:
+            continue
+        cand = list(buffer)
+        new = np.count_nonzero(obs[cand] & ~covered, axis=1)
+        best = int(np.argmax(new))
+        g = float(new[best]) / obs.shape[1]
+        ok = len(gains) < 2 or g >= ratio * float(np.median(gains))
+        ok = ok or tokens + trigger_every / budget_every > burst + 1e-9
+        gains.append(g)
+        if not ok:
+            continue
+        tokens -= 1.0
+        buffer.remove(cand[best])
+        picks.append(cand[best])
+        when[cand[best]] = f
+        covered |= obs[cand[best]]
+    return picks, when, tokens
 
 
 def window_losses(obs: np.ndarray, picks: list[int], windows: list[list[int]]) -> list[dict[str, Any]] | None:
@@ -215,42 +338,79 @@ def window_losses(obs: np.ndarray, picks: list[int], windows: list[list[int]]) -
 
 
 class ScheduledPicks(KeyframePolicy):
-    """Replays given keyframe ids: the first frame at once, the others at their window's trigger.
+    """Replays given keyframe ids: the first frame at once, the others when a window policy would insert them.
 
-    The timing of ``StreamNBVPolicy`` (:class:`CandidateWindow`): a pick of frames 1..W is inserted
-    when frame W arrives, so the mapper sees it when a window policy's pick would be inserted.
+    The timing of ``StreamNBVPolicy`` (:class:`CandidateWindow`): a pick of frames 1..W is inserted when
+    frame W arrives (the window's trigger); with ``delay`` d, at the trigger d windows later, except that
+    the pick of window ``last_window`` (no later trigger comes) is inserted at its own trigger.
     """
 
     name = "scheduled-picks"
 
-    def __init__(self, ids: list[int], window: int) -> None:
+    def __init__(self, ids: list[int], window: int, delay: int = 0, last_window: int | None = None) -> None:
         self.ids = {int(i) for i in ids}
-        self.window = int(window)
-        self.candidates = CandidateWindow(self.window)
+        self.window, self.delay, self.last_window = int(window), int(delay), last_window
+        self.reset()
 
     def reset(self) -> None:
-        """Forget the window."""
-        self.candidates.reset()
+        """Forget the frames seen."""
+        self._seen = 0
+        self._held: list[tuple[int, Frame]] = []  # (window of the frame, frame)
 
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
-        """The first frame; at a trigger the window's frames among ``ids``."""
-        due, first = self.candidates.push(frame)
-        if first:
-            return due
-        hits = [f for f in due if int(f.index) in self.ids]
-        for f in hits:
-            self.candidates.remove(f)
-        return hits
+        """The first frame; at a trigger the held picks whose insertion is due."""
+        self._seen += 1
+        if self._seen == 1:
+            return [frame]
+        w = (self._seen - 2) // self.window  # arrival 2..W+1 is window 0
+        if int(frame.index) in self.ids:
+            self._held.append((w, frame))
+        if (self._seen - 1) % self.window:
+            return []
+        due = [f for fw, f in self._held if fw <= w - self.delay or fw == self.last_window]
+        self._held = [(fw, f) for fw, f in self._held if not (fw <= w - self.delay or fw == self.last_window)]
+        return due
 
     def params(self) -> dict[str, Any]:
-        """The ids and the window."""
-        return {"ids": sorted(self.ids), "window": self.window}
+        """The ids, the window and the delay."""
+        return {"ids": sorted(self.ids), "window": self.window, "delay": self.delay}
 
 
-def map_picks(scene_path: Path, ids: list[int], window: int, out_dir: Path) -> dict[str, Any]:
+class TimedPicks(KeyframePolicy):
+    """Replays given keyframe ids, each inserted when a given frame arrives (itself or a later one); the first frame
+    at once.
+    """
+
+    name = "timed-picks"
+
+    def __init__(self, insert_at: dict[int, int]) -> None:
+        self.insert_at = {int(k): int(v) for k, v in insert_at.items()}  # pick id -> id of the arrival inserting it
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the frames seen."""
+        self._seen = 0
+        self._held: list[Frame] = []
+
+    def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
+        """The first frame; else the held picks whose insertion frame this is."""
+        self._seen += 1
+        if self._seen == 1:
+            return [frame]
+        if int(frame.index) in self.insert_at:
+            self._held.append(frame)
+        due = [f for f in self._held if self.insert_at[int(f.index)] <= int(frame.index)]
+        self._held = [f for f in self._held if self.insert_at[int(f.index)] > int(frame.index)]
+        return due
+
+    def params(self) -> dict[str, Any]:
+        """The ids and when each is inserted."""
+        return {"insert_at": {str(k): v for k, v in sorted(self.insert_at.items())}}
+
+
+def map_picks(scene_path: Path, policy: KeyframePolicy, out_dir: Path) -> dict[str, Any]:
     """Map the scene with exactly these keyframes (bench defaults: MapperConfig, EvalConfig); its metrics."""
     source = open_frames(scene_path)
-    policy = ScheduledPicks(ids, window)
     return run_offline(
         source, policy, MapperConfig(), out_dir, gt_mesh=source.gt_mesh_path, eval_config=EvalConfig(),
         progress=False, overwrite=True,
@@ -277,6 +437,8 @@ def read_bench(path: Path) -> list[dict[str, Any]]:
                 "keyframe_ids": [int(i) for i in ids],
                 "recall@5cm": m.get("recall@5cm"),
                 "recall@1cm": m.get("recall@1cm"),
+                "fscore@5cm": m.get("fscore@5cm"),
+                "psnr": m.get("psnr"),
                 "n_gt_samples": m.get("n_gt_samples"),
             }
         )
@@ -297,14 +459,32 @@ def markdown(report: dict[str, Any]) -> str:
         f"GT samples (culled to observed, the recall denominator): {report['n_gt_culled']} of "
         f"{report['n_gt_drawn']}; frames: {report['n_frames']}",
         "",
-        "| set | keyframes | coverage | measured R@5cm | coverage - R@5cm |",
-        "|---|---:|---:|---:|---:|",
+        "| set | keyframes | coverage | measured R@5cm | coverage - R@5cm | F@5cm | PSNR (dB) |",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
+
+    def fmt(v: float | None, spec: str) -> str:
+        return "" if v is None else format(v, spec)
+
     for row in report["rows"]:
         r = row.get("recall@5cm")
-        gap = f"{row['coverage'] - r:.4f}" if r is not None else ""
-        rec = f"{r:.4f}" if r is not None else ""
-        lines.append(f"| {row['name']} | {row['n']} | {row['coverage']:.4f} | {rec} | {gap} |")
+        gap = fmt(row["coverage"] - r if r is not None else None, ".4f")
+        lines.append(
+            f"| {row['name']} | {row['n']} | {row['coverage']:.4f} | {fmt(r, '.4f')} | {gap} | "
+            f"{fmt(row.get('fscore@5cm'), '.4f')} | {fmt(row.get('psnr'), '.2f')} |"
+        )
+    lines += ["", "Causal threshold oracle: smallest new-coverage threshold (bisection) for a keyframe budget", ""]
+    lines += ["| budget | threshold (fraction of GT samples) | samples | keyframes | coverage |"]
+    lines += ["|---:|---:|---:|---:|---:|"]
+    for t in report["threshold"]:
+        lines.append(f"| {t['k_max']} | {t['tau']:.6f} | {t['min_new']} | {t['n']} | {t['coverage']:.4f} |")
+    for b in report["budget"]:
+        lines += [
+            "",
+            f"Budget-trigger oracle ({', '.join(f'{k}={v}' for k, v in b['params'].items())}): {b['n']} keyframes, "
+            f"{b['banked_at_end']:.2f} banked at the end, coverage {b['coverage']:.4f}; picks (inserted at): "
+            + ", ".join(f"{i}@{b['insert_at'][str(i)]}" for i in b["picks"]),
+        ]
     lines += ["", "Offline greedy (frame 0 first): frames needed for a coverage", ""]
     lines += [f"- {t}: {k}" for t, k in report["greedy_frames_to_reach"].items()]
     lines += ["", "Offline greedy coverage at k frames: " + ", ".join(
@@ -343,6 +523,19 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=13, help="trigger window (frames) of the budget")
     ap.add_argument("--ref-window", type=int, default=9, help="a second window for reference")
     ap.add_argument("--targets", default="0.981,0.985,0.991", help="coverages for the greedy curve")
+    ap.add_argument(
+        "--threshold-budgets",
+        default="",
+        help="keyframe budgets for the causal threshold oracle (default: those of --window, --ref-window and 160)",
+    )
+    ap.add_argument("--budget-trigger-every", type=int, default=4, help="budget oracle: frames between triggers")
+    ap.add_argument("--budget-burst", type=float, default=3.0, help="budget oracle: keyframes banked at most")
+    ap.add_argument(
+        "--budget-ratios",
+        default="1,0.5",
+        help="budget oracle: adaptive_ratio values, one oracle each (the first is --map budget's 'budget', the others "
+        "'budget_r<ratio>'; 1 is the policy's default, 0.5 the best of a hindsight sweep on office0)",
+    )
     ap.add_argument("--n-samples", type=int, default=ev.mesh_samples, help="GT samples drawn (bench default)")
     ap.add_argument("--seed", type=int, default=ev.seed, help="sampling seed (bench default)")
     ap.add_argument(
@@ -350,8 +543,8 @@ def main() -> None:
         action="append",
         default=[],
         choices=MAPPABLE,
-        help="also map this window-feasible set (bench defaults, picks inserted at their triggers) and report its "
-        "measured recall (about 2 min each; repeatable)",
+        help="also map this set (bench defaults, picks inserted when the policy would insert them) and report its "
+        "measured recall, F@5cm and PSNR (under a minute each; repeatable)",
     )
     args = ap.parse_args()
 
@@ -380,6 +573,7 @@ def main() -> None:
     greedy, curve = offline_greedy(obs, n_frames)
     oracle = stream_oracle(obs, win)
     oracle_refined = refine_windows(obs, oracle, win)
+    oracle_delayed = delayed_oracle(obs, win)
     oracle_tail = stream_oracle(obs, win_tail)
     oracle_ref = stream_oracle(obs, ref_win)
     oracle_ref_refined = refine_windows(obs, oracle_ref, ref_win)
@@ -389,32 +583,68 @@ def main() -> None:
     cadence_refined = refine_windows(obs, cadence, win) if fits else None
     wall["selection"] = time.perf_counter() - t0
 
+    t0 = time.perf_counter()
+    budgets = [int(b) for b in args.threshold_budgets.split(",") if b.strip()] or [k, len(ref_win) + 1, 160]
+    thresholds = []
+    for kb in budgets:
+        min_new, picks = threshold_for(obs, kb)
+        thresholds.append({"k_max": kb, "min_new": min_new, "tau": min_new / obs.shape[1], "n": len(picks),
+                           "coverage": coverage(obs, picks), "picks": picks})  # fmt: skip
+    threshold = thresholds[budgets.index(k)]["picks"] if k in budgets else thresholds[0]["picks"]
+    budgets_b = []
+    for i, ratio in enumerate(float(r) for r in args.budget_ratios.split(",") if r.strip()):
+        params = {"window": args.window, "trigger_every": args.budget_trigger_every, "budget_every": args.window,
+                  "budget_burst": args.budget_burst, "adaptive_ratio": ratio, "adaptive_history": 8}  # fmt: skip
+        picks, at, banked = budget_oracle(obs, args.window, args.budget_trigger_every, float(args.window),
+                                          args.budget_burst, ratio)  # fmt: skip
+        budgets_b.append({"name": "budget" if i == 0 else f"budget_r{ratio:g}", "params": params, "picks": picks,
+                          "n": len(picks), "coverage": coverage(obs, picks), "banked_at_end": banked,
+                          "insert_at": {str(q): at[q] for q in picks}})  # fmt: skip
+    wall["threshold_budget"] = time.perf_counter() - t0
+
     def row(name: str, picks: list[int], **extra: Any) -> dict[str, Any]:
         return {"name": name, "n": len(picks), "coverage": coverage(obs, picks), "picks": sorted(picks), **extra}
 
+    budget_name = f"budget-trigger oracle, GT gain (W={args.window}, trigger every {args.budget_trigger_every}"
     rows = [
         row(f"all {n_frames} frames", list(range(n_frames))),
         row(f"all frames a W={args.window} window policy can pick (0..{pickable[-1]})", pickable),
         row(f"every {args.window}th frame (0, {args.window}, ...)", cadence),
         row(f"offline greedy, {k} frames (0 forced)", greedy[:k]),
         row(f"stream oracle, windows of {args.window} (full windows only)", oracle),
+        row(f"stream oracle W={args.window} deciding one window late", oracle_delayed),
         row(f"stream oracle W={args.window} + coordinate ascent in windows", oracle_refined),
         *([row(f"every {args.window}th + coordinate ascent in windows", cadence_refined)] if cadence_refined else []),
         row(f"stream oracle W={args.window} incl. partial last window", oracle_tail),
         row(f"stream oracle, windows of {args.ref_window}", oracle_ref),
         row(f"stream oracle W={args.ref_window} + coordinate ascent in windows", oracle_ref_refined),
+        *[
+            row(f"causal threshold oracle, new coverage >= {t['tau']:.5f} (budget {t['k_max']})", t["picks"])
+            for t in thresholds
+        ],
+        *[row(f"{budget_name}, adaptive_ratio {b['params']['adaptive_ratio']:g})", b["picks"]) for b in budgets_b],
     ]
-    named = {"oracle": oracle, "ascent": oracle_refined, "cadence": cadence}
-    for name in args.map:
+    named = {"oracle": oracle, "delayed": oracle_delayed, "ascent": oracle_refined, "cadence": cadence,
+             "threshold": threshold} | {b["name"]: b["picks"] for b in budgets_b}  # fmt: skip
+    timed = {b["name"]: {scene.ids[q]: scene.ids[at] for q, at in zip(b["picks"], b["insert_at"].values(), strict=True)}
+             for b in budgets_b}  # fmt: skip
+    to_map = [m for name in args.map for m in ([b["name"] for b in budgets_b] if name == "budget" else [name])]
+    for name in dict.fromkeys(to_map):
         t0 = time.perf_counter()
         ids = [scene.ids[p] for p in named[name]]
-        m = map_picks(args.scene, ids, args.window, args.out / "maps" / name)
+        policy: KeyframePolicy
+        if name == "threshold":
+            policy = TimedPicks({i: i for i in ids})
+        elif name in timed:
+            policy = TimedPicks(timed[name])
+        else:
+            policy = ScheduledPicks(ids, args.window, int(name == "delayed"), len(win) - 1)
+        m = map_picks(args.scene, policy, args.out / "maps" / name)
         wall[f"map_{name}"] = time.perf_counter() - t0
         if sorted(m["keyframe_ids"]) != sorted(ids):
             print(f"warning: mapping {name}: keyframes {m['keyframe_ids']} differ from the picks {ids}")
         picks = [pos[i] for i in m["keyframe_ids"] if i in pos]
-        rows.append(row(f"mapped: {name} (this script)", picks, **{"recall@5cm": m["recall@5cm"],
-                                                                   "recall@1cm": m["recall@1cm"]}))  # fmt: skip
+        rows.append(row(f"mapped: {name} (this script)", picks, **{k_: m.get(k_) for k_ in METRICS}))
 
     losses: dict[str, list[dict[str, Any]]] = {}
     bench_runs: list[dict[str, Any]] = []
@@ -422,7 +652,7 @@ def main() -> None:
         for run in read_bench(b):
             picks = [pos[i] for i in run["keyframe_ids"] if i in pos]
             name = f"{run['label']} seed {run['seed']} ({b.name})"
-            rows.append(row(name, picks, **{"recall@5cm": run["recall@5cm"], "recall@1cm": run["recall@1cm"]}))
+            rows.append(row(name, picks, **{k_: run.get(k_) for k_ in METRICS}))
             if run["n_gt_samples"] is not None and run["n_gt_samples"] != len(gt):
                 print(f"warning: {name}: bench counted {run['n_gt_samples']} GT samples, here {len(gt)}")
             wl = window_losses(obs, picks, win) if picks and picks[0] == 0 else None
@@ -444,6 +674,8 @@ def main() -> None:
         "greedy_curve": curve,
         "greedy_frames_to_reach": {f"{t:g}": frames_to_reach(curve, t) for t in targets},
         "greedy_coverage_at": {str(n): curve[min(n, len(curve)) - 1] for n in (k, len(ref_win) + 1, 160)},
+        "threshold": thresholds,
+        "budget": budgets_b,
         "window_losses": losses,
         "bench_runs": bench_runs,
         "wall_s": wall,
