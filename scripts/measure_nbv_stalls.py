@@ -1,8 +1,9 @@
 """Re-measure the three stalls the README's "NBV scoring speed" section names (issue 12), as medians.
 
-1. The scoring TSDF's block-map growth: open3d rehashes the map when an ``integrate`` needs more blocks than it
-   holds; the time of the integrate that grew it against the median integrate (synthetic room, 160x120, 2 cm),
-   and how long another Python thread was stalled meanwhile (open3d holds the GIL throughout).
+1. The TSDF's block-map growth: open3d rehashes the map when an ``integrate`` needs more blocks than it holds (or
+   at ``reserve``); the time of the integrate that grew it against the median integrate, and how long another
+   Python thread was stalled meanwhile (open3d holds the GIL throughout), with colour (the mesh TSDF) and without
+   (the scoring TSDF), synthetic room, 160x120, 2 cm.
 2. Eq. 10's sum per candidate: the per-candidate torch formula against ``gain_with`` with the denominators made
    once (the 20k-surfel room of ``roigsf perf nbv``).
 3. Importing torch before ``roigsf_ros`` (OpenMP threads spin) against after, beside one busy process: a float32
@@ -19,6 +20,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 
 # roigsf_ros first (it sets OMP_WAIT_POLICY, read when torch loads): torch is imported only through it.
 from roigsf_ros.core.camera import Intrinsics
@@ -34,35 +37,48 @@ CONVERT = "import time, torch; x = torch.rand(60000, 3); t = time.perf_counter()
 
 
 def block_map_growth() -> None:
-    """1: every 10th frame of the seed-7 room loop fused at 160x120; the integrates that grew the map apart."""
+    """1: every 10th frame of the seed-7 room loop fused at 160x120, with colour (the mesh TSDF) and without (the
+    scoring TSDF), both from 1000 blocks; the integrates that grew the map apart, then one more doubling.
+    """
     intr = Intrinsics(width=160, height=120, fx=128.0, fy=128.0, cx=79.5, cy=59.5)
     renderer, poses = MeshRenderer(synth_room(7)), synth_trajectory(7, 400)[::10]
-    tsdf = TSDFVolume(0.02, 0.08)
-    hm, times, grown = tsdf.vbg.hashmap(), [], []
+    frames = [renderer.render(T, intr) for T in poses]
     ticks: list[float] = []
     done = threading.Event()
 
-    def tick() -> None:  # another Python thread: its longest gap is how long the integrate held the GIL
+    def tick() -> None:  # another Python thread: its longest gap is how long the call held the GIL
         while not done.is_set():
             ticks.append(time.perf_counter())
             time.sleep(0.001)
 
+    def timed(fn: Callable[[], object]) -> tuple[float, float]:
+        """Wall seconds of fn() and the other thread's longest stall meanwhile."""
+        n0, t0 = len(ticks), time.perf_counter()
+        fn()
+        dt = time.perf_counter() - t0
+        return dt, max((b - a for a, b in zip(ticks[n0 - 1 :], ticks[n0:], strict=False)), default=dt)
+
     ticker = threading.Thread(target=tick)
     ticker.start()
     try:
-        for T in poses:
-            rgb, depth = renderer.render(T, intr)
-            cap, n0, t0 = hm.capacity(), len(ticks), time.perf_counter()
-            tsdf.integrate(depth, T, intr, rgb)
-            dt = time.perf_counter() - t0
-            gap = max((b - a for a, b in zip(ticks[n0 - 1 :], ticks[n0:], strict=False)), default=dt)
-            (grown if hm.capacity() != cap else times).append((dt, cap, hm.capacity(), gap))
+        for with_color in (True, False):
+            tsdf = TSDFVolume(0.02, 0.08, block_count=1000, with_color=with_color)
+            hm, times, grown = tsdf.vbg.hashmap(), [], []
+            for T, (rgb, depth) in zip(poses, frames, strict=True):
+                cap = hm.capacity()
+                dt, gap = timed(partial(tsdf.integrate, depth, T, intr, rgb if with_color else None))
+                (grown if hm.capacity() != cap else times).append((dt, cap, hm.capacity(), gap))
+            cap = hm.capacity()
+            dt, gap = timed(partial(hm.reserve, 2 * cap))
+            grown.append((dt, cap, hm.capacity(), gap))
+            print(f"1. TSDF {'with' if with_color else 'without'} colour ({hm.size()} blocks): integrate median "
+                  f"{statistics.median(t[0] for t in times) * 1e3:.1f} ms, all {len(poses)} "
+                  f"{sum(t[0] for t in times + grown[:-1]):.2f} s; block map growths: "
+                  + ", ".join(f"{dt * 1e3:.0f} ms ({a} -> {b} blocks; another thread stalled {gap * 1e3:.0f} ms)"
+                              for dt, a, b, gap in grown))  # fmt: skip
     finally:
         done.set()
         ticker.join()
-    print(f"1. TSDF integrate: median {statistics.median(t[0] for t in times) * 1e3:.1f} ms; the ones that grew "
-          "the block map: " + ", ".join(f"{dt * 1e3:.0f} ms ({a} -> {b} blocks; another thread stalled "
-                                        f"{gap * 1e3:.0f} ms)" for dt, a, b, gap in grown))  # fmt: skip
 
 
 def gain_per_candidate() -> None:
