@@ -428,7 +428,9 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
             _wait(lambda: len(sizes) == 1, 10.0, "the first request")
             window(1)  # due while window 0 is in flight: waits
             _wait(lambda: selector.status()["planner_window_waiting"], 10.0, "a waiting window")
-            assert selector.status()["fallbacks"] == 0 and len(published) == 1
+            _wait(lambda: len(published) == 1, 10.0, "the first keyframe")
+            waiting = selector.status()
+            assert waiting["fallbacks"] == 0 and waiting["planner_calls"] == 1 and len(published) == 1
             release.set()  # window 0 answered (frame 2, stamp 3000), then window 1 sent and answered (stamp 5000)
             _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "both answers")
             release.clear()

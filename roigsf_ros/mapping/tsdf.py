@@ -50,7 +50,8 @@ class TSDFVolume:
     ``sdf_trunc_m`` defaults to 4 voxels; depth beyond ``depth_max_m`` is ignored; ``block_count`` is
     the initial hash-map capacity in blocks of ``block_resolution``^3 voxels and grows as needed.
     A volume without colour (``with_color=False``: 8 bytes a voxel instead of 20) serves readers of the
-    geometry alone, such as the NBV scoring; its block map is 2.5x cheaper to allocate and to grow.
+    geometry alone, such as the NBV scoring; its block map takes 2.5x less memory to allocate and to copy when it
+    grows.
     """
 
     def __init__(

@@ -131,9 +131,9 @@ RenderRGBD = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """The map's own RGB-D at a pose ``T_wc`` [4, 4]: (depth_m [H, W] float32, 0 = no surface; rgb [H, W, 3] uint8)."""
 
 SCORING_TSDF_BLOCKS = 2000
-"""Initial block-map capacity of the scoring TSDF (blocks of 16^3 voxels; 64 MB without colour, the memory 1000
-blocks with colour took). Growing it holds Python's GIL for the whole copy (open3d), stalling every thread of the
-process: the synthetic room's 1200-1300 blocks at 2 cm then never need a growth."""
+"""Initial block-map capacity of the scoring TSDF (blocks of 16^3 voxels: 66 MB without colour, less than the 82 MB
+of the 1000 coloured blocks it started with before). Growing it holds Python's GIL for the whole copy (open3d),
+stalling every thread of the process; the synthetic room's 1200-1300 blocks at 2 cm never need a growth."""
 SCORING_TSDF_MAX_FILL = 0.75
 """The scoring TSDF's block map is grown between requests once more than this share of it is used."""
 CLOSE_FRONT_MODES = ("roi-gsurfisher", "close-front")

@@ -8,9 +8,9 @@ The first frame is always a keyframe. Then, by ``policy``:
   to the planner's service (asynchronously: ``call_async`` and a timer that checks the answer, never a
   blocking call in a callback) and names the winner. A window that comes while the previous one is still
   being answered waits for that answer (at most one waits: when a third comes, the older waiting window
-  is decided by the fallback); the answer may only be late by a few milliseconds (a process-wide stall,
-  such as open3d growing the scoring TSDF's block map with Python's GIL held, delays the reply's delivery
-  behind the frames that trigger the next window). When the planner is not available, answers
+  is decided by the fallback); such an answer is often only milliseconds late (a process-wide stall, such
+  as open3d growing a TSDF's block map with Python's GIL held, delays its delivery behind the frames that
+  trigger the next window). When the planner is not available, answers
   ``success: false`` or does not answer within ``planner_timeout_s``, the window is decided by
   ``fallback_policy`` instead (logged "planner ... did not answer ...: fallback ..."); the next window
   asks the planner again, so the selector resumes using it as soon as it answers.
