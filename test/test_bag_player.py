@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
-from roigsf_ros.nodes.bag_player import BagPlayer, message_class, reliable_qos
+from roigsf_ros.nodes.bag_player import BagPlayer, message_class, progress_line, reliable_qos
 from roigsf_ros.perf.io import make_synthetic_replica
 
 pytestmark = pytest.mark.ros
@@ -254,3 +254,13 @@ def test_main_bad_path_exits_nonzero_naming_it(tmp_path: Path) -> None:
     proc = _run_main("-p", f"bag:={missing}")
     assert proc.returncode != 0
     assert str(missing) in proc.stderr and "bag not found" in proc.stderr
+
+
+def test_progress_reports_a_finished_loop_as_complete() -> None:
+    """After a loop's last message (the closing delay, or before the next loop) the loop reads 100 %, not the next
+    loop at 0 % ("0.0% (0/600 messages), 600 published" was logged at the end of every replay)."""
+    assert progress_line(300, 0, 600, looping=False) == " 50.0% (300/600 messages), 300 published"
+    assert progress_line(600, 1, 600, looping=False) == "100.0% (600/600 messages), 600 published"
+    assert progress_line(600, 1, 600, looping=True) == "100.0% (600/600 messages, loop 1), 600 published"
+    assert progress_line(750, 1, 600, looping=True) == " 25.0% (150/600 messages, loop 2), 750 published"
+    assert progress_line(0, 0, 600, looping=False) == "  0.0% (0/600 messages), 0 published"

@@ -70,6 +70,21 @@ def reliable_qos(depth: int) -> QoSProfile:
     )
 
 
+def progress_line(published: int, loops_completed: int, per_loop: int, looping: bool) -> str:
+    """The player's progress log line: share of the current loop played, and messages published in all.
+
+    Between a loop's last message and the end of playback (the closing delay) the loop is reported complete,
+    not as the next loop at 0 %.
+    """
+    in_loop = published - loops_completed * per_loop
+    loop_no = loops_completed + 1
+    if in_loop == 0 and loops_completed > 0:
+        in_loop, loop_no = per_loop, loops_completed
+    pct = 100.0 * in_loop / max(1, per_loop)
+    loop = f", loop {loop_no}" if looping else ""
+    return f"{pct:5.1f}% ({in_loop}/{per_loop} messages{loop}), {published} published"
+
+
 class BagPlayer(Node):
     """Publishes a bag's messages on their topics, timed against a monotonic clock relative to the start.
 
@@ -256,12 +271,7 @@ class BagPlayer(Node):
     def _report_progress(self) -> None:
         if self.done or self._t_first_publish is None:
             return
-        in_loop = self.published - self.loops_completed * self.total_per_loop
-        pct = 100.0 * in_loop / max(1, self.total_per_loop)
-        loop = f", loop {self.loops_completed + 1}" if self.loop else ""
-        self.get_logger().info(
-            f"{pct:5.1f}% ({in_loop}/{self.total_per_loop} messages{loop}), {self.published} published"
-        )
+        self.get_logger().info(progress_line(self.published, self.loops_completed, self.total_per_loop, self.loop))
 
     def _subscribers_short(self) -> dict[str, int]:
         """Topics with fewer than ``wait_for_subscribers`` matched subscriptions, and how many they have.
