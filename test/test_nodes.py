@@ -325,20 +325,41 @@ def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: An
 
 
 # ---------------------------------------------------------------------------------------- selector
-def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scene: Any) -> None:
-    frames, _ = scene
+def _windowed_selector(ctx: Any, service: str, timeout_s: float) -> tuple[KeyframeSelectorNode, _Camera, list[int]]:
+    """A roi-fisher selector with windows of 2 asking ``service``, a camera, and the keyframe stamps it publishes."""
     overrides = [
         Parameter("policy", value="roi-fisher"),
         Parameter("window", value=2),
-        Parameter("planner_service", value="/test_planner/nbv"),
-        Parameter("planner_timeout_s", value=0.3),
+        Parameter("planner_service", value=service),
+        Parameter("planner_timeout_s", value=timeout_s),
     ]
-    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
-    cam = _Camera(ros_context)
+    selector = KeyframeSelectorNode(context=ctx, parameter_overrides=overrides)
+    cam = _Camera(ctx)
     published: list[int] = []
     cam.node.create_subscription(
         PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
     )
+    return selector, cam, published
+
+
+@contextmanager
+def _stub_planner(ctx: Any, name: str, serve: Callable[..., Any]) -> Iterator[None]:
+    """A node ``name`` serving ``~/nbv`` (GetNextBestView) with ``serve`` on its own two-thread executor."""
+    planner = Node(name, context=ctx)
+    planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
+    executor = MultiThreadedExecutor(num_threads=2, context=ctx)
+    executor.add_node(planner)
+    spin = BackgroundSpin(executor, f"{name}_executor").start()
+    try:
+        yield
+    finally:
+        spin.stop()
+        planner.destroy_node()
+
+
+def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scene: Any) -> None:
+    frames, _ = scene
+    selector, cam, published = _windowed_selector(ros_context, "/test_planner/nbv", 0.3)
     mode = {"answer": True}
     seen: list[str] = []
 
@@ -358,12 +379,7 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
         cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
         window(0)  # no planner yet: fallback (random)
         _wait(lambda: selector.status()["fallbacks"] == 1 and len(published) == 2, 10.0, "a fallback keyframe")
-        planner = Node("test_planner", context=ros_context)
-        planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
-        ex2 = MultiThreadedExecutor(num_threads=2, context=ros_context)
-        ex2.add_node(planner)
-        spin2 = BackgroundSpin(ex2, "test_planner_executor").start()
-        try:
+        with _stub_planner(ros_context, "test_planner", serve):
             _wait(selector._client.service_is_ready, 10.0, "the stub planner")
             window(1)  # answered: the planner's pick (index 1 = frame 4, stamp 5000)
             _wait(lambda: selector.status()["planner_answers"] == 1, 10.0, "the planner's answer")
@@ -375,9 +391,6 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
             window(3)  # and back to the planner
             _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "the planner again")
             _wait(lambda: len(published) == 5, 10.0, "five keyframes")
-        finally:
-            spin2.stop()
-            planner.destroy_node()
         status = selector.status()
     assert published[0] == 1000 and published[2] == 5000 and published[4] == 9000
     assert published[1] in (2000, 3000) and published[3] in (6000, 7000)
@@ -389,18 +402,7 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
     """A window due while the previous one is in flight waits for its answer (no fallback); of two, the older
     waiting one goes to the fallback, so the selector is never more than one window behind."""
     frames, _ = scene
-    overrides = [
-        Parameter("policy", value="roi-fisher"),
-        Parameter("window", value=2),
-        Parameter("planner_service", value="/test_planner_wait/nbv"),
-        Parameter("planner_timeout_s", value=10.0),
-    ]
-    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
-    cam = _Camera(ros_context)
-    published: list[int] = []
-    cam.node.create_subscription(
-        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
-    )
+    selector, cam, published = _windowed_selector(ros_context, "/test_planner_wait/nbv", 10.0)
     release = threading.Event()
     sizes: list[int] = []
 
@@ -414,13 +416,8 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
         for i in (2 * k + 1, 2 * k + 2):
             cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
 
-    planner = Node("test_planner_wait", context=ros_context)
-    planner.create_service(GetNextBestView, "~/nbv", serve, callback_group=ReentrantCallbackGroup())
-    ex2 = MultiThreadedExecutor(num_threads=2, context=ros_context)
-    ex2.add_node(planner)
-    spin2 = BackgroundSpin(ex2, "test_planner_wait_executor").start()
-    try:
-        with _spinning(ros_context, selector, cam.node):
+    with _stub_planner(ros_context, "test_planner_wait", serve), _spinning(ros_context, selector, cam.node):
+        try:
             cam.wait_for()
             _wait(selector._client.service_is_ready, 10.0, "the stub planner")
             cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
@@ -443,10 +440,8 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
             _wait(lambda: selector.status()["planner_answers"] == 4, 10.0, "the answers to windows 2 and 4")
             _wait(lambda: len(published) == 6, 10.0, "six keyframes")
             status = selector.status()
-    finally:
-        release.set()
-        spin2.stop()
-        planner.destroy_node()
+        finally:
+            release.set()  # a handler still waiting returns before the executors stop
     assert published[:3] == [1000, 3000, 5000] and published[3] in (8000, 9000)  # window 3's fallback
     assert sorted(published[4:]) == [7000, 11000]
     assert status["planner_calls"] == 4 and status["planner_waited"] == 3 and status["fallbacks"] == 1
