@@ -534,7 +534,7 @@ def main() -> None:
         "--budget-ratios",
         default="1,0.5",
         help="budget oracle: adaptive_ratio values, one oracle each (the first is --map budget's 'budget', the others "
-        "'budget_r<ratio>'; 1 is the policy's default, 0.5 the best of a hindsight sweep on office0)",
+        "'budget_r<ratio>'; 1 is the policy's default, 0.5 was chosen afterwards on office0 itself)",
     )
     ap.add_argument("--n-samples", type=int, default=ev.mesh_samples, help="GT samples drawn (bench default)")
     ap.add_argument("--seed", type=int, default=ev.seed, help="sampling seed (bench default)")
