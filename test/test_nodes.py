@@ -342,6 +342,12 @@ def _windowed_selector(ctx: Any, service: str, timeout_s: float) -> tuple[Keyfra
     return selector, cam, published
 
 
+def _publish_window(cam: _Camera, frames: list[Frame], k: int) -> None:
+    """Frames 2k+1 and 2k+2 (stamps (i + 1) * 1000): one full window of 2 after the first frame."""
+    for i in (2 * k + 1, 2 * k + 2):
+        cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
+
+
 @contextmanager
 def _stub_planner(ctx: Any, name: str, serve: Callable[..., Any]) -> Iterator[None]:
     """A node ``name`` serving ``~/nbv`` (GetNextBestView) with ``serve`` on its own two-thread executor."""
@@ -370,25 +376,21 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
         res.success, res.best_index = True, 1
         return res
 
-    def window(k: int) -> None:  # frames 2k+1, 2k+2 fill one window of 2
-        for i in (2 * k + 1, 2 * k + 2):
-            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
-
     with _spinning(ros_context, selector, cam.node):
         cam.wait_for()
         cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
-        window(0)  # no planner yet: fallback (random)
+        _publish_window(cam, frames, 0)  # no planner yet: fallback (random)
         _wait(lambda: selector.status()["fallbacks"] == 1 and len(published) == 2, 10.0, "a fallback keyframe")
         with _stub_planner(ros_context, "test_planner", serve):
             _wait(selector._client.service_is_ready, 10.0, "the stub planner")
-            window(1)  # answered: the planner's pick (index 1 = frame 4, stamp 5000)
+            _publish_window(cam, frames, 1)  # answered: the planner's pick (index 1 = frame 4, stamp 5000)
             _wait(lambda: selector.status()["planner_answers"] == 1, 10.0, "the planner's answer")
             mode["answer"] = False
-            window(2)  # the planner is too slow: timeout, fallback
+            _publish_window(cam, frames, 2)  # the planner is too slow: timeout, fallback
             _wait(lambda: selector.status()["planner_timeouts"] == 1, 10.0, "a timeout")
             time.sleep(0.8)  # let the slow call end
             mode["answer"] = True
-            window(3)  # and back to the planner
+            _publish_window(cam, frames, 3)  # and back to the planner
             _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "the planner again")
             _wait(lambda: len(published) == 5, 10.0, "five keyframes")
         status = selector.status()
@@ -412,18 +414,14 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
         res.success, res.best_index = True, 1
         return res
 
-    def window(k: int) -> None:  # frames 2k+1, 2k+2 fill one window of 2
-        for i in (2 * k + 1, 2 * k + 2):
-            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
-
     with _stub_planner(ros_context, "test_planner_wait", serve), _spinning(ros_context, selector, cam.node):
         try:
             cam.wait_for()
             _wait(selector._client.service_is_ready, 10.0, "the stub planner")
             cam.publish(_frame_msgs(frames[0], 1000))  # the first frame: always a keyframe
-            window(0)  # sent; held by the planner
+            _publish_window(cam, frames, 0)  # sent; held by the planner
             _wait(lambda: len(sizes) == 1, 10.0, "the first request")
-            window(1)  # due while window 0 is in flight: waits
+            _publish_window(cam, frames, 1)  # due while window 0 is in flight: waits
             _wait(lambda: selector.status()["planner_window_waiting"], 10.0, "a waiting window")
             _wait(lambda: len(published) == 1, 10.0, "the first keyframe")
             waiting = selector.status()
@@ -431,10 +429,10 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
             release.set()  # window 0 answered (frame 2, stamp 3000), then window 1 sent and answered (stamp 5000)
             _wait(lambda: selector.status()["planner_answers"] == 2, 10.0, "both answers")
             release.clear()
-            window(2)  # sent, held
+            _publish_window(cam, frames, 2)  # sent, held
             _wait(lambda: len(sizes) == 3, 10.0, "the third request")
-            window(3)  # waits
-            window(4)  # a second waiting window: the older one (window 3) goes to the fallback
+            _publish_window(cam, frames, 3)  # waits
+            _publish_window(cam, frames, 4)  # a second waiting window: the older one (window 3) goes to the fallback
             _wait(lambda: selector.status()["fallbacks"] == 1, 10.0, "the older waiting window decided alone")
             release.set()
             _wait(lambda: selector.status()["planner_answers"] == 4, 10.0, "the answers to windows 2 and 4")
