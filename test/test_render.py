@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -441,3 +446,47 @@ def test_numba_frustum_culling_equals_torch_and_culls_only_surfels_that_reach_no
             culled[fast] = False
             out = render_map(m.select(torch.nonzero(culled).squeeze(1)), T, intr, near=0.2, far=5.0)
             assert float(out.alpha.max()) == 0.0  # what the cull drops reaches no pixel
+
+
+_PIN_CHILD = """
+import json, os, sys
+cpus = sorted(os.sched_getaffinity(0))[:2]
+os.sched_setaffinity(0, set(cpus))  # this process may use two CPUs, as the project's target machine
+from roigsf_ros.render.numba_setup import pin_workers, set_numba_threads, worker_ids
+first = pin_workers()
+affinity = {str(t): sorted(os.sched_getaffinity(t)) for t in first}
+one = set_numba_threads(1)
+print(json.dumps({"cpus": cpus, "first": {str(k): v for k, v in first.items()}, "affinity": affinity,
+                  "workers": worker_ids(), "one": one, "after_one": len(pin_workers())}))
+"""
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning needs two CPUs; this process may use one")
+@pytest.mark.parametrize("setting", ["1", "0"])
+def test_numba_workers_pinned_one_per_cpu_when_they_use_every_cpu(setting: str) -> None:
+    """Two workers on two CPUs: each is pinned to its own CPU (``ROIGSF_PIN_THREADS=0``: none); one thread: none."""
+    env = dict(os.environ, NUMBA_NUM_THREADS="2", ROIGSF_PIN_THREADS=setting)
+    res = subprocess.run([sys.executable, "-c", _PIN_CHILD], env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["one"] == 1 and len(out["workers"]) == 1 and out["after_one"] == 0  # one worker: nothing to pin
+    if setting == "0":
+        assert out["first"] == {}
+        return
+    assert sorted(out["first"].values()) == out["cpus"]  # one worker per CPU, every CPU used once
+    assert all(out["affinity"][t] == [cpu] for t, cpu in out["first"].items())
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_measure_thread_pinning_script_writes_both_settings(tmp_path: Path) -> None:
+    """scripts/measure_thread_pinning.py (the README's pinning table): one unpinned and one pinned interpreter."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "measure_thread_pinning.py"
+    out = tmp_path / "pin.json"
+    res = subprocess.run([sys.executable, str(script), "--runs", "1", "--calls", "5", "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    runs = json.loads(out.read_text())["runs"]
+    assert [r["pin"] for r in runs] == [False, True] and runs[0]["pinned"] == 0
+    assert all(len(r[k]) == 5 and min(r[k]) > 0 for r in runs for k in ("train", "fisher"))
+    assert "scheduler" in res.stdout and "pinned" in res.stdout

@@ -291,6 +291,34 @@ def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> N
         batch_roi(vox, 0.04, poses, intr, CFG, fused_weight=np.zeros(3))
 
 
+def test_batch_roi_of_a_lone_camera_split_over_its_voxels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fewer cameras than threads: each camera's voxels split into blocks (any number) give the reference's ROI."""
+    pytest.importorskip("numba")
+    from roigsf_ros.nbv import roi as roi_mod
+
+    vox, intr = _box_voxels()
+    rng = np.random.default_rng(4)
+    m = len(vox.centres_m)
+    textured, frontier, w_f = rng.random(m) < 0.4, rng.random(m) < 0.2, rng.random(m) * 0.5
+    poses = [look_at(np.array([2.2, 1.0, 0.8]), np.zeros(3), UP), look_at(np.array([0.9, 0.3, 0.6]), np.zeros(3), UP),
+             look_at(np.array([3.0, 0.0, 0.0]), np.array([6.0, 0.0, 0.0]), UP)]  # fmt: skip
+    cfg = replace(CFG, frontier_weight=0.5, mu=0.5)
+    monkeypatch.setattr(roi_mod, "_LONE_MIN_VOXELS", 0)
+    for parts in (2, 3, 7):
+        monkeypatch.setattr(roi_mod, "n_threads", lambda parts=parts: parts)
+        for T in poses:
+            fast = batch_roi(vox, 0.04, T[None], intr, cfg, textured, frontier, w_f, backend="numba")
+            ref = batch_roi(vox, 0.04, T[None], intr, cfg, textured, frontier, w_f, backend="numpy")
+            assert fast.n_visible_voxels[0] == ref.n_visible_voxels[0]
+            assert fast.n_pixels[0] == ref.n_pixels[0]
+            np.testing.assert_allclose(fast.weights, ref.weights, rtol=1e-12, atol=1e-15)
+            assert fast.mass[0] == pytest.approx(ref.mass[0], rel=1e-12, abs=1e-15)
+            assert fast.close_front[0] == pytest.approx(ref.close_front[0], rel=1e-12, abs=1e-15)
+        assert fast.n_visible_voxels[0] == 0  # the last pose looks away
+    one = batch_roi(vox, 0.04, poses[0][None], intr, cfg, textured, frontier, w_f)
+    assert one.n_visible_voxels[0] > 50 and one.mass[0] > 0  # the first pose sees the box
+
+
 # ---------------------------------------------------------------------------------- texture
 def _patch_map(rng: np.random.Generator, x0: float, noisy: bool) -> SurfelMap:
     g = np.stack(np.meshgrid(np.arange(0, 0.4, 0.01), np.arange(0, 0.4, 0.01), indexing="ij"), -1).reshape(-1, 2)

@@ -42,11 +42,13 @@ from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.mapping.tsdf import SurfaceVoxels
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
+from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, n_threads, numba_available, prange
 from roigsf_ros.render.surfels import SurfelMap
 
 _N_WORKERS = 2
 """Threads of the texture test's KD-tree query (the project targets 2 cores; results do not depend on it)."""
+_LONE_MIN_VOXELS = 4096
+"""Below this many surface voxels a lone camera's ROI stays on one thread (splitting costs more than it saves)."""
 LUMA_RGB = np.array([0.299, 0.587, 0.114])
 """ITU-R BT.601 luma weights, for the texture measure of :func:`voxel_texture`."""
 
@@ -347,6 +349,68 @@ def _geometry(
     return n
 
 
+def _zbuffer(geo: np.ndarray, n: int, width: int, height: int, max_r: float, zbuf: np.ndarray) -> None:
+    """Lowers ``zbuf`` [H W] to the depth of the first ``n`` rows of ``geo``'s tent splats (numba helper)."""
+    for i in range(n):
+        u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
+        s = min(max(geo[i, 4], 1.0), max_r)
+        r = int(np.ceil(s - 1e-9))
+        bx = int(np.floor(u))
+        by = int(np.floor(v))
+        for oy in range(-r + 1, r + 1):
+            y = by + oy
+            if y < 0 or y >= height:
+                continue
+            ky = max(0.0, 1.0 - abs(y - v) / s)
+            if ky <= 0.0:
+                continue
+            for ox in range(-r + 1, r + 1):
+                x = bx + ox
+                if x < 0 or x >= width:
+                    continue
+                kx = max(0.0, 1.0 - abs(x - u) / s)
+                if ky * kx > 0.0:
+                    p = y * width + x
+                    if z < zbuf[p]:
+                        zbuf[p] = z
+
+
+def _occlusion(
+    geo: np.ndarray,
+    n: int,
+    width: int,
+    height: int,
+    max_r: float,
+    f: float,
+    tol0: float,
+    min_cos: float,
+    zbuf: np.ndarray,
+    keep: np.ndarray,
+) -> int:
+    """Marks ``keep`` for the front-facing rows not hidden behind ``zbuf`` (numba helper).
+
+    Returns the number of splat entries of the kept voxels (an upper bound).
+    """
+    total = 0
+    for i in range(n):
+        cos = geo[i, 3]
+        if not cos > 0.0:
+            continue
+        u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
+        s = min(max(geo[i, 4], 1.0), max_r)
+        own = int(min(max(np.floor(v + 0.5), 0.0), height - 1.0)) * width + int(
+            min(max(np.floor(u + 0.5), 0.0), width - 1.0)
+        )
+        cos_c = min(max(cos, min_cos), 1.0)
+        sin_c = np.sqrt(1.0 - cos_c * cos_c)
+        tol = (tol0 + s * z / f * sin_c) / cos_c
+        if z <= zbuf[own] + tol:
+            keep[i] = True
+            r = int(np.ceil(s - 1e-9))
+            total += 4 * r * r
+    return total
+
+
 def _visibility(
     geo: np.ndarray,
     n: int,
@@ -370,46 +434,8 @@ def _visibility(
             break
     if not any_front:
         return 0
-    for i in range(n):
-        u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
-        s = min(max(geo[i, 4], 1.0), max_r)
-        r = int(np.ceil(s - 1e-9))
-        bx = int(np.floor(u))
-        by = int(np.floor(v))
-        for oy in range(-r + 1, r + 1):
-            y = by + oy
-            if y < 0 or y >= height:
-                continue
-            ky = max(0.0, 1.0 - abs(y - v) / s)
-            if ky <= 0.0:
-                continue
-            for ox in range(-r + 1, r + 1):
-                x = bx + ox
-                if x < 0 or x >= width:
-                    continue
-                kx = max(0.0, 1.0 - abs(x - u) / s)
-                if ky * kx > 0.0:
-                    p = y * width + x
-                    if z < zbuf[p]:
-                        zbuf[p] = z
-    total = 0
-    for i in range(n):
-        cos = geo[i, 3]
-        if not cos > 0.0:
-            continue
-        u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
-        s = min(max(geo[i, 4], 1.0), max_r)
-        own = int(min(max(np.floor(v + 0.5), 0.0), height - 1.0)) * width + int(
-            min(max(np.floor(u + 0.5), 0.0), width - 1.0)
-        )
-        cos_c = min(max(cos, min_cos), 1.0)
-        sin_c = np.sqrt(1.0 - cos_c * cos_c)
-        tol = (tol0 + s * z / f * sin_c) / cos_c
-        if z <= zbuf[own] + tol:
-            keep[i] = True
-            r = int(np.ceil(s - 1e-9))
-            total += 4 * r * r
-    return total
+    _zbuffer(geo, n, width, height, max_r, zbuf)
+    return _occlusion(geo, n, width, height, max_r, f, tol0, min_cos, zbuf, keep)
 
 
 def _k_geometry(
@@ -485,6 +511,91 @@ def _k_splat(
     return e
 
 
+def _accumulate(
+    geo: np.ndarray,
+    rows: np.ndarray,
+    keep: np.ndarray,
+    n: int,
+    tsdf_w: np.ndarray,
+    textured: np.ndarray,
+    frontier: np.ndarray,
+    w_f: np.ndarray,
+    width: int,
+    height: int,
+    max_r: float,
+    prm: np.ndarray,
+    use_frontier: bool,
+    use_wf: bool,
+    num: np.ndarray,
+    den: np.ndarray,
+) -> tuple[int, float]:
+    """Eq. 7's weight of each kept row of the first ``n``, added into Eq. 8's tent sums ``num``, ``den`` (numba
+    helper); returns the kept rows' number and their close-front gain (Eq. 14's I_vis, 0 without ``use_wf``).
+
+    ``prm``: pref poor, pref rich, angle sigma (deg), footprint pref (px), footprint sigma (ln), beta, gamma,
+    mu, frontier weight.
+    """
+    p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
+        prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
+    )  # fmt: skip
+    n_vis = 0
+    gain = 0.0
+    for i in range(n):
+        if not keep[i]:
+            continue
+        n_vis += 1
+        idx = rows[i]
+        u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
+        theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
+        pref = p_rich if textured[idx] else p_poor
+        ta = (theta - pref) / a_sig
+        wa = np.exp(-0.5 * ta * ta)
+        tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
+        ws = np.exp(-0.5 * tf * tf)
+        wc = 1.0 / max(tsdf_w[idx], 1.0)
+        if beta != 1.0:  # pow() is the costliest call here; x ** 1.0 == x exactly
+            wa = wa**beta
+        if gamma != 1.0:
+            ws = ws**gamma
+        w = wa * ws * (1.0 + mu * wc)
+        if use_frontier:
+            w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
+        if use_wf:
+            gain += max(cos / z - w_f[idx], 0.0)
+        s = min(max(fp, 1.0), max_r)
+        r = int(np.ceil(s - 1e-9))
+        bx = int(np.floor(u))
+        by = int(np.floor(v))
+        for oy in range(-r + 1, r + 1):
+            y = by + oy
+            ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0
+            if ky <= 0.0:
+                continue
+            for ox in range(-r + 1, r + 1):
+                x = bx + ox
+                kx = max(0.0, 1.0 - abs(x - u) / s) if 0 <= x < width else 0.0
+                k = ky * kx
+                if k > 0.0:
+                    q = y * width + x
+                    num[q] += k * w
+                    den[q] += k
+    return n_vis, gain
+
+
+def _finish(num: np.ndarray, den: np.ndarray, mu: float, roi: np.ndarray) -> tuple[int, float]:
+    """Eq. 8's norm of the tent sums into ``roi`` [H W] (numba helper); returns its pixels > 0 and its sum."""
+    n_roi = 0
+    mass = 0.0
+    for p in range(num.shape[0]):
+        val = num[p] / max(den[p], 1.0) / (1.0 + mu)
+        val = min(max(val, 0.0), 1.0)
+        roi[p] = val
+        if val > 0.0:
+            n_roi += 1
+            mass += val
+    return n_roi, mass
+
+
 def _k_batch(
     centres: np.ndarray,
     normals: np.ndarray,
@@ -514,86 +625,109 @@ def _k_batch(
     """ROI (Eq. 7-8) and close-front gain (Eq. 14) of many cameras, the cameras in parallel (numba).
 
     Per camera the same passes as :func:`view_roi` (:func:`_geometry`, :func:`_visibility`) and, per kept
-    voxel, Eq. 7's weight accumulated into the tent-splat sums of Eq. 8 directly. ``prm``: pref poor, pref
-    rich, angle sigma (deg), footprint pref (px), footprint sigma (ln), beta, gamma, mu, frontier weight.
+    voxel, Eq. 7's weight accumulated into the tent-splat sums of Eq. 8 directly (:func:`_accumulate`).
     Writes ``roi`` [C, H W] and ``stats`` [C, 4]: visible voxels, ROI pixels, ROI mass, I_vis.
     """
     m = centres.shape[0]
     npix = width * height
     f = np.sqrt(fx * fy)
-    f_vox = f * voxel_size
-    p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
-        prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
-    )  # fmt: skip
     for ci in prange(poses.shape[0]):  # one candidate per iteration, with its own scratch
         rows = np.empty(m, np.int64)
         geo = np.empty((m, 5))
         keep = np.zeros(m, np.bool_)
-        zbuf = np.empty(npix)
-        num = np.empty(npix)
-        den = np.empty(npix)
-        R = poses[ci, :3, :3]
-        c = poses[ci, :3, 3]
-        n_in = _geometry(centres, normals, R, c, fx, fy, cx, cy, width, height, near, far, f_vox, rows, geo)
-        for p in range(npix):
-            zbuf[p] = np.inf
-            num[p] = 0.0
-            den[p] = 0.0
+        zbuf = np.full(npix, np.inf)
+        num = np.zeros(npix)
+        den = np.zeros(npix)
+        n_in = _geometry(centres, normals, poses[ci, :3, :3], poses[ci, :3, 3], fx, fy, cx, cy, width, height,
+                         near, far, f * voxel_size, rows, geo)  # fmt: skip
         _visibility(geo, n_in, width, height, max_r, f, tol0, min_cos, zbuf, keep)
-        n_vis = 0
-        gain = 0.0
-        for i in range(n_in):
-            if not keep[i]:
-                continue
-            n_vis += 1
-            idx = rows[i]
-            u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
-            theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
-            pref = p_rich if textured[idx] else p_poor
-            ta = (theta - pref) / a_sig
-            wa = np.exp(-0.5 * ta * ta)
-            tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
-            ws = np.exp(-0.5 * tf * tf)
-            wc = 1.0 / max(tsdf_w[idx], 1.0)
-            if beta != 1.0:  # pow() is the costliest call here; x ** 1.0 == x exactly
-                wa = wa**beta
-            if gamma != 1.0:
-                ws = ws**gamma
-            w = wa * ws * (1.0 + mu * wc)
-            if use_frontier:
-                w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
-            if use_wf:
-                gain += max(cos / z - w_f[idx], 0.0)
-            s = min(max(fp, 1.0), max_r)
-            r = int(np.ceil(s - 1e-9))
-            bx = int(np.floor(u))
-            by = int(np.floor(v))
-            for oy in range(-r + 1, r + 1):
-                y = by + oy
-                ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0
-                if ky <= 0.0:
-                    continue
-                for ox in range(-r + 1, r + 1):
-                    x = bx + ox
-                    kx = max(0.0, 1.0 - abs(x - u) / s) if 0 <= x < width else 0.0
-                    k = ky * kx
-                    if k > 0.0:
-                        q = y * width + x
-                        num[q] += k * w
-                        den[q] += k
-        n_roi = 0
-        mass = 0.0
-        for p in range(npix):
-            val = num[p] / max(den[p], 1.0) / (1.0 + mu)
-            val = min(max(val, 0.0), 1.0)
-            roi[ci, p] = val
-            if val > 0.0:
-                n_roi += 1
-                mass += val
+        n_vis, gain = _accumulate(geo, rows, keep, n_in, tsdf_w, textured, frontier, w_f, width, height, max_r, prm,
+                                  use_frontier, use_wf, num, den)  # fmt: skip
+        n_roi, mass = _finish(num, den, prm[7], roi[ci])
         stats[ci, 0] = n_vis
         stats[ci, 1] = n_roi
         stats[ci, 2] = mass
         stats[ci, 3] = gain
+
+
+def _k_lone(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    tsdf_w: np.ndarray,
+    textured: np.ndarray,
+    frontier: np.ndarray,
+    w_f: np.ndarray,
+    pose: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    voxel_size: float,
+    max_r: float,
+    tol0: float,
+    min_cos: float,
+    prm: np.ndarray,
+    use_frontier: bool,
+    use_wf: bool,
+    parts: int,
+    roi: np.ndarray,
+    stats: np.ndarray,
+) -> None:
+    """:func:`_k_batch` for one camera ``pose`` [4, 4], its voxels split into ``parts`` blocks done in parallel.
+
+    Block t holds voxels t, t + parts, ...; each block projects its voxels and lowers its own z-buffer; the
+    buffers' minimum is the camera's z-buffer (the same as one pass's); each block then tests its voxels against
+    it and adds Eq. 7's weights into its own tent sums, which are added up (the same sums in another order).
+    Writes ``roi`` [H W] and ``stats`` [4].
+    """
+    m = centres.shape[0]
+    npix = width * height
+    f = np.sqrt(fx * fy)
+    R = pose[:3, :3]
+    c = pose[:3, 3]
+    cap = (m + parts - 1) // parts  # block t's rows: t * cap ... (t + 1) * cap
+    rows = np.empty(parts * cap, np.int64)
+    geo = np.empty((parts * cap, 5))
+    keep = np.zeros(parts * cap, np.bool_)
+    n_in = np.zeros(parts, np.int64)
+    zbufs = np.full((parts, npix), np.inf)
+    nums = np.zeros((parts, npix))
+    dens = np.zeros((parts, npix))
+    part_vis = np.zeros(parts, np.int64)
+    part_gain = np.zeros(parts)
+    for t in prange(parts):  # block t: voxels t, t + parts, ... (voxels come grouped in space; strides balance)
+        lo, hi = t * cap, (t + 1) * cap
+        n = _geometry(centres[t::parts], normals[t::parts], R, c, fx, fy, cx, cy, width, height, near, far,
+                      f * voxel_size, rows[lo:hi], geo[lo:hi])  # fmt: skip
+        for i in range(lo, lo + n):
+            rows[i] = rows[i] * parts + t
+        n_in[t] = n
+        _zbuffer(geo[lo:hi], n, width, height, max_r, zbufs[t])
+    zbuf = zbufs[0]
+    for t in range(1, parts):
+        for p in range(npix):
+            zbuf[p] = min(zbuf[p], zbufs[t, p])
+    for t in prange(parts):
+        lo, hi = t * cap, (t + 1) * cap
+        _occlusion(geo[lo:hi], n_in[t], width, height, max_r, f, tol0, min_cos, zbuf, keep[lo:hi])
+        part_vis[t], part_gain[t] = _accumulate(geo[lo:hi], rows[lo:hi], keep[lo:hi], n_in[t], tsdf_w, textured,
+                                                frontier, w_f, width, height, max_r, prm, use_frontier, use_wf,
+                                                nums[t], dens[t])  # fmt: skip
+    num = nums[0]
+    den = dens[0]
+    for t in range(1, parts):
+        for p in range(npix):
+            num[p] += nums[t, p]
+            den[p] += dens[t, p]
+    n_roi, mass = _finish(num, den, prm[7], roi)
+    stats[0] = part_vis.sum()
+    stats[1] = n_roi
+    stats[2] = mass
+    stats[3] = part_gain.sum()
 
 
 def _k_frustum_union(
@@ -621,9 +755,9 @@ def _k_frustum_union(
             mask[rows[i]] = True  # the same value from every thread
 
 
-_KERNELS = Kernels(parallel=False, helpers=(_geometry, _visibility), geometry=_k_geometry,
-                   visibility=_k_visibility, splat=_k_splat)  # fmt: skip
-_BATCH_KERNELS = Kernels(helpers=(_geometry, _visibility), batch=_k_batch, union=_k_frustum_union)
+_HELPERS = (_geometry, _zbuffer, _occlusion, _visibility, _accumulate, _finish)
+_KERNELS = Kernels(parallel=False, helpers=_HELPERS, geometry=_k_geometry, visibility=_k_visibility, splat=_k_splat)
+_BATCH_KERNELS = Kernels(helpers=_HELPERS, batch=_k_batch, lone=_k_lone, union=_k_frustum_union)
 
 
 def frustum_union(voxels: SurfaceVoxels, poses: np.ndarray, intr: Intrinsics, cfg: NBVConfig) -> np.ndarray:
@@ -733,8 +867,9 @@ def batch_roi(
     """:func:`view_roi` and :func:`~roigsf_ros.nbv.close_front.close_front_gain` of every pose of ``poses`` [C, 4, 4].
 
     The candidates are independent, so the numba backend splits them between the threads (one compiled
-    pass per candidate, no per-voxel temporaries); ``"numpy"`` loops over :func:`view_roi` (the reference;
-    equal up to float summation order, tested). ``fused_weight`` [M] is W_f (None: close-front 0).
+    pass per candidate, no per-voxel temporaries); with fewer candidates than threads it splits each one's
+    voxels instead (:func:`_k_lone`). ``"numpy"`` loops over :func:`view_roi` (the reference; equal up to float
+    summation order, tested). ``fused_weight`` [M] is W_f (None: close-front 0).
     """
     if backend not in ("auto", "numba", "numpy"):
         raise InputError("backend", f"must be 'auto', 'numba' or 'numpy', got {backend!r}")
@@ -766,20 +901,25 @@ def batch_roi(
                     float(cfg.frontier_weight)], dtype=np.float64)  # fmt: skip
     roi = np.zeros((C, H * W))
     stats = np.zeros((C, 4))
-    flag = np.zeros(1, np.bool_)
+    voxel_args = (
+        np.ascontiguousarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(voxels.normals, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(voxels.weight, dtype=np.float64),
+        np.zeros(m, np.bool_) if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
+        np.ascontiguousarray(frontier, dtype=np.bool_) if use_frontier else np.zeros(1, np.bool_),
+        np.zeros(1) if fused_weight is None else np.ascontiguousarray(fused_weight, dtype=np.float64),
+    )
+    cam_args = (float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H, float(cfg.near_m),
+                float(cfg.far_m), float(voxel_size_m), float(cfg.max_splat_radius_px),
+                float(cfg.occlusion_tol_voxels) * voxel_size_m, float(cfg.occlusion_min_cos), prm, use_frontier,
+                fused_weight is not None)  # fmt: skip
     with KERNEL_LOCK:
-        _BATCH_KERNELS["batch"](
-            np.ascontiguousarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3),
-            np.ascontiguousarray(voxels.normals, dtype=np.float64).reshape(-1, 3),
-            np.ascontiguousarray(voxels.weight, dtype=np.float64),
-            np.zeros(m, np.bool_) if textured is None else np.ascontiguousarray(textured, dtype=np.bool_),
-            np.ascontiguousarray(frontier, dtype=np.bool_) if use_frontier else flag,
-            np.zeros(1) if fused_weight is None else np.ascontiguousarray(fused_weight, dtype=np.float64),
-            np.ascontiguousarray(P), float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), W, H,
-            float(cfg.near_m), float(cfg.far_m), float(voxel_size_m), float(cfg.max_splat_radius_px),
-            float(cfg.occlusion_tol_voxels) * voxel_size_m, float(cfg.occlusion_min_cos), prm, use_frontier,
-            fused_weight is not None, roi, stats,
-        )  # fmt: skip
+        threads = n_threads()
+        if threads <= C or m < _LONE_MIN_VOXELS:  # the cameras in parallel
+            _BATCH_KERNELS["batch"](*voxel_args, np.ascontiguousarray(P), *cam_args, roi, stats)
+        else:  # fewer cameras than threads: each one's voxels in parallel
+            for i in range(C):
+                _BATCH_KERNELS["lone"](*voxel_args, np.ascontiguousarray(P[i]), *cam_args, threads, roi[i], stats[i])
     out.weights = roi.reshape(C, H, W)
     out.n_visible_voxels = stats[:, 0].astype(np.int64)
     out.n_pixels = stats[:, 1].astype(np.int64)

@@ -52,7 +52,7 @@ from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
-from roigsf_ros.render.numba_setup import numba_available, set_numba_threads
+from roigsf_ros.render.numba_setup import PIN_ENV, numba_available, pinned_workers, set_numba_threads
 from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SurfelMap
 
@@ -310,7 +310,10 @@ def run(args: argparse.Namespace) -> int:
             "cpu": platform.processor() or platform.machine(),
             "cpu_count": os.cpu_count(),
             "load_average_1min": [load_before, os.getloadavg()[0]],
-            "env": {k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY")},
+            "env": {
+                k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
+            },
+            "pinned_workers": len(pinned_workers()),
         },
         "targets": {
             "ratio_candidate_over_train": TARGET_RATIO,

@@ -33,7 +33,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS, fisher_diag
-from roigsf_ros.render.numba_setup import numba_available, set_numba_threads
+from roigsf_ros.render.numba_setup import PIN_ENV, numba_available, pinned_workers, set_numba_threads
 from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SH_C0, SurfelMap, frame_from_normals, rotmat_to_quat
 
@@ -208,7 +208,10 @@ def run(args: argparse.Namespace) -> int:
         "load_average_1min": [load_before, os.getloadavg()[0]],
         "cpu": platform.processor() or platform.machine(),
         "numba_threads": args.threads if backend == "numba" else None,
-        "env": {k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY")},
+        "env": {
+            k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
+        },
+        "pinned_workers": len(pinned_workers()),
         "repeats": args.repeats,
         "targets_ms": {"forward_160x120_20k": TARGET_FWD_MS, "forward_backward_160x120_20k": TARGET_FWD_BWD_MS},
         "cases": rows,

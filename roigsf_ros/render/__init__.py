@@ -20,14 +20,18 @@ __all__, __getattr__ = lazy_exports(
         ],
         "numba_setup": [
             "KERNEL_LOCK",
+            "PIN_ENV",
             "Kernels",
             "balanced_bounds",
             "configure_numba",
             "n_threads",
             "numba_available",
+            "pin_workers",
+            "pinned_workers",
             "prange",
             "set_numba_threads",
             "use_numba",
+            "worker_ids",
         ],
         "rasterize": [
             "ALPHA_MAX",

@@ -7,6 +7,7 @@ starts numba's pool; every launch holds :data:`KERNEL_LOCK` (the workqueue layer
 
 from __future__ import annotations
 
+import ctypes
 import os
 import threading
 from collections.abc import Callable
@@ -16,8 +17,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-KERNEL_LOCK = threading.Lock()
-"""Held around every numba kernel launch (numba's workqueue threading layer is not re-entrant)."""
+KERNEL_LOCK = threading.RLock()
+"""Held around every numba kernel launch (numba's workqueue threading layer is not re-entrant); re-entrant itself
+because the first kernel lookup, made under it, may launch :func:`pin_workers`' probe."""
 
 
 def prange(n: int) -> range:
@@ -63,7 +65,82 @@ def set_numba_threads(n: int) -> int:
     numba = configure_numba()
     n = max(1, min(int(n), numba.config.NUMBA_NUM_THREADS))
     numba.set_num_threads(n)
+    pin_workers()
     return n
+
+
+PIN_ENV = "ROIGSF_PIN_THREADS"
+"""Environment variable: ``0`` leaves numba's workers to the scheduler (see :func:`pin_workers`)."""
+_PINNED: dict[int, int] = {}  # worker thread id -> the CPU it is pinned to
+_PROBE: dict[str, Callable | None] = {}
+_AUTO_PINNED: list[bool] = []  # non-empty once the first parallel Kernels has pinned the workers
+
+
+def _thread_probe() -> Callable[[np.ndarray], None] | None:
+    """A parallel kernel writing into each slot the OS id of the thread that ran it (None: no ``gettid``)."""
+    if "probe" not in _PROBE:
+        _PROBE["probe"] = None
+        try:
+            gettid = ctypes.CDLL(None).gettid
+        except (AttributeError, OSError):
+            return None
+        gettid.restype, gettid.argtypes = ctypes.c_int, []
+        numba = configure_numba()
+
+        @numba.njit(parallel=True, nogil=True)  # not cached on disk: the ctypes function's address is in the code
+        def probe(out: np.ndarray) -> None:
+            for i in numba.prange(out.shape[0]):
+                out[i] = gettid()
+
+        _PROBE["probe"] = probe
+    return _PROBE["probe"]
+
+
+def worker_ids() -> list[int]:
+    """OS thread ids of numba's active workers (starts numba's pool); empty where they cannot be read."""
+    probe = _thread_probe()
+    if probe is None:
+        return []
+    import numba
+
+    out = np.zeros(numba.get_num_threads() * 8, np.int64)
+    with KERNEL_LOCK:
+        probe(out)
+    return sorted(set(out.tolist()))
+
+
+def pin_workers() -> dict[int, int]:
+    """Pin each of numba's active workers to its own CPU when they are as many as the CPUs this process may use.
+
+    Why: on 2 cores the scheduler often woke both workers of a kernel on the same core and left them there for
+    hundreds of milliseconds, so kernels ran in two modes (a 160x120 training step 12.7 or 19-21 ms, its median
+    moving between runs; ``scripts/measure_thread_pinning.py``). One worker per core removes the slow mode.
+    With fewer workers than CPUs nothing is pinned (several such processes would crowd the first CPUs); the
+    other threads (the caller's, torch's) are never pinned. ``ROIGSF_PIN_THREADS=0`` turns it off. Returns
+    ``{thread id: CPU}`` of the pinned workers (empty: none).
+    """
+    _PINNED.clear()
+    if os.environ.get(PIN_ENV, "1") == "0" or not hasattr(os, "sched_getaffinity"):
+        return {}
+    numba = configure_numba()  # before get_num_threads, which starts the pool
+    cpus = sorted(os.sched_getaffinity(0))
+    if numba.get_num_threads() != len(cpus) or len(cpus) < 2:
+        return {}
+    tids = worker_ids()
+    if len(tids) < 2 or len(tids) != len(cpus):
+        return {}
+    for tid, cpu in zip(tids, cpus, strict=True):
+        try:
+            os.sched_setaffinity(tid, {cpu})
+        except OSError:  # the thread ended, or the container forbids it: leave the scheduler in charge
+            continue
+        _PINNED[tid] = cpu
+    return dict(_PINNED)
+
+
+def pinned_workers() -> dict[int, int]:
+    """``{thread id: CPU}`` of the workers :func:`pin_workers` pinned last (empty: none)."""
+    return dict(_PINNED)
 
 
 def n_threads() -> int:
@@ -111,24 +188,32 @@ class Kernels:
                 jitted = numba.njit(
                     cache=self._options["cache"], nogil=True, inline="always", fastmath=self._options["fastmath"]
                 )(h)
-                for fn in self._source.values():
+                for fn in (*self._source.values(), *self._helpers):  # helpers may call helpers
+                    fn = getattr(fn, "py_func", fn)
                     if h.__name__ in fn.__code__.co_names:
                         fn.__globals__[h.__name__] = jitted
             for fn in self._source.values():
                 if "prange" in fn.__code__.co_names:
                     fn.__globals__["prange"] = numba.prange
             self._compiled = {k: numba.njit(**self._options)(fn) for k, fn in self._source.items()}
+            if self._options.get("parallel") and not _AUTO_PINNED:
+                _AUTO_PINNED.append(True)  # once per process, before its first parallel kernel
+                pin_workers()
         return self._compiled[name]
 
 
 __all__ = [
     "KERNEL_LOCK",
+    "PIN_ENV",
     "Kernels",
     "balanced_bounds",
     "configure_numba",
     "n_threads",
     "numba_available",
+    "pin_workers",
+    "pinned_workers",
     "prange",
     "set_numba_threads",
     "use_numba",
+    "worker_ids",
 ]
