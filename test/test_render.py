@@ -479,9 +479,9 @@ def test_numba_workers_pinned_one_per_cpu_when_they_use_every_cpu(setting: str) 
 
 
 @pytest.mark.skipif(not numba_available(), reason="numba is not installed")
-def test_measure_thread_pinning_script_writes_both_settings(tmp_path: Path) -> None:
-    """scripts/measure_thread_pinning.py (the README's pinning table): one unpinned and one pinned interpreter."""
-    script = Path(__file__).resolve().parents[1] / "scripts" / "measure_thread_pinning.py"
+def test_measure_numba_threads_script_writes_both_settings(tmp_path: Path) -> None:
+    """scripts/measure_numba_threads.py (the README's pinning table): one unpinned and one pinned interpreter."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "measure_numba_threads.py"
     out = tmp_path / "pin.json"
     res = subprocess.run([sys.executable, str(script), "--runs", "1", "--calls", "5", "--out", str(out)],
                          capture_output=True, text=True, timeout=300)  # fmt: skip
@@ -490,3 +490,58 @@ def test_measure_thread_pinning_script_writes_both_settings(tmp_path: Path) -> N
     assert [r["pin"] for r in runs] == [False, True] and runs[0]["pinned"] == 0
     assert all(len(r[k]) == 5 and min(r[k]) > 0 for r in runs for k in ("train", "fisher"))
     assert "scheduler" in res.stdout and "pinned" in res.stdout
+    binning = json.loads(out.read_text())["binning"]  # the binning kernel both ways: the same lists
+    assert binning["equal"] is True and binning["kept"] > 1000 and len(binning["default"]) == 200
+
+
+_KERNEL_MODULE = """
+import numpy as np
+from roigsf_ros.render.numba_setup import prange
+
+
+def k_double(x: np.ndarray) -> None:
+    for i in prange(x.shape[0]):
+        x[i] *= 2.0
+"""
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_kernel_cache_dropped_when_compile_options_change(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """numba keys its disk cache on the kernel's source file only; Kernels drops it when the options differ."""
+    import importlib
+
+    from roigsf_ros.render.numba_setup import Kernels
+
+    (tmp_path / "kmod_cache_probe.py").write_text(_KERNEL_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mod = importlib.import_module("kmod_cache_probe")
+    cache = tmp_path / "__pycache__"
+
+    def run(**options: object) -> None:
+        x = np.ones(4)
+        Kernels(double=mod.k_double, **options)["double"](x)
+        assert x.tolist() == [2.0] * 4
+
+    run()
+    stamp = (cache / "kmod_cache_probe.k_double.roigsf-stamp").read_text()
+    cached = sorted(p.name for p in cache.glob("kmod_cache_probe.k_double-*.nb[ic]"))
+    assert cached and stamp
+    mtimes = {p: p.stat().st_mtime_ns for p in cache.glob("*.nb[ic]")}
+    run()  # the same options: the cache is kept (and loaded)
+    assert {p: p.stat().st_mtime_ns for p in cache.glob("*.nb[ic]")} == mtimes
+    run(fastmath=True)  # other options: the old code is dropped, compiled anew, the stamp changes
+    assert (cache / "kmod_cache_probe.k_double.roigsf-stamp").read_text() != stamp
+    assert all(p.stat().st_mtime_ns != mtimes.get(p) for p in cache.glob("kmod_cache_probe.k_double-*.nbc"))
+
+
+def test_kernel_stamp_is_the_same_in_every_process() -> None:
+    """The cache stamp of a kernel set with a fastmath flag set is the same under different hash seeds (else every
+    process would drop the others' cache and compile anew)."""
+    code = "from roigsf_ros.render.rasterize import _RASTER_KERNELS as k; print(k.stamp())"
+    stamps = set()
+    for seed in ("1", "2", "3"):
+        res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONHASHSEED=seed),
+                             capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        stamps.add(res.stdout.strip().splitlines()[-1])
+    assert len(stamps) == 1 and len(next(iter(stamps))) == 64

@@ -8,9 +8,12 @@ starts numba's pool; every launch holds :data:`KERNEL_LOCK` (the workqueue layer
 from __future__ import annotations
 
 import ctypes
+import hashlib
+import inspect
 import os
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -114,7 +117,7 @@ def pin_workers() -> dict[int, int]:
 
     Why: on 2 cores the scheduler often woke both workers of a kernel on the same core and left them there for
     hundreds of milliseconds, so kernels ran in two modes (a 160x120 training step 12.7 or 19-21 ms, its median
-    moving between runs; ``scripts/measure_thread_pinning.py``). One worker per core removes the slow mode.
+    moving between runs; ``scripts/measure_numba_threads.py``). One worker per core removes the slow mode.
     With fewer workers than CPUs nothing is pinned (several such processes would crowd the first CPUs); the
     other threads (the caller's, torch's) are never pinned. ``ROIGSF_PIN_THREADS=0`` turns it off. Returns
     ``{thread id: CPU}`` of the pinned workers (empty: none).
@@ -158,6 +161,10 @@ def balanced_bounds(cost: Tensor, parts: int) -> np.ndarray:
     return np.concatenate([[0], cuts.numpy(), [cost.numel()]]).astype(np.int64)
 
 
+_AUTO_PARALLEL = ("comprehension", "reduction", "inplace_binop", "setitem", "numpy", "stencil")
+"""numba's automatic parallelisation passes, all off: only the kernels' explicit ``prange`` loops run in parallel."""
+
+
 class Kernels:
     """numba-compiled versions of plain-Python kernels, all compiled on the first lookup (cached on disk).
 
@@ -176,13 +183,62 @@ class Kernels:
         self._source = kernels
         self._helpers = helpers
         self._options: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": fastmath}
-        if parallel:
-            self._options["parallel"] = True
+        self._parallel = parallel
         self._compiled: dict[str, Callable] = {}
+
+    def _parallel_option(self) -> dict[str, Any]:
+        """The ``parallel`` option for numba: the ``prange`` loops only (a fresh dict: numba empties the one it gets).
+
+        With numba's default every array expression of a parallel kernel (``np.zeros``, ``.max()``, a helper's
+        ``np.arange``) became a parallel loop of its own, each waking the thread pool: the binning kernel of a
+        160x120 view took 2.5x as long, with the same result (``scripts/measure_numba_threads.py``).
+        """
+        return {"parallel": dict.fromkeys(_AUTO_PARALLEL, False)} if self._parallel else {}
+
+    def stamp(self) -> str:
+        """SHA-256 of how these kernels are compiled: the options and the sources of this module, the kernels' and
+        the helpers' modules (the same in every process: no hash-seeded ordering).
+        """
+        fns = [getattr(f, "py_func", f) for f in (*self._source.values(), *self._helpers)]
+        options = {**self._options, **self._parallel_option()}
+        fastmath = options["fastmath"]  # a set: its repr's order changes with each process's hash seed
+        options["fastmath"] = sorted(fastmath) if isinstance(fastmath, set) else fastmath
+        h = hashlib.sha256(repr(sorted(options.items())).encode())
+        for f in sorted({inspect.getsourcefile(f) or "" for f in fns} | {__file__}):
+            h.update(Path(f).read_bytes() if f and Path(f).is_file() else f.encode())
+        return h.hexdigest()
+
+    def _drop_stale_cache(self) -> None:
+        """Delete numba's cached code of these kernels when how they are compiled has changed.
+
+        numba keys a kernel's disk cache on its own source file alone: not on the options set here (this
+        module) nor on helpers from other modules (``exp_neg`` of the rasteriser in the Fisher kernel), so a
+        change there would load old machine code. A stamp of those sources and the options, kept beside the
+        cache per kernel, says when to drop it. Best effort: a read-only ``__pycache__`` is left alone.
+        """
+        stamp = self.stamp()
+        for fn in self._source.values():
+            src = inspect.getsourcefile(fn)
+            if not src:
+                continue
+            cache, prefix = Path(src).parent / "__pycache__", f"{Path(src).stem}.{fn.__qualname__}"
+            marker = cache / f"{prefix}.roigsf-stamp"
+            try:
+                if marker.is_file() and marker.read_text() == stamp:
+                    continue
+                for old in cache.glob(f"{prefix}-*.nb[ic]"):
+                    old.unlink(missing_ok=True)
+                cache.mkdir(exist_ok=True)
+                tmp = cache / f"{prefix}.roigsf-stamp.{os.getpid()}"
+                tmp.write_text(stamp)
+                tmp.replace(marker)
+            except OSError:
+                continue
 
     def __getitem__(self, name: str) -> Callable:
         if not self._compiled:
             numba = configure_numba()
+            self._drop_stale_cache()
             for h in self._helpers:
                 h = getattr(h, "py_func", h)  # a helper another Kernels has compiled (and swapped in) already
                 jitted = numba.njit(
@@ -195,8 +251,9 @@ class Kernels:
             for fn in self._source.values():
                 if "prange" in fn.__code__.co_names:
                     fn.__globals__["prange"] = numba.prange
-            self._compiled = {k: numba.njit(**self._options)(fn) for k, fn in self._source.items()}
-            if self._options.get("parallel") and not _AUTO_PINNED:
+            self._compiled = {k: numba.njit(**self._options, **self._parallel_option())(fn)
+                              for k, fn in self._source.items()}  # fmt: skip
+            if self._parallel and not _AUTO_PINNED:
                 _AUTO_PINNED.append(True)  # once per process, before its first parallel kernel
                 pin_workers()
         return self._compiled[name]
