@@ -1,8 +1,10 @@
 """The one numba set-up of every compiled CPU kernel (rasteriser, Fisher, NBV ROI visibility).
 
-Kernels are written as plain Python (``for i in prange(n)`` for the parallel loops) and compiled by
-:class:`Kernels` on first use, cached on disk. The threading layer is chosen here, before anything
-starts numba's pool; every launch holds :data:`KERNEL_LOCK` (the workqueue layer is not re-entrant).
+Kernels are written as plain Python (``for i in prange(n)`` for the parallel loops, the only ones run in
+parallel) and compiled by :class:`Kernels` on first use, cached on disk (a stamp drops a stale cache). The
+threading layer is chosen here, before anything starts numba's pool; every launch holds :data:`KERNEL_LOCK`
+(the workqueue layer is not re-entrant); the workers are pinned one per CPU where they use every CPU
+(:func:`pin_workers`).
 """
 
 from __future__ import annotations
