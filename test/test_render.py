@@ -452,25 +452,38 @@ _PIN_CHILD = """
 import json, os, sys
 cpus = sorted(os.sched_getaffinity(0))[:2]
 os.sched_setaffinity(0, set(cpus))  # this process may use two CPUs, as the project's target machine
-from roigsf_ros.render.numba_setup import pin_workers, set_numba_threads, worker_ids
+import numpy as np
+from roigsf_ros.render.numba_setup import pin_workers, pinned_workers, set_numba_threads, worker_ids
+from roigsf_ros.render.rasterize import _KERNELS
+_KERNELS["project"]  # the first parallel kernel set: pins here only with ROIGSF_PIN_THREADS=1
+auto = pinned_workers()
+workers = worker_ids()
+before = {str(t): sorted(os.sched_getaffinity(t)) for t in workers}
 first = pin_workers()
 affinity = {str(t): sorted(os.sched_getaffinity(t)) for t in first}
 one = set_numba_threads(1)
-print(json.dumps({"cpus": cpus, "first": {str(k): v for k, v in first.items()}, "affinity": affinity,
-                  "workers": worker_ids(), "one": one, "after_one": len(pin_workers())}))
+print(json.dumps({"cpus": cpus, "auto": len(auto), "before": before, "first": {str(k): v for k, v in first.items()},
+                  "affinity": affinity, "workers": worker_ids(), "one": one, "after_one": len(pin_workers())}))
 """
 
 
 @pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning needs two CPUs; this process may use one")
-@pytest.mark.parametrize("setting", ["1", "0"])
-def test_numba_workers_pinned_one_per_cpu_when_they_use_every_cpu(setting: str) -> None:
-    """Two workers on two CPUs: each is pinned to its own CPU (``ROIGSF_PIN_THREADS=0``: none); one thread: none."""
-    env = dict(os.environ, NUMBA_NUM_THREADS="2", ROIGSF_PIN_THREADS=setting)
+@pytest.mark.parametrize("setting", ["1", "0", None])
+def test_numba_workers_pinned_one_per_cpu_when_asked(setting: str | None) -> None:
+    """Two workers on two CPUs: ``ROIGSF_PIN_THREADS=1`` pins each to its own CPU at the first kernel, unset only
+    when ``pin_workers()`` is called, ``0`` never; with one thread nothing is pinned."""
+    env = dict(os.environ, NUMBA_NUM_THREADS="2")
+    env.pop("ROIGSF_PIN_THREADS", None)
+    if setting is not None:
+        env["ROIGSF_PIN_THREADS"] = setting
     res = subprocess.run([sys.executable, "-c", _PIN_CHILD], env=env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out["one"] == 1 and len(out["workers"]) == 1 and out["after_one"] == 0  # one worker: nothing to pin
+    assert out["auto"] == (2 if setting == "1" else 0)
+    if setting != "1":  # not pinned by the first kernel: each worker may run on both CPUs
+        assert all(cpus == out["cpus"] for cpus in out["before"].values())
     if setting == "0":
         assert out["first"] == {}
         return

@@ -52,7 +52,13 @@ from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
-from roigsf_ros.render.numba_setup import PIN_ENV, numba_available, pinned_workers, set_numba_threads
+from roigsf_ros.render.numba_setup import (
+    PIN_ENV,
+    numba_available,
+    pin_workers,
+    pinned_workers,
+    set_numba_threads,
+)
 from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SurfelMap
 
@@ -274,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
     backend = "torch"
     if numba_available():
         set_numba_threads(args.threads)
+        pin_workers()  # one worker per CPU where they use every CPU: no scheduler modes in the timings
         backend = "numba"
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()

@@ -11,7 +11,9 @@ as the forward+backward it is compared with. Environment (set before Python star
 not change): ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000`` make runs faster and
 steadier on this kind of VM; on a machine shared with other busy processes, torch's OpenMP workers
 spin between operations and steal the cores (2 torch threads measured 5-10x slower there) unless
-``OMP_WAIT_POLICY=PASSIVE`` is set (or ``--torch-threads 1``).
+``OMP_WAIT_POLICY=PASSIVE`` is set (or ``--torch-threads 1``). The numba workers are pinned one per CPU when
+they use every CPU (:func:`~roigsf_ros.render.numba_setup.pin_workers`; not with ``ROIGSF_PIN_THREADS=0``), so
+the timings do not depend on where the scheduler puts them; the JSON's ``pinned_workers`` says how many were.
 """
 
 from __future__ import annotations
@@ -33,7 +35,13 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS, fisher_diag
-from roigsf_ros.render.numba_setup import PIN_ENV, numba_available, pinned_workers, set_numba_threads
+from roigsf_ros.render.numba_setup import (
+    PIN_ENV,
+    numba_available,
+    pin_workers,
+    pinned_workers,
+    set_numba_threads,
+)
 from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SH_C0, SurfelMap, frame_from_normals, rotmat_to_quat
 
@@ -193,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
     backend = args.backend
     if backend != "torch" and numba_available():
         set_numba_threads(args.threads)
+        pin_workers()  # one worker per CPU where they use every CPU: no scheduler modes in the timings
         backend = "numba"
     elif backend == "numba":
         raise InputError("--backend", "numba is not installed")

@@ -3,8 +3,8 @@
 Kernels are written as plain Python (``for i in prange(n)`` for the parallel loops, the only ones run in
 parallel) and compiled by :class:`Kernels` on first use, cached on disk (a stamp drops a stale cache). The
 threading layer is chosen here, before anything starts numba's pool; every launch holds :data:`KERNEL_LOCK`
-(the workqueue layer is not re-entrant); the workers are pinned one per CPU where they use every CPU
-(:func:`pin_workers`).
+(the workqueue layer is not re-entrant); :func:`pin_workers` pins the workers one per CPU where they use every
+CPU (benchmarks; ``ROIGSF_PIN_THREADS=1``).
 """
 
 from __future__ import annotations
@@ -70,12 +70,11 @@ def set_numba_threads(n: int) -> int:
     numba = configure_numba()
     n = max(1, min(int(n), numba.config.NUMBA_NUM_THREADS))
     numba.set_num_threads(n)
-    pin_workers()
     return n
 
 
 PIN_ENV = "ROIGSF_PIN_THREADS"
-"""Environment variable: ``0`` leaves numba's workers to the scheduler (see :func:`pin_workers`)."""
+"""Environment variable: ``1`` pins numba's workers at the first kernel, ``0`` never (see :func:`pin_workers`)."""
 _PINNED: dict[int, int] = {}  # worker thread id -> the CPU it is pinned to
 _PROBE: dict[str, Callable | None] = {}
 _AUTO_PINNED: list[bool] = []  # non-empty once the first parallel Kernels has pinned the workers
@@ -117,15 +116,17 @@ def worker_ids() -> list[int]:
 def pin_workers() -> dict[int, int]:
     """Pin each of numba's active workers to its own CPU when they are as many as the CPUs this process may use.
 
-    Why: on 2 cores the scheduler often woke both workers of a kernel on the same core and left them there for
-    hundreds of milliseconds, so kernels ran in two modes (a 160x120 training step 12.7 or 19-21 ms, its median
-    moving between runs; ``scripts/measure_numba_threads.py``). One worker per core removes the slow mode.
-    With fewer workers than CPUs nothing is pinned (several such processes would crowd the first CPUs); the
-    other threads (the caller's, torch's) are never pinned. ``ROIGSF_PIN_THREADS=0`` turns it off. Returns
-    ``{thread id: CPU}`` of the pinned workers (empty: none).
+    Why: on 2 cores the scheduler at times woke both workers of a kernel on the same core and left them there for
+    hundreds of milliseconds, so kernels ran in two modes (``scripts/measure_numba_threads.py``). One worker per
+    core removes the slow mode, which is what a benchmark wants (``roigsf perf`` calls this). But beside another
+    busy process a pinned worker cannot move off its shared core (training steps 13 % slower, measured), so
+    the library pins only when asked: here, or with ``ROIGSF_PIN_THREADS=1`` at the first kernel (a robot whose
+    cores are the mapper's); ``ROIGSF_PIN_THREADS=0`` makes this a no-op. With fewer workers than CPUs nothing
+    is pinned (several such processes would crowd the first CPUs); other threads (the caller's, torch's) never
+    are. Returns ``{thread id: CPU}`` of the pinned workers (empty: none).
     """
     _PINNED.clear()
-    if os.environ.get(PIN_ENV, "1") == "0" or not hasattr(os, "sched_getaffinity"):
+    if os.environ.get(PIN_ENV) == "0" or not hasattr(os, "sched_getaffinity"):
         return {}
     numba = configure_numba()  # before get_num_threads, which starts the pool
     cpus = sorted(os.sched_getaffinity(0))
@@ -255,7 +256,7 @@ class Kernels:
                     fn.__globals__["prange"] = numba.prange
             self._compiled = {k: numba.njit(**self._options, **self._parallel_option())(fn)
                               for k, fn in self._source.items()}  # fmt: skip
-            if self._parallel and not _AUTO_PINNED:
+            if self._parallel and not _AUTO_PINNED and os.environ.get(PIN_ENV) == "1":
                 _AUTO_PINNED.append(True)  # once per process, before its first parallel kernel
                 pin_workers()
         return self._compiled[name]
