@@ -137,6 +137,16 @@ def room_candidates(n: int, seed: int = 0, clearance: float = 0.5) -> np.ndarray
     return np.stack(out)
 
 
+def map_rgbd(m: SurfelMap, T_wc: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """The map's own RGB-D at ``T_wc`` as TSDF fusion takes it: depth_m [H, W] float32 (median depth, 0 where the
+    alpha is below 0.5) and rgb [H, W, 3] uint8.
+    """
+    with torch.no_grad():
+        out = render_map(m, T_wc, intr)
+    depth = torch.where(out.alpha >= 0.5, out.median_depth, 0.0).numpy().astype(np.float32)
+    return depth, (out.color.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
 def build_state(
     n_surfels: int, width: int, height: int, n_candidates: int, voxel_size_m: float, scorer: NBVScorer
 ) -> State:
@@ -145,12 +155,9 @@ def build_state(
     view, intr = room_camera(width, height)
     train = [room_camera(width, height, yaw)[0] for yaw in TRAIN_YAWS_DEG]
     tsdf = TSDFVolume(voxel_size_m=voxel_size_m, sdf_trunc_m=max(4 * voxel_size_m, 0.08))
-    with torch.no_grad():
-        for T in train:
-            out = render_map(m, T, intr)
-            depth = torch.where(out.alpha >= 0.5, out.median_depth, 0.0).numpy().astype(np.float32)
-            rgb = (out.color.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-            tsdf.integrate(depth, T, intr, rgb)
+    for T in train:
+        depth, rgb = map_rgbd(m, T, intr)
+        tsdf.integrate(depth, T, intr, rgb)
     h = {mode: scorer.train_fisher(m, train, intr, mode) for mode in MODES}
     return State(m, intr, train, tsdf, h, room_candidates(n_candidates), view)
 
@@ -247,10 +254,7 @@ def bench_state_score(st: State, scorer: NBVScorer, mode: str, repeats: int) -> 
     poses = np.stack(st.train_poses)
 
     def render_rgbd(T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with torch.no_grad():
-            out = render_map(st.surfel_map, T_wc, st.intr)
-        depth = torch.where(out.alpha >= 0.5, out.median_depth, 0.0).numpy().astype(np.float32)
-        return depth, (out.color.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+        return map_rgbd(st.surfel_map, T_wc, st.intr)
 
     h = st.h_train[mode]
     outputs = tuple(cfg.fisherrf_outputs if mode == "fisherrf" else cfg.fisher_outputs)
