@@ -96,13 +96,35 @@ def _fastdds_files() -> set[str]:
     return {p.name for p in SHM.glob("fastrtps_*")} if SHM.is_dir() else set()
 
 
+def _mapped_shm() -> set[str]:
+    """Names of the /dev/shm files some live process has mapped (its /proc/<pid>/maps; unreadable ones skipped)."""
+    names: set[str] = set()
+    for maps in Path("/proc").glob("[0-9]*/maps"):
+        try:
+            text = maps.read_text()
+        except OSError:
+            continue
+        names.update(line.rsplit("/", 1)[-1] for line in text.splitlines() if f" {SHM}/" in line)
+    return names
+
+
 def _remove_zombie_shm(before: set[str]) -> None:
-    """Remove Fast DDS segments created since ``before`` whose owner is gone (their ``_el`` lock is free).
+    """Remove Fast DDS files created since ``before`` whose owners are gone.
 
     A live participant holds an exclusive flock on its segment's ``_el`` file; only unlocked ones
-    (left by a SIGKILLed process) are removed, so other processes' segments are never touched.
+    (left by a SIGKILLed process) are removed, so other processes' segments are never touched. Port files
+    (``fastrtps_port<N>`` and their ``sem.fastrtps_port<N>_mutex``) have no such lock: they are removed when no
+    live process maps them (Fast DDS removes them itself on a clean exit; ``fastdds shm clean`` leaves them).
     """
-    for name in sorted(_fastdds_files() - before):
+    new = _fastdds_files() - before
+    if any(name.startswith("fastrtps_port") for name in new):
+        mapped = _mapped_shm()
+        for name in sorted(n for n in new if n.startswith("fastrtps_port")):
+            sem = f"sem.{name}_mutex"
+            if name not in mapped and sem not in mapped:
+                (SHM / name).unlink(missing_ok=True)
+                (SHM / sem).unlink(missing_ok=True)
+    for name in sorted(new):
         if not name.endswith("_el") or name.startswith("fastrtps_port"):
             continue
         lock = SHM / name
