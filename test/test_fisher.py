@@ -16,6 +16,7 @@ from roigsf_ros.render.fisher import (
     GEOMETRIC_PARAMS,
     fisher_diag,
     fisher_per_surfel,
+    fisher_weighted_sum,
     frustum_subset,
     packed_jacobian,
 )
@@ -123,6 +124,29 @@ def test_roi_weights_and_geometric_subset(backend: str) -> None:
     assert all(torch.allclose(doubled[k], 2 * got[k], rtol=1e-12, atol=0) for k in got)
     zero = fisher_diag(m, T, INTR, pixel_weights=torch.zeros_like(w), backend=backend)
     assert all(torch.all(v == 0) for v in zero.values())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_weighted_sum_is_the_dense_fisher_dotted_with_the_weights(backend: str) -> None:
+    """Eq. 10's sum without the dense result; view-dependent colour makes the colour depend on the means."""
+    m = scene(5)
+    T = pose(5)
+    w = torch.rand(INTR.height, INTR.width, generator=torch.Generator().manual_seed(1), dtype=F64)
+    w[: INTR.height // 2] = 0
+    kw = {"outputs": ("color", "depth"), "pixel_weights": w, "backend": backend}
+    dense = fisher_diag(m, T, INTR, **kw)
+    assert_close(dense, brute_force(m, T, ("color", "depth"), GEOMETRIC_PARAMS, weights=w))
+    rng = np.random.default_rng(0)
+    entry = {k: rng.uniform(0.5, 2.0, getattr(m, k).numel()) for k in GEOMETRIC_PARAMS}
+    want = sum(float((dense[k].numpy().reshape(-1) * entry[k]).sum()) for k in dense)
+    assert want > 0 and fisher_weighted_sum(m, T, INTR, entry, **kw) == pytest.approx(want, rel=1e-12)
+    away = T.copy()
+    away[:3, :3] = T[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # looking away from every surfel
+    assert fisher_weighted_sum(m, away, INTR, entry, backend=backend) == 0.0
+    with pytest.raises(InputError, match="entry_weights"):
+        fisher_weighted_sum(m, T, INTR, {"means": entry["means"]}, backend=backend)
+    with pytest.raises(InputError, match=r"entry_weights\[quats\]"):
+        fisher_weighted_sum(m, T, INTR, entry | {"quats": entry["quats"][:-1]}, backend=backend)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -30,6 +34,7 @@ from roigsf_ros.nbv.scorer import (
     zscore,
 )
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS
+from roigsf_ros.render.numba_setup import numba_available
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.reference import rasterize_surfels as reference_rasterize
 from roigsf_ros.render.surfels import SH_C0, SurfelMap, rotmat_to_quat, surfels_from_rgbd
@@ -235,8 +240,8 @@ def test_candidates_that_cannot_see_the_map_are_skipped_before_any_rendering(wor
     assert not frustum_meets_box(look_at(np.array([0.0, -3.0, 1.0]), np.zeros(3), UP), INTR, lo, hi, 0.2, 1.5)
     away = look_at(np.array([0.0, 0.0, 4.0]), np.array([0.0, 0.0, 9.0]), np.array([1.0, 0.0, 0.0]))  # looking up
     calls = []
-    real = scorer_mod.fisher_diag
-    monkeypatch.setattr(scorer_mod, "fisher_diag", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = scorer_mod.fisher_weighted_sum
+    monkeypatch.setattr(scorer_mod, "fisher_weighted_sum", lambda *a, **k: calls.append(1) or real(*a, **k))
     cands = np.stack([world.view_a, world.view_b, away])
     for mode, kw in (("roi-gsurfisher", {}), ("roi-gsurfisher", {"unseen_weight": 1.0}), ("fisherrf", {})):
         scorer = NBVScorer(replace(NBVConfig(), **kw))
@@ -492,3 +497,24 @@ def test_information_gain_is_eq10_summed_over_the_parameters() -> None:
         information_gain(f | {"opacity_logits": torch.ones(50, 1)}, h, 0.1)
     with pytest.raises(InputError, match="'means' has shape"):
         information_gain({"means": torch.ones(49, 3)}, h, 0.1)
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_compare_candidate_cost_script_alternates_the_two_checkouts(tmp_path: Path) -> None:
+    """scripts/compare_candidate_cost.py (the README's before/after ratio): base and new children, alternately."""
+    root = Path(__file__).resolve().parents[1]
+    script = root / "scripts" / "compare_candidate_cost.py"
+    out = tmp_path / "cmp.json"
+    small = ["--rounds", "1", "--repeats", "3", "--surfels", "1500", "--width", "64", "--height", "48"]
+    res = subprocess.run([sys.executable, str(script), str(root), str(root), *small, "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    got = json.loads(out.read_text())
+    assert [r["checkout"] for r in got["runs"]] == ["base", "new"]
+    for r in got["runs"]:
+        roi, rf = r["roi-gsurfisher"], r["fisherrf"]
+        assert roi["train_fwd_bwd_ms"] > 0 and roi["roi_ms"] > 0 and roi["fisher_ms"] > 0 and rf["roi_ms"] < 0.01
+        assert roi["ratio_candidate_over_train"] > roi["ratio_fisher_over_train"] > 0
+    assert "candidate / training step" in res.stdout
+    bad = subprocess.run([sys.executable, str(script), str(tmp_path), str(root)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "not a checkout" in bad.stderr

@@ -255,7 +255,7 @@ def test_batch_roi_equals_view_roi_and_close_front_candidate_by_candidate() -> N
         look_at(np.array([-1.5, -1.8, -0.4]), np.zeros(3), UP),
         look_at(np.array([0.2, -2.0, 1.5]), np.array([0.0, 0.0, 0.3]), UP),
     ])  # fmt: skip
-    for cfg in (CFG, replace(CFG, frontier_weight=0.5, beta=2.0, mu=0.5)):
+    for cfg in (CFG, replace(CFG, frontier_weight=0.5, beta=2.0, gamma=0.5, mu=0.5)):  # numba: W_a^b W_s^g as one exp
         fast = batch_roi(vox, 0.04, poses, intr, cfg, textured, frontier, w_f, backend="numba")
         ref = batch_roi(vox, 0.04, poses, intr, cfg, textured, frontier, w_f, backend="numpy")
         for i, T in enumerate(poses):

@@ -354,9 +354,24 @@ def _zbuffer(geo: np.ndarray, n: int, width: int, height: int, max_r: float, zbu
     for i in range(n):
         u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
         s = min(max(geo[i, 4], 1.0), max_r)
-        r = int(np.ceil(s - 1e-9))
         bx = int(np.floor(u))
         by = int(np.floor(v))
+        if s == 1.0 and bx >= 0 and by >= 0 and bx + 1 < width and by + 1 < height:
+            # The common case, a voxel under a pixel inside the image: the loop below's 2x2 pixels, its tests as
+            # written there (the same z-buffer, tested), without the loop.
+            p = by * width + bx
+            right = 1.0 - abs(bx + 1 - u) > 0.0
+            below = 1.0 - abs(by + 1 - v) > 0.0
+            if z < zbuf[p]:
+                zbuf[p] = z
+            if right and z < zbuf[p + 1]:
+                zbuf[p + 1] = z
+            if below and z < zbuf[p + width]:
+                zbuf[p + width] = z
+            if right and below and z < zbuf[p + width + 1]:
+                zbuf[p + width + 1] = z
+            continue
+        r = int(np.ceil(s - 1e-9))
         for oy in range(-r + 1, r + 1):
             y = by + oy
             if y < 0 or y >= height:
@@ -549,23 +564,41 @@ def _accumulate(
         theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
         pref = p_rich if textured[idx] else p_poor
         ta = (theta - pref) / a_sig
-        wa = np.exp(-0.5 * ta * ta)
         tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
-        ws = np.exp(-0.5 * tf * tf)
         wc = 1.0 / max(tsdf_w[idx], 1.0)
-        if beta != 1.0:  # pow() is the costliest call here; x ** 1.0 == x exactly
-            wa = wa**beta
-        if gamma != 1.0:
-            ws = ws**gamma
-        w = wa * ws * (1.0 + mu * wc)
+        # W_angle^beta W_scale^gamma as one exp (no pow, one exp fewer; equal to rounding, tested)
+        w = np.exp(-0.5 * (beta * ta * ta + gamma * tf * tf)) * (1.0 + mu * wc)
         if use_frontier:
             w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
         if use_wf:
             gain += max(cos / z - w_f[idx], 0.0)
         s = min(max(fp, 1.0), max_r)
-        r = int(np.ceil(s - 1e-9))
         bx = int(np.floor(u))
         by = int(np.floor(v))
+        if s == 1.0 and bx >= 0 and by >= 0 and bx + 1 < width and by + 1 < height:
+            # The common case (as in _zbuffer): the loop below's 2x2 kernel values, written out (the same sums).
+            kx0 = 1.0 - abs(bx - u)  # > 0: bx = floor(u)
+            kx1 = max(0.0, 1.0 - abs(bx + 1 - u))
+            ky0 = 1.0 - abs(by - v)
+            ky1 = max(0.0, 1.0 - abs(by + 1 - v))
+            q = by * width + bx
+            k = ky0 * kx0
+            num[q] += k * w
+            den[q] += k
+            k = ky0 * kx1
+            if k > 0.0:
+                num[q + 1] += k * w
+                den[q + 1] += k
+            k = ky1 * kx0
+            if k > 0.0:
+                num[q + width] += k * w
+                den[q + width] += k
+            k = ky1 * kx1
+            if k > 0.0:
+                num[q + width + 1] += k * w
+                den[q + width + 1] += k
+            continue
+        r = int(np.ceil(s - 1e-9))
         for oy in range(-r + 1, r + 1):
             y = by + oy
             ky = max(0.0, 1.0 - abs(y - v) / s) if 0 <= y < height else 0.0

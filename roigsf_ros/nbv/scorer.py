@@ -45,7 +45,7 @@ from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
-from roigsf_ros.render.fisher import fisher_diag
+from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap
 
@@ -105,9 +105,8 @@ def inverse_denominators(
 ) -> dict[str, np.ndarray]:
     """``1 / (H_train_k + prior)`` (float64, flat) for each parameter of ``shapes``: Eq. 10's per-entry weights.
 
-    Computed once per ``score()`` call, not once per candidate, and as numpy arrays: the per-candidate sum is
-    then one conversion, product and sum (a third of the per-candidate torch formula's time:
-    ``scripts/measure_nbv_stalls.py``).
+    Computed once per ``score()`` call, not once per candidate, and as numpy arrays: each candidate's sum
+    (:func:`~roigsf_ros.render.fisher.fisher_weighted_sum`) then reads them at the surfels that reach its view.
     """
     _check_entries(h_train, shapes)
     return {k: 1.0 / (h_train[k].detach().to("cpu", torch.float64).numpy().reshape(-1) + prior) for k in shapes}
@@ -590,16 +589,16 @@ class NBVScorer:
                 w = None
                 if ds > 1:
                     w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
-                f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisherrf_outputs, params=params,
-                                pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                fisher[i] = gain_with(f, inv)
-                flagged[i] = not any(bool(t.any()) for t in f.values())
+                fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisherrf_outputs,
+                                                params=params, pixel_weights=w, near=cfg.near_m,
+                                                far=cfg.far_m)  # fmt: skip
+                flagged[i] = fisher[i] == 0.0  # every entry of F is >= 0 and every weight > 0
             elif roi_weights is not None and mass > 0:
                 w = block_mean(roi_weights, ds) * (ds * ds / cfg.sigma_p**2)
                 w = torch.as_tensor(w, dtype=surfel_map.dtype)
-                f = fisher_diag(surfel_map, T, intr_f, outputs=cfg.fisher_outputs, params=params,
-                                pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
-                fisher[i] = gain_with(f, inv)
+                fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs,
+                                                params=params, pixel_weights=w, near=cfg.near_m,
+                                                far=cfg.far_m)  # fmt: skip
         if unseen is not None and len(surfel_map) > 0:
             with torch.no_grad():
                 alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,

@@ -15,6 +15,7 @@ __all__, __getattr__ = lazy_exports(
             "OUTPUTS",
             "fisher_diag",
             "fisher_per_surfel",
+            "fisher_weighted_sum",
             "frustum_subset",
             "packed_jacobian",
         ],

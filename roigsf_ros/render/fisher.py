@@ -116,12 +116,84 @@ def fisher_diag(
     torch: per-pair leaf copies, processed ``pair_chunk`` pairs at a time). ``tile_size``: the torch backend's
     pair search (the numba kernel walks 4x4 tiles; the pairs, so the result, do not depend on it).
     """
+    m = surfel_map.detach()
+    rows, values = _fisher_rows(m, T_wc, intr, outputs, params, pixel_weights, background, near, far, tile_size,
+                                backend, pair_chunk)  # fmt: skip
+    result = {k: torch.zeros_like(getattr(m, k)) for k in values}
+    for k, v in values.items():
+        result[k].index_copy_(0, rows, v)
+    return result
+
+
+def fisher_weighted_sum(
+    surfel_map: SurfelMap,
+    T_wc: np.ndarray | Tensor,
+    intr: Intrinsics,
+    entry_weights: dict[str, np.ndarray],
+    outputs: Sequence[str] = ("color", "depth"),
+    params: Sequence[str] = GEOMETRIC_PARAMS,
+    pixel_weights: Tensor | np.ndarray | None = None,
+    background: Tensor | None = None,
+    near: float = 0.2,
+    far: float = 100.0,
+    tile_size: int = 4,
+    backend: str = "auto",
+    pair_chunk: int = 1 << 17,
+) -> float:
+    """``sum_k sum_i F_k[i] entry_weights_k[i]`` over :func:`fisher_diag`'s result (same arguments), in float64.
+
+    ``entry_weights``: per parameter of ``params`` (SurfelMap names), one weight per entry (``surfel_map.<name>``'s
+    size, flattened). Eq. 10's and FisherRF's candidate score with ``1 / (H_train + prior)``. Only the surfels that
+    reach the view are read: the dense result is never formed (a candidate's cost, issue 12).
+    """
+    m = surfel_map.detach()
+    rows, values = _fisher_rows(m, T_wc, intr, outputs, params, pixel_weights, background, near, far, tile_size,
+                                backend, pair_chunk)  # fmt: skip
+    return _weighted_sum(m, rows, values, entry_weights)
+
+
+def _weighted_sum(m: SurfelMap, rows: Tensor, values: dict[str, Tensor], entry_weights: dict[str, np.ndarray]) -> float:
+    """``sum_k values_k * entry_weights_k[rows]`` (float64), the weights checked against ``m``'s parameters."""
+    missing = [k for k in values if k not in entry_weights]
+    if missing:
+        raise InputError("entry_weights", f"no weights for parameter(s) {missing}")
+    r = rows.cpu().numpy()
+    total = 0.0
+    for k, v in values.items():
+        p = getattr(m, k)
+        w = np.asarray(entry_weights[k], dtype=np.float64).reshape(-1)
+        if w.size != p.numel():
+            raise InputError(f"entry_weights[{k}]", f"expected {p.numel()} entries, got {w.size}")
+        if r.size:
+            w_rows = w.reshape(p.shape)[r]
+            vals = v.detach().cpu().numpy().astype(np.float64)
+            total += float((vals * w_rows).sum())
+    return total
+
+
+def _fisher_rows(
+    m: SurfelMap,
+    T_wc: np.ndarray | Tensor,
+    intr: Intrinsics,
+    outputs: Sequence[str],
+    params: Sequence[str],
+    pixel_weights: Tensor | np.ndarray | None,
+    background: Tensor | None,
+    near: float,
+    far: float,
+    tile_size: int,
+    backend: str,
+    pair_chunk: int,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """:func:`fisher_diag` on the rows it can be non-zero: map rows [K] (int64) and ``{name: [K, ...]}``.
+
+    ``m`` is detached. The other surfels of the map (outside the frustum, in no walked tile) have zero Fisher.
+    """
     outs = list(dict.fromkeys(outputs))
     bad = [o for o in outs if o not in OUTPUTS]
     if bad or not outs:
         raise InputError("outputs", f"unknown or no outputs {bad} (choose from {', '.join(OUTPUTS)})")
-    names = _params_of(params, surfel_map)
-    m = surfel_map.detach()
+    names = _params_of(params, m)
     dt, dev = m.dtype, m.device
     W, H = intr.width, intr.height
     weights = None
@@ -131,28 +203,37 @@ def fisher_diag(
             raise InputError("pixel_weights", f"expected shape [{H}, {W}], got {list(weights.shape)}")
         weights = weights.reshape(-1)
     viewmat, K = camera_tensors(T_wc, intr, device=dev, dtype=dt)
-    result = {k: torch.zeros_like(getattr(m, k)) for k in names}
     bg = torch.zeros(3, dtype=dt, device=dev) if background is None else background.to(dtype=dt, device=dev)
+
+    def none() -> tuple[Tensor, dict[str, Tensor]]:
+        shapes = {k: getattr(m, k).shape[1:] for k in names}
+        return torch.zeros(0, dtype=torch.long, device=dev), {
+            k: torch.zeros((0, *s), dtype=dt, device=dev) for k, s in shapes.items()
+        }
+
     # Surfels that cannot reach the image contribute nothing: drop them before any per-surfel work.
     idx = frustum_subset(m, viewmat, intr, near, far)
     if idx.numel() == 0:
-        return result
+        return none()
     full = idx.numel() == len(m)
     sub = m if full else m.select(idx)
-    out = result if full else {k: torch.zeros_like(getattr(sub, k)) for k in names}
     cam = (viewmat, K, W, H, near, far)
     if use_numba(backend, sub.means):
-        _fisher_numba(sub, names, outs, cam, weights, bg, out)
-    else:
-        with torch.no_grad():
-            proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
-        pairs = select_pairs(proj, W, H, near, tile_size=tile_size, backend="torch")
-        if len(pairs):
-            _fisher_torch(sub, names, outs, proj, pairs, cam, weights, bg, pair_chunk, out)
-    if not full:
-        for k in names:
-            result[k].index_copy_(0, idx, out[k])
-    return result
+        got = _fisher_numba(sub, names, outs, cam, weights, bg)
+        if got is None:
+            return none()
+        local_rows, total, cols = got
+        t = torch.from_numpy(total).to(dt)
+        values = {k: t[:, cols[k]].reshape(-1, *getattr(m, k).shape[1:]) for k in names}
+        local = torch.from_numpy(local_rows)
+        return (local if full else idx.index_select(0, local)), values
+    out = {k: torch.zeros_like(getattr(sub, k)) for k in names}
+    with torch.no_grad():
+        proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
+    pairs = select_pairs(proj, W, H, near, tile_size=tile_size, backend="torch")
+    if len(pairs):
+        _fisher_torch(sub, names, outs, proj, pairs, cam, weights, bg, pair_chunk, out)
+    return (torch.arange(len(m), device=dev) if full else idx), out
 
 
 @torch.no_grad()
@@ -224,31 +305,29 @@ def _k_frustum(
 
 
 def _channels(
-    m: SurfelMap,
-    names: list[str],
-    outs: list[str],
-    viewmat: Tensor,
-    K: Tensor,
-    near: float,
-    far: float,
-    bg: Tensor,
-    need_packed: bool = True,
-) -> tuple[dict[str, Tensor], list[tuple[Tensor | None, dict[str, Tensor], float]], Tensor | None]:
-    """Leaf parameters, per-channel (per-surfel value or None for depth, its derivative dict, background),
-    and the differentiable packed projection rows [14, N] of the surfels of ``m`` (None when not
-    ``need_packed`` and no normal output needs the projection).
+    m: SurfelMap, names: list[str], outs: list[str], viewmat: Tensor, K: Tensor, near: float, far: float, bg: Tensor
+) -> tuple[dict[str, Tensor], list[tuple[Tensor | None, dict[str, Tensor], float]]]:
+    """Parameters of the surfels of ``m`` and, per channel, (per-surfel value or None for depth, its derivative
+    dict w.r.t. ``names``, background).
+
+    The small per-surfel graph is built only where a channel depends on ``names`` (normals; colours through the
+    SH, and the means with view-dependent SH): the geometric Fisher of colour and depth needs none.
     """
     n = len(m)
-    leaves = {k: getattr(m, k).clone().requires_grad_(k in names) for k in PARAM_NAMES if getattr(m, k) is not None}
-    opac = torch.sigmoid(leaves["opacity_logits"])
-    cam_centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
-    viewdirs = leaves["means"] - cam_centre if m.sh_rest is not None else None
-    colors = SurfelMap(**leaves).colors(viewdirs) if "color" in outs else None
-    packed = normals = None
-    if need_packed or "normal" in outs:
-        packed, normals, _ = project_packed(
-            leaves["means"], leaves["quats"], torch.exp(leaves["log_scales"]), opac, viewmat, K, near, far
-        )
+    colour_deps = {"sh_dc", "sh_rest"} | ({"means"} if m.sh_rest is not None else set())
+    graph = "normal" in outs or ("color" in outs and bool(colour_deps & set(names)))
+    params = {k: getattr(m, k) for k in PARAM_NAMES if getattr(m, k) is not None}
+    leaves = {k: t.clone().requires_grad_(k in names) for k, t in params.items()} if graph else params
+    with torch.set_grad_enabled(graph):
+        cam_centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        viewdirs = leaves["means"] - cam_centre if m.sh_rest is not None else None
+        colors = SurfelMap(**leaves).colors(viewdirs) if "color" in outs else None
+        normals = None
+        if "normal" in outs:
+            opac = torch.sigmoid(leaves["opacity_logits"])
+            _, normals, _ = project_packed(
+                leaves["means"], leaves["quats"], torch.exp(leaves["log_scales"]), opac, viewmat, K, near, far
+            )
     want = list(names)
 
     def per_surfel(x: Tensor) -> dict[str, Tensor]:
@@ -267,7 +346,7 @@ def _channels(
             channels.append((torch.ones(n, dtype=m.dtype, device=m.device), {}, 0.0))
         else:
             channels.append((None, {}, 0.0))
-    return leaves, channels, packed
+    return leaves, channels
 
 
 def _fisher_numba(
@@ -277,16 +356,17 @@ def _fisher_numba(
     cam: tuple,
     weights: Tensor | None,
     bg: Tensor,
-    result: dict[str, Tensor],
-) -> None:
+) -> tuple[np.ndarray, np.ndarray, dict[str, slice]] | None:
     """Fisher with the numba kernels: the render's projection and binning, then the tile-major Fisher kernel,
     which walks each tile for its pairs itself (no separate forward pass).
+
+    Returns the rows [K] of ``m`` that can have a non-zero Fisher (those listed in a walked tile), their Fisher
+    [K, D] (float64) and each parameter's columns; None when no surfel is listed.
 
     ``d packed / d theta`` of the surfels listed in a walked tile comes from :func:`packed_jacobian`'s kernel
     (closed form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
     """
     viewmat, K, W, H, near, far = cam
-    dt = m.dtype
     means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
     V, Km = _f64(viewmat), _f64(K)
     opac = 1.0 / (1.0 + np.exp(-logits))
@@ -295,21 +375,18 @@ def _fisher_numba(
     mask = None if weights is None else (weights != 0).numpy()
     bn = numba_bins(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, _BLOCK, mask)
     # Only the surfels listed in a walked tile can get a pair: Jacobians, features and outputs of those.
-    on = np.flatnonzero(bn.count > 0)
-    marks = np.zeros(bn.surf.size + 1, np.int64)
-    marks[bn.start[on]] += 1
-    marks[bn.start[on] + bn.count[on]] -= 1
     listed = np.zeros(bn.order.size, np.bool_)
-    listed[bn.surf[np.cumsum(marks[:-1]) > 0]] = True
+    with KERNEL_LOCK:
+        _SERIAL_KERNELS["listed"](bn.surf, bn.start, bn.count, listed)
     kept = np.flatnonzero(listed)  # kept ids (rows of bn.pk)
     if kept.size == 0:
-        return
+        return None
+    kept = kept[np.argsort(bn.order[kept])]  # in the map's row order: the per-surfel gathers read memory in order
     local = np.full(bn.order.size, -1, np.int64)
     local[kept] = np.arange(kept.size)
-    rows_np = bn.order[kept]  # rows of m
-    rows = torch.from_numpy(rows_np)
-    sub = m.select(rows)
-    leaves, channels, _ = _channels(sub, names, outs, viewmat, K, near, far, bg, need_packed=False)
+    rows_np = bn.order[kept]  # rows of m, increasing
+    sub = m.select(torch.from_numpy(rows_np))
+    leaves, channels = _channels(sub, names, outs, viewmat, K, near, far, bg)
     nl = len(sub)
     sizes = [leaves[k][0].numel() for k in names]
     D = sum(sizes)
@@ -352,9 +429,7 @@ def _fisher_numba(
             bn.pk, bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, W, H, bn.ntx, float(near),
             local, jac, X, B, kind, bgs, wts, col_kind, out,
         )  # fmt: skip
-    total = torch.from_numpy(out.sum(0)).to(dt)
-    for k in names:
-        result[k].view(len(m), -1).index_copy_(0, rows, total[:, cols[k]])
+    return rows_np, out.sum(0), cols
 
 
 _JAC_COLS = {"means": slice(0, 3), "quats": slice(3, 7), "log_scales": slice(7, 9), "opacity_logits": slice(9, 10)}
@@ -936,7 +1011,15 @@ def _k_fisher(
                     o[j] += acc
 
 
+def _k_listed(tl_surf: np.ndarray, t_start: np.ndarray, t_count: np.ndarray, listed: np.ndarray) -> None:
+    """Marks ``listed`` [K] for the binned surfels in the list of a tile with entries (numba, serial)."""
+    for t in range(t_count.shape[0]):
+        for e in range(t_start[t], t_start[t] + t_count[t]):
+            listed[tl_surf[e]] = True
+
+
 _KERNELS = Kernels(jacobian=_k_jacobian, frustum=_k_frustum)
+_SERIAL_KERNELS = Kernels(parallel=False, listed=_k_listed)
 _FISHER_KERNELS = Kernels(
     # Reassociation lets LLVM vectorise and fuse the per-parameter sums (results move by ~1e-15
     # relative); no "nnan"/"ninf", so non-finite values keep IEEE semantics.
@@ -962,7 +1045,7 @@ def _fisher_torch(
     viewmat, K, W, _, near, far = cam
     dt = m.dtype
     n = len(m)
-    leaves, channels, _ = _channels(m, names, outs, viewmat, K, near, far, bg)
+    leaves, channels = _channels(m, names, outs, viewmat, K, near, far, bg)
     want = list(names)
     # Forward compositing quantities per pair (no grad), float64 scans.
     surf, pix = pairs.surf, pairs.pix
@@ -1039,6 +1122,7 @@ __all__ = [
     "OUTPUTS",
     "fisher_diag",
     "fisher_per_surfel",
+    "fisher_weighted_sum",
     "frustum_subset",
     "packed_jacobian",
 ]
