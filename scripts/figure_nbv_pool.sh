@@ -10,7 +10,9 @@
 #   3. an object-centric scene (`roigsf scene synth --kind object`: primitives on a disc, 96 orbit views at
 #      120x90, empty background), and
 #   4. (SCENES=dome; not in the default list) the same objects seen from a hemisphere (`--kind object-dome`,
-#      120 views at 120x90; 15 test views, 53 candidates), where 20 views no longer see everything the pool sees.
+#      120 views at 120x90; 15 test views, 53 candidates), where 20 views no longer see everything the pool sees;
+#   5. (SCENES=clutter; not in the default list) tall boxes 8 cm apart, an open crate and two posts seen from
+#      the same hemisphere (`--kind clutter-dome`, 120 views at 120x90), whose gaps only a few views see into.
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
@@ -75,6 +77,14 @@ for scene in $SCENES; do
         nice -n "${NICE:-0}" roigsf bench --scene runs/object_dome_120 "${COMMON[@]}" --policies "$POLICIES" \
             --out runs/bench_pool_dome
         ;;
-    *) echo "unknown scene $scene (office0, synth, object, dome)" >&2; exit 2 ;;
+    clutter)
+        if [ ! -f runs/clutter_dome_120/mesh.ply ]; then
+            roigsf scene synth --kind clutter-dome --out runs/clutter_dome_120 --frames 120 --width 120 --height 90 \
+                --overwrite
+        fi
+        nice -n "${NICE:-0}" roigsf bench --scene runs/clutter_dome_120 "${COMMON[@]}" --policies "$POLICIES" \
+            --out runs/bench_pool_clutter
+        ;;
+    *) echo "unknown scene $scene (office0, synth, object, dome, clutter)" >&2; exit 2 ;;
     esac
 done

@@ -434,6 +434,38 @@ def test_synth_object_scene_is_an_orbit_around_primitives_with_an_empty_backgrou
     assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_object(1).vertices))
 
 
+def _views_seeing(mesh: o3d.geometry.TriangleMesh, poses: np.ndarray, point: list[float]) -> int:
+    """How many camera centres of ``poses`` see ``point`` (the first hit of the ray from the centre is the point)."""
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    eyes = poses[:, :3, 3]
+    d = np.asarray(point) - eyes
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.concatenate([eyes, d / dist[:, None]], 1).astype(np.float32)
+    t_hit = rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return int((np.abs(t_hit - dist) < 1e-3).sum())
+
+
+def test_synth_clutter_hides_the_cabinet_insides_from_most_views(tmp_path: Path) -> None:
+    """``scene synth --kind clutter-dome``: the occluded NBV scene; a cabinet's inside is seen by few of the views."""
+    out = tmp_path / "clutter"
+    assert main(["scene", "synth", "--kind", "clutter-dome", "--frames", "6", "--width", "48", "--out", str(out)]) == 0
+    assert len(ReplicaSequence(out)) == 6
+    mesh = scene.synth_clutter(0)
+    lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
+    assert np.all(hi[:2] <= 0.81) and np.all(lo[:2] >= -0.81) and lo[2] >= -0.05 and hi[2] < 0.6
+    poses = scene.dome_trajectory(120)
+    for turn in range(4):  # each cabinet's floor and back, inside; its roof and the middle box's top, outside
+        c, s = np.cos(turn * np.pi / 2), np.sin(turn * np.pi / 2)
+        inside = [_views_seeing(mesh, poses, [r * c, r * s, z]) for r, z in ((0.6, 0.0), (0.4801, 0.15))]
+        assert max(inside) <= 12, (turn, inside)  # at most 10 % of the hemisphere's views
+        assert _views_seeing(mesh, poses, [0.6 * c, 0.6 * s, 0.35]) >= 40
+    assert _views_seeing(mesh, poses, [0.0, 0.0, 0.55]) >= 60
+    again = scene.synth_clutter(0)
+    assert np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_clutter(0).vertices))
+    assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_clutter(1).vertices))
+
+
 def test_synth_object_dome_views_the_objects_from_a_hemisphere(tmp_path: Path) -> None:
     """``scene synth --kind object-dome``: the same objects, every view sees them, from 10-75 deg elevation."""
     out = tmp_path / "dome"

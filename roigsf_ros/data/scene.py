@@ -690,6 +690,48 @@ def synth_object(seed: int = 0) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def synth_clutter(seed: int = 0) -> o3d.geometry.TriangleMesh:
+    """An object-centric scene with occlusion (not a room): a 3x3 block of tall boxes 8 cm apart and four open
+    cabinets with 8 cm walls facing outward, on the 0.8 m disc of :func:`synth_object`.
+
+    A cabinet's inside (24 cm wide, 27 cm deep and high) is seen only from in front of it, and its inner faces lie
+    more than 5 cm from any outer face, so 20 views of a hemisphere do not reach everything within 5 cm (on
+    :func:`synth_object` every policy's 5 cm recall saturates). Seed 0 is the fixed layout the NBV benchmark reports
+    on; other seeds change each box's height by up to 5 cm and the colours slightly. Vertex colours only; the
+    renderer adds the procedural texture.
+    """
+    rng = np.random.default_rng(seed)
+    o3g = o3d.geometry.TriangleMesh
+
+    def colour(c: list[float]) -> np.ndarray:
+        return np.clip(np.asarray(c) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
+
+    def box(lo: tuple[float, ...], size: tuple[float, ...], c: list[float] | np.ndarray) -> o3d.geometry.TriangleMesh:
+        return o3g.create_box(*size).translate(lo).paint_uniform_color(c)
+
+    mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.55, 0.45, 0.35])
+    heights = (0.45, 0.30, 0.50, 0.35, 0.55, 0.30, 0.40, 0.50, 0.35)  # 0.14 m boxes at a 0.22 m pitch
+    palette = ([0.8, 0.3, 0.2], [0.2, 0.5, 0.8], [0.3, 0.7, 0.3], [0.85, 0.75, 0.2], [0.6, 0.3, 0.7])
+    for k, h in enumerate(heights):
+        i, j = divmod(k, 3)
+        h = h + (0 if seed == 0 else rng.uniform(-0.05, 0.05))
+        mesh += box((-0.29 + 0.22 * i, -0.29 + 0.22 * j, 0.0), (0.14, 0.14, h), colour(palette[k % len(palette)]))
+    # A cabinet opening towards +x (0.35 deep, 0.4 wide, 0.35 high, walls 0.08), turned to face each direction.
+    parts = (
+        ((0.40, -0.20, 0.0), (0.08, 0.40, 0.35)),  # back
+        ((0.48, -0.20, 0.0), (0.27, 0.08, 0.35)),  # sides
+        ((0.48, 0.12, 0.0), (0.27, 0.08, 0.35)),
+        ((0.48, -0.12, 0.27), (0.27, 0.24, 0.08)),  # top
+    )
+    for turn, c in enumerate(([0.75, 0.6, 0.4], [0.4, 0.6, 0.75], [0.6, 0.75, 0.4], [0.75, 0.45, 0.6])):
+        rot = o3d.geometry.get_rotation_matrix_from_xyz((0.0, 0.0, turn * np.pi / 2))
+        for lo, size in parts:
+            mesh += box(lo, size, colour(c)).rotate(rot, center=(0.0, 0.0, 0.0))
+    mesh = mesh.subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    return mesh
+
+
 def orbit_trajectory(n_frames: int) -> np.ndarray:
     """[N, 4, 4] cameras orbiting :func:`synth_object` once at 0.9-1.4 m radius and 0.2-0.9 m height, looking at it."""
     poses = []
@@ -735,6 +777,7 @@ __all__ = [
     "orbit_trajectory",
     "render_sequence",
     "surface_texture",
+    "synth_clutter",
     "synth_object",
     "synth_room",
     "synth_trajectory",
