@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -16,7 +17,7 @@ import torch
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.render import rasterize as render
 from roigsf_ros.render import reference as render_reference
-from roigsf_ros.render.numba_setup import numba_available
+from roigsf_ros.render.numba_setup import balanced_bounds, numba_available
 from roigsf_ros.render.rasterize import camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap, rotmat_to_quat
 
@@ -558,3 +559,17 @@ def test_kernel_stamp_is_the_same_in_every_process() -> None:
         assert res.returncode == 0, res.stderr
         stamps.add(res.stdout.strip().splitlines()[-1])
     assert len(stamps) == 1 and len(next(iter(stamps))) == 64
+
+
+def test_balanced_bounds_split_the_same_from_numpy_and_torch() -> None:
+    """The tile blocks of the numba kernels: contiguous, covering, about equal cost; numpy input takes no torch op."""
+    rng = np.random.default_rng(0)
+    for cost in (rng.integers(1, 50, 1200), np.ones(7, np.int64), np.array([1, 1, 500, 1, 1]), np.zeros(0, np.int64)):
+        for parts in (1, 2, 3, 8):
+            b = balanced_bounds(cost, parts)
+            assert np.array_equal(b, balanced_bounds(torch.from_numpy(cost), parts)), (cost.size, parts)
+            assert b[0] == 0 and b[-1] == cost.size and len(b) == parts + 1 and np.all(np.diff(b) >= 0)
+    cost = rng.integers(1, 50, 1200)
+    b = balanced_bounds(cost, 4)
+    sums = [cost[lo:hi].sum() for lo, hi in itertools.pairwise(b)]
+    assert max(sums) - min(sums) <= 2 * cost.max()  # equal up to the tile a cut falls in

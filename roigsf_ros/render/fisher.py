@@ -165,7 +165,7 @@ def _weighted_sum(m: SurfelMap, rows: Tensor, values: dict[str, Tensor], entry_w
         if w.size != p.numel():
             raise InputError(f"entry_weights[{k}]", f"expected {p.numel()} entries, got {w.size}")
         if r.size:
-            w_rows = w.reshape(p.shape)[r]
+            w_rows = np.take(w.reshape(p.shape), r, axis=0)  # take: 3.5x faster than fancy indexing from cold memory
             vals = v.detach().cpu().numpy().astype(np.float64)
             total += float((vals * w_rows).sum())
     return total
@@ -215,18 +215,16 @@ def _fisher_rows(
     idx = frustum_subset(m, viewmat, intr, near, far)
     if idx.numel() == 0:
         return none()
-    full = idx.numel() == len(m)
-    sub = m if full else m.select(idx)
     cam = (viewmat, K, W, H, near, far)
-    if use_numba(backend, sub.means):
-        got = _fisher_numba(sub, names, outs, cam, weights, bg)
+    if use_numba(backend, m.means):
+        got = _fisher_numba(m, idx.numpy(), names, outs, cam, weights, bg)
         if got is None:
             return none()
-        local_rows, total, cols = got
+        rows, total, cols = got
         t = torch.from_numpy(total).to(dt)
-        values = {k: t[:, cols[k]].reshape(-1, *getattr(m, k).shape[1:]) for k in names}
-        local = torch.from_numpy(local_rows)
-        return (local if full else idx.index_select(0, local)), values
+        return torch.from_numpy(rows), {k: t[:, cols[k]].reshape(-1, *getattr(m, k).shape[1:]) for k in names}
+    full = idx.numel() == len(m)
+    sub = m if full else m.select(idx)
     out = {k: torch.zeros_like(getattr(sub, k)) for k in names}
     with torch.no_grad():
         proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
@@ -351,6 +349,7 @@ def _channels(
 
 def _fisher_numba(
     m: SurfelMap,
+    idx: np.ndarray,
     names: list[str],
     outs: list[str],
     cam: tuple,
@@ -360,14 +359,18 @@ def _fisher_numba(
     """Fisher with the numba kernels: the render's projection and binning, then the tile-major Fisher kernel,
     which walks each tile for its pairs itself (no separate forward pass).
 
-    Returns the rows [K] of ``m`` that can have a non-zero Fisher (those listed in a walked tile), their Fisher
-    [K, D] (float64) and each parameter's columns; None when no surfel is listed.
+    ``idx`` [N'] (increasing): the rows of the CPU map ``m`` that may reach the view (:func:`frustum_subset`); only
+    their parameters are read. Returns the rows [K] of ``m`` that can have a non-zero Fisher (those listed in a
+    walked tile; increasing), their Fisher [K, D] (float64) and each parameter's columns; None when none is listed.
 
     ``d packed / d theta`` of the surfels listed in a walked tile comes from :func:`packed_jacobian`'s kernel
     (closed form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
     """
     viewmat, K, W, H, near, far = cam
-    means, quats, log_s, logits = (_f64(t) for t in (m.means, m.quats, m.log_scales, m.opacity_logits))
+    means, quats, log_s, logits = (
+        np.take(t.detach().numpy(), idx, axis=0).astype(np.float64) for t in (m.means, m.quats, m.log_scales,
+                                                                               m.opacity_logits)
+    )  # fmt: skip
     V, Km = _f64(viewmat), _f64(K)
     opac = 1.0 / (1.0 + np.exp(-logits))
     # Pixels with zero weight need no pairs: tiles with none of the others get empty lists. The kernel's
@@ -384,8 +387,8 @@ def _fisher_numba(
     kept = kept[np.argsort(bn.order[kept])]  # in the map's row order: the per-surfel gathers read memory in order
     local = np.full(bn.order.size, -1, np.int64)
     local[kept] = np.arange(kept.size)
-    rows_np = bn.order[kept]  # rows of m, increasing
-    sub = m.select(torch.from_numpy(rows_np))
+    rows_np = bn.order[kept]  # rows of idx (and of means, quats, ...), increasing
+    sub = m.select(torch.from_numpy(idx[rows_np]))
     leaves, channels = _channels(sub, names, outs, viewmat, K, near, far, bg)
     nl = len(sub)
     sizes = [leaves[k][0].numel() for k in names]
@@ -429,7 +432,7 @@ def _fisher_numba(
             bn.pk, bn.thr, bn.rect, bn.surf, bn.start, bn.count, bn.bounds, W, H, bn.ntx, float(near),
             local, jac, X, B, kind, bgs, wts, col_kind, out,
         )  # fmt: skip
-    return rows_np, out.sum(0), cols
+    return idx[rows_np], out.sum(0), cols
 
 
 _JAC_COLS = {"means": slice(0, 3), "quats": slice(3, 7), "log_scales": slice(7, 9), "opacity_logits": slice(9, 10)}
@@ -963,7 +966,8 @@ def _k_fisher(
                                       + c1s[q] * (x * J3 + y * J4 + J5))  # fmt: skip
                                 Jd = gds[q] * aj + eis[q] * J9 + efs[q] * J10
                                 acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                                avs[q] = aj
+                                if n1 > 0:  # only kind-1 channels read it (a loop-invariant test)
+                                    avs[q] = aj
                         elif ck == 2:  # a quaternion component: the centre (rows 10-12) and the opacity do not move
                             for q in range(Q):
                                 x = float(x_base + q % QB)
@@ -972,7 +976,8 @@ def _k_fisher(
                                 aj = c0s[q] * (x * J0 + y * J1 + J2) + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2
                                 Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
                                 acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                                avs[q] = aj
+                                if n1 > 0:
+                                    avs[q] = aj
                         elif ck == 3:  # log scale u: neither rows 0-2 nor the centre and opacity move
                             for q in range(Q):
                                 x = float(x_base + q % QB)
@@ -981,7 +986,8 @@ def _k_fisher(
                                 aj = c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2
                                 Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
                                 acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                                avs[q] = aj
+                                if n1 > 0:
+                                    avs[q] = aj
                         elif ck == 4:  # log scale v: neither rows 3-5 nor the centre and opacity move
                             for q in range(Q):
                                 x = float(x_base + q % QB)
@@ -990,7 +996,8 @@ def _k_fisher(
                                 aj = c0s[q] * (x * J0 + y * J1 + J2) + c2s[q] * p2
                                 Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2
                                 acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                                avs[q] = aj
+                                if n1 > 0:
+                                    avs[q] = aj
                         else:  # any row (the opacity logit)
                             for q in range(Q):
                                 x = float(x_base + q % QB)
@@ -1000,7 +1007,8 @@ def _k_fisher(
                                       + c1s[q] * (x * J3 + y * J4 + J5) + c2s[q] * p2)  # fmt: skip
                                 Jd = gds[q] * aj + eis[q] * J9 + ees[q] * p2 + efs[q] * J10
                                 acc += As[q] * aj * aj + wps[q] * Jd * Jd
-                                avs[q] = aj
+                                if n1 > 0:
+                                    avs[q] = aj
                     for f in range(n1):  # (g aj + w B)^2 - (g aj)^2 of the kind-1 channels
                         Bj = B[sid, ch1[f], j]
                         if Bj == 0.0:

@@ -156,8 +156,15 @@ def n_threads() -> int:
     return int(numba.get_num_threads())
 
 
-def balanced_bounds(cost: Tensor, parts: int) -> np.ndarray:
-    """Split ``range(len(cost))`` into ``parts`` contiguous blocks of about equal total cost."""
+def balanced_bounds(cost: Tensor | np.ndarray, parts: int) -> np.ndarray:
+    """Split ``range(len(cost))`` into ``parts`` contiguous blocks of about equal total cost (a tensor or a numpy
+    array, split by torch or numpy: the per-view numpy callers make no torch call).
+    """
+    if isinstance(cost, np.ndarray):
+        cum_np = np.cumsum(cost.astype(np.float64))
+        total_np = float(cum_np[-1]) if cost.size else 0.0
+        cuts_np = np.searchsorted(cum_np, np.linspace(0.0, total_np, parts + 1)[1:-1])
+        return np.concatenate([[0], cuts_np, [cost.size]]).astype(np.int64)
     cum = torch.cumsum(cost.double(), 0)
     total = float(cum[-1]) if cost.numel() else 0.0
     cuts = torch.searchsorted(cum, torch.linspace(0, total, parts + 1, dtype=torch.float64)[1:-1])

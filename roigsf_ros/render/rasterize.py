@@ -1759,7 +1759,7 @@ def numba_bins(
         grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
         on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
         bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
-        bn.bounds = balanced_bounds(torch.from_numpy(bn.count.astype(np.int64) + 1), n_threads())
+        bn.bounds = balanced_bounds(bn.count.astype(np.int64) + 1, n_threads())
     return bn
 
 
