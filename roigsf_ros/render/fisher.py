@@ -147,28 +147,32 @@ def fisher_weighted_sum(
     reach the view are read: the dense result is never formed (a candidate's cost, issue 12).
     """
     m = surfel_map.detach()
+    per_row = _entry_weights(m, _params_of(params, m), entry_weights)  # checked before any rendering
     rows, values = _fisher_rows(m, T_wc, intr, outputs, params, pixel_weights, background, near, far, tile_size,
                                 backend, pair_chunk)  # fmt: skip
-    return _weighted_sum(m, rows, values, entry_weights)
-
-
-def _weighted_sum(m: SurfelMap, rows: Tensor, values: dict[str, Tensor], entry_weights: dict[str, np.ndarray]) -> float:
-    """``sum_k values_k * entry_weights_k[rows]`` (float64), the weights checked against ``m``'s parameters."""
-    missing = [k for k in values if k not in entry_weights]
-    if missing:
-        raise InputError("entry_weights", f"no weights for parameter(s) {missing}")
     r = rows.cpu().numpy()
     total = 0.0
     for k, v in values.items():
+        if r.size:  # np.take: 3.5x faster than fancy indexing from cold memory
+            total += float((v.detach().cpu().numpy().astype(np.float64) * np.take(per_row[k], r, axis=0)).sum())
+    return total
+
+
+def _entry_weights(m: SurfelMap, names: list[str], entry_weights: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``entry_weights`` of the parameters ``names`` as float64 arrays shaped like them; InputError if one is
+    missing or has another number of entries.
+    """
+    missing = [k for k in names if k not in entry_weights]
+    if missing:
+        raise InputError("entry_weights", f"no weights for parameter(s) {missing}")
+    out = {}
+    for k in names:
         p = getattr(m, k)
-        w = np.asarray(entry_weights[k], dtype=np.float64).reshape(-1)
+        w = np.asarray(entry_weights[k], dtype=np.float64)
         if w.size != p.numel():
             raise InputError(f"entry_weights[{k}]", f"expected {p.numel()} entries, got {w.size}")
-        if r.size:
-            w_rows = np.take(w.reshape(p.shape), r, axis=0)  # take: 3.5x faster than fancy indexing from cold memory
-            vals = v.detach().cpu().numpy().astype(np.float64)
-            total += float((vals * w_rows).sum())
-    return total
+        out[k] = w.reshape(p.shape)
+    return out
 
 
 def _fisher_rows(
