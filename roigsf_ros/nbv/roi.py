@@ -349,28 +349,41 @@ def _geometry(
     return n
 
 
+def _bilinear(u: float, v: float, s: float, width: int, height: int) -> tuple[int, float, float, float, float]:
+    """The tent splat's common case (numba helper): a point under one pixel (``s == 1``) whose 2x2 pixels lie in the
+    image. Returns the flat index of its top-left pixel and the kernel factors kx0, kx1, ky0, ky1 of the columns and
+    rows, written as the general loops of :func:`_zbuffer` and :func:`_accumulate` compute them (the same values to
+    the bit); index -1 (and zeros) where those loops must run.
+    """
+    bx = int(np.floor(u))
+    by = int(np.floor(v))
+    if not (s == 1.0 and bx >= 0 and by >= 0 and bx + 1 < width and by + 1 < height):
+        return -1, 0.0, 0.0, 0.0, 0.0
+    kx0 = 1.0 - abs(bx - u)  # > 0: bx = floor(u)
+    kx1 = max(0.0, 1.0 - abs(bx + 1 - u))
+    ky0 = 1.0 - abs(by - v)
+    ky1 = max(0.0, 1.0 - abs(by + 1 - v))
+    return by * width + bx, kx0, kx1, ky0, ky1
+
+
 def _zbuffer(geo: np.ndarray, n: int, width: int, height: int, max_r: float, zbuf: np.ndarray) -> None:
     """Lowers ``zbuf`` [H W] to the depth of the first ``n`` rows of ``geo``'s tent splats (numba helper)."""
     for i in range(n):
         u, v, z = geo[i, 0], geo[i, 1], geo[i, 2]
         s = min(max(geo[i, 4], 1.0), max_r)
-        bx = int(np.floor(u))
-        by = int(np.floor(v))
-        if s == 1.0 and bx >= 0 and by >= 0 and bx + 1 < width and by + 1 < height:
-            # The common case, a voxel under a pixel inside the image: the loop below's 2x2 pixels, its tests as
-            # written there (the same z-buffer, tested), without the loop.
-            p = by * width + bx
-            right = 1.0 - abs(bx + 1 - u) > 0.0
-            below = 1.0 - abs(by + 1 - v) > 0.0
+        p, _, kx1, _, ky1 = _bilinear(u, v, s, width, height)
+        if p >= 0:  # the common case: the loop's 2x2 pixels, the first always covered
             if z < zbuf[p]:
                 zbuf[p] = z
-            if right and z < zbuf[p + 1]:
+            if kx1 > 0.0 and z < zbuf[p + 1]:
                 zbuf[p + 1] = z
-            if below and z < zbuf[p + width]:
+            if ky1 > 0.0 and z < zbuf[p + width]:
                 zbuf[p + width] = z
-            if right and below and z < zbuf[p + width + 1]:
+            if kx1 > 0.0 and ky1 > 0.0 and z < zbuf[p + width + 1]:
                 zbuf[p + width + 1] = z
             continue
+        bx = int(np.floor(u))
+        by = int(np.floor(v))
         r = int(np.ceil(s - 1e-9))
         for oy in range(-r + 1, r + 1):
             y = by + oy
@@ -573,15 +586,8 @@ def _accumulate(
         if use_wf:
             gain += max(cos / z - w_f[idx], 0.0)
         s = min(max(fp, 1.0), max_r)
-        bx = int(np.floor(u))
-        by = int(np.floor(v))
-        if s == 1.0 and bx >= 0 and by >= 0 and bx + 1 < width and by + 1 < height:
-            # The common case (as in _zbuffer): the loop below's 2x2 kernel values, written out (the same sums).
-            kx0 = 1.0 - abs(bx - u)  # > 0: bx = floor(u)
-            kx1 = max(0.0, 1.0 - abs(bx + 1 - u))
-            ky0 = 1.0 - abs(by - v)
-            ky1 = max(0.0, 1.0 - abs(by + 1 - v))
-            q = by * width + bx
+        q, kx0, kx1, ky0, ky1 = _bilinear(u, v, s, width, height)
+        if q >= 0:  # the common case: the loop's 2x2 kernel values (the same sums)
             k = ky0 * kx0
             num[q] += k * w
             den[q] += k
@@ -598,6 +604,8 @@ def _accumulate(
                 num[q + width + 1] += k * w
                 den[q + width + 1] += k
             continue
+        bx = int(np.floor(u))
+        by = int(np.floor(v))
         r = int(np.ceil(s - 1e-9))
         for oy in range(-r + 1, r + 1):
             y = by + oy
@@ -788,7 +796,7 @@ def _k_frustum_union(
             mask[rows[i]] = True  # the same value from every thread
 
 
-_HELPERS = (_geometry, _zbuffer, _occlusion, _visibility, _accumulate, _finish)
+_HELPERS = (_bilinear, _geometry, _zbuffer, _occlusion, _visibility, _accumulate, _finish)
 _KERNELS = Kernels(parallel=False, helpers=_HELPERS, geometry=_k_geometry, visibility=_k_visibility, splat=_k_splat)
 _BATCH_KERNELS = Kernels(helpers=_HELPERS, batch=_k_batch, lone=_k_lone, union=_k_frustum_union)
 
