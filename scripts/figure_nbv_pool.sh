@@ -11,13 +11,17 @@
 #      120x90, empty background), and
 #   4. (SCENES=dome; not in the default list) the same objects seen from a hemisphere (`--kind object-dome`,
 #      120 views at 120x90; 15 test views, 53 candidates), where 20 views no longer see everything the pool sees;
-#   5. (SCENES=clutter; not in the default list) tall boxes 8 cm apart, an open crate and two posts seen from
-#      the same hemisphere (`--kind clutter-dome`, 120 views at 120x90), whose gaps only a few views see into.
+#   5. (SCENES=clutter; not in the default list) a 3x3 block of tall boxes 8 cm apart and four open cabinets
+#      facing outward, seen from the same hemisphere (`--kind clutter-dome`, 120 views at 120x90), whose insides
+#      only a few views see into (2026-11-26: 284 s for the four policies x 3 seeds on a quiet machine).
+#   6. (SCENES=shelf; not in the default list) an open shelf, a table with a crate under it and an L of two walls
+#      (`--kind shelf-dome`), from the same hemisphere: the scene the options' constants are chosen on.
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
-# Writes runs/office0_120_s20/, runs/synth_room_120/ (scenes, reused when present) and
-# runs/bench_pool_office0_<W>/, runs/bench_pool_synth/, runs/bench_pool_object/ (results.json, results.md, plots, runs/).
+# Writes runs/office0_<W>_s20/, runs/synth_room_<W>/ (scenes, reused when present; W = 120 SCALE) and
+# runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf}/ (_<W> when SCALE > 1; results.json,
+# results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
@@ -30,8 +34,9 @@ DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
 POLICIES="${POLICIES:-roi-gsurfisher,roi-gsurfisher:unseen_weight=1,fisherrf,random}"
 SEEDS="${SEEDS:-3}"
 SCENES="${SCENES:-office0 synth object}"
-SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE)
-W=$((120 * SCALE)); H=$((68 * SCALE))
+SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE), the synthetic scenes at (120 SCALE) x (90 SCALE)
+W=$((120 * SCALE)); H=$((68 * SCALE)); HS=$((90 * SCALE))
+SUF=""; [ "$SCALE" = 1 ] || SUF="_$W"  # SCALE=1 keeps the synthetic scenes' folder names of the README
 COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
@@ -58,33 +63,41 @@ for scene in $SCENES; do
         fi
         ;;
     synth)
-        if [ ! -f runs/synth_room_120/mesh.ply ]; then
-            roigsf scene synth --out runs/synth_room_120 --frames 96 --width 120 --height 90 --overwrite
+        if [ ! -f "runs/synth_room_$W/mesh.ply" ]; then
+            roigsf scene synth --out "runs/synth_room_$W" --frames 96 --width "$W" --height "$HS" --overwrite
         fi
-        roigsf bench --scene runs/synth_room_120 "${COMMON[@]}" --policies "$POLICIES" --out runs/bench_pool_synth
+        roigsf bench --scene "runs/synth_room_$W" "${COMMON[@]}" --policies "$POLICIES" --out "runs/bench_pool_synth$SUF"
         ;;
     object)
-        if [ ! -f runs/object_120/mesh.ply ]; then
-            roigsf scene synth --kind object --out runs/object_120 --frames 96 --width 120 --height 90 --overwrite
+        if [ ! -f "runs/object_$W/mesh.ply" ]; then
+            roigsf scene synth --kind object --out "runs/object_$W" --frames 96 --width "$W" --height "$HS" --overwrite
         fi
-        roigsf bench --scene runs/object_120 "${COMMON[@]}" --policies "$POLICIES" --out runs/bench_pool_object
+        roigsf bench --scene "runs/object_$W" "${COMMON[@]}" --policies "$POLICIES" --out "runs/bench_pool_object$SUF"
         ;;
     dome)
-        if [ ! -f runs/object_dome_120/mesh.ply ]; then
-            roigsf scene synth --kind object-dome --out runs/object_dome_120 --frames 120 --width 120 --height 90 \
+        if [ ! -f "runs/object_dome_$W/mesh.ply" ]; then
+            roigsf scene synth --kind object-dome --out "runs/object_dome_$W" --frames 120 --width "$W" --height "$HS" \
                 --overwrite
         fi
-        nice -n "${NICE:-0}" roigsf bench --scene runs/object_dome_120 "${COMMON[@]}" --policies "$POLICIES" \
-            --out runs/bench_pool_dome
+        nice -n "${NICE:-0}" roigsf bench --scene "runs/object_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
+            --out "runs/bench_pool_dome$SUF"
         ;;
     clutter)
-        if [ ! -f runs/clutter_dome_120/mesh.ply ]; then
-            roigsf scene synth --kind clutter-dome --out runs/clutter_dome_120 --frames 120 --width 120 --height 90 \
+        if [ ! -f "runs/clutter_dome_$W/mesh.ply" ]; then
+            roigsf scene synth --kind clutter-dome --out "runs/clutter_dome_$W" --frames 120 --width "$W" --height "$HS" \
                 --overwrite
         fi
-        nice -n "${NICE:-0}" roigsf bench --scene runs/clutter_dome_120 "${COMMON[@]}" --policies "$POLICIES" \
-            --out runs/bench_pool_clutter
+        nice -n "${NICE:-0}" roigsf bench --scene "runs/clutter_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
+            --out "runs/bench_pool_clutter$SUF"
         ;;
-    *) echo "unknown scene $scene (office0, synth, object, dome, clutter)" >&2; exit 2 ;;
+    shelf)  # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
+        if [ ! -f "runs/shelf_dome_$W/mesh.ply" ]; then
+            roigsf scene synth --kind shelf-dome --out "runs/shelf_dome_$W" --frames 120 --width "$W" --height "$HS" \
+                --overwrite
+        fi
+        nice -n "${NICE:-0}" roigsf bench --scene "runs/shelf_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
+            --out "runs/bench_pool_shelf$SUF"
+        ;;
+    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf)" >&2; exit 2 ;;
     esac
 done

@@ -466,6 +466,28 @@ def test_synth_clutter_hides_the_cabinet_insides_from_most_views(tmp_path: Path)
     assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_clutter(1).vertices))
 
 
+def test_synth_shelf_hides_the_shelf_backs_and_the_crate_from_most_views(tmp_path: Path) -> None:
+    """``scene synth --kind shelf-dome``: the tuning scene of the NBV options; its occluded parts are seen by few
+    of the hemisphere's views, their occluders by many, and it is not the clutter scene.
+    """
+    out = tmp_path / "shelf"
+    assert main(["scene", "synth", "--kind", "shelf-dome", "--frames", "6", "--width", "48", "--out", str(out)]) == 0
+    assert len(ReplicaSequence(out)) == 6
+    mesh = scene.synth_shelf(0)
+    lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
+    assert np.all(hi[:2] <= 0.81) and np.all(lo[:2] >= -0.81) and lo[2] >= -0.05 and hi[2] < 0.6
+    poses = scene.dome_trajectory(120)
+    for back in ([-0.14, -0.3001, 0.12], [0.10, -0.3001, 0.36]):  # inside two compartments
+        assert _views_seeing(mesh, poses, back) <= 8
+    assert _views_seeing(mesh, poses, [0.0, -0.44, 0.5201]) >= 40  # the shelf's top
+    assert _views_seeing(mesh, poses, [0.39, 0.12, 0.1601]) <= 30  # the crate's top, under the table
+    assert _views_seeing(mesh, poses, [0.39, 0.12, 0.2701]) >= 60  # the table's top
+    again = scene.synth_shelf(0)
+    assert np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_shelf(0).vertices))
+    assert not np.array_equal(np.asarray(again.vertices), np.asarray(scene.synth_shelf(1).vertices))
+    assert len(again.vertices) != len(scene.synth_clutter(0).vertices)
+
+
 def test_synth_object_dome_views_the_objects_from_a_hemisphere(tmp_path: Path) -> None:
     """``scene synth --kind object-dome``: the same objects, every view sees them, from 10-75 deg elevation."""
     out = tmp_path / "dome"

@@ -117,6 +117,7 @@ def _synth(args: argparse.Namespace) -> int:
         synth_clutter,
         synth_object,
         synth_room,
+        synth_shelf,
         synth_trajectory,
     )
 
@@ -134,6 +135,8 @@ def _synth(args: argparse.Namespace) -> int:
         mesh, poses = synth_object(args.seed), dome_trajectory(args.frames)
     elif args.kind == "clutter-dome":
         mesh, poses = synth_clutter(args.seed), dome_trajectory(args.frames)
+    elif args.kind == "shelf-dome":
+        mesh, poses = synth_shelf(args.seed), dome_trajectory(args.frames)
     else:
         mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
@@ -247,13 +250,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--kind",
-        choices=("room", "object", "object-dome", "clutter-dome"),
+        choices=("room", "object", "object-dome", "clutter-dome", "shelf-dome"),
         default="room",
         help="room: the procedural room and a handheld loop inside it (default); object: an object-centric scene "
         "(five primitives on a disc) and one orbit around it, the background empty (no depth); object-dome: the "
         "same objects seen from a hemisphere of viewpoints (10-75 deg elevation, 1.0-1.3 m); clutter-dome: tall boxes "
         "8 cm apart and four open cabinets facing outward, seen from the same hemisphere (insides only a few views "
-        "see)",
+        "see); shelf-dome: an open shelf, a table with a crate under it and an L of two walls, from the same "
+        "hemisphere (the scene the NBV options are tuned on; clutter-dome is reported)",
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(

@@ -75,6 +75,7 @@ __all__, __getattr__ = lazy_exports(
             "synth_clutter",
             "synth_object",
             "synth_room",
+            "synth_shelf",
             "synth_trajectory",
         ],
         "sensor": [

@@ -745,6 +745,57 @@ def orbit_trajectory(n_frames: int) -> np.ndarray:
     return np.stack(poses)
 
 
+def synth_shelf(seed: int = 0) -> o3d.geometry.TriangleMesh:
+    """A second object-centric scene with occlusion, for choosing the NBV options' constants (the benchmark reports
+    on :func:`synth_clutter` and tunes nothing there): a shelf of 2x2 open compartments facing outward, a table with
+    a crate under it, and an L of two walls whose inner corner faces outward, on the disc of :func:`synth_object`.
+
+    Each part hides something from most of the hemisphere: the compartments' backs, the crate under the table top
+    (seen only from low views on its side), the corner of the L. Seed 0 is the fixed layout; other seeds move each
+    part by up to 3 cm and change the colours slightly. Vertex colours only.
+    """
+    rng = np.random.default_rng(seed)
+    o3g = o3d.geometry.TriangleMesh
+
+    def jitter() -> np.ndarray:
+        return np.zeros(3) if seed == 0 else np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
+
+    def colour(c: list[float]) -> np.ndarray:
+        return np.clip(np.asarray(c) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
+
+    def box(lo: tuple[float, ...], size: tuple[float, ...], c: list[float] | np.ndarray) -> o3d.geometry.TriangleMesh:
+        return o3g.create_box(*size).translate(lo).paint_uniform_color(c)
+
+    mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.5, 0.5, 0.45])
+    # The shelf: 0.52 wide, 0.28 deep, 0.52 high, 2x2 compartments open towards -y (boards 0.04 thick).
+    shelf = o3g()
+    c = colour([0.7, 0.5, 0.3])
+    for lo, size in (
+        ((-0.26, -0.30, 0.0), (0.52, 0.04, 0.52)),  # back
+        ((-0.26, -0.58, 0.0), (0.04, 0.28, 0.52)),  # sides
+        ((0.22, -0.58, 0.0), (0.04, 0.28, 0.52)),
+        ((-0.02, -0.58, 0.0), (0.04, 0.28, 0.52)),  # middle
+        ((-0.26, -0.58, 0.0), (0.52, 0.28, 0.04)),  # bottom, middle and top boards
+        ((-0.26, -0.58, 0.24), (0.52, 0.28, 0.04)),
+        ((-0.26, -0.58, 0.48), (0.52, 0.28, 0.04)),
+    ):
+        shelf += box(lo, size, c)
+    mesh += shelf.translate(jitter())
+    # The table (top 0.42 x 0.34 at 0.24-0.27 m on four legs) and a crate under it.
+    table = box((0.18, -0.05, 0.24), (0.42, 0.34, 0.03), colour([0.3, 0.45, 0.7]))
+    for x, y in ((0.18, -0.05), (0.57, -0.05), (0.18, 0.26), (0.57, 0.26)):
+        table += box((x, y, 0.0), (0.03, 0.03, 0.24), colour([0.25, 0.25, 0.3]))
+    table += box((0.30, 0.04, 0.0), (0.18, 0.16, 0.16), colour([0.8, 0.3, 0.25]))
+    mesh += table.translate(jitter())
+    # The L: two walls 0.45 long, 0.04 thick, 0.4 high, the inner corner facing (-x, +y).
+    ell = box((-0.60, 0.15, 0.0), (0.45, 0.04, 0.40), colour([0.35, 0.65, 0.4]))
+    ell += box((-0.19, 0.15, 0.0), (0.04, 0.45, 0.40), colour([0.35, 0.65, 0.4]))
+    mesh += ell.translate(jitter())
+    mesh = mesh.subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    return mesh
+
+
 def dome_trajectory(n_frames: int) -> np.ndarray:
     """[N, 4, 4] cameras on a hemisphere over :func:`synth_object`, looking at it: 10-75 deg elevation, 1.0-1.3 m.
 
@@ -780,5 +831,6 @@ __all__ = [
     "synth_clutter",
     "synth_object",
     "synth_room",
+    "synth_shelf",
     "synth_trajectory",
 ]
