@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -690,6 +690,20 @@ def synth_object(seed: int = 0) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def _box(lo: tuple[float, ...], size: tuple[float, ...], colour: list[float] | np.ndarray) -> o3d.geometry.TriangleMesh:
+    """An axis-aligned box with corner ``lo`` and edge lengths ``size`` (m), painted ``colour``."""
+    return o3d.geometry.TriangleMesh.create_box(*size).translate(lo).paint_uniform_color(colour)
+
+
+def _jittered_colour(rng: np.random.Generator, seed: int) -> Callable[[list[float]], np.ndarray]:
+    """A colour as given for seed 0 (the fixed layouts), else moved by up to 0.05 per channel (draws from ``rng``)."""
+
+    def colour(c: list[float]) -> np.ndarray:
+        return np.clip(np.asarray(c) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
+
+    return colour
+
+
 def synth_clutter(seed: int = 0) -> o3d.geometry.TriangleMesh:
     """An object-centric scene with occlusion (not a room): a 3x3 block of tall boxes 8 cm apart and four open
     cabinets with 8 cm walls facing outward, on the 0.8 m disc of :func:`synth_object`.
@@ -702,13 +716,7 @@ def synth_clutter(seed: int = 0) -> o3d.geometry.TriangleMesh:
     """
     rng = np.random.default_rng(seed)
     o3g = o3d.geometry.TriangleMesh
-
-    def colour(c: list[float]) -> np.ndarray:
-        return np.clip(np.asarray(c) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
-
-    def box(lo: tuple[float, ...], size: tuple[float, ...], c: list[float] | np.ndarray) -> o3d.geometry.TriangleMesh:
-        return o3g.create_box(*size).translate(lo).paint_uniform_color(c)
-
+    colour, box = _jittered_colour(rng, seed), _box
     mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.55, 0.45, 0.35])
     heights = (0.45, 0.30, 0.50, 0.35, 0.55, 0.30, 0.40, 0.50, 0.35)  # 0.14 m boxes at a 0.22 m pitch
     palette = ([0.8, 0.3, 0.2], [0.2, 0.5, 0.8], [0.3, 0.7, 0.3], [0.85, 0.75, 0.2], [0.6, 0.3, 0.7])
@@ -757,14 +765,10 @@ def synth_shelf(seed: int = 0) -> o3d.geometry.TriangleMesh:
     rng = np.random.default_rng(seed)
     o3g = o3d.geometry.TriangleMesh
 
+    colour, box = _jittered_colour(rng, seed), _box
+
     def jitter() -> np.ndarray:
         return np.zeros(3) if seed == 0 else np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
-
-    def colour(c: list[float]) -> np.ndarray:
-        return np.clip(np.asarray(c) + (0 if seed == 0 else rng.uniform(-0.05, 0.05, 3)), 0, 1)
-
-    def box(lo: tuple[float, ...], size: tuple[float, ...], c: list[float] | np.ndarray) -> o3d.geometry.TriangleMesh:
-        return o3g.create_box(*size).translate(lo).paint_uniform_color(c)
 
     mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.5, 0.5, 0.45])
     # The shelf: 0.52 wide, 0.28 deep, 0.52 high, 2x2 compartments open towards -y (boards 0.04 thick).
