@@ -41,6 +41,17 @@ COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
         --pool-set mesh_samples=50000 --uncertainty-views 6 --uncertainty-maps 3)
+# A synthetic scene (--kind KIND, FRAMES frames, rendered once into runs/NAME_<W>) and its bench under nice LEVEL,
+# into runs/bench_pool_OUT (_<W> when SCALE > 1).
+synth_bench() {
+    local kind="$1" name="$2" frames="$3" out="$4" level="$5"
+    if [ ! -f "runs/${name}_$W/mesh.ply" ]; then
+        roigsf scene synth --kind "$kind" --out "runs/${name}_$W" --frames "$frames" --width "$W" --height "$HS" \
+            --overwrite
+    fi
+    nice -n "$level" roigsf bench --scene "runs/${name}_$W" "${COMMON[@]}" --policies "$POLICIES" \
+        --out "runs/bench_pool_$out$SUF"
+}
 cd "$REPO"
 for scene in $SCENES; do
     case "$scene" in
@@ -62,42 +73,12 @@ for scene in $SCENES; do
                 --out "runs/bench_pool_office0_${W}"
         fi
         ;;
-    synth)
-        if [ ! -f "runs/synth_room_$W/mesh.ply" ]; then
-            roigsf scene synth --out "runs/synth_room_$W" --frames 96 --width "$W" --height "$HS" --overwrite
-        fi
-        roigsf bench --scene "runs/synth_room_$W" "${COMMON[@]}" --policies "$POLICIES" --out "runs/bench_pool_synth$SUF"
-        ;;
-    object)
-        if [ ! -f "runs/object_$W/mesh.ply" ]; then
-            roigsf scene synth --kind object --out "runs/object_$W" --frames 96 --width "$W" --height "$HS" --overwrite
-        fi
-        roigsf bench --scene "runs/object_$W" "${COMMON[@]}" --policies "$POLICIES" --out "runs/bench_pool_object$SUF"
-        ;;
-    dome)
-        if [ ! -f "runs/object_dome_$W/mesh.ply" ]; then
-            roigsf scene synth --kind object-dome --out "runs/object_dome_$W" --frames 120 --width "$W" --height "$HS" \
-                --overwrite
-        fi
-        nice -n "${NICE:-0}" roigsf bench --scene "runs/object_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
-            --out "runs/bench_pool_dome$SUF"
-        ;;
-    clutter)
-        if [ ! -f "runs/clutter_dome_$W/mesh.ply" ]; then
-            roigsf scene synth --kind clutter-dome --out "runs/clutter_dome_$W" --frames 120 --width "$W" --height "$HS" \
-                --overwrite
-        fi
-        nice -n "${NICE:-0}" roigsf bench --scene "runs/clutter_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
-            --out "runs/bench_pool_clutter$SUF"
-        ;;
-    shelf)  # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
-        if [ ! -f "runs/shelf_dome_$W/mesh.ply" ]; then
-            roigsf scene synth --kind shelf-dome --out "runs/shelf_dome_$W" --frames 120 --width "$W" --height "$HS" \
-                --overwrite
-        fi
-        nice -n "${NICE:-0}" roigsf bench --scene "runs/shelf_dome_$W" "${COMMON[@]}" --policies "$POLICIES" \
-            --out "runs/bench_pool_shelf$SUF"
-        ;;
+    synth) synth_bench room synth_room 96 synth 0 ;;
+    object) synth_bench object object 96 object 0 ;;
+    dome) synth_bench object-dome object_dome 120 dome "${NICE:-0}" ;;
+    clutter) synth_bench clutter-dome clutter_dome 120 clutter "${NICE:-0}" ;;
+    # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
+    shelf) synth_bench shelf-dome shelf_dome 120 shelf "${NICE:-0}" ;;
     *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf)" >&2; exit 2 ;;
     esac
 done
