@@ -164,6 +164,32 @@ def test_invisible_surfels_get_zero(backend: str) -> None:
     assert all(v.shape[0] == 0 for v in empty.values())
 
 
+@pytest.mark.skipif(
+    not torch.cuda.is_available(),
+    reason="no CUDA device: the torch backend's CUDA path is checked where a GPU is lent (scripts/device_check.sh)",
+)
+def test_cuda_matches_brute_force() -> None:
+    """Fisher of a map on CUDA (the torch backend): brute force on the CPU to 1e-10, dense and weighted sum."""
+    m = scene(5)
+    T = pose(5)
+    w = torch.rand(INTR.height, INTR.width, generator=torch.Generator().manual_seed(1), dtype=F64)
+    w[: INTR.height // 2] = 0
+    expected = brute_force(m, T, ("color", "depth"), ALL_PARAMS, weights=w)
+    mc = m.to(device="cuda")
+    got = fisher_diag(mc, T, INTR, outputs=("color", "depth"), params=ALL_PARAMS, pixel_weights=w.cuda())
+    assert all(v.is_cuda for v in got.values())
+    assert_close({k: v.cpu() for k, v in got.items()}, expected)
+    rng = np.random.default_rng(0)
+    entry = {k: rng.uniform(0.5, 2.0, getattr(m, k).numel()) for k in GEOMETRIC_PARAMS}
+    want = sum(float((expected[k].numpy().reshape(-1) * entry[k]).sum()) for k in GEOMETRIC_PARAMS)
+    kw = {"outputs": ("color", "depth"), "pixel_weights": w}
+    assert want > 0 and fisher_weighted_sum(mc, T, INTR, entry, **kw) == pytest.approx(want, rel=1e-10)
+    view_cuda, _ = camera_tensors(T, INTR, device="cuda", dtype=F64)
+    view_cpu, _ = camera_tensors(T, INTR, dtype=F64)
+    culled = frustum_subset(mc, view_cuda, INTR, 0.2, 100.0)
+    assert culled.is_cuda and torch.equal(culled.cpu(), frustum_subset(m, view_cpu, INTR, 0.2, 100.0, backend="torch"))
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_float32_close_to_float64(backend: str) -> None:
     m = scene(5)

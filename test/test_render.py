@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -18,7 +19,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.render import rasterize as render
 from roigsf_ros.render import reference as render_reference
 from roigsf_ros.render.numba_setup import balanced_bounds, numba_available
-from roigsf_ros.render.rasterize import camera_tensors, render_map
+from roigsf_ros.render.rasterize import RenderOutput, camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap, rotmat_to_quat
 
 OUTPUTS = ("features", "alpha", "depth", "median_depth", "normal", "distortion")
@@ -64,6 +65,10 @@ def random_scene(kind: str, seed: int, n: int = 24, width: int = 20, height: int
 
 NEEDS_NUMBA = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 BACKENDS = ["torch", pytest.param("numba", marks=NEEDS_NUMBA)]
+NEEDS_CUDA = pytest.mark.skipif(
+    not torch.cuda.is_available(),
+    reason="no CUDA device: the torch backend's CUDA path is checked where a GPU is lent (scripts/device_check.sh)",
+)
 
 
 def fast(backend: str):
@@ -71,18 +76,26 @@ def fast(backend: str):
     return lambda *a, **k: render.rasterize_surfels(*a, backend=backend, **k)
 
 
-def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", fast_kw=None, **kw):
+def on(x, device):
+    """``x`` on ``device`` when it is a tensor or a RenderOutput (its fields), else unchanged."""
+    if isinstance(x, RenderOutput):
+        return RenderOutput(**{f.name: getattr(x, f.name).to(device) for f in dataclasses.fields(x)})
+    return x.to(device) if isinstance(x, torch.Tensor) else x
+
+
+def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", fast_kw=None, device="cpu", **kw):
     """Values and input gradients of a random linear loss over all outputs, from both renderers
-    (``fast_kw``: extra arguments of the fast one)."""
+    (``fast_kw``: extra arguments of the fast one; ``device``: where the fast one runs; results on the CPU)."""
     results = []
-    for fn, extra in ((fast(backend), fast_kw or {}), (render_reference.rasterize_surfels, {})):
-        leaves = [t.clone().requires_grad_() for t in tensors]
-        out = fn(*leaves, viewmat, K, width, height, **kw, **extra)
+    for fn, extra, dev in ((fast(backend), fast_kw or {}, device), (render_reference.rasterize_surfels, {}, "cpu")):
+        leaves = [on(t, dev).clone().requires_grad_() for t in tensors]
+        args = {k: on(v, dev) for k, v in {**kw, **extra}.items()}
+        out = fn(*leaves, on(viewmat, dev), on(K, dev), width, height, **args)
         g = torch.Generator().manual_seed(weights_seed)
         probes = {k: torch.randn(getattr(out, k).shape, generator=g, dtype=F64) for k in OUTPUTS}
-        loss = sum((getattr(out, k) * probes[k]).sum() for k in OUTPUTS)
+        loss = sum((getattr(out, k) * on(probes[k], dev)).sum() for k in OUTPUTS)
         loss.backward()
-        results.append((out, [leaf.grad for leaf in leaves]))
+        results.append((on(out, "cpu"), [leaf.grad.cpu() for leaf in leaves]))
     return results
 
 
@@ -103,6 +116,60 @@ def test_fast_matches_reference(kind: str, seed: int, backend: str) -> None:
     for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
         assert torch.isfinite(a).all()
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+
+
+@NEEDS_CUDA
+@pytest.mark.parametrize("kind", ["mixed", "opaque", "behind", "grazing"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cuda_matches_reference(kind: str, seed: int) -> None:
+    """The torch backend on CUDA tensors: the reference's values and gradients (run on the CPU) to 1e-10."""
+    tensors, viewmat, K, w, h = random_scene(kind, seed)
+    bg = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=F64)
+    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, background=bg, device="cuda")
+    assert ref.n_contrib.sum() > 0
+    for k in OUTPUTS:
+        a, b = getattr(fast, k), getattr(ref, k)
+        assert torch.isfinite(a).all()
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
+    assert torch.equal(fast.n_contrib, ref.n_contrib)
+    assert torch.equal(fast.visible, ref.visible)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+
+
+@NEEDS_CUDA
+def test_cuda_room_render_matches_cpu() -> None:
+    """The benchmark's room (20k surfels, 160x120, long tile lists and early stops) on CUDA and on the CPU, float64:
+    the same image, depth and per-pixel contributors, and the same gradients."""
+    from roigsf_ros.perf.render import room_camera, room_scene
+
+    T_wc, intr = room_camera(160, 120)
+    results = []
+    for dev in ("cuda", "cpu"):
+        m = room_scene(20_000, dtype=F64).to(device=dev).requires_grad_()
+        out = render_map(m, T_wc, intr, backend="torch")
+        (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+        results.append((on(out, "cpu"), [p.grad.cpu() for p in m.parameters()]))
+    (a, ga), (b, gb) = results
+    assert b.n_contrib.float().mean() > 10 and b.alpha.min() > 0.2  # a closed room, many layers per pixel
+    assert torch.equal(a.n_contrib, b.n_contrib)
+    for k in OUTPUTS:
+        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-10, atol=1e-10), k
+    for x, y in zip(ga, gb, strict=True):
+        assert torch.allclose(x, y, rtol=1e-8, atol=1e-9 * y.abs().max())
+
+
+@NEEDS_CUDA
+def test_cuda_float32_close_to_float64_reference() -> None:
+    tensors, viewmat, K, w, h = random_scene("mixed", 5)
+    ref = render_reference.rasterize_surfels(*tensors, viewmat, K, w, h)
+    f32 = [t.float().cuda().requires_grad_() for t in tensors]
+    out = render.rasterize_surfels(*f32, viewmat.float().cuda(), K.float().cuda(), w, h)
+    for k in OUTPUTS:
+        assert getattr(out, k).dtype == torch.float32 and getattr(out, k).is_cuda
+        assert torch.allclose(getattr(out, k).double().cpu(), getattr(ref, k), atol=2e-4), k
+    (out.features.sum() + out.depth.sum()).backward()
+    assert all(t.grad is not None and t.grad.is_cuda and torch.isfinite(t.grad).all() for t in f32)
 
 
 def test_opaque_scene_exercises_the_early_stop() -> None:
@@ -275,6 +342,16 @@ def test_benchmark_room_scene_renders_a_closed_room() -> None:
     assert out.alpha.min() > 0.2 and out.n_contrib.float().mean() > 5
     d = out.expected_depth()
     assert 0.5 < float(d.median()) < 4.0
+
+
+def test_benchmark_device_option_names_the_bad_device(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m roigsf_ros.perf.render --device ...``: a device that is not usable here is a one-line error."""
+    from roigsf_ros.perf.render import main
+
+    for device, problem in (("cuda:7", "CUDA device"), ("tpu", "not a torch device"), ("meta", "only cpu and cuda")):
+        assert main(["--device", device, "--repeats", "1"]) == 2
+        err = capsys.readouterr().err
+        assert f"--device: '{device}'" in err and problem in err, err
 
 
 @NEEDS_NUMBA

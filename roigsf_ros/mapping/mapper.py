@@ -1,12 +1,11 @@
 """The surfel mapper: keyframe insertion, 2DGS optimisation, densify/prune, training Fisher, mesh.
 
-GauS-SLAM-style mapping with known poses on the CPU. A keyframe (RGB-D + pose) is validated,
-new surfels are seeded where the current map does not explain it (rendered alpha < 0.5, or the
-input depth lies in front of the rendered depth), then the map is optimised for
-``iters_per_keyframe`` steps over the newest keyframe and random past ones with the 2DGS losses,
-pruned, and the keyframe's diagonal Fisher is added to ``h_train`` (the training information
-that the NBV score divides by). :func:`run_offline` runs a whole sequence through a keyframe
-policy and writes the map, the mesh, metrics and a comparison strip.
+GauS-SLAM-style mapping with known poses, on the CPU (numba kernels) or a CUDA device (``device``). A keyframe
+(RGB-D + pose) is validated, new surfels are seeded where the current map does not explain it (rendered alpha < 0.5,
+or the input depth lies in front of the rendered depth), then the map is optimised for ``iters_per_keyframe`` steps
+over the newest keyframe and random past ones with the 2DGS losses, pruned, and the keyframe's diagonal Fisher is
+added to ``h_train`` (the training information that the NBV score divides by). :func:`run_offline` runs a whole
+sequence through a keyframe policy and writes the map, the mesh, metrics and a comparison strip.
 """
 
 from __future__ import annotations
@@ -17,10 +16,9 @@ import math
 from collections.abc import Generator, Iterable
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import open3d as o3d
 import torch
 from torch import Tensor
 
@@ -30,11 +28,13 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping import losses
-from roigsf_ros.mapping.tsdf import tsdf_mesh_from_depths
 from roigsf_ros.render.fisher import fisher_diag, frustum_subset
 from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
 from roigsf_ros.render.rasterize import RenderOutput, render_map
 from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, surfels_from_rgbd
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +130,8 @@ class MapperConfig(Config):
     seed: int = 0
     """Seed of the keyframe sampling."""
     device: str = "cpu"
-    """Torch device of the map and the optimisation."""
+    """Torch device of the map and the optimisation: "cpu" (numba kernels) or "cuda[:N]" (the plain-torch renderer;
+    tested on an H100, but 1.6-2.3x slower per training step than the numba kernels on 2 CPU cores: README, CUDA)."""
 
     def validate(self) -> MapperConfig:
         """Return self if every field is in range, else raise InputError naming the field."""
@@ -776,6 +777,10 @@ class Mapper:
 
     def mesh(self, poses: Iterable[np.ndarray] | None = None) -> o3d.geometry.TriangleMesh:
         """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: keyframe or loaded poses)."""
+        # open3d is imported here, not with the module: mapping itself needs only torch (and numba on the CPU),
+        # so the mapper runs on a machine without open3d, e.g. a GPU box (scripts/device_check.sh).
+        from roigsf_ros.mapping.tsdf import tsdf_mesh_from_depths
+
         cfg = self.config
         if poses is None:
             poses = self.keyframe_poses if self.keyframes else self.loaded_keyframe_poses

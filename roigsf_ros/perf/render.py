@@ -4,12 +4,13 @@ The scene: surfels sampled by area on the floor, ceiling and walls of a 5 x 4 x 
 three boxes, oriented with the surfaces (small jitter), seen from a camera in the middle of the
 room (90 deg horizontal field of view). Timings are medians over ``--repeats`` after one warm-up,
 float32 on the CPU with 2 threads (torch and numba), the numba backend unless ``--backend torch``;
-JSON also records process CPU time. "fwd" builds the autograd graph as training does;
-"fwd+bwd" adds the backward pass of a loss over colour, depth and alpha; "Fisher" is the exact
-geometric Fisher (means, quats, log_scales) of colour + depth for one view, measured in the same run
-as the forward+backward it is compared with. Environment (set before Python starts; results do
-not change): ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000`` make runs faster and
-steadier on this kind of VM; on a machine shared with other busy processes, torch's OpenMP workers
+JSON also records process CPU time. ``--device cuda`` times the torch backend on the GPU instead (each
+timed call ends with ``torch.cuda.synchronize()``, so the times are the GPU's work, not its launch).
+"fwd" builds the autograd graph as training does; "fwd+bwd" adds the backward pass of a loss over
+colour, depth and alpha; "Fisher" is the exact geometric Fisher (means, quats, log_scales) of colour + depth
+for one view, measured in the same run as the forward+backward it is compared with. Environment (set
+before Python starts; results do not change): ``MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000`` make runs
+faster and steadier on this kind of VM; on a machine shared with other busy processes, torch's OpenMP workers
 spin between operations and steal the cores (2 torch threads measured 5-10x slower there) unless
 ``OMP_WAIT_POLICY=PASSIVE`` is set (or ``--torch-threads 1``). The numba workers are pinned one per CPU when
 they use every CPU (:func:`~roigsf_ros.render.numba_setup.pin_workers`; not with ``ROIGSF_PIN_THREADS=0``), so
@@ -23,6 +24,7 @@ import math
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -65,6 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--backend", choices=("auto", "numba", "torch"), default="auto", help="renderer backend (default auto)"
+    )
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        metavar="DEV",
+        help="torch device of the surfels: cpu (default) or cuda[:N] (the torch backend)",
     )
 
 
@@ -140,21 +148,29 @@ def room_camera(width: int, height: int, yaw_deg: float = 20.0) -> tuple[np.ndar
     return T, Intrinsics(width, height, f, f, (width - 1) / 2, (height - 1) / 2)
 
 
-def _time(fn: Callable[[], Any], repeats: int) -> tuple[float, float]:
-    """Median wall-clock and median process CPU milliseconds of ``fn`` after one warm-up call."""
+def _time(fn: Callable[[], Any], repeats: int, device: torch.device) -> tuple[float, float]:
+    """Median wall-clock and median process CPU milliseconds of ``fn`` after one warm-up call (on a GPU, up to
+    the end of the work it queued).
+    """
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     fn()
+    sync()
     wall, cpu = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         fn()
+        sync()
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     return statistics.median(wall) * 1e3, statistics.median(cpu) * 1e3
 
 
-def bench_case(width: int, height: int, n: int, repeats: int, fisher: bool, backend: str) -> dict[str, Any]:
+def bench_case(
+    width: int, height: int, n: int, repeats: int, fisher: bool, backend: str, device: torch.device | None = None
+) -> dict[str, Any]:
     """Median milliseconds of forward (with and without graph), forward+backward, and optionally Fisher."""
-    m = room_scene(n).requires_grad_()
+    device = device or torch.device("cpu")
+    m = room_scene(n).to(device=device).requires_grad_()
     T_wc, intr = room_camera(width, height)
 
     def forward() -> Any:
@@ -189,17 +205,38 @@ def bench_case(width: int, height: int, n: int, repeats: int, fisher: bool, back
             md, T_wc, intr, outputs=("color", "depth"), params=GEOMETRIC_PARAMS, backend=backend
         )
     for name, fn in timed.items():
-        row[f"{name}_ms"], row[f"{name}_cpu_ms"] = _time(fn, repeats)
+        row[f"{name}_ms"], row[f"{name}_cpu_ms"] = _time(fn, repeats, device)
     if fisher:
         row["fisher_over_forward_backward"] = row["fisher_geometric_ms"] / row["forward_backward_ms"]
     return row
 
 
+def _device(name: str) -> torch.device:
+    """``--device`` as a torch device; InputError when it is malformed or not usable here."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise InputError("--device", f"{name!r} is not a torch device (cpu, cuda, cuda:N)") from None
+    if device.type not in ("cpu", "cuda"):
+        raise InputError("--device", f"{name!r}: only cpu and cuda are supported")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError("--device", f"{name!r}: this torch ({torch.__version__}) sees no CUDA device")
+        if (device.index or 0) >= torch.cuda.device_count():
+            raise InputError("--device", f"{name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return device
+
+
 def run(args: argparse.Namespace) -> int:
     """Run every case, print a table, optionally write JSON."""
     torch.set_num_threads(args.torch_threads or args.threads)
+    device = _device(args.device)
     backend = args.backend
-    if backend != "torch" and numba_available():
+    if device.type != "cpu":
+        if backend == "numba":
+            raise InputError("--backend", f"numba runs on the CPU only, not on --device {args.device}")
+        backend = "torch"
+    elif backend != "torch" and numba_available():
         set_numba_threads(args.threads)
         pin_workers()  # one worker per CPU where they use every CPU: no scheduler modes in the timings
         backend = "numba"
@@ -208,10 +245,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         backend = "torch"
     load_before = os.getloadavg()[0]
-    rows = [bench_case(w, h, n, args.repeats, (w, h, n) == FISHER_CASE, backend) for w, h, n in CASES]
+    rows = [bench_case(w, h, n, args.repeats, (w, h, n) == FISHER_CASE, backend, device) for w, h, n in CASES]
     result = {
         "benchmark": "render",
         "backend": backend,
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "load_average_1min": [load_before, os.getloadavg()[0]],
@@ -239,7 +278,8 @@ def run(args: argparse.Namespace) -> int:
             f"{r['forward_backward_ms']:8.1f}{fisher}"
         )
     print(
-        f"(backend {backend}; wall-clock milliseconds, medians; targets at 160x120 with 20k surfels: fwd <= "
+        f"(backend {backend} on {result['device_name'] or 'the CPU'}; wall-clock milliseconds, medians; targets at "
+        f"160x120 with 20k surfels: fwd <= "
         f"{TARGET_FWD_MS:g}, fwd+bwd <= {TARGET_FWD_BWD_MS:g}, Fisher <= fwd+bwd; 1-min load average "
         f"{result['load_average_1min'][0]:.1f} -> "
         f"{result['load_average_1min'][1]:.1f}: other processes inflate these times)"
@@ -247,3 +287,21 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         write_json(args.out, result)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m roigsf_ros.perf.render``: this benchmark alone, for a machine with torch but without the CLI's
+    other dependencies (ROS, open3d, rosbags), such as a lent GPU box (``scripts/device_check.sh``).
+    """
+    parser = argparse.ArgumentParser(prog="python -m roigsf_ros.perf.render", description=__doc__)
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except InputError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
