@@ -69,6 +69,12 @@ NEEDS_CUDA = pytest.mark.skipif(
     not torch.cuda.is_available(),
     reason="no CUDA device: the torch backend's CUDA path is checked where a GPU is lent (scripts/device_check.sh)",
 )
+TARGETS = [
+    pytest.param("torch", "cpu", id="torch"),
+    pytest.param("numba", "cpu", id="numba", marks=NEEDS_NUMBA),
+    pytest.param("torch", "cuda", id="cuda", marks=NEEDS_CUDA),
+]
+"""(backend, device) of every fast path; ``cuda`` is the torch backend on CUDA tensors."""
 
 
 def fast(backend: str):
@@ -81,6 +87,20 @@ def on(x, device):
     if isinstance(x, RenderOutput):
         return RenderOutput(**{f.name: getattr(x, f.name).to(device) for f in dataclasses.fields(x)})
     return x.to(device) if isinstance(x, torch.Tensor) else x
+
+
+def assert_same_render(a: RenderOutput, grads_a, b: RenderOutput, grads_b, grad_rtol: float = 1e-9) -> None:
+    """Finite outputs equal to 1e-10, the same contributors and visible surfels, finite gradients equal to
+    ``grad_rtol`` (relative, and of the largest entry)."""
+    for k in OUTPUTS:
+        x, y = getattr(a, k), getattr(b, k)
+        assert torch.isfinite(x).all(), k
+        assert torch.allclose(x, y, rtol=1e-10, atol=1e-10), (k, (x - y).abs().max())
+    assert torch.equal(a.n_contrib, b.n_contrib)
+    assert torch.equal(a.visible, b.visible)
+    for i, (x, y) in enumerate(zip(grads_a, grads_b, strict=True)):
+        assert torch.isfinite(x).all(), i
+        assert torch.allclose(x, y, rtol=grad_rtol, atol=grad_rtol * y.abs().max()), (i, (x - y).abs().max())
 
 
 def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch", fast_kw=None, device="cpu", **kw):
@@ -99,42 +119,16 @@ def run_both(tensors, viewmat, K, width, height, weights_seed=0, backend="torch"
     return results
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("backend", "device"), TARGETS)
 @pytest.mark.parametrize("kind", ["mixed", "opaque", "behind", "grazing"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_fast_matches_reference(kind: str, seed: int, backend: str) -> None:
+def test_fast_matches_reference(kind: str, seed: int, backend: str, device: str) -> None:
+    """Each fast path (``cuda``: the torch backend on CUDA tensors) against the reference run on the CPU."""
     tensors, viewmat, K, w, h = random_scene(kind, seed)
     bg = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=F64)
-    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, background=bg, backend=backend)
+    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, background=bg, backend=backend, device=device)
     assert ref.n_contrib.sum() > 0
-    for k in OUTPUTS:
-        a, b = getattr(fast, k), getattr(ref, k)
-        assert torch.isfinite(a).all()
-        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
-    assert torch.equal(fast.n_contrib, ref.n_contrib)
-    assert torch.equal(fast.visible, ref.visible)
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
-        assert torch.isfinite(a).all()
-        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
-
-
-@NEEDS_CUDA
-@pytest.mark.parametrize("kind", ["mixed", "opaque", "behind", "grazing"])
-@pytest.mark.parametrize("seed", [0, 1])
-def test_cuda_matches_reference(kind: str, seed: int) -> None:
-    """The torch backend on CUDA tensors: the reference's values and gradients (run on the CPU) to 1e-10."""
-    tensors, viewmat, K, w, h = random_scene(kind, seed)
-    bg = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=F64)
-    (fast, g_fast), (ref, g_ref) = run_both(tensors, viewmat, K, w, h, background=bg, device="cuda")
-    assert ref.n_contrib.sum() > 0
-    for k in OUTPUTS:
-        a, b = getattr(fast, k), getattr(ref, k)
-        assert torch.isfinite(a).all()
-        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
-    assert torch.equal(fast.n_contrib, ref.n_contrib)
-    assert torch.equal(fast.visible, ref.visible)
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
-        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+    assert_same_render(fast, g_fast, ref, g_ref)
 
 
 @NEEDS_CUDA
@@ -152,24 +146,7 @@ def test_cuda_room_render_matches_cpu() -> None:
         results.append((on(out, "cpu"), [p.grad.cpu() for p in m.parameters()]))
     (a, ga), (b, gb) = results
     assert b.n_contrib.float().mean() > 10 and b.alpha.min() > 0.2  # a closed room, many layers per pixel
-    assert torch.equal(a.n_contrib, b.n_contrib)
-    for k in OUTPUTS:
-        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-10, atol=1e-10), k
-    for x, y in zip(ga, gb, strict=True):
-        assert torch.allclose(x, y, rtol=1e-8, atol=1e-9 * y.abs().max())
-
-
-@NEEDS_CUDA
-def test_cuda_float32_close_to_float64_reference() -> None:
-    tensors, viewmat, K, w, h = random_scene("mixed", 5)
-    ref = render_reference.rasterize_surfels(*tensors, viewmat, K, w, h)
-    f32 = [t.float().cuda().requires_grad_() for t in tensors]
-    out = render.rasterize_surfels(*f32, viewmat.float().cuda(), K.float().cuda(), w, h)
-    for k in OUTPUTS:
-        assert getattr(out, k).dtype == torch.float32 and getattr(out, k).is_cuda
-        assert torch.allclose(getattr(out, k).double().cpu(), getattr(ref, k), atol=2e-4), k
-    (out.features.sum() + out.depth.sum()).backward()
-    assert all(t.grad is not None and t.grad.is_cuda and torch.isfinite(t.grad).all() for t in f32)
+    assert_same_render(a, ga, b, gb, grad_rtol=1e-8)
 
 
 def test_opaque_scene_exercises_the_early_stop() -> None:
@@ -189,17 +166,18 @@ def test_tile_size_does_not_change_the_result(tile_size: int, backend: str) -> N
         assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_float32_close_to_float64_reference(backend: str) -> None:
+@pytest.mark.parametrize(("backend", "device"), TARGETS)
+def test_float32_close_to_float64_reference(backend: str, device: str) -> None:
     tensors, viewmat, K, w, h = random_scene("mixed", 5)
     ref = render_reference.rasterize_surfels(*tensors, viewmat, K, w, h)
-    f32 = [t.float().requires_grad_() for t in tensors]
-    out = render.rasterize_surfels(*f32, viewmat.float(), K.float(), w, h, backend=backend)
+    f32 = [t.float().to(device).requires_grad_() for t in tensors]
+    out = render.rasterize_surfels(*f32, on(viewmat.float(), device), on(K.float(), device), w, h, backend=backend)
     for k in OUTPUTS:
-        assert getattr(out, k).dtype == torch.float32
-        assert torch.allclose(getattr(out, k).double(), getattr(ref, k), atol=2e-4), k
+        assert getattr(out, k).dtype == torch.float32 and getattr(out, k).device.type == device
+        assert torch.allclose(getattr(out, k).double().cpu(), getattr(ref, k), atol=2e-4), k
     (out.features.sum() + out.depth.sum()).backward()
     assert all(t.grad is not None and t.grad.dtype == torch.float32 and torch.isfinite(t.grad).all() for t in f32)
+    assert all(t.grad.device.type == device for t in f32)
 
 
 def test_reference_gradients_match_finite_differences() -> None:
@@ -418,13 +396,7 @@ def test_long_tile_lists_match_reference(backend: str, tile_size: int) -> None:
         tensors, viewmat, K, w, h, background=bg, backend=backend, fast_kw={"tile_size": tile_size}
     )
     assert int(ref.n_contrib.max()) > 64
-    for k in OUTPUTS:
-        a, b = getattr(fast, k), getattr(ref, k)
-        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10), (k, (a - b).abs().max())
-    assert torch.equal(fast.n_contrib, ref.n_contrib)
-    assert torch.equal(fast.visible, ref.visible)
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g_fast, g_ref, strict=True):
-        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max()), (name, (a - b).abs().max())
+    assert_same_render(fast, g_fast, ref, g_ref)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -461,10 +433,7 @@ def test_numba_camera_gradients_match_torch() -> None:
         loss.backward()
         results.append((out, [t.grad for t in [*leaves, vm]]))
     (a, ga), (b, gb) = results
-    for k in OUTPUTS:
-        assert torch.allclose(getattr(a, k), getattr(b, k), rtol=1e-10, atol=1e-10), k
-    for x, y in zip(ga, gb, strict=True):
-        assert torch.allclose(x, y, rtol=1e-9, atol=1e-9 * y.abs().max())
+    assert_same_render(a, ga, b, gb)
 
 
 @NEEDS_NUMBA
