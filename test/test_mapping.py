@@ -385,6 +385,19 @@ _BAD_META = [
 ]
 
 
+@pytest.mark.parametrize(
+    ("device", "problem"),
+    [("quantum", "not a torch device"), ("meta", "only cpu and cuda"), ("cuda:99", "CUDA device")],
+)
+def test_an_unusable_device_is_refused_naming_the_field(device: str, problem: str) -> None:
+    """Not deep inside the first render (torch's AssertionError without CUDA): at the config, naming the field."""
+    with pytest.raises(InputError) as exc:
+        MapperConfig(device=device)
+    msg = str(exc.value)
+    assert msg.startswith(f"mapper.device: '{device}'") and problem in msg, msg
+    assert MapperConfig(device="cpu:0").device == "cpu:0"
+
+
 @pytest.mark.parametrize(("corrupt", "field"), _BAD_META)
 def test_load_of_a_malformed_keyframes_json_names_the_file_and_field(saved_map, tmp_path, corrupt, field) -> None:
     src, meta = saved_map

@@ -31,7 +31,7 @@ from roigsf_ros.mapping import losses
 from roigsf_ros.render.fisher import fisher_diag, frustum_subset
 from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
 from roigsf_ros.render.rasterize import RenderOutput, render_map
-from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, surfels_from_rgbd
+from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, check_device, surfels_from_rgbd
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -167,6 +167,7 @@ class MapperConfig(Config):
             value = getattr(self, name)
             if not ok or (isinstance(value, float) and not math.isfinite(value)):
                 raise InputError(f"mapper.{name}", f"value {value!r} is out of range")
+        check_device(self.device, "mapper.device")
         return self
 
     def learning_rates(self) -> dict[str, float]:
@@ -950,14 +951,7 @@ def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
     if len(poses) != len(ids):
         raise InputError(path, f"field 'keyframe_poses' has {len(poses)} poses for {len(ids)} keyframe_ids")
 
-    config = _config_from_json(meta.get("config", {}), path) if with_config else None
-    if config is not None:
-        try:
-            usable = torch.device(config.device).type != "cuda" or torch.cuda.is_available()
-        except RuntimeError:
-            usable = False
-        if not usable:
-            raise InputError(path, f"config field 'device': {config.device!r} is not a usable torch device here")
+    config = _config_from_json(meta.get("config", {}), path) if with_config else None  # its device checked too
     stacked = np.stack(poses) if poses else np.zeros((0, 4, 4))
     return MapMeta(intrinsics=intr, keyframe_ids=list(ids), keyframe_poses=stacked, config=config)
 

@@ -45,7 +45,7 @@ from roigsf_ros.render.numba_setup import (
     set_numba_threads,
 )
 from roigsf_ros.render.rasterize import render_map
-from roigsf_ros.render.surfels import SH_C0, SurfelMap, frame_from_normals, rotmat_to_quat
+from roigsf_ros.render.surfels import SH_C0, SurfelMap, check_device, frame_from_normals, rotmat_to_quat
 
 ROOM = (5.0, 4.0, 2.7)  # x, y extent (centred on 0) and height (z up, floor at 0), metres
 BOXES = (((1.2, 0.8, 0.0), (0.8, 0.6, 0.9)), ((-1.5, -1.0, 0.0), (0.6, 1.0, 0.5)), ((0.5, -1.4, 0.0), (1.0, 0.5, 1.2)))
@@ -211,26 +211,10 @@ def bench_case(
     return row
 
 
-def _device(name: str) -> torch.device:
-    """``--device`` as a torch device; InputError when it is malformed or not usable here."""
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise InputError("--device", f"{name!r} is not a torch device (cpu, cuda, cuda:N)") from None
-    if device.type not in ("cpu", "cuda"):
-        raise InputError("--device", f"{name!r}: only cpu and cuda are supported")
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise InputError("--device", f"{name!r}: this torch ({torch.__version__}) sees no CUDA device")
-        if (device.index or 0) >= torch.cuda.device_count():
-            raise InputError("--device", f"{name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
-    return device
-
-
 def run(args: argparse.Namespace) -> int:
     """Run every case, print a table, optionally write JSON."""
     torch.set_num_threads(args.torch_threads or args.threads)
-    device = _device(args.device)
+    device = check_device(args.device, "--device")
     backend = args.backend
     if device.type != "cpu":
         if backend == "numba":

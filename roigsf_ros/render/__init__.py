@@ -64,6 +64,7 @@ __all__, __getattr__ = lazy_exports(
             "SH_C0",
             "SH_C1",
             "SurfelMap",
+            "check_device",
             "depth_normals",
             "depth_to_points",
             "frame_from_normals",

@@ -32,6 +32,26 @@ PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_re
 """Names of the optimisable tensors of a SurfelMap, in a fixed order."""
 
 
+def check_device(name: str, where: str) -> torch.device:
+    """``name`` as a torch device this process can use ("cpu", "cuda", "cuda:N"), else InputError at ``where``.
+
+    The surfels run on the CPU (numba kernels) or a CUDA device (the plain-torch renderer); a malformed name, another
+    kind of device or a CUDA device this torch cannot see is refused here, not deep inside the first render.
+    """
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise InputError(where, f"{name!r} is not a torch device (cpu, cuda, cuda:N)") from None
+    if device.type not in ("cpu", "cuda"):
+        raise InputError(where, f"{name!r}: only cpu and cuda[:N] are supported")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(where, f"{name!r}: this torch ({torch.__version__}) sees no CUDA device")
+        if (device.index or 0) >= torch.cuda.device_count():
+            raise InputError(where, f"{name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return device
+
+
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """Rotation matrices [N, 3, 3] of (w, x, y, z) quaternions [N, 4] (normalised here first)."""
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -484,6 +504,7 @@ __all__ = [
     "SH_C0",
     "SH_C1",
     "SurfelMap",
+    "check_device",
     "depth_normals",
     "depth_to_points",
     "frame_from_normals",
