@@ -47,7 +47,7 @@ def held_out_quality(mapper: Mapper, frame: Frame) -> tuple[float, float]:
 
 def test_cuda_mapper_matches_the_cpu_mapper() -> None:
     """Five keyframes mapped on CUDA (torch renderer, torch Adam) and on the CPU (numba): maps of the same size and
-    the same held-out quality, the map, the optimiser state and ``h_train`` on the GPU."""
+    the same held-out quality, with the map and ``h_train`` on the device they were asked for."""
     intr = room_camera(WIDTH, HEIGHT)[1]
     train = [room_frame(i, yaw) for i, yaw in enumerate((-40.0, -10.0, 20.0, 50.0, 80.0))]
     held_out = room_frame(9, 35.0)
