@@ -23,6 +23,9 @@
 # runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf}/ (_<W> when SCALE > 1; results.json,
 # results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
+# TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
+# thirteenth session: TAG=backfaces POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=true" with
+# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution).
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
@@ -37,6 +40,7 @@ SCENES="${SCENES:-office0 synth object}"
 SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE), the synthetic scenes at (120 SCALE) x (90 SCALE)
 W=$((120 * SCALE)); H=$((68 * SCALE)); HS=$((90 * SCALE))
 SUF=""; [ "$SCALE" = 1 ] || SUF="_$W"  # SCALE=1 keeps the synthetic scenes' folder names of the README
+[ -z "${TAG:-}" ] || SUF="${SUF}_$TAG"  # TAG=name: runs/bench_pool_<scene>[_<W>]_<name>, beside a bench kept as it is
 COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
@@ -66,11 +70,11 @@ for scene in $SCENES; do
             IFS=, read -ra PS <<< "$POLICIES"
             for p in "${PS[@]}"; do
                 nice -n "${NICE:-0}" roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$p" \
-                    --out "runs/bench_pool_office0_${W}/$(echo "$p" | tr ':=' '__')"
+                    --out "runs/bench_pool_office0_${W}${TAG:+_$TAG}/$(echo "$p" | tr ':=' '__')"
             done
         else
             roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$POLICIES" \
-                --out "runs/bench_pool_office0_${W}"
+                --out "runs/bench_pool_office0_${W}${TAG:+_$TAG}"
         fi
         ;;
     synth) synth_bench room synth_room 96 synth 0 ;;

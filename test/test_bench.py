@@ -25,6 +25,7 @@ from roigsf_ros.experiments.bench import (
 from roigsf_ros.experiments.report import AUSE_CAVEAT, TABLE_COLUMNS, cell, parse_markdown_table
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer
+from roigsf_ros.policies.base import make_policy
 
 MAPPER_SET = ["--set", "densify_stride=2", "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15",
               "--set", "iters_per_keyframe=2"]  # fmt: skip
@@ -46,6 +47,13 @@ def test_parse_policies() -> None:
     assert [s.label for s in specs] == ["gaus-slam", "roi-gsurfisher:window=12:epsilon=0.5", "random"]
     assert specs[1] == PolicySpec("roi-gsurfisher", {"window": 12, "epsilon": 0.5}, specs[1].label)
     assert parse_value("true") is True and parse_value("3") == 3 and parse_value("x") == "x"
+    assert parse_value("1e+3") == 1000.0 and parse_value("means + quats") == ("means", "quats")
+    spec = parse_policies("roi-gsurfisher:fisher_params=means+quats+log_scales+opacity_logits", "pool")[0]
+    assert make_policy(spec.name, **spec.params).config.fisher_params == (
+        "means", "quats", "log_scales", "opacity_logits"
+    )  # fmt: skip
+    with pytest.raises(InputError, match="fisher_params"):
+        parse_policies("roi-gsurfisher:fisher_params=means+colour", "pool")
     with pytest.raises(InputError, match="unknown policy 'nope'"):
         parse_policies("random,nope", "pool")
     with pytest.raises(InputError, match="stream-only"):

@@ -296,6 +296,8 @@ def test_numba_blocks_match_torch_on_a_larger_view() -> None:
         (m, ("color", "depth"), GEOMETRIC_PARAMS),
         (m, ("color", "depth", "alpha", "normal"), ALL_PARAMS),
         (flat, ("color", "depth"), GEOMETRIC_PARAMS),  # colour without derivatives: the walk's fast path
+        (flat, ("color", "depth", "alpha"), GEOMETRIC_PARAMS),  # the fast path with a fourth channel
+        (flat, ("alpha", "color"), GEOMETRIC_PARAMS),  # the same without depth, alpha first
         (flat, ("color",), GEOMETRIC_PARAMS),
         (flat, ("depth", "alpha"), GEOMETRIC_PARAMS),
     )

@@ -22,6 +22,7 @@ from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import (
     NBVScorer,
+    SurfaceFacing,
     block_mean,
     depth_error_ause,
     downsampled,
@@ -458,6 +459,29 @@ def test_unseen_term_pulls_towards_space_the_map_has_not_seen(world: World) -> N
         assert res.unseen[1] > 0.9 and res.unseen[0] < 0.5 and not res.flagged[1]
     with pytest.raises(InputError):
         NBVConfig(unseen_weight=-1.0)
+
+
+def test_unseen_backfaces_count_the_back_of_the_mapped_surface_as_unseen(world: World) -> None:
+    """Beyond the paper: 2DGS surfels render from both sides, so from behind panel A the alpha test calls its
+    pixels seen; with ``unseen_backfaces`` they are unseen, since the TSDF's outward normals there face the training
+    views, away from this camera. A view of A's front keeps its U."""
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([world.view_a, behind])
+    args = (world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    alpha_only = NBVScorer(NBVConfig(unseen_weight=1.0)).score(*args)
+    backs = NBVScorer(NBVConfig(unseen_weight=1.0, unseen_backfaces=True)).score(*args)
+    assert alpha_only.unseen[1] < 0.2 and backs.unseen[1] > 0.7
+    assert backs.unseen[0] == pytest.approx(alpha_only.unseen[0], abs=0.02)
+    assert alpha_only.best_index == 0 and backs.best_index == 1
+    # The test itself: a pixel is back-facing where its point lies in a surface voxel's cell and that voxel's
+    # outward normal points away from the camera; a point in no surface voxel's cell is not.
+    vox = NBVScorer().surface(world.tsdf)
+    facing = SurfaceFacing.build(vox, world.tsdf.voxel_size_m)
+    depth = np.full((INTR.height, INTR.width), 1.0)
+    front, back = facing.backfacing(world.view_a, INTR, depth * 1.5), facing.backfacing(behind, INTR, depth)
+    assert not front.any() and back[INTR.height // 2, INTR.width // 2] and back.mean() > 0.7
+    assert not facing.backfacing(behind, INTR, depth * 0.5).any()  # 0.5 m in front of A: free space, no voxel
+    assert not facing.backfacing(behind, INTR, np.zeros_like(depth)).any()  # no rendered surface
 
 
 def test_unseen_term_ignores_rays_that_miss_the_mapped_region(world: World) -> None:

@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--setting", choices=("stream", "pool"), help="stream (SLAM order) or pool (required)")
     p.add_argument(
         "--policies",
-        help="comma-separated policies, each name[:key=value...], e.g. gaus-slam,roi-gsurfisher:window=12 (required)",
+        help="comma-separated policies, each name[:key=value...] (a list value joined by +), e.g. "
+        "gaus-slam,roi-gsurfisher:window=12 (required)",
     )
     p.add_argument(
         "--rescore-ause",

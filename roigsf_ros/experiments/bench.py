@@ -98,8 +98,10 @@ class PolicySpec:
     label: str = ""
 
 
-def parse_value(text: str) -> bool | int | float | str:
-    """A parameter value from text: true/false, an int, a float, else the string itself."""
+def parse_value(text: str) -> bool | int | float | str | tuple[str, ...]:
+    """A parameter value from text: true/false, an int, a float, ``a+b+c`` a list of names (for list-valued
+    options such as ``fisher_params``; ``,`` and ``:`` already separate policies and parameters), else the string.
+    """
     t = text.strip()
     if t.lower() in ("true", "false"):
         return t.lower() == "true"
@@ -108,6 +110,8 @@ def parse_value(text: str) -> bool | int | float | str:
             return kind(t)
         except ValueError:
             pass
+    if "+" in t:
+        return tuple(p.strip() for p in t.split("+"))
     return t
 
 

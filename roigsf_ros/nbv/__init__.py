@@ -28,6 +28,7 @@ __all__, __getattr__ = lazy_exports(
             "NBVScorer",
             "ScoringStoppedError",
             "ShouldStop",
+            "SurfaceFacing",
             "UncertaintyMaps",
             "block_mean",
             "check_stop",

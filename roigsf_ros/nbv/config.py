@@ -114,6 +114,12 @@ class NBVConfig(Config):
     """Only pixels whose ray meets the bounding box of the TSDF surface voxels, grown by this margin, count in
     U(x) (its denominator too): rays past the mapped region (background of an object-centric scene) are not
     unseen surface. A camera inside the box (a room) counts every pixel; inf: every pixel always counts."""
+    unseen_backfaces: bool = False
+    """Also count in U(x) the pixels whose rendered surface is the *back* of the TSDF surface (its outward normal,
+    toward the free space the training views saw, faces away from the candidate): there the map has no surface
+    facing this camera, only the far side of one, so what lies in front of it is unseen. 2DGS surfels render from
+    both sides, so the alpha test alone counts such a pixel as seen: inside an open cabinet whose outside was mapped,
+    the rays through the opening end on the back of its far wall (issue 10's cluttered scene). False: alpha only."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""

@@ -474,6 +474,8 @@ class NBVScorer:
         flagged = np.zeros(m, dtype=bool)
         use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
         unseen = np.ones(m) if use_unseen else None
+        use_facing = use_unseen and cfg.unseen_backfaces and vox is not None
+        facing = SurfaceFacing.build(vox, voxel_size) if use_facing else None
         # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
         # score nothing: they are flagged without any rendering.
         box = _mapped_region(vox, voxel_size, None if empty_map or not need_fisher else surfel_map, cfg, use_unseen)
@@ -509,7 +511,7 @@ class NBVScorer:
             for j, i in enumerate(chunk):
                 self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
                                         rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
-                                        unseen, should_stop, acc)  # fmt: skip
+                                        unseen, facing, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -576,10 +578,13 @@ class NBVScorer:
         fisher: np.ndarray,
         flagged: np.ndarray,
         unseen: np.ndarray | None,
+        facing: SurfaceFacing | None,
         should_stop: ShouldStop,
         acc: dict[str, np.ndarray],
     ) -> None:
-        """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays."""
+        """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
+        ``facing`` (``unseen_backfaces``) also counts the pixels that render the back of the surface as unseen.
+        """
         cfg = self.config
         ds = cfg.fisher_downsample
         check_stop(should_stop)
@@ -601,9 +606,12 @@ class NBVScorer:
                                                 far=cfg.far_m)  # fmt: skip
         if unseen is not None and len(surfel_map) > 0:
             with torch.no_grad():
-                alpha = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
-                                   with_distortion=False).alpha  # fmt: skip
-            hole = (alpha < cfg.unseen_alpha).cpu().numpy()
+                out = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
+                                 with_distortion=False)  # fmt: skip
+            seen = (out.alpha >= cfg.unseen_alpha).cpu().numpy()
+            hole = ~seen
+            if facing is not None:  # the back of the mapped surface: what is in front of it is unseen
+                hole |= facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
             if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
                 meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
                                       vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
@@ -611,6 +619,57 @@ class NBVScorer:
             else:
                 unseen[i] = float(hole.mean())
         acc["fisher"] += _since(t0)
+
+
+@dataclass
+class SurfaceFacing:
+    """The TSDF surface voxels' outward normals, indexed by grid cell (:meth:`build`), for the back-face test of
+    ``NBVConfig.unseen_backfaces`` (:meth:`backfacing`).
+    """
+
+    origin_m: np.ndarray
+    """[3] world position of cell (0, 0, 0) (metres)."""
+    voxel_size_m: float
+    dims: np.ndarray
+    """[3] cells along x, y, z."""
+    keys: np.ndarray
+    """[M] sorted flat cell index of each surface voxel (int64)."""
+    normals: np.ndarray
+    """[M, 3] outward normals (toward the free space the fused views saw) in the order of ``keys``."""
+
+    @classmethod
+    def build(cls, voxels: SurfaceVoxels, voxel_size_m: float) -> SurfaceFacing:
+        """Index ``voxels`` (centres on the TSDF's grid) by their cell."""
+        c = np.asarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3)
+        origin = c.min(0) - 2.0 * voxel_size_m if len(c) else np.zeros(3)
+        idx = np.rint((c - origin) / voxel_size_m).astype(np.int64)
+        dims = idx.max(0) + 3 if len(c) else np.ones(3, np.int64)
+        flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+        order = np.argsort(flat, kind="stable")
+        normals = np.asarray(voxels.normals, dtype=np.float64).reshape(-1, 3)[order]
+        return cls(origin, float(voxel_size_m), dims, flat[order], normals)
+
+    def backfacing(self, T_wc: np.ndarray, intr: Intrinsics, depth_m: np.ndarray) -> np.ndarray:
+        """Bool [H, W]: pixels whose point at camera-z ``depth_m`` [H, W] (0: none) lies in the cell of a surface
+        voxel whose outward normal faces away from the camera at ``T_wc`` (the back of the mapped surface).
+        """
+        z = np.asarray(depth_m, dtype=np.float64)
+        out = np.zeros(z.shape, dtype=bool)
+        v, u = np.nonzero(z > 0)
+        if len(self.keys) == 0 or len(v) == 0:
+            return out
+        T = np.asarray(T_wc, dtype=np.float64)
+        zz = z[v, u]
+        p_cam = np.stack([(u - intr.cx) / intr.fx * zz, (v - intr.cy) / intr.fy * zz, zz], axis=1)
+        p = p_cam @ T[:3, :3].T + T[:3, 3]
+        idx = np.rint((p - self.origin_m) / self.voxel_size_m).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < self.dims), axis=1)
+        flat = (idx[:, 0] * self.dims[1] + idx[:, 1]) * self.dims[2] + idx[:, 2]
+        j = np.clip(np.searchsorted(self.keys, flat), 0, len(self.keys) - 1)
+        found = inside & (self.keys[j] == flat)
+        away = np.einsum("ij,ij->i", self.normals[j], T[:3, 3] - p) < 0.0
+        out[v, u] = found & away
+        return out
 
 
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -711,6 +770,7 @@ __all__ = [
     "NBVScorer",
     "ScoringStoppedError",
     "ShouldStop",
+    "SurfaceFacing",
     "UncertaintyMaps",
     "block_mean",
     "check_stop",

@@ -698,9 +698,12 @@ def _k_fisher(
             n0 += 1
         elif kind[c] == 2:
             idep = c
-    # The common case (colour and depth of the geometric Fisher) has a walk with its sums in registers.
-    rgb = n0 == 3 and n1 == 0 and nch == 3 + (idep >= 0)
+    # The common cases (colour and depth of the geometric Fisher, and with alpha) have a walk with their sums in
+    # registers: three or four kind-0 channels and at most a depth.
+    rgb = (n0 == 3 or n0 == 4) and n1 == 0 and nch == n0 + (idep >= 0)
     i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
+    has4 = rgb and n0 == 4  # a fourth (alpha: value 1, background 0)
+    i3 = ch0[3] if has4 else 0
     cap = 1  # the longest tile list: slots (accepted surfels) and accepted positions per pixel
     for t in range(t_count.shape[0]):
         cap = max(cap, t_count[t])
@@ -883,8 +886,9 @@ def _k_fisher(
                 if wp == 0.0:
                     continue
                 T = Tq[q]
-                if rgb:  # three kind-0 channels and at most a depth, the suffix sums in registers
+                if rgb:  # three or four kind-0 channels and at most a depth, the suffix sums in registers
                     S0, S1, S2, Sd = T * bg[i0], T * bg[i1], T * bg[i2], 0.0
+                    S3 = T * bg[i3] if has4 else 0.0
                     for i in range(cnt[q] - 1, -1, -1):
                         sid = s_loc[ps[q, i]]
                         Cs = C[ps[q, i]]
@@ -898,6 +902,12 @@ def _k_fisher(
                         S0 += w * x0
                         S1 += w * x1
                         S2 += w * x2
+                        gg = g0 * g0 + g1 * g1 + g2 * g2
+                        if has4:  # loop-invariant: the three-channel walk does no more work than before
+                            x3 = X[sid, i3]
+                            g3 = T * x3 - S3 * im
+                            S3 += w * x3
+                            gg += g3 * g3
                         wd = 0.0
                         if idep >= 0:
                             d = Cs[3, q]
@@ -907,7 +917,7 @@ def _k_fisher(
                         Cs[10, q] *= wd  # the depth coefficients times w (zero without a depth output)
                         Cs[11, q] *= wd
                         Cs[12, q] *= wd
-                        Cs[15, q] = wp * (g0 * g0 + g1 * g1 + g2 * g2)
+                        Cs[15, q] = wp * gg
                         Cs[16, q] = wp  # (w, field 17, only serves kind-1 channels: none here)
                     continue
                 for c in range(nch):
