@@ -82,6 +82,10 @@ def test_config_validation_and_from_dict() -> None:
             NBVConfig(**bad)
     with pytest.raises(InputError, match="outputs"):
         NBVConfig(fisher_outputs=("colour",))
+    for name in ("unseen_backfaces", "close_front_exact"):  # from a bench spec, "no" would otherwise read as true
+        with pytest.raises(InputError, match=name):
+            NBVConfig(**{name: "no"})
+        assert getattr(NBVConfig(**{name: True}), name) is True
     got = NBVConfig.from_dict({"mode": "fisherrf", "fisher_outputs": ["color"], "mu": 0.5})
     assert got.mode == "fisherrf" and got.fisher_outputs == ("color",) and got.mu == 0.5
     with pytest.raises(InputError, match="unknown parameter"):

@@ -157,6 +157,9 @@ class NBVConfig(Config):
             raise InputError("occlusion_min_cos", f"must be in (0, 1], got {self.occlusion_min_cos}")
         if not self.max_splat_radius_px >= 1.0:
             raise InputError("max_splat_radius_px", f"must be >= 1, got {self.max_splat_radius_px}")
+        for name in ("close_front_exact", "unseen_backfaces"):  # a string such as "no" would read as true
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
