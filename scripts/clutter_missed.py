@@ -23,6 +23,7 @@ import numpy as np
 import open3d as o3d
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import gt_visible_mask, sample_surface
@@ -103,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     gt_path = args.scene / "mesh.ply"
+    if not gt_path.is_file():
+        raise SystemExit(f"clutter_missed: error: {gt_path}: no such file (--scene is a `roigsf scene synth` folder)")
     gt = o3d.io.read_triangle_mesh(str(gt_path))
     if len(gt.triangles) == 0:
         raise SystemExit(f"{gt_path}: no triangles")
@@ -153,4 +156,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except InputError as e:  # a missing scene folder or a bad frame: one line naming it, not a traceback
+        sys.exit(f"clutter_missed: error: {e}")
