@@ -103,6 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         "with alpha < 0.5 (what the unseen term counts) and the fraction seen through onto a farther surface",
     )
     args = ap.parse_args(argv)
+    for bench in args.benches:
+        if not (bench / "runs").is_dir():
+            raise SystemExit(f"clutter_missed: error: {bench / 'runs'}: no such folder (is {bench} a roigsf bench?)")
     gt_path = args.scene / "mesh.ply"
     if not gt_path.is_file():
         raise SystemExit(f"clutter_missed: error: {gt_path}: no such file (--scene is a `roigsf scene synth` folder)")
@@ -134,15 +137,15 @@ def main(argv: list[str] | None = None) -> int:
                 pts, reg = gt_samples(int(sd.name.removeprefix("seed")))
                 m = missed(pts, sd / "mesh.ply", args.threshold)
                 per_seed.append([float(m.mean())] + [float(m[reg == r].mean()) for r in REGIONS])
+                if args.render_check:
+                    if not (sd / "map.ply").is_file():
+                        raise SystemExit(f"clutter_missed: error: {sd / 'map.ply'}: no such file (--render-check)")
+                    n, holes, through = inside_pixels_seen_through(sd / "map.ply", frames, source.intrinsics)
+                    per_seed[-1] += [holes, through]
+                    print(f"  {pol.name}/{sd.name}: {n} pixels on cabinet insides, alpha < 0.5 {holes:.3f}, "
+                          f"seen through {through:.3f}")  # fmt: skip
             if not per_seed:
                 continue
-            if args.render_check:
-                for k, sd in enumerate(sorted(p for p in pol.iterdir() if (p / "map.ply").is_file())):
-                    n, holes, through = inside_pixels_seen_through(sd / "map.ply", frames, source.intrinsics)
-                    per_seed[k] += [holes, through]
-                    print(
-                        f"  {sd.name}: {n} cabinet-inside pixels, alpha < 0.5 {holes:.3f}, seen through {through:.3f}"
-                    )
             mean = np.mean(per_seed, axis=0)
             table[pol.name] = {"bench": str(bench), "all": mean[0], **dict(zip(REGIONS, mean[1:5], strict=True)),
                                "per_seed_all": [s[0] for s in per_seed]}  # fmt: skip
