@@ -32,6 +32,7 @@ from roigsf_ros.nbv.scorer import (
     information_gain,
     inverse_denominators,
     rank_candidates,
+    surfels_facing,
     zscore,
 )
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS
@@ -82,10 +83,12 @@ def test_config_validation_and_from_dict() -> None:
             NBVConfig(**bad)
     with pytest.raises(InputError, match="outputs"):
         NBVConfig(fisher_outputs=("colour",))
-    for name in ("unseen_backfaces", "close_front_exact"):  # from a bench spec, "no" would otherwise read as true
-        with pytest.raises(InputError, match=name):
-            NBVConfig(**{name: "no"})
-        assert getattr(NBVConfig(**{name: True}), name) is True
+    with pytest.raises(InputError, match="close_front_exact"):  # from a bench spec, "no" would read as true
+        NBVConfig(close_front_exact="no")
+    assert NBVConfig(close_front_exact=True).close_front_exact is True
+    for bad in (True, "yes", "TSDF"):
+        with pytest.raises(InputError, match=r"unseen_backfaces.*off, tsdf, surfels"):
+            NBVConfig(unseen_backfaces=bad)
     got = NBVConfig.from_dict({"mode": "fisherrf", "fisher_outputs": ["color"], "mu": 0.5})
     assert got.mode == "fisherrf" and got.fisher_outputs == ("color",) and got.mu == 0.5
     with pytest.raises(InputError, match="unknown parameter"):
@@ -465,20 +468,27 @@ def test_unseen_term_pulls_towards_space_the_map_has_not_seen(world: World) -> N
         NBVConfig(unseen_weight=-1.0)
 
 
-def test_unseen_backfaces_count_the_back_of_the_mapped_surface_as_unseen(world: World) -> None:
+@pytest.mark.parametrize("test", ["tsdf", "surfels"])
+def test_unseen_backfaces_count_the_back_of_the_mapped_surface_as_unseen(world: World, test: str) -> None:
     """Beyond the paper: 2DGS surfels render from both sides, so from behind panel A the alpha test calls its
-    pixels seen; with ``unseen_backfaces`` they are unseen, since the TSDF's outward normals there face the training
-    views, away from this camera. A view of A's front keeps its U."""
+    pixels seen; with ``unseen_backfaces`` they are unseen: the TSDF's outward normals there, and the normals of the
+    surfels seeded from A's training view, face that view, away from this camera. A view of A's front keeps its U."""
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
     cands = np.stack([world.view_a, behind])
     args = (world.map, world.h_train, world.tsdf, world.train, cands, INTR)
     alpha_only = NBVScorer(NBVConfig(unseen_weight=1.0)).score(*args)
-    backs = NBVScorer(NBVConfig(unseen_weight=1.0, unseen_backfaces=True)).score(*args)
+    backs = NBVScorer(NBVConfig(unseen_weight=1.0, unseen_backfaces=test)).score(*args)
     assert alpha_only.unseen[1] < 0.2 and backs.unseen[1] > 0.7
     assert backs.unseen[0] == pytest.approx(alpha_only.unseen[0], abs=0.02)
     assert alpha_only.best_index == 0 and backs.best_index == 1
-    # The test itself: a pixel is back-facing where its point lies in a surface voxel's cell and that voxel's
-    # outward normal points away from the camera; a point in no surface voxel's cell is not.
+    facing = surfels_facing(world.map, behind)
+    assert not facing[: world.n_a].any() and bool(surfels_facing(world.map, world.view_a)[: world.n_a].all())
+
+
+def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:
+    """``unseen_backfaces="tsdf"``'s test: a pixel is back-facing where its point lies in a surface voxel's cell and
+    that voxel's outward normal points away from the camera; a point in no surface voxel's cell is not."""
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
     vox = NBVScorer().surface(world.tsdf)
     facing = SurfaceFacing.build(vox, world.tsdf.voxel_size_m)
     depth = np.full((INTR.height, INTR.width), 1.0)

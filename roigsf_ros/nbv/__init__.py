@@ -6,7 +6,7 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
-        "config": ["MODES", "NBVConfig"],
+        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig"],
         "roi": [
             "LUMA_RGB",
             "BatchROI",
@@ -43,6 +43,7 @@ __all__, __getattr__ = lazy_exports(
             "rays_meet_box",
             "render_surfel_scalar",
             "surfel_variance",
+            "surfels_facing",
             "train_fisher",
             "zscore",
         ],

@@ -12,6 +12,8 @@ from roigsf_ros.render.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, OUTPUTS
 
 MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
+BACKFACE_TESTS = ("off", "tsdf", "surfels")
+"""Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
 
 
 @dataclass(frozen=True)
@@ -114,12 +116,15 @@ class NBVConfig(Config):
     """Only pixels whose ray meets the bounding box of the TSDF surface voxels, grown by this margin, count in
     U(x) (its denominator too): rays past the mapped region (background of an object-centric scene) are not
     unseen surface. A camera inside the box (a room) counts every pixel; inf: every pixel always counts."""
-    unseen_backfaces: bool = False
-    """Also count in U(x) the pixels whose rendered surface is the *back* of the TSDF surface (its outward normal,
-    toward the free space the training views saw, faces away from the candidate): there the map has no surface
+    unseen_backfaces: str = "off"
+    """Also count in U(x) the pixels that render the *back* of the mapped surface: there the map has no surface
     facing this camera, only the far side of one, so what lies in front of it is unseen. 2DGS surfels render from
     both sides, so the alpha test alone counts such a pixel as seen: inside an open cabinet whose outside was mapped,
-    the rays through the opening end on the back of its far wall (issue 10's cluttered scene). False: alpha only."""
+    the rays through the opening end on the back of its far wall (issue 10's cluttered scene). ``"tsdf"``: the
+    rendered point lies in a TSDF surface voxel whose outward normal (toward the free space the fused views saw)
+    faces away from the candidate; ``"surfels"``: most of the pixel's alpha comes from surfels whose normal faces
+    away (a surfel's normal faces the camera that seeded it, and keeps its side through the optimisation), which
+    also holds for boards thinner than the TSDF's truncation; ``"off"``: alpha only."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
@@ -157,9 +162,12 @@ class NBVConfig(Config):
             raise InputError("occlusion_min_cos", f"must be in (0, 1], got {self.occlusion_min_cos}")
         if not self.max_splat_radius_px >= 1.0:
             raise InputError("max_splat_radius_px", f"must be >= 1, got {self.max_splat_radius_px}")
-        for name in ("close_front_exact", "unseen_backfaces"):  # a string such as "no" would read as true
-            if not isinstance(getattr(self, name), bool | np.bool_):
-                raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.close_front_exact, bool | np.bool_):  # a string such as "no" would read as true
+            raise InputError("close_front_exact", f"must be true or false, got {self.close_front_exact!r}")
+        if self.unseen_backfaces not in BACKFACE_TESTS:
+            raise InputError(
+                "unseen_backfaces", f"must be one of {', '.join(BACKFACE_TESTS)}, got {self.unseen_backfaces!r}"
+            )
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
@@ -174,4 +182,4 @@ class NBVConfig(Config):
         return self
 
 
-__all__ = ["MODES", "NBVConfig"]
+__all__ = ["BACKFACE_TESTS", "MODES", "NBVConfig"]

@@ -47,7 +47,7 @@ from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
 from roigsf_ros.render.rasterize import camera_tensors, render_map
-from roigsf_ros.render.surfels import SurfelMap
+from roigsf_ros.render.surfels import SurfelMap, quat_to_rotmat
 
 ShouldStop = Callable[[], bool] | None
 """A check scoring calls between its units of work (a candidate, a training view); True stops it."""
@@ -474,7 +474,7 @@ class NBVScorer:
         flagged = np.zeros(m, dtype=bool)
         use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
         unseen = np.ones(m) if use_unseen else None
-        use_facing = use_unseen and cfg.unseen_backfaces and vox is not None
+        use_facing = use_unseen and cfg.unseen_backfaces == "tsdf" and vox is not None
         facing = SurfaceFacing.build(vox, voxel_size) if use_facing else None
         # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
         # score nothing: they are flagged without any rendering.
@@ -583,7 +583,8 @@ class NBVScorer:
         acc: dict[str, np.ndarray],
     ) -> None:
         """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
-        ``facing`` (``unseen_backfaces``) also counts the pixels that render the back of the surface as unseen.
+        ``facing`` (``unseen_backfaces="tsdf"``) and ``unseen_backfaces="surfels"`` also count the pixels that render
+        the back of the surface as unseen.
         """
         cfg = self.config
         ds = cfg.fisher_downsample
@@ -605,13 +606,18 @@ class NBVScorer:
                                                 params=params, pixel_weights=w, near=cfg.near_m,
                                                 far=cfg.far_m)  # fmt: skip
         if unseen is not None and len(surfel_map) > 0:
+            m = surfel_map.detach()
+            # With the surfel back-face test the render composites which surfels face this camera; else colours.
+            feats = surfels_facing(m, T)[:, None].to(m.dtype) if cfg.unseen_backfaces == "surfels" else None
             with torch.no_grad():
-                out = render_map(surfel_map.detach(), T, intr_f, near=cfg.near_m, far=cfg.far_m,
+                out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m,
                                  with_distortion=False)  # fmt: skip
             seen = (out.alpha >= cfg.unseen_alpha).cpu().numpy()
             hole = ~seen
             if facing is not None:  # the back of the mapped surface: what is in front of it is unseen
                 hole |= facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
+            if feats is not None:  # most of the pixel's alpha from surfels that face away: their back
+                hole |= seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
             if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
                 meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
                                       vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
@@ -621,10 +627,20 @@ class NBVScorer:
         acc["fisher"] += _since(t0)
 
 
+def surfels_facing(surfel_map: SurfelMap, T_wc: np.ndarray) -> Tensor:
+    """Bool [N]: the surfels whose normal (the third axis of their rotation, which faces the camera that seeded them)
+    faces the camera at ``T_wc``; the others show it their back.
+    """
+    m = surfel_map
+    normal = quat_to_rotmat(m.quats.detach())[:, :, 2]
+    centre = torch.as_tensor(np.asarray(T_wc, dtype=np.float64)[:3, 3], dtype=m.dtype, device=m.device)
+    return ((centre - m.means.detach()) * normal).sum(-1) > 0
+
+
 @dataclass
 class SurfaceFacing:
     """The TSDF surface voxels' outward normals, indexed by grid cell (:meth:`build`), for the back-face test of
-    ``NBVConfig.unseen_backfaces`` (:meth:`backfacing`).
+    ``NBVConfig.unseen_backfaces="tsdf"`` (:meth:`backfacing`).
     """
 
     origin_m: np.ndarray
@@ -785,6 +801,7 @@ __all__ = [
     "rays_meet_box",
     "render_surfel_scalar",
     "surfel_variance",
+    "surfels_facing",
     "train_fisher",
     "zscore",
 ]
