@@ -86,8 +86,8 @@ def test_config_validation_and_from_dict() -> None:
     with pytest.raises(InputError, match="close_front_exact"):  # from a bench spec, "no" would read as true
         NBVConfig(close_front_exact="no")
     assert NBVConfig(close_front_exact=True).close_front_exact is True
-    for bad in (True, "yes", "TSDF"):
-        with pytest.raises(InputError, match=r"unseen_backfaces.*off, tsdf, surfels"):
+    for bad in (True, False, "off", "TSDF"):  # "off": ROS and YAML read a bare off as false
+        with pytest.raises(InputError, match=r"unseen_backfaces.*none, tsdf, surfels"):
             NBVConfig(unseen_backfaces=bad)
     got = NBVConfig.from_dict({"mode": "fisherrf", "fisher_outputs": ["color"], "mu": 0.5})
     assert got.mode == "fisherrf" and got.fisher_outputs == ("color",) and got.mu == 0.5

@@ -12,7 +12,7 @@ from roigsf_ros.render.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, OUTPUTS
 
 MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
-BACKFACE_TESTS = ("off", "tsdf", "surfels")
+BACKFACE_TESTS = ("none", "tsdf", "surfels")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
 
 
@@ -116,7 +116,7 @@ class NBVConfig(Config):
     """Only pixels whose ray meets the bounding box of the TSDF surface voxels, grown by this margin, count in
     U(x) (its denominator too): rays past the mapped region (background of an object-centric scene) are not
     unseen surface. A camera inside the box (a room) counts every pixel; inf: every pixel always counts."""
-    unseen_backfaces: str = "off"
+    unseen_backfaces: str = "none"
     """Also count in U(x) the pixels that render the *back* of the mapped surface: there the map has no surface
     facing this camera, only the far side of one, so what lies in front of it is unseen. 2DGS surfels render from
     both sides, so the alpha test alone counts such a pixel as seen: inside an open cabinet whose outside was mapped,
@@ -124,7 +124,8 @@ class NBVConfig(Config):
     rendered point lies in a TSDF surface voxel whose outward normal (toward the free space the fused views saw)
     faces away from the candidate; ``"surfels"``: most of the pixel's alpha comes from surfels whose normal faces
     away (a surfel's normal faces the camera that seeded it, and keeps its side through the optimisation), which
-    also holds for boards thinner than the TSDF's truncation; ``"off"``: alpha only."""
+    also holds for boards thinner than the TSDF's truncation; ``"none"``: alpha only (not "off", which ROS
+    parameters and YAML read as false)."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
