@@ -28,7 +28,7 @@ from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import gt_visible_mask, sample_surface
 from roigsf_ros.render.rasterize import render_map
-from roigsf_ros.render.surfels import SurfelMap
+from roigsf_ros.render.surfels import SurfelMap, depth_to_points
 
 REGIONS = ("cabinet inside", "cabinet outside", "box block", "other")
 
@@ -70,12 +70,14 @@ def inside_pixels_seen_through(
     inside: their number, the fraction with alpha < 0.5 (what the unseen term U counts) and the fraction that renders
     opaque more than ``behind_m`` behind the true surface (seen through the missing inside, onto a farther surface).
     """
+    import torch  # here, after roigsf_ros: it sets torch's OpenMP wait policy before torch loads
+
     m = SurfelMap.load_ply(map_path)
     total, holes, through = 0, 0, 0
     for f in frames[::every]:
         v, u = np.nonzero(f.depth_m > 0)
         z = f.depth_m[v, u]
-        p_cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+        p_cam = depth_to_points(torch.from_numpy(np.asarray(f.depth_m, np.float64)), intr).numpy()[v, u]
         inside = regions(p_cam @ f.T_wc[:3, :3].T + f.T_wc[:3, 3]) == "cabinet inside"
         if not inside.any():
             continue

@@ -24,8 +24,9 @@
 # results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
-# thirteenth session: TAG=backfaces POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=true" with
-# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution).
+# thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
+# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; the README lists
+# the others).
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).

@@ -47,7 +47,7 @@ from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
 from roigsf_ros.render.rasterize import camera_tensors, render_map
-from roigsf_ros.render.surfels import SurfelMap, quat_to_rotmat
+from roigsf_ros.render.surfels import SurfelMap, depth_to_points, quat_to_rotmat
 
 ShouldStop = Callable[[], bool] | None
 """A check scoring calls between its units of work (a candidate, a training view); True stops it."""
@@ -675,9 +675,7 @@ class SurfaceFacing:
         if len(self.keys) == 0 or len(v) == 0:
             return out
         T = np.asarray(T_wc, dtype=np.float64)
-        zz = z[v, u]
-        p_cam = np.stack([(u - intr.cx) / intr.fx * zz, (v - intr.cy) / intr.fy * zz, zz], axis=1)
-        p = p_cam @ T[:3, :3].T + T[:3, 3]
+        p = depth_to_points(torch.from_numpy(z), intr).numpy()[v, u] @ T[:3, :3].T + T[:3, 3]
         idx = np.rint((p - self.origin_m) / self.voxel_size_m).astype(np.int64)
         inside = np.all((idx >= 0) & (idx < self.dims), axis=1)
         flat = (idx[:, 0] * self.dims[1] + idx[:, 1]) * self.dims[2] + idx[:, 2]
