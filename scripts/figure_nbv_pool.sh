@@ -16,6 +16,9 @@
 #      only a few views see into (2026-11-26: 284 s for the four policies x 3 seeds on a quiet machine).
 #   6. (SCENES=shelf; not in the default list) an open shelf, a table with a crate under it and an L of two walls
 #      (`--kind shelf-dome`), from the same hemisphere: the scene the options' constants are chosen on.
+#   7. (SCENES=room1; not in the default list) a second synthetic room, `roigsf scene synth --seed 1` (another layout,
+#      furniture, texture and loop; 96 frames), made after the options were fixed: the check on a room nothing was
+#      chosen on (issue 10, fourteenth session).
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
@@ -27,6 +30,9 @@
 # thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
 # SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; the README lists
 # the others).
+# SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
+# depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
+# bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
@@ -48,11 +54,12 @@ COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --pool-set mesh_samples=50000 --uncertainty-views 6 --uncertainty-maps 3)
 # A synthetic scene (--kind KIND, FRAMES frames, rendered once into runs/NAME_<W>) and its bench under nice LEVEL,
 # into runs/bench_pool_OUT (_<W> when SCALE > 1).
+# SEED (optional 6th argument, default 0): the scene's layout seed.
 synth_bench() {
-    local kind="$1" name="$2" frames="$3" out="$4" level="$5"
+    local kind="$1" name="$2" frames="$3" out="$4" level="$5" seed="${6:-0}"
     if [ ! -f "runs/${name}_$W/mesh.ply" ]; then
-        roigsf scene synth --kind "$kind" --out "runs/${name}_$W" --frames "$frames" --width "$W" --height "$HS" \
-            --overwrite
+        roigsf scene synth --kind "$kind" --seed "$seed" --out "runs/${name}_$W" --frames "$frames" --width "$W" \
+            --height "$HS" --overwrite
     fi
     nice -n "$level" roigsf bench --scene "runs/${name}_$W" "${COMMON[@]}" --policies "$POLICIES" \
         --out "runs/bench_pool_$out$SUF"
@@ -62,20 +69,22 @@ for scene in $SCENES; do
     case "$scene" in
     office0)
         [ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
-        if [ ! -f "runs/office0_${W}_s20/mesh.ply" ]; then
+        KS=""; SENS=()
+        [ -z "${SENSOR:-}" ] || { KS="_$SENSOR"; SENS=(--sensor "$SENSOR"); }
+        if [ ! -f "runs/office0_${W}_s20$KS/mesh.ply" ]; then
             roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" \
-                --cam "$DATA/cam_params.json" --out "runs/office0_${W}_s20" --width "$W" --height "$H" --stride 20 \
-                --overwrite
+                --cam "$DATA/cam_params.json" --out "runs/office0_${W}_s20$KS" --width "$W" --height "$H" --stride 20 \
+                "${SENS[@]}" --overwrite
         fi
         if [ "${SPLIT:-0}" = 1 ]; then  # one bench per policy (a finished policy is kept if a later one stops)
             IFS=, read -ra PS <<< "$POLICIES"
             for p in "${PS[@]}"; do
-                nice -n "${NICE:-0}" roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$p" \
-                    --out "runs/bench_pool_office0_${W}${TAG:+_$TAG}/$(echo "$p" | tr ':=' '__')"
+                nice -n "${NICE:-0}" roigsf bench --scene "runs/office0_${W}_s20$KS" "${COMMON[@]}" --policies "$p" \
+                    --out "runs/bench_pool_office0_${W}$KS${TAG:+_$TAG}/$(echo "$p" | tr ':=' '__')"
             done
         else
-            roigsf bench --scene "runs/office0_${W}_s20" "${COMMON[@]}" --policies "$POLICIES" \
-                --out "runs/bench_pool_office0_${W}${TAG:+_$TAG}"
+            roigsf bench --scene "runs/office0_${W}_s20$KS" "${COMMON[@]}" --policies "$POLICIES" \
+                --out "runs/bench_pool_office0_${W}$KS${TAG:+_$TAG}"
         fi
         ;;
     synth) synth_bench room synth_room 96 synth 0 ;;
@@ -84,6 +93,7 @@ for scene in $SCENES; do
     clutter) synth_bench clutter-dome clutter_dome 120 clutter "${NICE:-0}" ;;
     # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
     shelf) synth_bench shelf-dome shelf_dome 120 shelf "${NICE:-0}" ;;
-    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf)" >&2; exit 2 ;;
+    room1) synth_bench room synth_room1 96 room1 "${NICE:-0}" 1 ;;
+    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf, room1)" >&2; exit 2 ;;
     esac
 done

@@ -29,3 +29,12 @@ def test_package_metadata_consistent() -> None:
     assert f'version="{root.findtext("version")}"' in setup_text
     assert (REPO / "resource" / "roigsf_ros").is_file()
     assert "install_scripts=$base/lib/roigsf_ros" in (REPO / "setup.cfg").read_text()
+
+
+@pytest.mark.parametrize(
+    "script", sorted(str(p.relative_to(REPO)) for p in [*(REPO / "scripts").glob("*.sh"), REPO / ".ci" / "run"])
+)
+def test_shell_script_parses(script: str) -> None:
+    """Every shell script (the figure scripts run for minutes before reaching their last lines) is valid bash."""
+    proc = subprocess.run(["bash", "-n", script], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
