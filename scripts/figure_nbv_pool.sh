@@ -22,9 +22,9 @@
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
-# Writes runs/office0_<W>_s20/, runs/synth_room_<W>/ (scenes, reused when present; W = 120 SCALE) and
-# runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf}/ (_<W> when SCALE > 1; results.json,
-# results.md, plots, runs/).
+# Writes runs/office0_<W>_s20/, runs/synth_room_<W>/, ... (scenes, reused when present; W = 120 SCALE) and
+# runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf,room1}/ (_<W> when SCALE > 1;
+# results.json, results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
 # thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
@@ -65,6 +65,9 @@ synth_bench() {
         --out "runs/bench_pool_$out$SUF"
 }
 cd "$REPO"
+if [ -n "${SENSOR:-}" ] && [ "$SCENES" != office0 ]; then
+    echo "SENSOR=$SENSOR is for SCENES=office0 only (got SCENES=\"$SCENES\")" >&2; exit 2
+fi
 for scene in $SCENES; do
     case "$scene" in
     office0)
