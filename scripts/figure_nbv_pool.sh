@@ -16,14 +16,16 @@
 #      only a few views see into (2026-11-26: 284 s for the four policies x 3 seeds on a quiet machine).
 #   6. (SCENES=shelf; not in the default list) an open shelf, a table with a crate under it and an L of two walls
 #      (`--kind shelf-dome`), from the same hemisphere: the scene the options' constants are chosen on.
-#   7. (SCENES=room1, room2, ... room9; not in the default list) more synthetic rooms, `roigsf scene synth --seed N`
+#   7. (SCENES=bins; not in the default list) two open-top bins, a tunnel and a screen with a crate behind it
+#      (`--kind bins-dome`), from the same hemisphere, made after the options were fixed (issue 10, fourteenth session).
+#   8. (SCENES=room1, room2, ... room9; not in the default list) more synthetic rooms, `roigsf scene synth --seed N`
 #      (another layout, furniture, texture and loop; 96 frames), made after the options were fixed: the check on
 #      rooms nothing was chosen on (issue 10, fourteenth session).
 # Schedule (both): 60 steps after the initial views, 20 steps after each added view, no final refinement;
 # mapper densify_stride 2 (about 10k surfels), so every policy scores and trains the same way.
 # Needs the Replica sample in ../shared/data (not redistributable) for part 1; SCENES=synth skips it.
 # Writes runs/office0_<W>_s20/, runs/synth_room_<W>/, ... (scenes, reused when present; W = 120 SCALE) and
-# runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf,roomN}/ (_<W> when SCALE > 1;
+# runs/bench_pool_office0_<W>/, runs/bench_pool_{synth,object,dome,clutter,shelf,bins,roomN}/ (_<W> when SCALE > 1;
 # results.json, results.md, plots, runs/).
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
@@ -96,7 +98,8 @@ for scene in $SCENES; do
     clutter) synth_bench clutter-dome clutter_dome 120 clutter "${NICE:-0}" ;;
     # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
     shelf) synth_bench shelf-dome shelf_dome 120 shelf "${NICE:-0}" ;;
+    bins) synth_bench bins-dome bins_dome 120 bins "${NICE:-0}" ;;
     room[1-9]) synth_bench room "synth_$scene" 96 "$scene" "${NICE:-0}" "${scene#room}" ;;
-    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf, room1 ... room9)" >&2; exit 2 ;;
+    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf, bins, room1 ... room9)" >&2; exit 2 ;;
     esac
 done

@@ -488,6 +488,21 @@ def test_synth_shelf_hides_the_shelf_backs_and_the_crate_from_most_views(tmp_pat
     assert len(mesh.vertices) != len(scene.synth_clutter(0).vertices)
 
 
+def test_synth_bins_hides_the_bin_floors_the_tunnel_and_the_crate_from_most_views(tmp_path: Path) -> None:
+    """``scene synth --kind bins-dome``: the object scene made after the NBV options were fixed; what its bins, tunnel
+    and screen hide is seen by few of the hemisphere's views, their tops by many, and it is neither earlier scene.
+    """
+    mesh, poses = _dome_scene(tmp_path, "bins-dome", scene.synth_bins)
+    assert _views_seeing(mesh, poses, [0.19, 0.19, 0.0301]) <= 20  # a corner of the big bin's floor
+    assert _views_seeing(mesh, poses, [0.30, 0.151, 0.2601]) >= 60  # its rim
+    assert _views_seeing(mesh, poses, [0.0, -0.12, 0.0001]) <= 15  # the tunnel's floor, halfway in
+    assert _views_seeing(mesh, poses, [0.0, -0.12, 0.1701]) >= 60  # its roof
+    assert _views_seeing(mesh, poses, [0.35, -0.5201, 0.11]) <= 5  # the crate's face towards the screen
+    assert _views_seeing(mesh, poses, [0.35, -0.44, 0.2201]) >= 60  # the crate's top
+    for other in (scene.synth_clutter(0), scene.synth_shelf(0)):
+        assert not np.array_equal(np.asarray(mesh.vertices), np.asarray(other.vertices))
+
+
 def test_synth_object_dome_views_the_objects_from_a_hemisphere(tmp_path: Path) -> None:
     """``scene synth --kind object-dome``: the same objects, every view sees them, from 10-75 deg elevation."""
     out = tmp_path / "dome"

@@ -114,6 +114,7 @@ def _synth(args: argparse.Namespace) -> int:
         dome_trajectory,
         orbit_trajectory,
         render_sequence,
+        synth_bins,
         synth_clutter,
         synth_object,
         synth_room,
@@ -137,6 +138,8 @@ def _synth(args: argparse.Namespace) -> int:
         mesh, poses = synth_clutter(args.seed), dome_trajectory(args.frames)
     elif args.kind == "shelf-dome":
         mesh, poses = synth_shelf(args.seed), dome_trajectory(args.frames)
+    elif args.kind == "bins-dome":
+        mesh, poses = synth_bins(args.seed), dome_trajectory(args.frames)
     else:
         mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
@@ -250,14 +253,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--kind",
-        choices=("room", "object", "object-dome", "clutter-dome", "shelf-dome"),
+        choices=("room", "object", "object-dome", "clutter-dome", "shelf-dome", "bins-dome"),
         default="room",
         help="room: the procedural room and a handheld loop inside it (default); object: an object-centric scene "
         "(five primitives on a disc) and one orbit around it, the background empty (no depth); object-dome: the "
         "same objects seen from a hemisphere of viewpoints (10-75 deg elevation, 1.0-1.3 m); clutter-dome: tall boxes "
         "8 cm apart and four open cabinets facing outward, seen from the same hemisphere (insides only a few views "
         "see); shelf-dome: an open shelf, a table with a crate under it and an L of two walls, from the same "
-        "hemisphere (the scene the NBV options are tuned on; clutter-dome is reported)",
+        "hemisphere (the scene the NBV options are tuned on; clutter-dome is reported); bins-dome: two open-top bins, "
+        "a tunnel and a screen with a crate behind it, from the same hemisphere (made after the options were fixed)",
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(

@@ -72,6 +72,7 @@ __all__, __getattr__ = lazy_exports(
             "orbit_trajectory",
             "render_sequence",
             "surface_texture",
+            "synth_bins",
             "synth_clutter",
             "synth_object",
             "synth_room",

@@ -800,6 +800,59 @@ def synth_shelf(seed: int = 0) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def synth_bins(seed: int = 0) -> o3d.geometry.TriangleMesh:
+    """A third object-centric scene with occlusion, made after the NBV options were fixed (issue 10's check on an
+    object scene nothing was chosen on): two open-top bins, a tunnel open at both ends and a screen with a crate
+    close behind it, on the disc of :func:`synth_object`.
+
+    Unlike :func:`synth_clutter` (openings facing outward) and :func:`synth_shelf`, the bins open upward (their floors
+    seen only from high views), the tunnel along x (its floor only from low views near its axis) and the crate's
+    front only from views past the screen's edges. Seed 0 is the fixed layout; other seeds move each part by up to
+    3 cm and change the colours slightly. Vertex colours only.
+    """
+    rng = np.random.default_rng(seed)
+    o3g = o3d.geometry.TriangleMesh
+    colour, box = _jittered_colour(rng, seed), _box
+
+    def jitter() -> np.ndarray:
+        return np.zeros(3) if seed == 0 else np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
+
+    def bin_(lo: tuple[float, float], size: tuple[float, float, float], c: list[float]) -> o3d.geometry.TriangleMesh:
+        """An open-top bin: a floor board and four walls 0.03 thick, outer corner ``lo``, outer ``size``."""
+        (x, y), (sx, sy, sz), t = lo, size, 0.03
+        cc = colour(c)
+        out = box((x, y, 0.0), (sx, sy, t), cc)
+        for lo3, s3 in (
+            ((x, y, t), (sx, t, sz - t)),
+            ((x, y + sy - t, t), (sx, t, sz - t)),
+            ((x, y + t, t), (t, sy - 2 * t, sz - t)),
+            ((x + sx - t, y + t, t), (t, sy - 2 * t, sz - t)),
+        ):
+            out += box(lo3, s3, cc)
+        return out
+
+    mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.45, 0.5, 0.55])
+    mesh += bin_((0.15, 0.15), (0.30, 0.30, 0.26), [0.8, 0.35, 0.25]).translate(jitter())
+    mesh += bin_((-0.50, 0.20), (0.22, 0.36, 0.20), [0.3, 0.55, 0.8]).translate(jitter())
+    # The tunnel along x: 0.44 long, inside 0.18 wide and 0.14 high, walls and roof 0.03.
+    tun = o3g()
+    c = colour([0.4, 0.7, 0.35])
+    for lo3, s3 in (
+        ((-0.22, -0.24, 0.0), (0.44, 0.03, 0.14)),
+        ((-0.22, -0.03, 0.0), (0.44, 0.03, 0.14)),
+        ((-0.22, -0.24, 0.14), (0.44, 0.24, 0.03)),
+    ):
+        tun += box(lo3, s3, c)
+    mesh += tun.translate(jitter())
+    # The screen (0.46 wide, 0.04 thick, 0.45 high) facing -y, and a crate 0.06 behind it.
+    scr = box((0.12, -0.62, 0.0), (0.46, 0.04, 0.45), colour([0.85, 0.8, 0.3]))
+    scr += box((0.25, -0.52, 0.0), (0.20, 0.16, 0.22), colour([0.6, 0.35, 0.7]))
+    mesh += scr.translate(jitter())
+    mesh = mesh.subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    return mesh
+
+
 def dome_trajectory(n_frames: int) -> np.ndarray:
     """[N, 4, 4] cameras on a hemisphere over :func:`synth_object`, looking at it: 10-75 deg elevation, 1.0-1.3 m.
 
@@ -832,6 +885,7 @@ __all__ = [
     "orbit_trajectory",
     "render_sequence",
     "surface_texture",
+    "synth_bins",
     "synth_clutter",
     "synth_object",
     "synth_room",
