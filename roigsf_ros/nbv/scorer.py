@@ -42,7 +42,7 @@ from roigsf_ros.core.camera import Intrinsics, check_pose, pose_from_position_qu
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.evaluation.metrics import ause
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
-from roigsf_ros.nbv.close_front import CloseFrontMemory
+from roigsf_ros.nbv.close_front import CloseFrontMemory, voxel_keys
 from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
@@ -644,12 +644,10 @@ class SurfaceFacing:
     """
 
     origin_m: np.ndarray
-    """[3] world position of cell (0, 0, 0) (metres)."""
+    """[3] a voxel centre: positions are keyed relative to it, so a point's key is its nearest centre's (metres)."""
     voxel_size_m: float
-    dims: np.ndarray
-    """[3] cells along x, y, z."""
     keys: np.ndarray
-    """[M] sorted flat cell index of each surface voxel (int64)."""
+    """[M] sorted :func:`~roigsf_ros.nbv.close_front.voxel_keys` of the surface voxels (relative to ``origin_m``)."""
     normals: np.ndarray
     """[M, 3] outward normals (toward the free space the fused views saw) in the order of ``keys``."""
 
@@ -657,13 +655,11 @@ class SurfaceFacing:
     def build(cls, voxels: SurfaceVoxels, voxel_size_m: float) -> SurfaceFacing:
         """Index ``voxels`` (centres on the TSDF's grid) by their cell."""
         c = np.asarray(voxels.centres_m, dtype=np.float64).reshape(-1, 3)
-        origin = c.min(0) - 2.0 * voxel_size_m if len(c) else np.zeros(3)
-        idx = np.rint((c - origin) / voxel_size_m).astype(np.int64)
-        dims = idx.max(0) + 3 if len(c) else np.ones(3, np.int64)
-        flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-        order = np.argsort(flat, kind="stable")
+        origin = c.min(0) if len(c) else np.zeros(3)
+        keys = voxel_keys(c - origin, voxel_size_m)
+        order = np.argsort(keys, kind="stable")
         normals = np.asarray(voxels.normals, dtype=np.float64).reshape(-1, 3)[order]
-        return cls(origin, float(voxel_size_m), dims, flat[order], normals)
+        return cls(origin, float(voxel_size_m), keys[order], normals)
 
     def backfacing(self, T_wc: np.ndarray, intr: Intrinsics, depth_m: np.ndarray) -> np.ndarray:
         """Bool [H, W]: pixels whose point at camera-z ``depth_m`` [H, W] (0: none) lies in the cell of a surface
@@ -676,11 +672,9 @@ class SurfaceFacing:
             return out
         T = np.asarray(T_wc, dtype=np.float64)
         p = depth_to_points(torch.from_numpy(z), intr).numpy()[v, u] @ T[:3, :3].T + T[:3, 3]
-        idx = np.rint((p - self.origin_m) / self.voxel_size_m).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < self.dims), axis=1)
-        flat = (idx[:, 0] * self.dims[1] + idx[:, 1]) * self.dims[2] + idx[:, 2]
-        j = np.clip(np.searchsorted(self.keys, flat), 0, len(self.keys) - 1)
-        found = inside & (self.keys[j] == flat)
+        keys = voxel_keys(p - self.origin_m, self.voxel_size_m)
+        j = np.clip(np.searchsorted(self.keys, keys), 0, len(self.keys) - 1)
+        found = self.keys[j] == keys
         away = np.einsum("ij,ij->i", self.normals[j], T[:3, 3] - p) < 0.0
         out[v, u] = found & away
         return out
