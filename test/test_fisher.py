@@ -127,6 +127,21 @@ def test_roi_weights_and_geometric_subset(backend: str) -> None:
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_view_dependent_colour_without_the_means(backend: str) -> None:
+    """Degree-1 SH colours depend on the view but on none of the chosen parameters: their values, read at the
+    surfels' own rows without a per-surfel graph, against the brute force through the full render. Two surfels
+    are off to the side, so the rows the numba kernel keeps are not the map's first ones."""
+    m = scene(6, n=12)
+    m.means[0] = torch.tensor([30.0, 0.0, 2.0], dtype=F64)
+    m.means[5] = torch.tensor([0.0, -30.0, 2.0], dtype=F64)
+    T = pose(6)
+    params = ("quats", "log_scales")
+    got = fisher_diag(m, T, INTR, outputs=("color", "depth", "alpha"), params=params, backend=backend)
+    assert_close(got, brute_force(m, T, ("color", "depth", "alpha"), params))
+    assert all(bool(v[[0, 5]].abs().sum() == 0) and bool(v.abs().sum() > 0) for v in got.values())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_weighted_sum_is_the_dense_fisher_dotted_with_the_weights(backend: str) -> None:
     """Eq. 10's sum without the dense result; view-dependent colour makes the colour depend on the means."""
     m = scene(5)
@@ -295,6 +310,7 @@ def test_numba_blocks_match_torch_on_a_larger_view() -> None:
     cases = (
         (m, ("color", "depth"), GEOMETRIC_PARAMS),
         (m, ("color", "depth", "alpha", "normal"), ALL_PARAMS),
+        (m, ("color", "depth"), ("quats", "log_scales")),  # view-dependent colour, no derivative: values at the rows
         (flat, ("color", "depth"), GEOMETRIC_PARAMS),  # colour without derivatives: the walk's fast path
         (flat, ("color", "depth", "alpha"), GEOMETRIC_PARAMS),  # the fast path with a fourth channel
         (flat, ("alpha", "color"), GEOMETRIC_PARAMS),  # the same without depth, alpha first

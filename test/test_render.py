@@ -18,7 +18,7 @@ import torch
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.render import rasterize as render
 from roigsf_ros.render import reference as render_reference
-from roigsf_ros.render.numba_setup import balanced_bounds, numba_available
+from roigsf_ros.render.numba_setup import balanced_bounds, n_threads, numba_available, set_numba_threads
 from roigsf_ros.render.rasterize import RenderOutput, camera_tensors, render_map
 from roigsf_ros.render.surfels import SurfelMap, rotmat_to_quat
 
@@ -619,3 +619,42 @@ def test_balanced_bounds_split_the_same_from_numpy_and_torch() -> None:
     b = balanced_bounds(cost, 4)
     sums = [cost[lo:hi].sum() for lo, hi in itertools.pairwise(b)]
     assert max(sums) - min(sums) <= 2 * cost.max()  # equal up to the tile a cut falls in
+
+
+@NEEDS_NUMBA
+def test_pixel_mask_empties_exactly_the_tiles_without_a_masked_pixel() -> None:
+    """``numba_bins(pixel_mask=...)``: the tiles (partial ones at the edges too) with no pixel in the mask get empty
+    lists, the others keep theirs, and the thread blocks split what is left (contiguous, covering, about equal)."""
+    g = torch.Generator().manual_seed(4)
+    n, width, height = 400, 37, 22
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * torch.tensor([0.8, 0.5, 0.2], dtype=torch.float64)
+    means[:, 2] += 2.0
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=torch.float64), dim=-1)
+    scales = torch.rand(n, 2, generator=g, dtype=torch.float64) * 0.05 + 0.01
+    opac = torch.full((n,), 0.8, dtype=torch.float64)
+    intr = Intrinsics(width, height, 30.0, 30.0, width / 2, height / 2)
+    viewmat, K = camera_tensors(np.eye(4), intr, dtype=torch.float64)
+    args = [t.numpy() for t in (means, quats, scales, opac, viewmat, K)]
+    full = render.numba_bins(*args, width, height)
+    rng = np.random.default_rng(4)
+    mask = rng.random((height, width)) < 0.02  # single pixels
+    mask[:, 36] = True  # the partial tiles of the last column
+    grid = np.zeros((24, 40), bool)
+    grid[:height, :width] = mask
+    on = grid.reshape(6, 4, 10, 4).any((1, 3)).reshape(-1)
+    assert 0 < on.sum() < on.size and (full.count[~on] > 0).any()
+    before = n_threads()
+    for parts in (1, 2, 3):
+        blocks = set_numba_threads(parts)  # as many blocks as threads (at most numba's maximum)
+        try:
+            bn = render.numba_bins(*args, width, height, pixel_mask=mask.reshape(-1))
+        finally:
+            set_numba_threads(before)
+        assert np.array_equal(bn.count, np.where(on, full.count, 0))
+        assert np.array_equal(bn.surf, full.surf) and np.array_equal(bn.start, full.start)
+        b = bn.bounds
+        assert b[0] == 0 and b[-1] == on.size and len(b) == blocks + 1 and np.all(np.diff(b) >= 0)
+        sums = [int((bn.count[lo:hi] + 1).sum()) for lo, hi in itertools.pairwise(b)]
+        assert max(sums) - min(sums) <= 2 * int(bn.count.max() + 1)
+    with pytest.raises(ValueError, match="pixel_mask"):
+        render.numba_bins(*args, width, height, pixel_mask=mask.reshape(-1)[:-1])

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -52,7 +53,7 @@ from roigsf_ros.render.rasterize import (
     project_surfels,
     select_pairs,
 )
-from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap
+from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, sh_to_color
 
 OUTPUTS = ("color", "depth", "alpha", "normal")
 """Rendered outputs a Fisher can be taken of: colour (3 channels), alpha-weighted depth, alpha, normal (3)."""
@@ -117,8 +118,8 @@ def fisher_diag(
     pair search (the numba kernel walks 4x4 tiles; the pairs, so the result, do not depend on it).
     """
     m = surfel_map.detach()
-    rows, values = _fisher_rows(m, T_wc, intr, outputs, params, pixel_weights, background, near, far, tile_size,
-                                backend, pair_chunk)  # fmt: skip
+    view = _view(m, T_wc, intr, outputs, params, pixel_weights, background, near, far)
+    rows, values = _fisher_rows(m, view, tile_size, backend, pair_chunk)
     result = {k: torch.zeros_like(getattr(m, k)) for k in values}
     for k, v in values.items():
         result[k].index_copy_(0, rows, v)
@@ -148,8 +149,17 @@ def fisher_weighted_sum(
     """
     m = surfel_map.detach()
     per_row = _entry_weights(m, _params_of(params, m), entry_weights)  # checked before any rendering
-    rows, values = _fisher_rows(m, T_wc, intr, outputs, params, pixel_weights, background, near, far, tile_size,
-                                backend, pair_chunk)  # fmt: skip
+    view = _view(m, T_wc, intr, outputs, params, pixel_weights, background, near, far)
+    if view.idx.numel() == 0:
+        return 0.0
+    if use_numba(backend, m.means):  # float64 numpy from the kernel to the sum: no tensors per parameter
+        got = _fisher_numba(m, view.idx.numpy(), view.names, view.outs, view.cam, view.weights, view.bg)
+        if got is None:
+            return 0.0
+        r, total, cols = got
+        return float(sum((total[:, c] * np.take(per_row[k].reshape(len(m), -1), r, axis=0)).sum()
+                         for k, c in cols.items()))  # fmt: skip
+    rows, values = _fisher_rows(m, view, tile_size, backend, pair_chunk)
     r = rows.cpu().numpy()
     total = 0.0
     for k, v in values.items():
@@ -175,7 +185,21 @@ def _entry_weights(m: SurfelMap, names: list[str], entry_weights: dict[str, np.n
     return out
 
 
-def _fisher_rows(
+@dataclass
+class _View:
+    """One view's checked inputs to the Fisher: outputs, parameter names, flat pixel weights [H W] (or None), the
+    camera tuple (viewmat, K, W, H, near, far), background [3] and the rows [K] of the map that may reach it.
+    """
+
+    outs: list[str]
+    names: list[str]
+    weights: Tensor | None
+    cam: tuple
+    bg: Tensor
+    idx: Tensor
+
+
+def _view(
     m: SurfelMap,
     T_wc: np.ndarray | Tensor,
     intr: Intrinsics,
@@ -185,13 +209,9 @@ def _fisher_rows(
     background: Tensor | None,
     near: float,
     far: float,
-    tile_size: int,
-    backend: str,
-    pair_chunk: int,
-) -> tuple[Tensor, dict[str, Tensor]]:
-    """:func:`fisher_diag` on the rows it can be non-zero: map rows [K] (int64) and ``{name: [K, ...]}``.
-
-    ``m`` is detached. The other surfels of the map (outside the frustum, in no walked tile) have zero Fisher.
+) -> _View:
+    """:func:`fisher_diag`'s arguments checked, and the surfels that cannot reach the image dropped
+    (:func:`frustum_subset`) before any per-surfel work. ``m`` is detached.
     """
     outs = list(dict.fromkeys(outputs))
     bad = [o for o in outs if o not in OUTPUTS]
@@ -208,34 +228,39 @@ def _fisher_rows(
         weights = weights.reshape(-1)
     viewmat, K = camera_tensors(T_wc, intr, device=dev, dtype=dt)
     bg = torch.zeros(3, dtype=dt, device=dev) if background is None else background.to(dtype=dt, device=dev)
-
-    def none() -> tuple[Tensor, dict[str, Tensor]]:
-        shapes = {k: getattr(m, k).shape[1:] for k in names}
-        return torch.zeros(0, dtype=torch.long, device=dev), {
-            k: torch.zeros((0, *s), dtype=dt, device=dev) for k, s in shapes.items()
-        }
-
-    # Surfels that cannot reach the image contribute nothing: drop them before any per-surfel work.
     idx = frustum_subset(m, viewmat, intr, near, far)
-    if idx.numel() == 0:
-        return none()
-    cam = (viewmat, K, W, H, near, far)
-    if use_numba(backend, m.means):
-        got = _fisher_numba(m, idx.numpy(), names, outs, cam, weights, bg)
-        if got is None:
-            return none()
-        rows, total, cols = got
-        t = torch.from_numpy(total).to(dt)
-        return torch.from_numpy(rows), {k: t[:, cols[k]].reshape(-1, *getattr(m, k).shape[1:]) for k in names}
-    full = idx.numel() == len(m)
-    sub = m if full else m.select(idx)
-    out = {k: torch.zeros_like(getattr(sub, k)) for k in names}
-    with torch.no_grad():
-        proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
-    pairs = select_pairs(proj, W, H, near, tile_size=tile_size, backend="torch")
-    if len(pairs):
-        _fisher_torch(sub, names, outs, proj, pairs, cam, weights, bg, pair_chunk, out)
-    return (torch.arange(len(m), device=dev) if full else idx), out
+    return _View(outs, names, weights, (viewmat, K, W, H, near, far), bg, idx)
+
+
+def _fisher_rows(
+    m: SurfelMap, view: _View, tile_size: int, backend: str, pair_chunk: int
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """:func:`fisher_diag` on the rows it can be non-zero: map rows [K] (int64) and ``{name: [K, ...]}``.
+
+    ``m`` is detached. The other surfels of the map (outside the frustum, in no walked tile) have zero Fisher.
+    """
+    names, outs, cam, idx = view.names, view.outs, view.cam, view.idx
+    dt, dev = m.dtype, m.device
+    if idx.numel() and use_numba(backend, m.means):
+        got = _fisher_numba(m, idx.numpy(), names, outs, cam, view.weights, view.bg)
+        if got is not None:
+            rows, total, cols = got
+            t = torch.from_numpy(total).to(dt)
+            return torch.from_numpy(rows), {k: t[:, cols[k]].reshape(-1, *getattr(m, k).shape[1:]) for k in names}
+    elif idx.numel():
+        viewmat, K, W, H, near, far = cam
+        full = idx.numel() == len(m)
+        sub = m if full else m.select(idx)
+        out = {k: torch.zeros_like(getattr(sub, k)) for k in names}
+        with torch.no_grad():
+            proj = project_surfels(sub.means, sub.quats, sub.scales(), sub.opacities(), viewmat, K, W, H, near, far)
+        pairs = select_pairs(proj, W, H, near, tile_size=tile_size, backend="torch")
+        if len(pairs):
+            _fisher_torch(sub, names, outs, proj, pairs, cam, view.weights, view.bg, pair_chunk, out)
+        return (torch.arange(len(m), device=dev) if full else idx), out
+    return torch.zeros(0, dtype=torch.long, device=dev), {
+        k: torch.zeros((0, *getattr(m, k).shape[1:]), dtype=dt, device=dev) for k in names
+    }
 
 
 @torch.no_grad()
@@ -306,21 +331,63 @@ def _k_frustum(
         )
 
 
+def _needs_graph(m: SurfelMap, names: list[str], outs: list[str]) -> bool:
+    """Whether a channel depends on ``names``: normals; colours through the SH, and the means with view-dependent SH.
+
+    The geometric Fisher of colour and depth needs none.
+    """
+    colour_deps = {"sh_dc", "sh_rest"} | ({"means"} if m.sh_rest is not None else set())
+    return "normal" in outs or ("color" in outs and bool(colour_deps & set(names)))
+
+
+def _plain_channels(
+    m: SurfelMap, rows: Tensor | None, outs: list[str], viewmat: Tensor, bg: Tensor
+) -> list[tuple[Tensor | None, dict[str, Tensor], float]]:
+    """:func:`_channels`'s channels where none depends on the parameters (no graph): per channel (the values at
+    ``rows`` of ``m`` (None: every row), or None for depth; no derivatives; background). Reads only the rows and
+    parameters the colours need, not a subset map (a candidate's cost, issue 12).
+    """
+    if "normal" in outs:
+        raise ValueError("normals depend on the geometry: use _channels")
+
+    def at(t: Tensor) -> Tensor:
+        return t if rows is None else t.index_select(0, rows)
+
+    colors = None
+    if "color" in outs:
+        viewdirs = None
+        if m.sh_rest is not None:
+            cam_centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
+            viewdirs = at(m.means) - cam_centre
+        colors = sh_to_color(at(m.sh_dc), None if m.sh_rest is None else at(m.sh_rest), viewdirs)
+    n = len(m) if rows is None else int(rows.numel())
+    bgs = bg.tolist()
+    channels: list[tuple[Tensor | None, dict[str, Tensor], float]] = []
+    for o in outs:
+        if o == "color" and colors is not None:
+            channels += [(colors[:, c], {}, float(bgs[c])) for c in range(3)]
+        elif o == "alpha":
+            channels.append((torch.ones(n, dtype=m.dtype, device=m.device), {}, 0.0))
+        else:
+            channels.append((None, {}, 0.0))
+    return channels
+
+
 def _channels(
     m: SurfelMap, names: list[str], outs: list[str], viewmat: Tensor, K: Tensor, near: float, far: float, bg: Tensor
 ) -> tuple[dict[str, Tensor], list[tuple[Tensor | None, dict[str, Tensor], float]]]:
     """Parameters of the surfels of ``m`` and, per channel, (per-surfel value or None for depth, its derivative
     dict w.r.t. ``names``, background).
 
-    The small per-surfel graph is built only where a channel depends on ``names`` (normals; colours through the
-    SH, and the means with view-dependent SH): the geometric Fisher of colour and depth needs none.
+    The small per-surfel graph is built only where a channel depends on ``names`` (:func:`_needs_graph`).
     """
     n = len(m)
-    colour_deps = {"sh_dc", "sh_rest"} | ({"means"} if m.sh_rest is not None else set())
-    graph = "normal" in outs or ("color" in outs and bool(colour_deps & set(names)))
     params = {k: getattr(m, k) for k in PARAM_NAMES if getattr(m, k) is not None}
-    leaves = {k: t.clone().requires_grad_(k in names) for k, t in params.items()} if graph else params
-    with torch.set_grad_enabled(graph):
+    if not _needs_graph(m, names, outs):
+        with torch.no_grad():
+            return params, _plain_channels(m, None, outs, viewmat, bg)
+    leaves = {k: t.clone().requires_grad_(k in names) for k, t in params.items()}
+    with torch.enable_grad():
         cam_centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
         viewdirs = leaves["means"] - cam_centre if m.sh_rest is not None else None
         colors = SurfelMap(**leaves).colors(viewdirs) if "color" in outs else None
@@ -392,10 +459,14 @@ def _fisher_numba(
     local = np.full(bn.order.size, -1, np.int64)
     local[kept] = np.arange(kept.size)
     rows_np = bn.order[kept]  # rows of idx (and of means, quats, ...), increasing
-    sub = m.select(torch.from_numpy(idx[rows_np]))
-    leaves, channels = _channels(sub, names, outs, viewmat, K, near, far, bg)
-    nl = len(sub)
-    sizes = [leaves[k][0].numel() for k in names]
+    map_rows = torch.from_numpy(idx[rows_np])
+    if _needs_graph(m, names, outs):
+        _, channels = _channels(m.select(map_rows), names, outs, viewmat, K, near, far, bg)
+    else:  # values only: read the rows the colours need, no subset map
+        with torch.no_grad():
+            channels = _plain_channels(m, map_rows, outs, viewmat, bg)
+    nl = rows_np.size
+    sizes = [math.prod(getattr(m, k).shape[1:]) for k in names]
     D = sum(sizes)
     cols = {k: slice(sum(sizes[: names.index(k)]), sum(sizes[: names.index(k) + 1])) for k in names}
     # Per-surfel Jacobian of the packed rows w.r.t. the chosen raw parameters: [Nl, D, 14].
@@ -412,7 +483,7 @@ def _fisher_numba(
         )  # fmt: skip
     nch = len(channels)
     X = np.zeros((nl, nch))
-    B = np.zeros((nl, nch, D))
+    B = np.zeros((nl, nch, D) if any(b for _, b, _ in channels) else (1, 1, 1))  # read for kind-1 channels only
     kind = np.zeros(nch, np.int64)  # 0: per-surfel value, no derivative; 1: with derivative B; 2: depth
     bgs = np.zeros(nch)
     for c, (x, b, bgc) in enumerate(channels):

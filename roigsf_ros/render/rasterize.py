@@ -844,11 +844,20 @@ def _k_bin(
                 t = ty * ntx + tx
                 surf[fill[t]] = j
                 fill[t] += 1
-    # Blocks of tiles of about equal work (entries + 1 per tile), as balanced_bounds.
+    return order, pk_l, nrm_l, rect_l, thr_l, feats_l, surf, start, count, _tile_bounds(count, n_blocks)
+
+
+def _tile_bounds(count: np.ndarray, n_blocks: int) -> np.ndarray:
+    """``n_blocks`` contiguous ranges of the tiles of about equal work (entries + 1 per tile), as
+    :func:`~roigsf_ros.render.numba_setup.balanced_bounds` (numba helper): the blocks' tile bounds [n_blocks + 1].
+    """
+    n_tiles = count.shape[0]
     bounds = np.empty(n_blocks + 1, np.int64)
     bounds[0] = 0
     bounds[n_blocks] = n_tiles
-    total = acc + n_tiles
+    total = n_tiles
+    for t in range(n_tiles):
+        total += count[t]
     cum = 0
     t = 0
     for blk in range(1, n_blocks):
@@ -857,7 +866,27 @@ def _k_bin(
             cum += count[t] + 1
             t += 1
         bounds[blk] = t
-    return order, pk_l, nrm_l, rect_l, thr_l, feats_l, surf, start, count, bounds
+    return bounds
+
+
+def _k_mask_tiles(
+    pixel_mask: np.ndarray, width: int, height: int, ts: int, ntx: int, count: np.ndarray, n_blocks: int
+) -> np.ndarray:
+    """Zeroes ``count`` [T] (in place) of the tiles with no pixel in ``pixel_mask`` [H * W] (bool) and returns the
+    blocks' tile bounds over what is left (:func:`_tile_bounds`).
+    """
+    for t in range(count.shape[0]):
+        if count[t] == 0:
+            continue
+        x0 = (t % ntx) * ts
+        y0 = (t // ntx) * ts
+        on = False
+        for y in range(y0, min(y0 + ts, height)):
+            for x in range(x0, min(x0 + ts, width)):
+                on = on or pixel_mask[y * width + x]
+        if not on:
+            count[t] = 0
+    return _tile_bounds(count, n_blocks)
 
 
 def _k_forward(
@@ -1536,9 +1565,11 @@ _KERNELS = Kernels(
     project=_k_project,
     bin=_k_bin,
     project_vjp=_k_project_vjp,
-    helpers=(_pixel_box, _argsort_positive),
+    helpers=(_pixel_box, _argsort_positive, _tile_bounds),
 )
 """The compiled projection, pixel-box, binning and projection-backward kernels (compiled on first use)."""
+_SERIAL_KERNELS = Kernels(parallel=False, mask_tiles=_k_mask_tiles, helpers=(_tile_bounds,))
+"""Small one-thread kernels (a tile pass of one view)."""
 _RASTER_KERNELS = Kernels(
     # Reassociation lets LLVM vectorise the per-lane sums and contract products into fused
     # multiply-adds (results move by ~1e-16 relative); no "nnan"/"ninf", so non-finite values keep
@@ -1752,14 +1783,12 @@ def numba_bins(
     """
     feats = np.zeros((means.shape[0], 0))
     bn = _project_and_bin(means, quats, scales, opacities, feats, viewmat, K, width, height, near, far, tile_size)
-    if pixel_mask is not None:
-        ts = bn.size
-        nty = -(-height // ts)
-        grid = np.zeros((nty * ts, bn.ntx * ts), np.bool_)
-        grid[:height, :width] = np.asarray(pixel_mask, np.bool_).reshape(height, width)
-        on = grid.reshape(nty, ts, bn.ntx, ts).any((1, 3)).reshape(-1)
-        bn.count = np.where(on, bn.count, 0).astype(bn.count.dtype)
-        bn.bounds = balanced_bounds(bn.count.astype(np.int64) + 1, n_threads())
+    if pixel_mask is not None:  # one kernel: this is per NBV candidate (issue 12)
+        mask = np.ascontiguousarray(pixel_mask, np.bool_).reshape(-1)
+        if mask.size != width * height:
+            raise ValueError(f"pixel_mask has {mask.size} entries, the image {width * height} pixels")
+        with KERNEL_LOCK:
+            bn.bounds = _SERIAL_KERNELS["mask_tiles"](mask, width, height, bn.size, bn.ntx, bn.count, n_threads())
     return bn
 
 
