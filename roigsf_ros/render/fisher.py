@@ -438,27 +438,25 @@ def _fisher_numba(
     (closed form); per-surfel feature derivatives (view-dependent colour, normals) from a small autograd graph.
     """
     viewmat, K, W, H, near, far = cam
-    means, quats, log_s, logits = (
-        np.take(t.detach().numpy(), idx, axis=0).astype(np.float64) for t in (m.means, m.quats, m.log_scales,
-                                                                               m.opacity_logits)
-    )  # fmt: skip
+    n_in = idx.size
+    means, quats = np.empty((n_in, 3)), np.empty((n_in, 4))
+    log_s, scales, logits, opac = np.empty((n_in, 2)), np.empty((n_in, 2)), np.empty(n_in), np.empty(n_in)
+    with KERNEL_LOCK:  # one pass: the rows of idx in float64, scales and opacities activated
+        _SERIAL_KERNELS["rows"](
+            idx, *(t.detach().numpy() for t in (m.means, m.quats, m.log_scales, m.opacity_logits)), means, quats,
+            log_s, logits, scales, opac,
+        )  # fmt: skip
     V, Km = _f64(viewmat), _f64(K)
-    opac = 1.0 / (1.0 + np.exp(-logits))
     # Pixels with zero weight need no pairs: tiles with none of the others get empty lists. The kernel's
     # tiles are its 4x4 lane blocks (the pairs do not depend on the tile size).
     mask = None if weights is None else (weights != 0).numpy()
-    bn = numba_bins(means, quats, np.exp(log_s), opac, V, Km, W, H, near, far, _BLOCK, mask)
-    # Only the surfels listed in a walked tile can get a pair: Jacobians, features and outputs of those.
-    listed = np.zeros(bn.order.size, np.bool_)
+    bn = numba_bins(means, quats, scales, opac, V, Km, W, H, near, far, _BLOCK, mask)
+    # Only the surfels listed in a walked tile can get a pair: Jacobians, features and outputs of those, in the
+    # map's row order (the per-surfel gathers read memory in order).
     with KERNEL_LOCK:
-        _SERIAL_KERNELS["listed"](bn.surf, bn.start, bn.count, listed)
-    kept = np.flatnonzero(listed)  # kept ids (rows of bn.pk)
-    if kept.size == 0:
+        rows_np, local = _SERIAL_KERNELS["kept"](bn.surf, bn.start, bn.count, bn.order, n_in)
+    if rows_np.size == 0:
         return None
-    kept = kept[np.argsort(bn.order[kept])]  # in the map's row order: the per-surfel gathers read memory in order
-    local = np.full(bn.order.size, -1, np.int64)
-    local[kept] = np.arange(kept.size)
-    rows_np = bn.order[kept]  # rows of idx (and of means, quats, ...), increasing
     map_rows = torch.from_numpy(idx[rows_np])
     if _needs_graph(m, names, outs):
         _, channels = _channels(m.select(map_rows), names, outs, viewmat, K, near, far, bg)
@@ -1104,15 +1102,65 @@ def _k_fisher(
                     o[j] += acc
 
 
-def _k_listed(tl_surf: np.ndarray, t_start: np.ndarray, t_count: np.ndarray, listed: np.ndarray) -> None:
-    """Marks ``listed`` [K] for the binned surfels in the list of a tile with entries (numba, serial)."""
+def _k_rows(
+    idx: np.ndarray,
+    means: np.ndarray,
+    quats: np.ndarray,
+    log_scales: np.ndarray,
+    logits: np.ndarray,
+    means_out: np.ndarray,
+    quats_out: np.ndarray,
+    log_scales_out: np.ndarray,
+    logits_out: np.ndarray,
+    scales_out: np.ndarray,
+    opac_out: np.ndarray,
+) -> None:
+    """The rows ``idx`` [N'] of a map's raw parameters in float64, with ``exp(log_scales)`` and
+    ``sigmoid(logits)`` (numba, serial).
+    """
+    for r in range(idx.shape[0]):
+        i = idx[r]
+        for k in range(3):
+            means_out[r, k] = means[i, k]
+        for k in range(4):
+            quats_out[r, k] = quats[i, k]
+        for k in range(2):
+            ls = float(log_scales[i, k])
+            log_scales_out[r, k] = ls
+            scales_out[r, k] = np.exp(ls)
+        lg = float(logits[i])
+        logits_out[r] = lg
+        opac_out[r] = 1.0 / (1.0 + np.exp(-lg))
+
+
+def _k_kept(
+    tl_surf: np.ndarray, t_start: np.ndarray, t_count: np.ndarray, order: np.ndarray, n_in: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The binned surfels in the list of a tile with entries (numba, serial): their input rows (``order``'s values,
+    rows of the ``n_in`` inputs) in increasing order, and per binned id its position there (-1: in no list).
+    """
+    by_row = np.full(n_in, -1, np.int64)  # input row -> binned id, where listed
     for t in range(t_count.shape[0]):
         for e in range(t_start[t], t_start[t] + t_count[t]):
-            listed[tl_surf[e]] = True
+            k = tl_surf[e]
+            by_row[order[k]] = k
+    n = 0
+    for r in range(n_in):
+        n += by_row[r] >= 0
+    rows = np.empty(n, np.int64)
+    local = np.full(order.shape[0], -1, np.int64)
+    j = 0
+    for r in range(n_in):
+        k = by_row[r]
+        if k >= 0:
+            rows[j] = r
+            local[k] = j
+            j += 1
+    return rows, local
 
 
 _KERNELS = Kernels(jacobian=_k_jacobian, frustum=_k_frustum)
-_SERIAL_KERNELS = Kernels(parallel=False, listed=_k_listed)
+_SERIAL_KERNELS = Kernels(parallel=False, rows=_k_rows, kept=_k_kept)
 _FISHER_KERNELS = Kernels(
     # Reassociation lets LLVM vectorise and fuse the per-parameter sums (results move by ~1e-15
     # relative); no "nnan"/"ninf", so non-finite values keep IEEE semantics.
