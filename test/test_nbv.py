@@ -556,3 +556,50 @@ def test_compare_candidate_cost_script_alternates_the_two_checkouts(tmp_path: Pa
     assert "candidate / training step" in res.stdout
     bad = subprocess.run([sys.executable, str(script), str(tmp_path), str(root)], capture_output=True, text=True)
     assert bad.returncode == 2 and "not a checkout" in bad.stderr
+
+
+_WARM_CHILD = r"""
+import sys
+sys.path.insert(0, sys.argv[1])
+import roigsf_ros  # first: it sets OMP_WAIT_POLICY before torch loads
+from roigsf_ros.nbv.warmup import warm_up_kernels
+from roigsf_ros.render.numba_setup import Kernels, set_numba_threads
+
+set_numba_threads(2)
+warm_up_kernels()
+from roigsf_ros.nbv import roi
+from roigsf_ros.nbv.scorer import NBVScorer
+from roigsf_ros.perf import nbv
+
+
+def signatures():
+    groups = [(m, n, v) for m, mod in list(sys.modules.items()) if m.startswith("roigsf_ros")
+              for n, v in vars(mod).items() if isinstance(v, Kernels)]
+    return {(m, n, k): set(d.signatures) for m, n, g in groups for k, d in g._compiled.items()}
+
+
+before = signatures()
+scorer = NBVScorer()
+st = nbv.build_state(2000, 80, 60, 4, 0.04, scorer)
+for mode in ("roi-gsurfisher", "fisherrf"):
+    for cands in (st.candidates[:1], st.candidates):
+        scorer.score(st.surfel_map, st.h_train[mode], st.tsdf, st.train_poses, cands, st.intr, mode=mode)
+after = signatures()
+new = {k: sorted(map(str, v - before.get(k, set()))) for k, v in after.items() if v - before.get(k, set())}
+print("LONE", len(roi._BATCH_KERNELS._compiled["lone"].signatures))
+print("NEW", new)
+"""
+
+
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_warm_up_compiles_every_kernel_a_planner_request_uses(tmp_path: Path) -> None:
+    """After ``warm_up_kernels`` (what set-up and the planner run first), scoring one candidate alone and a window of
+    them in both Fisher modes adds no kernel signature: on a fresh machine nothing compiles during a request. A
+    fresh interpreter, two numba threads (the lone candidate's ROI kernel needs more threads than candidates)."""
+    res = subprocess.run([sys.executable, "-c", _WARM_CHILD, str(Path(__file__).resolve().parents[1])],
+                         capture_output=True, text=True, timeout=900)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = {ln.split(" ", 1)[0]: ln.split(" ", 1)[1] for ln in res.stdout.splitlines() if " " in ln}
+    if int(lines["LONE"]) == 0:
+        pytest.skip("numba runs one thread here: the lone-candidate ROI kernel is never used")
+    assert lines["NEW"] == "{}", lines["NEW"]

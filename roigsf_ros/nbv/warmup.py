@@ -4,7 +4,7 @@ The numba kernels (rasteriser forward/backward, Fisher, ROI visibility) compile 
 30-60 s on 2 cores with a cold cache: on a fresh machine the planner's first requests then took that
 long and the keyframe selector decided most of the demo's first windows with its fallback.
 :func:`warm_up_kernels` makes those first calls on a 32x24 textured wall (one keyframe, a few optimiser
-steps, a scoring TSDF, two candidates scored in each Fisher mode, the uncertainty image), with the same
+steps, a scoring TSDF, two candidates scored in each Fisher mode and one alone, the uncertainty image), with the same
 argument types as the real calls, so the real work starts compiled. With a warm cache it takes about a
 second (the cached machine code is loaded). ``python -m roigsf_ros.nbv.warmup`` runs it (set-up does).
 """
@@ -64,6 +64,10 @@ def warm_up_kernels(nbv: NBVConfig | None = None) -> dict[str, float]:
     outputs = tuple(mapper.config.fisher_outputs)
     for mode in ("roi-gsurfisher", "fisherrf"):
         state.score(mapper.map, h_train, outputs, poses, candidates, WARMUP_INTRINSICS, mapper.rendered_rgbd, mode)
+    # A lone candidate: with fewer candidates than threads the ROI splits one camera's voxels (its own kernel).
+    state.score(
+        mapper.map, h_train, outputs, poses, candidates[:1], WARMUP_INTRINSICS, mapper.rendered_rgbd, "roi-gsurfisher"
+    )
     NBVScorer(nbv).uncertainty(mapper.map, h_train, candidates[0], WARMUP_INTRINSICS, None)
     times["scoring_s"] = time.perf_counter() - t0
     times["total_s"] = times["mapping_s"] + times["scoring_s"]
