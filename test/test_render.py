@@ -454,19 +454,6 @@ def test_numba_projection_kernel_matches_torch() -> None:
         assert torch.allclose(torch.from_numpy(nrm), ref.normals, rtol=1e-12, atol=1e-12)
 
 
-@NEEDS_NUMBA
-def test_polynomial_exp_is_accurate() -> None:
-    """The kernels' straight-line exp (range reduction + degree-13 polynomial), compiled as they use it,
-    is within a few ulp over the exponents a kept pair can have (-rho / 2 >= -ln 255 > -5.6) and beyond."""
-    render._RASTER_KERNELS["forward"]  # compiles the kernels and their helper
-    rng = np.random.default_rng(0)
-    for lo, tol in ((5.6, 4e-16), (20.0, 2e-15)):
-        x = -np.concatenate([np.linspace(0.0, lo, 5601), rng.uniform(0, lo, 2000)])
-        got = np.array([render.exp_neg(float(v)) for v in x])
-        ref = np.exp(x.astype(np.longdouble))
-        assert float(np.max(np.abs(got - ref) / ref)) < tol, lo
-
-
 def test_numba_frustum_culling_equals_torch_and_culls_only_surfels_that_reach_no_pixel() -> None:
     """Issue 12: the frustum cull (each mapper render, each Fisher) in one numba pass instead of ~15 torch ops."""
     pytest.importorskip("numba")

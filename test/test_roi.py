@@ -319,6 +319,48 @@ def test_batch_roi_of_a_lone_camera_split_over_its_voxels(monkeypatch: pytest.Mo
     assert one.n_visible_voxels[0] > 50 and one.mass[0] > 0  # the first pose sees the box
 
 
+def test_numba_voxel_weights_equal_eq7_from_grazing_to_frontal_and_tiny_to_huge_footprints() -> None:
+    """The kernels' Eq. 7 (vectorised arccos and exp, scratch rows) against :func:`voxel_weight`, numpy's, where the
+    weight spans its whole range: incidence cosines from back-facing to frontal, footprints from below the 1e-12
+    clamp to 1e8 px (W_scale under 1e-300), any fusion weight, texture and frontier."""
+    pytest.importorskip("numba")
+    from roigsf_ros.nbv import roi as roi_mod
+
+    roi_mod._BATCH_KERNELS["batch"]  # compiles the helpers as the kernels use them
+    rng = np.random.default_rng(7)
+    n, m = 20_000, 30_000
+    cos = np.concatenate([rng.uniform(-0.2, 1.0, n - 5), [0.0, 1.0, -1.0, 1e-9, 0.5]])
+    fp = np.geomspace(1e-14, 1e8, n)[rng.permutation(n)]
+    geo = np.column_stack([np.zeros(n), np.zeros(n), np.ones(n), cos, fp])
+    rows = rng.integers(0, m, n)
+    tsdf_w, textured, frontier = rng.uniform(0, 30, m), rng.random(m) < 0.4, rng.random(m) < 0.2
+    for cfg in (CFG, replace(CFG, frontier_weight=0.5, beta=2.0, gamma=0.5, mu=0.5)):
+        prm = np.array([cfg.angle_pref_texture_poor_deg, cfg.angle_pref_texture_rich_deg, cfg.angle_sigma_deg,
+                        cfg.footprint_pref_px, cfg.footprint_sigma_ln, cfg.beta, cfg.gamma, cfg.mu,
+                        cfg.frontier_weight])  # fmt: skip
+        out = np.full((4, n), np.nan)
+        roi_mod._voxel_weights(geo, rows, n, tsdf_w, textured, frontier, prm, cfg.frontier_weight > 0, *out)
+        theta = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        numpy_w = voxel_weight(theta, textured[rows], fp, tsdf_w[rows], cfg)[0]
+        factor = (1.0 + cfg.mu / np.maximum(tsdf_w[rows], 1.0)) * (
+            (1.0 + cfg.frontier_weight * frontier[rows]) / (1.0 + cfg.frontier_weight)
+        )
+        if cfg.frontier_weight > 0:
+            numpy_w = numpy_w * (1.0 + cfg.frontier_weight * frontier[rows]) / (1.0 + cfg.frontier_weight)
+        # numpy's W_angle^beta W_scale^gamma underflows factor by factor (W_scale = 0 where the product is 1e-170):
+        # Eq. 7 as one exp in extended precision is the reference everywhere, numpy's where it has not underflowed
+        L = np.longdouble
+        ta = (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0).astype(L))) - np.where(textured[rows], prm[1], prm[0])) / L(
+            prm[2]
+        )
+        tf = np.log(np.maximum(fp, 1e-12).astype(L) / L(prm[3])) / L(prm[4])
+        exact = (np.exp(-0.5 * (L(prm[5]) * ta * ta + L(prm[6]) * tf * tf)) * factor.astype(L)).astype(np.float64)
+        assert exact.min() < 1e-180 and exact.max() > 0.5 and (numpy_w == 0).any()  # the range was covered
+        np.testing.assert_allclose(out[0], exact, rtol=1e-12, atol=1e-300)
+        big = numpy_w > 1e-100  # below, its factors can be subnormal (a few digits)
+        np.testing.assert_allclose(out[0][big], numpy_w[big], rtol=1e-12)
+
+
 # ---------------------------------------------------------------------------------- texture
 def _patch_map(rng: np.random.Generator, x0: float, noisy: bool) -> SurfelMap:
     g = np.stack(np.meshgrid(np.arange(0, 0.4, 0.01), np.arange(0, 0.4, 0.01), indexing="ij"), -1).reshape(-1, 2)

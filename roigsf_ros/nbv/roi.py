@@ -44,6 +44,7 @@ from roigsf_ros.mapping.tsdf import SurfaceVoxels
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, n_threads, numba_available, prange
 from roigsf_ros.render.surfels import SurfelMap
+from roigsf_ros.render.vecmath import acos_unit, exp_nonpositive
 
 _N_WORKERS = 2
 """Threads of the texture test's KD-tree query (the project targets 2 cores; results do not depend on it)."""
@@ -539,6 +540,45 @@ def _k_splat(
     return e
 
 
+def _voxel_weights(
+    geo: np.ndarray,
+    rows: np.ndarray,
+    n: int,
+    tsdf_w: np.ndarray,
+    textured: np.ndarray,
+    frontier: np.ndarray,
+    prm: np.ndarray,
+    use_frontier: bool,
+    w: np.ndarray,
+    pref: np.ndarray,
+    fac: np.ndarray,
+    tf: np.ndarray,
+) -> None:
+    """Eq. 7's weight W of the first ``n`` rows of ``geo`` into ``w`` (numba helper), as :func:`voxel_weight`;
+    ``pref``, ``fac``, ``tf`` [>= n] are scratch. ``prm`` as :func:`_accumulate`'s.
+
+    Two loops: the per-voxel gathers and the footprint's log (libm) row by row, then the angle's arccos and the
+    exp with :mod:`~roigsf_ros.render.vecmath`'s, a loop LLVM vectorises (libm's arccos and exp in one scalar
+    loop took most of :func:`_accumulate`'s time). Rows that are not kept get a weight too (unused).
+    """
+    p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
+        prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
+    )  # fmt: skip
+    for i in range(n):
+        idx = rows[i]
+        pref[i] = p_rich if textured[idx] else p_poor
+        f = 1.0 + mu / max(tsdf_w[idx], 1.0)  # 1 + mu W_cover
+        if use_frontier:
+            f = f * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
+        fac[i] = f
+        tf[i] = np.log(max(geo[i, 4], 1e-12) / fp_pref) / fp_sig
+    for i in range(n):
+        ta = (np.degrees(acos_unit(min(max(geo[i, 3], -1.0), 1.0))) - pref[i]) / a_sig
+        t = tf[i]
+        # W_angle^beta W_scale^gamma as one exp (no pow, one exp fewer; equal to rounding, tested)
+        w[i] = exp_nonpositive(-0.5 * (beta * ta * ta + gamma * t * t)) * fac[i]
+
+
 def _accumulate(
     geo: np.ndarray,
     rows: np.ndarray,
@@ -557,34 +597,26 @@ def _accumulate(
     num: np.ndarray,
     den: np.ndarray,
 ) -> tuple[int, float]:
-    """Eq. 7's weight of each kept row of the first ``n``, added into Eq. 8's tent sums ``num``, ``den`` (numba
-    helper); returns the kept rows' number and their close-front gain (Eq. 14's I_vis, 0 without ``use_wf``).
+    """Eq. 7's weight of each kept row of the first ``n`` (:func:`_voxel_weights`), added into Eq. 8's tent sums
+    ``num``, ``den`` (numba helper); returns the kept rows' number and their close-front gain (Eq. 14's I_vis, 0
+    without ``use_wf``).
 
     ``prm``: pref poor, pref rich, angle sigma (deg), footprint pref (px), footprint sigma (ln), beta, gamma,
     mu, frontier weight.
     """
-    p_poor, p_rich, a_sig, fp_pref, fp_sig, beta, gamma, mu, fw = (
-        prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
-    )  # fmt: skip
+    weights = np.empty((4, n))  # W, then scratch
+    _voxel_weights(geo, rows, n, tsdf_w, textured, frontier, prm, use_frontier, weights[0], weights[1], weights[2],
+                   weights[3])  # fmt: skip
     n_vis = 0
     gain = 0.0
     for i in range(n):
         if not keep[i]:
             continue
         n_vis += 1
-        idx = rows[i]
         u, v, z, cos, fp = geo[i, 0], geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4]
-        theta = np.degrees(np.arccos(min(max(cos, -1.0), 1.0)))
-        pref = p_rich if textured[idx] else p_poor
-        ta = (theta - pref) / a_sig
-        tf = np.log(max(fp, 1e-12) / fp_pref) / fp_sig
-        wc = 1.0 / max(tsdf_w[idx], 1.0)
-        # W_angle^beta W_scale^gamma as one exp (no pow, one exp fewer; equal to rounding, tested)
-        w = np.exp(-0.5 * (beta * ta * ta + gamma * tf * tf)) * (1.0 + mu * wc)
-        if use_frontier:
-            w = w * (1.0 + fw * (1.0 if frontier[idx] else 0.0)) / (1.0 + fw)
+        w = weights[0, i]
         if use_wf:
-            gain += max(cos / z - w_f[idx], 0.0)
+            gain += max(cos / z - w_f[rows[i]], 0.0)
         s = min(max(fp, 1.0), max_r)
         q, kx0, kx1, ky0, ky1 = _bilinear(u, v, s, width, height)
         if q >= 0:  # the common case: the loop's 2x2 kernel values (the same sums)
@@ -796,9 +828,22 @@ def _k_frustum_union(
             mask[rows[i]] = True  # the same value from every thread
 
 
-_HELPERS = (_bilinear, _geometry, _zbuffer, _occlusion, _visibility, _accumulate, _finish)
-_KERNELS = Kernels(parallel=False, helpers=_HELPERS, geometry=_k_geometry, visibility=_k_visibility, splat=_k_splat)
-_BATCH_KERNELS = Kernels(helpers=_HELPERS, batch=_k_batch, lone=_k_lone, union=_k_frustum_union)
+_HELPERS = (
+    acos_unit,
+    exp_nonpositive,
+    _bilinear,
+    _geometry,
+    _zbuffer,
+    _occlusion,
+    _visibility,
+    _voxel_weights,
+    _accumulate,
+    _finish,
+)
+# error_model "numpy": the voxel weights' divisions by loaded values would otherwise keep their loop scalar.
+_KERNELS = Kernels(parallel=False, helpers=_HELPERS, error_model="numpy", geometry=_k_geometry,
+                   visibility=_k_visibility, splat=_k_splat)  # fmt: skip
+_BATCH_KERNELS = Kernels(helpers=_HELPERS, error_model="numpy", batch=_k_batch, lone=_k_lone, union=_k_frustum_union)
 
 
 def frustum_union(voxels: SurfaceVoxels, poses: np.ndarray, intr: Intrinsics, cfg: NBVConfig) -> np.ndarray:

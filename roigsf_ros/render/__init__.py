@@ -48,7 +48,6 @@ __all__, __getattr__ = lazy_exports(
             "bin_tiles",
             "camera_tensors",
             "composite_pairs",
-            "exp_neg",
             "numba_bins",
             "numba_forward",
             "numba_pairs",
@@ -74,5 +73,6 @@ __all__, __getattr__ = lazy_exports(
             "sh_to_color",
             "surfels_from_rgbd",
         ],
+        "vecmath": ["acos_unit", "exp_neg", "exp_nonpositive"],
     },
 )

@@ -46,7 +46,6 @@ from roigsf_ros.render.rasterize import (
     Pairs,
     Projection,
     camera_tensors,
-    exp_neg,
     numba_bins,
     pair_alpha_depth,
     project_packed,
@@ -54,6 +53,7 @@ from roigsf_ros.render.rasterize import (
     select_pairs,
 )
 from roigsf_ros.render.surfels import PARAM_NAMES, SurfelMap, sh_to_color
+from roigsf_ros.render.vecmath import exp_neg
 
 OUTPUTS = ("color", "depth", "alpha", "normal")
 """Rendered outputs a Fisher can be taken of: colour (3 channels), alpha-weighted depth, alpha, normal (3)."""

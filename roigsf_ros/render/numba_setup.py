@@ -180,7 +180,9 @@ class Kernels:
 
     ``helpers``: plain-Python functions the kernels call; each is compiled first (inlined into its
     callers at numba's IR level, so a call inside a loop does not stop LLVM from vectorising it) and
-    put in place of the Python function in the calling kernel's module.
+    put in place of the Python function in the calling kernel's module. ``error_model="numpy"``: a float
+    division by zero gives inf or nan as in numpy instead of raising; numba's default ("python") tests every
+    divisor, and that branch keeps a loop with a division by a loaded value from vectorising.
     """
 
     def __init__(
@@ -188,11 +190,12 @@ class Kernels:
         parallel: bool = True,
         fastmath: bool | set[str] = False,
         helpers: tuple[Callable, ...] = (),
+        error_model: str = "python",
         **kernels: Callable,
     ) -> None:
         self._source = kernels
         self._helpers = helpers
-        self._options: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": fastmath}
+        self._options: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": fastmath, "error_model": error_model}
         self._parallel = parallel
         self._compiled: dict[str, Callable] = {}
 
@@ -252,7 +255,11 @@ class Kernels:
             for h in self._helpers:
                 h = getattr(h, "py_func", h)  # a helper another Kernels has compiled (and swapped in) already
                 jitted = numba.njit(
-                    cache=self._options["cache"], nogil=True, inline="always", fastmath=self._options["fastmath"]
+                    cache=self._options["cache"],
+                    nogil=True,
+                    inline="always",
+                    fastmath=self._options["fastmath"],
+                    error_model=self._options["error_model"],
                 )(h)
                 for fn in (*self._source.values(), *self._helpers):  # helpers may call helpers
                     fn = getattr(fn, "py_func", fn)

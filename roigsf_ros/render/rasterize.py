@@ -39,6 +39,7 @@ from roigsf_ros.render.numba_setup import (
     prange,
     use_numba,
 )
+from roigsf_ros.render.vecmath import exp_neg
 
 ALPHA_MIN = 1.0 / 255.0
 """Contributions with alpha below this are skipped (2DGS)."""
@@ -551,37 +552,6 @@ def composite_pairs(
 
 _CHUNK = 64
 """Surfels of a tile's list per lane pass of the forward kernel (a multiple of 8)."""
-
-
-def exp_neg(x: float) -> float:
-    """``exp(x)`` for ``-20 <= x <= 0`` in straight-line code (vectorises inside loops; within 2 ulp).
-
-    Range reduction ``x = k ln 2 + r``, ``|r| <= ln(2) / 2``, a degree-13 Taylor polynomial, and ``2^k``
-    from the bits of ``-k`` (``k >= -31``).
-    """
-    kf = np.floor(x * 1.4426950408889634 + 0.5)
-    r = (x - kf * 6.93147180369123816490e-01) - kf * 1.90821492927058770002e-10
-    p = 1.6059043836821613e-10
-    p = p * r + 2.08767569878681e-09
-    p = p * r + 2.505210838544172e-08
-    p = p * r + 2.755731922398589e-07
-    p = p * r + 2.7557319223985893e-06
-    p = p * r + 2.48015873015873e-05
-    p = p * r + 0.0001984126984126984
-    p = p * r + 0.001388888888888889
-    p = p * r + 0.008333333333333333
-    p = p * r + 0.041666666666666664
-    p = p * r + 0.16666666666666666
-    p = p * r + 0.5
-    p = p * r + 1.0
-    p = p * r + 1.0
-    ki = int(-kf)
-    p = p * 0.5 if ki & 1 else p
-    p = p * 0.25 if ki & 2 else p
-    p = p * 0.0625 if ki & 4 else p
-    p = p * 0.00390625 if ki & 8 else p
-    p = p * 1.52587890625e-05 if ki & 16 else p
-    return p
 
 
 def _pixel_box(
@@ -2187,7 +2157,6 @@ __all__ = [
     "bin_tiles",
     "camera_tensors",
     "composite_pairs",
-    "exp_neg",
     "numba_bins",
     "numba_forward",
     "numba_pairs",
