@@ -225,7 +225,7 @@ class Kernels:
         """Delete numba's cached code of these kernels when how they are compiled has changed.
 
         numba keys a kernel's disk cache on its own source file alone: not on the options set here (this
-        module) nor on helpers from other modules (``exp_neg`` of the rasteriser in the Fisher kernel), so a
+        module) nor on helpers from other modules (``vecmath.exp_neg`` in the rasteriser and the Fisher kernel), so a
         change there would load old machine code. A stamp of those sources and the options, kept beside the
         cache per kernel, says when to drop it. Best effort: a read-only ``__pycache__`` is left alone.
         """
