@@ -320,9 +320,10 @@ def test_batch_roi_of_a_lone_camera_split_over_its_voxels(monkeypatch: pytest.Mo
 
 
 def test_numba_voxel_weights_equal_eq7_from_grazing_to_frontal_and_tiny_to_huge_footprints() -> None:
-    """The kernels' Eq. 7 (vectorised arccos and exp, scratch rows) against :func:`voxel_weight`, numpy's, where the
-    weight spans its whole range: incidence cosines from back-facing to frontal, footprints from below the 1e-12
-    clamp to 1e8 px (W_scale under 1e-300), any fusion weight, texture and frontier."""
+    """The kernels' Eq. 7 (vectorised arccos and exp, scratch rows) against Eq. 7 in extended precision and against
+    :func:`voxel_weight` (numpy's) where its factors have not underflowed, over the weight's whole range: incidence
+    cosines from back-facing to frontal, footprints from below the 1e-12 clamp to 1e8 px (weights under 1e-180),
+    any fusion weight, texture and frontier."""
     pytest.importorskip("numba")
     from roigsf_ros.nbv import roi as roi_mod
 

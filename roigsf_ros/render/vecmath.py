@@ -1,11 +1,11 @@
 """Elementary functions in straight-line code, for numba kernels whose loops LLVM should vectorise.
 
 Without Intel's SVML (not part of the numba wheels), a call to ``np.exp`` or ``np.arccos`` inside a loop stays a
-scalar libm call and keeps the whole loop scalar (in the ROI's per-voxel weights of Eq. 7, libm's arccos alone took
-40 % of the pass; issue 12). These versions use only arithmetic, ``floor``, ``sqrt`` and selects, so a loop that
+scalar libm call and keeps the whole loop scalar (in the ROI's per-voxel weights of Eq. 7, libm's arccos was the
+largest part of the pass; issue 12). These versions use only arithmetic, ``floor``, ``sqrt`` and selects, so a loop that
 calls them (compiled with ``error_model="numpy"`` where it divides by a loaded value: numba's default tests every
-divisor, and that branch keeps the loop scalar) becomes vector code. Each is within 2 ulp of numpy over its stated
-domain (``test/test_vecmath.py``) when compiled without reassociation.
+divisor, and that branch keeps the loop scalar) becomes vector code. Each is within 2 ulp of the exact value over
+its stated domain (``test/test_vecmath.py``) when compiled without reassociation.
 They are numba helpers (:class:`~roigsf_ros.render.numba_setup.Kernels` ``helpers``), plain Python otherwise, and
 call no other helper: a kernel module's compiled copy then has that module's compile options alone.
 """
@@ -66,8 +66,8 @@ def exp_nonpositive(x: float) -> float:
     :func:`exp_neg` with every bit of ``-k`` up to 512, for arguments of any size; written out again rather than
     shared, since a helper that calls a helper is bound in this module's globals, which kernels compiled with
     different options share, and the rasteriser's loop should not pay for the five extra selects. Subnormal results
-    are flushed to zero because a select computes both of its sides: a subnormal product costs a microcode assist
-    (about 3x the whole call).
+    are flushed to zero because a select computes both of its sides: a subnormal product costs a microcode assist,
+    several times the whole call.
     """
     x = x if x > -709.0 else -709.0  # k >= -1023 below (the bits stay within 512 + ... + 1)
     kf = np.floor(x * 1.4426950408889634 + 0.5)
