@@ -316,6 +316,8 @@ def test_numba_blocks_match_torch_on_a_larger_view() -> None:
         (flat, ("alpha", "color"), GEOMETRIC_PARAMS),  # the same without depth, alpha first
         (flat, ("color",), GEOMETRIC_PARAMS),
         (flat, ("depth", "alpha"), GEOMETRIC_PARAMS),
+        # the chain rule's parameter groups (mean, quaternion, log scales) after a single column, at other offsets
+        (flat, ("color", "depth"), ("opacity_logits", "log_scales", "quats", "means")),
     )
     for mp, outputs, params in cases:
         got = fisher_diag(mp, T, intr, outputs=outputs, params=params, pixel_weights=w, backend="numba")

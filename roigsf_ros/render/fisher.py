@@ -695,6 +695,9 @@ def _k_jacobian(
 
 _BLOCK = 4
 """Side of the pixel tiles of the Fisher kernel (its lanes: ``_BLOCK ** 2`` pixels)."""
+_LANES = _BLOCK * _BLOCK
+"""The Fisher kernel's lanes per tile, a constant of the compiled code: the chain rule's lane loops over
+``range(_LANES)`` unroll fully (with ``range(Q)`` of a local they stayed loops: 10 % slower, issue 12)."""
 _NF = 18
 """Per (surfel, pixel) lane fields of the Fisher kernel."""
 _CHUNK = 64
@@ -744,7 +747,8 @@ def _k_fisher(
     (``kron((u, v, -(u^2 + v^2)) k, (x, y, 1))`` and the opacity on the ray-splat branch, the centre offset
     on the fallback; zeros on unmarked lanes); (2) per pixel, the back-to-front walk over its pairs for the
     compositing derivatives ``g``; (3) per slot, its Jacobian read once, and per parameter the chain rule
-    and the weighted squares summed over the lanes.
+    and the weighted squares summed over the lanes (a mean's, a quaternion's and the log scales' columns in one lane
+    pass each where no kind-1 channel needs each column's ``d alpha / d theta_j``).
     Walking inside the kernel spares a separate forward pass and its stored pairs.
     """
     nch = X.shape[1]
@@ -773,6 +777,25 @@ def _k_fisher(
     i0, i1, i2 = (ch0[0], ch0[1], ch0[2]) if rgb else (0, 0, 0)
     has4 = rgb and n0 == 4  # a fourth (alpha: value 1, background 0)
     i3 = ch0[3] if has4 else 0
+    # (3)'s parameter groups, one lane pass each: without kind-1 channels (which need each column's aj) a mean's
+    # three columns, a quaternion's four and the two log scales share their loads and pixel coordinates; any
+    # other column is a group of one. Sizes 3, 4 and 2 thus name the kinds 1, 2 and 3-4.
+    g_start = np.empty(D, np.int64)
+    g_size = np.empty(D, np.int64)
+    ngrp = 0
+    j = 0
+    while j < D:
+        ck = col_kind[j]
+        size = 1
+        if n1 == 0 and (ck == 1 or ck == 2 or ck == 3):
+            size = 3 if ck == 1 else 4 if ck == 2 else 2
+            for i in range(1, size):
+                if j + i >= D or col_kind[j + i] != (4 if ck == 3 else ck):
+                    size = 1
+        g_start[ngrp] = j
+        g_size[ngrp] = size
+        ngrp += 1
+        j += size
     cap = 1  # the longest tile list: slots (accepted surfels) and accepted positions per pixel
     for t in range(t_count.shape[0]):
         cap = max(cap, t_count[t])
@@ -1020,7 +1043,7 @@ def _k_fisher(
                     Cs[15, q] = wp * g2
                     Cs[16, q] = wp
                     Cs[17, q] = w
-            # (3) Per slot: its Jacobian once; per parameter the chain rule and weighted squares over the lanes.
+            # (3) Per slot: its Jacobian once; per parameter group the chain rule and weighted squares over the lanes.
             for s in range(ns):
                 sid = s_loc[s]
                 slot_e[s_e[s]] = -1
@@ -1030,11 +1053,105 @@ def _k_fisher(
                 avs = Cs[14]  # aj of the current parameter
                 Js = jac[sid]
                 o = ob[sid]
-                for j in range(D):
+                for gi in range(ngrp):
+                    j0 = g_start[gi]
+                    gsz = g_size[gi]
+                    if gsz == 3:  # a mean's three columns: the splat's axes (rows 6-8) and the opacity do not move
+                        Ja, Jb, Jc = Js[j0], Js[j0 + 1], Js[j0 + 2]
+                        a0, a1, a2, a3, a4, a5 = Ja[0], Ja[1], Ja[2], Ja[3], Ja[4], Ja[5]
+                        a9, a10, a11, a12 = Ja[9], Ja[10], Ja[11], Ja[12]
+                        b0, b1, b2, b3, b4, b5 = Jb[0], Jb[1], Jb[2], Jb[3], Jb[4], Jb[5]
+                        b9, b10, b11, b12 = Jb[9], Jb[10], Jb[11], Jb[12]
+                        d0, d1, d2, d3, d4, d5 = Jc[0], Jc[1], Jc[2], Jc[3], Jc[4], Jc[5]
+                        d9, d10, d11, d12 = Jc[9], Jc[10], Jc[11], Jc[12]
+                        acc0 = 0.0
+                        acc1 = 0.0
+                        acc2 = 0.0
+                        for q in range(_LANES):
+                            x = float(x_base + q % QB)
+                            y = float(y_base + q // QB)
+                            kx, ky, c0, c1 = kxs[q], kys[q], c0s[q], c1s[q]
+                            gd, ei, ef, A, wp = gds[q], eis[q], efs[q], As[q], wps[q]
+                            aj = kx * a11 + ky * a12 + c0 * (x * a0 + y * a1 + a2) + c1 * (x * a3 + y * a4 + a5)
+                            Jd = gd * aj + ei * a9 + ef * a10
+                            acc0 += A * aj * aj + wp * Jd * Jd
+                            aj = kx * b11 + ky * b12 + c0 * (x * b0 + y * b1 + b2) + c1 * (x * b3 + y * b4 + b5)
+                            Jd = gd * aj + ei * b9 + ef * b10
+                            acc1 += A * aj * aj + wp * Jd * Jd
+                            aj = kx * d11 + ky * d12 + c0 * (x * d0 + y * d1 + d2) + c1 * (x * d3 + y * d4 + d5)
+                            Jd = gd * aj + ei * d9 + ef * d10
+                            acc2 += A * aj * aj + wp * Jd * Jd
+                        o[j0] += acc0
+                        o[j0 + 1] += acc1
+                        o[j0 + 2] += acc2
+                        continue
+                    if gsz == 4:  # a quaternion: the centre (rows 10-12) and the opacity do not move
+                        acc0 = 0.0
+                        acc1 = 0.0
+                        acc2 = 0.0
+                        acc3 = 0.0
+                        Ja, Jb, Jc, Je = Js[j0], Js[j0 + 1], Js[j0 + 2], Js[j0 + 3]
+                        a0, a1, a2, a3, a4, a5 = Ja[0], Ja[1], Ja[2], Ja[3], Ja[4], Ja[5]
+                        a6, a7, a8, a9 = Ja[6], Ja[7], Ja[8], Ja[9]
+                        b0, b1, b2, b3, b4, b5 = Jb[0], Jb[1], Jb[2], Jb[3], Jb[4], Jb[5]
+                        b6, b7, b8, b9 = Jb[6], Jb[7], Jb[8], Jb[9]
+                        d0, d1, d2, d3, d4, d5 = Jc[0], Jc[1], Jc[2], Jc[3], Jc[4], Jc[5]
+                        d6, d7, d8, d9 = Jc[6], Jc[7], Jc[8], Jc[9]
+                        e0, e1, e2, e3, e4, e5 = Je[0], Je[1], Je[2], Je[3], Je[4], Je[5]
+                        e6, e7, e8, e9 = Je[6], Je[7], Je[8], Je[9]
+                        for q in range(_LANES):
+                            x = float(x_base + q % QB)
+                            y = float(y_base + q // QB)
+                            c0, c1, c2 = c0s[q], c1s[q], c2s[q]
+                            gd, ei, ee, A, wp = gds[q], eis[q], ees[q], As[q], wps[q]
+                            p2 = x * a6 + y * a7 + a8
+                            aj = c0 * (x * a0 + y * a1 + a2) + c1 * (x * a3 + y * a4 + a5) + c2 * p2
+                            Jd = gd * aj + ei * a9 + ee * p2
+                            acc0 += A * aj * aj + wp * Jd * Jd
+                            p2 = x * b6 + y * b7 + b8
+                            aj = c0 * (x * b0 + y * b1 + b2) + c1 * (x * b3 + y * b4 + b5) + c2 * p2
+                            Jd = gd * aj + ei * b9 + ee * p2
+                            acc1 += A * aj * aj + wp * Jd * Jd
+                            p2 = x * d6 + y * d7 + d8
+                            aj = c0 * (x * d0 + y * d1 + d2) + c1 * (x * d3 + y * d4 + d5) + c2 * p2
+                            Jd = gd * aj + ei * d9 + ee * p2
+                            acc2 += A * aj * aj + wp * Jd * Jd
+                            p2 = x * e6 + y * e7 + e8
+                            aj = c0 * (x * e0 + y * e1 + e2) + c1 * (x * e3 + y * e4 + e5) + c2 * p2
+                            Jd = gd * aj + ei * e9 + ee * p2
+                            acc3 += A * aj * aj + wp * Jd * Jd
+                        o[j0] += acc0
+                        o[j0 + 1] += acc1
+                        o[j0 + 2] += acc2
+                        o[j0 + 3] += acc3
+                        continue
+                    if gsz == 2:  # the log scales u, v: neither the centre and opacity nor rows 0-2 resp. 3-5 move
+                        Ja, Jb = Js[j0], Js[j0 + 1]
+                        a3, a4, a5, a6, a7, a8, a9 = Ja[3], Ja[4], Ja[5], Ja[6], Ja[7], Ja[8], Ja[9]
+                        b0, b1, b2, b6, b7, b8, b9 = Jb[0], Jb[1], Jb[2], Jb[6], Jb[7], Jb[8], Jb[9]
+                        acc0 = 0.0
+                        acc1 = 0.0
+                        for q in range(_LANES):
+                            x = float(x_base + q % QB)
+                            y = float(y_base + q // QB)
+                            c0, c1, c2 = c0s[q], c1s[q], c2s[q]
+                            gd, ei, ee, A, wp = gds[q], eis[q], ees[q], As[q], wps[q]
+                            p2 = x * a6 + y * a7 + a8
+                            aj = c1 * (x * a3 + y * a4 + a5) + c2 * p2
+                            Jd = gd * aj + ei * a9 + ee * p2
+                            acc0 += A * aj * aj + wp * Jd * Jd
+                            p2 = x * b6 + y * b7 + b8
+                            aj = c0 * (x * b0 + y * b1 + b2) + c2 * p2
+                            Jd = gd * aj + ei * b9 + ee * p2
+                            acc1 += A * aj * aj + wp * Jd * Jd
+                        o[j0] += acc0
+                        o[j0 + 1] += acc1
+                        continue
+                    j = j0  # a group of one: the chain rule of any column, and the kind-1 channels' terms
                     acc = 0.0
                     ck = col_kind[j]
                     if ck == 0:  # no geometric parameter (colour): the rows do not depend on it, aj = 0
-                        for q in range(Q):
+                        for q in range(_LANES):
                             avs[q] = 0.0
                     else:
                         Jj = Js[j]
@@ -1042,7 +1159,7 @@ def _k_fisher(
                         J7, J8, J9, J10, J11, J12, J13 = Jj[7], Jj[8], Jj[9], Jj[10], Jj[11], Jj[12], Jj[13]
                         # The chain rule without the rows that are zero for the parameter's kind (fewer vector ops).
                         if ck == 1:  # a mean: the splat's axes (rows 6-8) and the opacity do not move
-                            for q in range(Q):
+                            for q in range(_LANES):
                                 x = float(x_base + q % QB)
                                 y = float(y_base + q // QB)
                                 aj = (kxs[q] * J11 + kys[q] * J12 + c0s[q] * (x * J0 + y * J1 + J2)
@@ -1052,7 +1169,7 @@ def _k_fisher(
                                 if n1 > 0:  # only kind-1 channels read it (a loop-invariant test)
                                     avs[q] = aj
                         elif ck == 2:  # a quaternion component: the centre (rows 10-12) and the opacity do not move
-                            for q in range(Q):
+                            for q in range(_LANES):
                                 x = float(x_base + q % QB)
                                 y = float(y_base + q // QB)
                                 p2 = x * J6 + y * J7 + J8
@@ -1062,7 +1179,7 @@ def _k_fisher(
                                 if n1 > 0:
                                     avs[q] = aj
                         elif ck == 3:  # log scale u: neither rows 0-2 nor the centre and opacity move
-                            for q in range(Q):
+                            for q in range(_LANES):
                                 x = float(x_base + q % QB)
                                 y = float(y_base + q // QB)
                                 p2 = x * J6 + y * J7 + J8
@@ -1072,7 +1189,7 @@ def _k_fisher(
                                 if n1 > 0:
                                     avs[q] = aj
                         elif ck == 4:  # log scale v: neither rows 3-5 nor the centre and opacity move
-                            for q in range(Q):
+                            for q in range(_LANES):
                                 x = float(x_base + q % QB)
                                 y = float(y_base + q // QB)
                                 p2 = x * J6 + y * J7 + J8
@@ -1082,7 +1199,7 @@ def _k_fisher(
                                 if n1 > 0:
                                     avs[q] = aj
                         else:  # any row (the opacity logit)
-                            for q in range(Q):
+                            for q in range(_LANES):
                                 x = float(x_base + q % QB)
                                 y = float(y_base + q // QB)
                                 p2 = x * J6 + y * J7 + J8
@@ -1097,7 +1214,7 @@ def _k_fisher(
                         if Bj == 0.0:
                             continue
                         Gf = G[s, f]
-                        for q in range(Q):
+                        for q in range(_LANES):
                             acc += wps[q] * ws[q] * Bj * (2.0 * Gf[q] * avs[q] + ws[q] * Bj)
                     o[j] += acc
 
