@@ -697,7 +697,8 @@ _BLOCK = 4
 """Side of the pixel tiles of the Fisher kernel (its lanes: ``_BLOCK ** 2`` pixels)."""
 _LANES = _BLOCK * _BLOCK
 """The Fisher kernel's lanes per tile, a constant of the compiled code: the chain rule's lane loops over
-``range(_LANES)`` unroll fully (with ``range(Q)`` of a local they stayed loops: 10 % slower, issue 12)."""
+``range(_LANES)`` unroll fully. Over ``range(Q)`` of a local the grouped loops stayed loops with their Jacobian
+entries spilled, and the kernel was slower than with one pass per column (scratch timing, issue 12)."""
 _NF = 18
 """Per (surfel, pixel) lane fields of the Fisher kernel."""
 _CHUNK = 64
