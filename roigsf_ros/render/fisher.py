@@ -1054,6 +1054,8 @@ def _k_fisher(
                 avs = Cs[14]  # aj of the current parameter
                 Js = jac[sid]
                 o = ob[sid]
+                # The groups are written out column by column, so that every Jacobian entry they read is a scalar
+                # of the unrolled lane loop (no inner loop over the columns, no array of their entries).
                 for gi in range(ngrp):
                     j0 = g_start[gi]
                     gsz = g_size[gi]
