@@ -16,6 +16,15 @@
 #   budget/      roi-gsurfisher:window=13:trigger_every=4:trigger=budget:unseen_weight=1 (the same budget, keyframes
 #                placed where the unseen fraction is high; its settings fixed before any run, checked on the synthetic
 #                room by scripts/figure_nbv_stream_synth.sh)
+#   novelty/           novelty:window=13 (beyond the paper: per window the frame whose captured depth shows the most
+#                      surface no keyframe's depth showed; eighteenth session, its constants fixed before any run)
+#   unseen-novelty/    roi-gsurfisher:window=13:unseen_weight=1:novelty_weight=1 (the unseen variant plus z(novelty))
+#   paper-novelty/     roi-gsurfisher:window=13:novelty_weight=1 (the paper's score plus z(novelty))
+#   budget-novelty/    the budget row with novelty_weight=1 (its gain is then the novelty)
+#   unseen-novelty-it52/  unseen-novelty with 52 steps per keyframe (31 x 52 ~ gaus-slam's 160 x 10 steps)
+# ROWS="a b ..." runs only those folders (default: all). SENSOR=kinect renders the frames through the simulated
+# Kinect v1 (`roigsf scene render --sensor kinect`) into runs/office0_240_s5_kinect/ and writes
+# runs/bench_stream_office0_w13_kinect/ instead (recall and precision still against the true mesh).
 # Each folder: results.json, results.md, quality_vs_views.png, chosen_views.png, runs/.
 # Measured wall time (2026-11-25, commit 3d0251f code, 2 cores shared with two other jobs, every bench under
 # nice -n 10, so these are inflated): unseen 248 s (load avg 3-4.5; 129 s in a rerun at load ~1),
@@ -37,23 +46,38 @@ SEEDS="${SEEDS:-1}"
 NICE="${NICE:-10}"
 [ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
-if [ ! -f runs/office0_240_s5/mesh.ply ]; then
+SCENE=runs/office0_240_s5${SENSOR:+_$SENSOR}
+if [ ! -f "$SCENE/mesh.ply" ]; then
     roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
-        --out runs/office0_240_s5 --width 240 --height 136 --stride 5 --overwrite
+        --out "$SCENE" --width 240 --height 136 --stride 5 ${SENSOR:+--sensor "$SENSOR"} --overwrite
 fi
-stream_bench() {  # stream_bench OUT POLICIES
-    nice -n "$NICE" roigsf bench --scene runs/office0_240_s5 --setting stream --policies "$2" --seeds "$SEEDS" \
-        --uncertainty-views 0 --out "$1" --overwrite
+stream_bench() {  # stream_bench OUT POLICIES [bench options]
+    local out=$1 policies=$2
+    shift 2
+    nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$policies" --seeds "$SEEDS" \
+        --uncertainty-views 0 --out "$out" --overwrite "$@"
+}
+row() {  # row NAME POLICIES [bench options]: one folder of the issue-10 table, unless ROWS leaves it out
+    local name=$1
+    shift
+    case " ${ROWS:-$name} " in *" $name "*) stream_bench "$W13/$name" "$@" ;; esac
 }
 if [ "${ISSUE10:-1}" != 0 ]; then
-    W13=runs/bench_stream_office0_w13
-    stream_bench "$W13/unseen" "roi-gsurfisher:window=$WINDOW10:unseen_weight=1"
-    stream_bench "$W13/gaus-slam" "gaus-slam"
-    stream_bench "$W13/random" "random:window=$WINDOW10"
-    stream_bench "$W13/paper" "roi-gsurfisher:window=$WINDOW10"
-    stream_bench "$W13/roi-fisher" "roi-fisher:window=$WINDOW10"
-    stream_bench "$W13/every-n" "every-n:n=$WINDOW10"
-    stream_bench "$W13/budget" "roi-gsurfisher:window=$WINDOW10:trigger_every=4:trigger=budget:unseen_weight=1"
+    W13=runs/bench_stream_office0_w13${SENSOR:+_$SENSOR}
+    R="roi-gsurfisher:window=$WINDOW10"
+    BUDGET="$R:trigger_every=4:trigger=budget:unseen_weight=1"
+    row unseen "$R:unseen_weight=1"
+    row gaus-slam "gaus-slam"
+    row random "random:window=$WINDOW10"
+    row paper "$R"
+    row roi-fisher "roi-fisher:window=$WINDOW10"
+    row every-n "every-n:n=$WINDOW10"
+    row budget "$BUDGET"
+    row novelty "novelty:window=$WINDOW10"
+    row unseen-novelty "$R:unseen_weight=1:novelty_weight=1"
+    row paper-novelty "$R:novelty_weight=1"
+    row budget-novelty "$BUDGET:novelty_weight=1"
+    row unseen-novelty-it52 "$R:unseen_weight=1:novelty_weight=1" --set iters_per_keyframe=52
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"

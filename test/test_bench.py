@@ -60,6 +60,11 @@ def test_parse_policies() -> None:
         parse_policies("random,gaus-slam", "pool")
     with pytest.raises(InputError, match="stream-only"):
         parse_policies("every-n:n=3", "pool")
+    with pytest.raises(InputError, match="stream-only"):  # novelty reads captured depth: a pool view has none yet
+        parse_policies("novelty", "pool")
+    with pytest.raises(InputError, match=r"novelty_weight.*stream setting only"):
+        parse_policies("roi-gsurfisher:unseen_weight=1:novelty_weight=1", "pool")
+    assert parse_policies("roi-gsurfisher:novelty_weight=1,novelty:window=5", "stream")[1].params == {"window": 5}
     with pytest.raises(InputError, match="takes no parameter"):
         parse_policies("fisherrf:windows=3", "pool")
     with pytest.raises(InputError, match="expected name:key=value"):

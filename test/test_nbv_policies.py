@@ -216,3 +216,69 @@ def test_budget_trigger_with_the_real_scorer_keeps_its_budget(frames: list[Frame
     assert pol.last_result is not None and pol.last_result.unseen is not None
     pick = int(pol.last_result.best_index)
     assert pol.gain(pick) == pytest.approx(float(pol.last_result.unseen[pick]))
+
+
+def reference_novelty(returned: list[Frame], cand: Frame, mapper: Mapper, voxel_m: float = 0.025) -> float:
+    """Area (m^2) of the candidate's depth voxels farther than 5 cm + half a voxel from the returned frames' voxels."""
+    from scipy.spatial import cKDTree
+
+    from roigsf_ros.nbv.novelty import depth_points_w
+
+    def vox(f: Frame) -> np.ndarray:
+        pts = depth_points_w(f.depth_m, f.T_wc, INTR, mapper.valid_depth_mask(f.depth_m))
+        return np.unique(np.floor(pts / voxel_m).astype(np.int64), axis=0).astype(np.float64)
+
+    q = vox(cand)
+    dist, _ = cKDTree(np.concatenate([vox(f) for f in returned])).query(q, k=1)
+    return float(np.count_nonzero(dist > (0.05 + 0.5 * voxel_m) / voxel_m + 1e-9)) * voxel_m**2
+
+
+def test_novelty_policy_picks_the_frame_whose_depth_shows_the_most_new_surface(frames: list[Frame]) -> None:
+    """Beyond the paper, stream only: N of each window frame against the depth of every frame returned before."""
+    pol = make_policy("novelty", window=WINDOW)
+    assert pol.params() == {"window": WINDOW, "trigger_every": WINDOW, "seed": 0, "novelty_voxel_m": 0.025,
+                            "novelty_radius_m": 0.05}  # fmt: skip
+    by_id = {f.index: f for f in frames}
+    checked = []
+
+    def check(policy: StreamNBVPolicy, mapper: Mapper, k: int) -> None:
+        if policy.last_novelty is not None and policy.last_candidate_ids and len(checked) < policy.triggers:
+            returned = [by_id[i] for i in mapper.keyframe_ids[:-1]]  # the keyframes before the last trigger's pick
+            ref = [reference_novelty(returned, by_id[i], mapper) for i in policy.last_candidate_ids]
+            np.testing.assert_allclose(policy.last_novelty, ref, rtol=0, atol=1e-12)
+            assert mapper.keyframe_ids[-1] == policy.last_candidate_ids[int(np.argmax(ref))]
+            checked.append(k)
+
+    mapper = run_stream(pol, frames, check)
+    assert len(checked) == (N_FRAMES - 1) // WINDOW  # every trigger, checked at the next frame
+    assert pol.observed is not None and pol.observed.n_added == len(mapper.keyframe_ids)
+    assert pol.last_result is None and pol.gain(0) == pytest.approx(float(pol.last_novelty[0]))
+
+
+def test_novelty_weight_adds_its_z_score_to_the_fused_score(frames: list[Frame]) -> None:
+    from roigsf_ros.nbv.scorer import zscore
+
+    pol = make_policy("roi-gsurfisher", window=WINDOW, unseen_weight=1.0, novelty_weight=1.0)
+    assert pol.params()["novelty_weight"] == 1.0
+    mapper = run_stream(pol, frames)
+    r, n = pol.last_result, pol.last_novelty
+    assert r is not None and n is not None and np.ptp(n) > 0
+    assert mapper.keyframe_ids[-1] == pol.last_candidate_ids[int(np.argmax(r.fused + zscore(n)))]
+    heavy = make_policy("roi-gsurfisher", window=WINDOW, novelty_weight=1e9)  # N decides: the novelty policy's picks
+    assert (
+        run_stream(heavy, frames).keyframe_ids == run_stream(make_policy("novelty", window=WINDOW), frames).keyframe_ids
+    )
+    budget = make_policy("roi-fisher", window=4, trigger_every=2, trigger="budget", budget_every=4, unseen_weight=1.0,
+                         novelty_weight=0.5)  # fmt: skip
+    run_stream(budget, frames)
+    assert budget.gain(1) == pytest.approx(float(budget.last_novelty[1]))  # the budget's gain is N, not U
+    for name, params, field in [("random", {"novelty_weight": 1.0}, "novelty_weight"),
+                                ("novelty", {"novelty_weight": 1.0}, "novelty_weight"),
+                                ("roi-fisher", {"novelty_weight": -1.0}, "novelty_weight"),
+                                ("novelty", {"novelty_voxel_m": 0.0}, "novelty_voxel_m")]:  # fmt: skip
+        with pytest.raises(InputError, match=field):
+            make_policy(name, **params)
+    no_depth = Frame(index=1, rgb=np.zeros((0, 0, 3), np.uint8), depth_m=np.zeros((0, 0), np.float32),
+                     T_wc=frames[0].T_wc)  # fmt: skip
+    with pytest.raises(InputError, match=r"frame 1 depth_m.*pool"):
+        make_policy("novelty").choose([no_depth], Mapper(INTR, mapper_config()))

@@ -38,8 +38,9 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig, valid_depth_mask
 from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.novelty import ObservedSurface, fuse_novelty
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import TrainFisherCache, carry_rows, match_surfels
 from roigsf_ros.nodes.active_mapping import ActiveMapping
@@ -444,6 +445,98 @@ def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context:
     assert sorted(published[4:]) == [7000, 11000]
     assert status["planner_calls"] == 4 and status["planner_waited"] == 3 and status["fallbacks"] == 1
     assert not status["planner_pending"] and not status["planner_window_waiting"]
+
+
+def _novelty_sequence(frames: list[Frame], n_windows: int) -> list[Frame]:
+    """Frame 0, then windows of 2 whose second frame is, in odd windows, frame 0 again (nothing new to show)."""
+    seq = [frames[0]]
+    for k in range(n_windows):
+        seq += [frames[2 * k + 1], frames[0] if k % 2 else frames[2 * k + 2]]
+    return seq
+
+
+def _novelty_picks(seq: list[Frame], fused: list[float] | None = None) -> tuple[list[int], list[int]]:
+    """Stamps ((i + 1) * 1000 for seq[i]) and window positions the observed novelty picks for the windows of 2 after
+    the first frame: the library's ObservedSurface with the default settings and depth range, alone or fused with
+    ``fused`` at weight 1."""
+    surface, cfg = ObservedSurface(), MapperConfig()
+
+    def novelty(f: Frame) -> float:
+        return surface.new_area_m2(f.depth_m, f.T_wc, INTR, valid_depth_mask(f.depth_m, cfg))
+
+    surface.add(seq[0].depth_m, seq[0].T_wc, INTR, valid_depth_mask(seq[0].depth_m, cfg))
+    stamps, positions = [1000], []
+    for first in range(1, len(seq) - 1, 2):
+        n = np.array([novelty(seq[first]), novelty(seq[first + 1])])
+        i = int(np.argmax(n if fused is None else fuse_novelty(np.array(fused), n, 1.0)))
+        win = seq[first + i]
+        surface.add(win.depth_m, win.T_wc, INTR, valid_depth_mask(win.depth_m, cfg))
+        stamps.append((first + i + 1) * 1000)
+        positions.append(i)
+    return stamps, positions
+
+
+@pytest.mark.parametrize("policy", ["novelty", "roi-fisher"])
+def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
+    ros_context: Any, scene: Any, policy: str
+) -> None:
+    """Policy novelty decides alone; with a planner policy and no planner, fallback_policy novelty decides."""
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value=policy),
+        Parameter("window", value=2),
+        Parameter("fallback_policy", value="novelty"),
+        Parameter("planner_service", value="/no_planner_here/nbv"),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    seq = _novelty_sequence(frames, 5)
+    expected, positions = _novelty_picks(seq)
+    assert positions == [1, 0, 1, 0, 1]  # the repeated frame 0 never wins: a fixed position would fail
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        for i, frame in enumerate(seq):
+            cam.publish(_frame_msgs(frame, (i + 1) * 1000))
+        _wait(lambda: selector.status()["keyframes_published"] == 6, 20.0, "six keyframes")
+        status = selector.status()
+    assert status["keyframe_ids"] == expected
+    assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
+
+
+def test_selector_adds_the_novelty_term_to_the_planners_fused_scores(ros_context: Any, scene: Any) -> None:
+    """novelty_weight 1: the pick is argmax(fused + z(N)), not the planner's best_index (always 0 here)."""
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value="roi-fisher"),
+        Parameter("window", value=2),
+        Parameter("planner_service", value="/test_planner_novelty/nbv"),
+        Parameter("novelty_weight", value=1.0),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    published: list[int] = []
+    cam.node.create_subscription(
+        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+    )
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        res.success, res.best_index = True, 0
+        res.fused_scores = [0.1] + [-0.1] * (len(req.candidates.poses) - 1)
+        return res
+
+    seq = _novelty_sequence(frames, 4)
+    expected, positions = _novelty_picks(seq, fused=[0.1, -0.1])
+    assert positions == [1, 0, 1, 0]  # the novelty overrules the planner's pick in windows 0 and 2
+    with _stub_planner(ros_context, "test_planner_novelty", serve), _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+        cam.publish(_frame_msgs(seq[0], 1000))
+        for first in range(1, len(seq), 2):
+            cam.publish(_frame_msgs(seq[first], (first + 1) * 1000))
+            cam.publish(_frame_msgs(seq[first + 1], (first + 2) * 1000))
+            _wait(lambda n=(first + 3) // 2: len(published) == n, 10.0, f"keyframe {(first + 3) // 2}")
+        status = selector.status()
+    assert published == expected and status["planner_answers"] == 4 and status["fallbacks"] == 0
 
 
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:

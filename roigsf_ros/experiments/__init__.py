@@ -30,6 +30,7 @@ __all__, __getattr__ = lazy_exports(
             "PoolResult",
             "PoolSplit",
             "SCHEDULES",
+            "check_pool_params",
             "farthest_point_views",
             "make_pool_policy",
             "pose_only",

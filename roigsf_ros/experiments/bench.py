@@ -38,7 +38,7 @@ from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
-from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, run_pool
+from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer, depth_error_ause, render_surfel_scalar, train_fisher
 from roigsf_ros.policies.base import make_policy, policy_names
@@ -140,6 +140,8 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
                 f"{name!r} is a stream-only rule (it cannot score a pool of poses); pool policies: "
                 f"{', '.join(POOL_POLICIES)}",
             )
+        if setting == "pool":
+            check_pool_params(params)
         make_policy(name, **params)  # unknown or out-of-range parameters fail here, before any work
         specs.append(PolicySpec(name=name, params=params, label=item))
     labels = [s.label for s in specs]

@@ -49,6 +49,15 @@ POOL_POLICIES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf", "ran
 """Policies valid in the pool setting (the per-frame rules gaus-slam, every-n, all are stream-only)."""
 
 SCHEDULES = ("fixed", "epochs")
+
+
+def check_pool_params(params: dict[str, Any]) -> None:
+    """InputError for policy parameters that need a candidate's images: the pool scores poses only."""
+    if float(params.get("novelty_weight") or 0.0) > 0:
+        raise InputError("novelty_weight", "reads a candidate's captured depth: stream setting only (the pool scores "
+                         "views before they are taken, from their poses)")  # fmt: skip
+
+
 """``fixed``: step counts as given; ``epochs``: counts times the current number of training views."""
 
 
@@ -99,6 +108,7 @@ class PoolConfig(Config):
         """Self, or InputError naming the first field out of range."""
         if self.policy not in POOL_POLICIES:
             raise InputError("policy", f"{self.policy!r} is not a pool policy (choose from {', '.join(POOL_POLICIES)})")
+        check_pool_params(self.policy_params)
         if self.schedule not in SCHEDULES:
             raise InputError("schedule", f"unknown schedule {self.schedule!r} (choose from {', '.join(SCHEDULES)})")
         for name, lo in (("n_initial", 1), ("test_every", 2), ("pool_stride", 1), ("mesh_samples", 1)):
@@ -376,6 +386,7 @@ __all__ = [
     "PoolConfig",
     "PoolResult",
     "PoolSplit",
+    "check_pool_params",
     "farthest_point_views",
     "make_pool_policy",
     "pose_only",

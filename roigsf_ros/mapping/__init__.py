@@ -16,7 +16,16 @@ __all__, __getattr__ = lazy_exports(
             "ssim",
             "ssim_map",
         ],
-        "mapper": ["DEPTH_MODES", "Keyframe", "MapMeta", "Mapper", "MapperConfig", "MapperStats", "read_map_meta"],
+        "mapper": [
+            "DEPTH_MODES",
+            "Keyframe",
+            "MapMeta",
+            "Mapper",
+            "MapperConfig",
+            "MapperStats",
+            "read_map_meta",
+            "valid_depth_mask",
+        ],
         "tsdf": ["SurfaceVoxels", "TSDFVolume", "o3c", "tsdf_mesh_from_depths"],
     },
 )

@@ -288,6 +288,14 @@ class _SparseAdam:
             p.index_add_(0, rows, upd, alpha=-self.lrs[k])
 
 
+def valid_depth_mask(depth_m: np.ndarray, config: MapperConfig) -> np.ndarray:
+    """Bool [H, W]: finite depth within (min_depth_m, max_depth_m] of ``config`` (and beyond its near plane)."""
+    d = np.asarray(depth_m)
+    lo = max(config.min_depth_m, config.near_m)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (d > lo) & (d <= config.max_depth_m)
+
+
 def _numba_rows_ok(params: dict[str, Tensor], rows: Tensor) -> bool:
     """Whether the numba row kernels apply: CPU float tensors with contiguous gradients, numba installed."""
     if rows.device.type != "cpu" or not numba_available():
@@ -382,10 +390,7 @@ class Mapper:
 
     def valid_depth_mask(self, depth_m: np.ndarray) -> np.ndarray:
         """Bool [H, W]: finite depth within (min_depth_m, max_depth_m] (and beyond the near plane)."""
-        d = np.asarray(depth_m)
-        lo = max(self.config.min_depth_m, self.config.near_m)
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(d) & (d > lo) & (d <= self.config.max_depth_m)
+        return valid_depth_mask(depth_m, self.config)
 
     # ------------------------------------------------------------------------------- rendering
     def render(self, T_wc: np.ndarray, with_grad: bool = False) -> RenderOutput:
@@ -964,4 +969,5 @@ __all__ = [
     "MapperConfig",
     "MapperStats",
     "read_map_meta",
+    "valid_depth_mask",
 ]

@@ -1,4 +1,6 @@
-"""Next-best-view scoring: the config, the view ROI, close-front, the scorer and the state kept between calls."""
+"""Next-best-view scoring: the config, the view ROI, close-front, the scorer, the state kept between calls, and a
+captured frame's observed novelty (stream setting).
+"""
 
 from roigsf_ros.core.exports import lazy_exports
 
@@ -7,6 +9,7 @@ __all__, __getattr__ = lazy_exports(
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
         "config": ["BACKFACE_TESTS", "MODES", "NBVConfig"],
+        "novelty": ["NOVELTY_RADIUS_M", "NOVELTY_VOXEL_M", "ObservedSurface", "depth_points_w", "fuse_novelty"],
         "roi": [
             "LUMA_RGB",
             "BatchROI",

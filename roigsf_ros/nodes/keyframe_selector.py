@@ -16,7 +16,15 @@ The first frame is always a keyframe. Then, by ``policy``:
   asks the planner again, so the selector resumes using it as soon as it answers.
 - ``random`` (a seeded pick from the window, as the library's stream baseline), ``every-n``
   (``every_n``), ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the
-  mapper's ``/roigsf/map``) and ``all`` decide alone with the library's policies.
+  mapper's ``/roigsf/map``), ``all`` and ``novelty`` (beyond the paper: per window the frame whose depth shows
+  the most surface no keyframe's depth showed, :mod:`roigsf_ros.nbv.novelty`) decide alone with the library's
+  policies.
+
+Beyond the paper, ``novelty_weight`` > 0 with a planner policy adds ``novelty_weight x z(N)`` to the planner's fused
+scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the library's stream policy does), N each
+candidate's observed novelty against the depth of the keyframes published so far; the planner scores poses only,
+the selector holds the frames. ``fallback_policy: novelty`` decides an unanswered window by N. Depth counts within
+the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
@@ -46,8 +54,9 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame
-from roigsf_ros.mapping.mapper import Mapper
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig, valid_depth_mask
 from roigsf_ros.nbv.config import MODES
+from roigsf_ros.nbv.novelty import NOVELTY_RADIUS_M, NOVELTY_VOXEL_M, ObservedSurface, fuse_novelty
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
@@ -60,7 +69,7 @@ from roigsf_ros.render.surfels import SurfelMap
 
 PLANNER_POLICIES = MODES
 """Policies whose keyframes the NBV planner chooses (its score modes)."""
-ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all")
+ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all", "novelty")
 """Policies that decide without the planner (the baselines, and the fallbacks)."""
 PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
 
@@ -83,6 +92,9 @@ class KeyframeSelectorNode(SystemNode):
         self.service_name = str(declare(self, "planner_service", PLANNER_SERVICE, "the planner's service"))
         self.timeout_s = float(declare(self, "planner_timeout_s", 10.0, "seconds to wait for the planner's answer"))
         self.fallback = str(declare(self, "fallback_policy", "random", "decides when the planner does not answer"))
+        self.novelty_weight = float(declare(self, "novelty_weight", 0.0, "weight of z(observed novelty) (0 = off)"))
+        self.novelty_voxel_m = float(declare(self, "novelty_voxel_m", NOVELTY_VOXEL_M, "novelty's voxel (m)"))
+        self.novelty_radius_m = float(declare(self, "novelty_radius_m", NOVELTY_RADIUS_M, "observed within this (m)"))
         camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
@@ -95,6 +107,10 @@ class KeyframeSelectorNode(SystemNode):
             choices = ", ".join(ALONE_POLICIES)
             raise InputError("parameter 'fallback_policy'", f"'{self.fallback}' must decide alone: one of {choices}")
         check_positive("window", self.window)
+        check_positive("novelty_weight", self.novelty_weight, allow_zero=True)
+        if self.novelty_weight > 0 and self.policy not in PLANNER_POLICIES:
+            raise InputError("parameter 'novelty_weight'", f"is added to the planner's scores: policy '{self.policy}' "
+                             "does not ask the planner (policy novelty ranks by it alone)")  # fmt: skip
         check_positive("trigger_every", trigger, allow_zero=True)
         check_positive("planner_timeout_s", self.timeout_s)
         check_positive("qos_depth", qos_depth)
@@ -104,6 +120,9 @@ class KeyframeSelectorNode(SystemNode):
         self._alone = self._make_alone(self.policy) if not self.uses_planner else None
         self._fallback = self._make_alone(self.fallback)
         self._fallback_rng = np.random.default_rng(self.seed)
+        needs = self.uses_planner and (self.novelty_weight > 0 or self.fallback == "novelty")
+        self._observed = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m) if needs else None
+        """The keyframes' observed surface, for the planner policies' novelty term or fallback."""
 
         self.shared = shared
         self._lock = threading.RLock()
@@ -149,6 +168,12 @@ class KeyframeSelectorNode(SystemNode):
     def _make_alone(self, name: str) -> KeyframePolicy:
         params: dict[str, Any] = {
             "random": {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed},
+            "novelty": {
+                "window": self.window,
+                "trigger_every": self.trigger_every,
+                "novelty_voxel_m": self.novelty_voxel_m,
+                "novelty_radius_m": self.novelty_radius_m,
+            },
             "every-n": {"n": self.every_n},
             "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
             "all": {},
@@ -193,7 +218,7 @@ class KeyframeSelectorNode(SystemNode):
                 return
             candidates, first = self._window.push(frame)  # the library's stream window and trigger
             if first:
-                self._publish(frame)
+                self._publish(frame, bf.intrinsics)
                 return
             if not candidates:
                 return
@@ -205,12 +230,13 @@ class KeyframeSelectorNode(SystemNode):
         """Run a library policy over ``frames`` and publish the keyframes it names (the first frame always)."""
         for frame in frames:
             view = self._map_view(intr) if policy.name == "gaus-slam" else None
+            view = self._depth_view(intr) if policy.name == "novelty" else view
             chosen = policy.observe(frame, view)  # type: ignore[arg-type]  # only gaus-slam reads the map
             if force_first and not any(f is frame for f in chosen):
                 chosen = [frame, *chosen]
             force_first = False
             for f in chosen:
-                self._publish(f)
+                self._publish(f, intr)
 
     # ------------------------------------------------------------------------------ planner
     def _ask_planner(self, candidates: list[Frame], intr: Intrinsics) -> None:
@@ -273,9 +299,12 @@ class KeyframeSelectorNode(SystemNode):
                 if self._planner_down:
                     self._planner_down = False
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
-                winner = candidates[res.best_index]
+                best = res.best_index
+                if self.novelty_weight > 0:
+                    best = self._with_novelty(candidates, intr, res.fused_scores, best)
+                winner = candidates[best]
                 self._window.remove(winner)
-                self._publish(winner)
+                self._publish(winner, intr)
             elif time.monotonic() - t_sent > self.timeout_s:
                 self._request = None
                 self._client.remove_pending_request(future)
@@ -292,19 +321,49 @@ class KeyframeSelectorNode(SystemNode):
         else:
             self.get_logger().warning(msg, throttle_duration_sec=WARN_THROTTLE_S)
         self._planner_down = True
-        if self.fallback == "random":
-            winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
+        if self.fallback in ("random", "novelty"):
+            if self.fallback == "random":
+                winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
+            else:
+                winner = candidates[int(np.argmax(self._novelty(candidates, intr)))]  # ties: the oldest
             self._window.remove(winner)
-            self._publish(winner)
+            self._publish(winner, intr)
             return
         for f in candidates:
             self._window.remove(f)
         self._decide_alone(self._fallback, candidates, intr)
 
+    # ------------------------------------------------------------------------------ novelty
+    def _mapper_config(self) -> MapperConfig:
+        """The mapper's settings: the shared mapper's in-process, else the defaults."""
+        return self.shared.config if self.shared is not None else MapperConfig()
+
+    def _depth_view(self, intr: Intrinsics) -> Mapper:
+        """An empty map with the mapper's settings: what the novelty policy reads (the camera and depth range)."""
+        return view_mapper(SurfelMap.empty(), intr, self._mapper_config())
+
+    def _novelty(self, candidates: list[Frame], intr: Intrinsics) -> np.ndarray:
+        """[M] observed novelty (m^2) of the candidates against the keyframes published so far."""
+        assert self._observed is not None
+        cfg = self._mapper_config()
+        return np.array([self._observed.new_area_m2(f.depth_m, f.T_wc, intr, valid_depth_mask(f.depth_m, cfg))
+                         for f in candidates])  # fmt: skip
+
+    def _with_novelty(self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int) -> int:
+        """The pick of ``fused + novelty_weight z(N)``; the planner's own ``best`` when its scores do not fit."""
+        if len(fused) != len(candidates):
+            self.get_logger().warning(f"planner answered {len(fused)} fused scores for {len(candidates)} candidates: "
+                                      "its pick is taken without the novelty term")  # fmt: skip
+            return best
+        return int(np.argmax(fuse_novelty(np.asarray(fused), self._novelty(candidates, intr), self.novelty_weight)))
+
     # ------------------------------------------------------------------------------ outputs
-    def _publish(self, frame: Frame) -> None:
+    def _publish(self, frame: Frame, intr: Intrinsics) -> None:
         self.keyframe_ids.append(int(frame.index))
         self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
+        if self._observed is not None:  # what the keyframe's depth observes no longer counts as new
+            valid = valid_depth_mask(frame.depth_m, self._mapper_config())
+            self._observed.add(frame.depth_m, frame.T_wc, intr, valid)
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""

@@ -14,6 +14,7 @@ __all__, __getattr__ = lazy_exports(
             "CandidateWindow",
             "CloseFrontStream",
             "FisherRFStream",
+            "NoveltyStream",
             "ROIFisherStream",
             "ROIGSurFisherStream",
             "RandomStream",

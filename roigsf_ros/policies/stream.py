@@ -7,8 +7,11 @@ map and TSDF and turns the best one into a keyframe. A frame's image is used onl
 chosen, when it is inserted into the mapper. The first frame is always a keyframe (empty map).
 
 Registered names (see :func:`roigsf_ros.policies.base.make_policy`): ``"random"`` (a seeded uniform
-pick from the window, the baseline) and one policy per :data:`roigsf_ros.nbv.scorer.MODES`:
-``"roi-gsurfisher"``, ``"roi-fisher"``, ``"close-front"``, ``"fisherrf"``.
+pick from the window, the baseline), one policy per :data:`roigsf_ros.nbv.scorer.MODES`:
+``"roi-gsurfisher"``, ``"roi-fisher"``, ``"close-front"``, ``"fisherrf"``, and ``"novelty"`` (beyond the paper:
+the window frame whose *captured* depth shows the most surface no keyframe's depth has shown,
+:mod:`roigsf_ros.nbv.novelty`; the scored modes can add the same term with ``novelty_weight``). Novelty reads a
+candidate's depth, which a stream frame has (the camera took it) and a pool candidate has not.
 
 At a trigger ``observe`` returns the window's winner, generally a *past* frame: the caller inserts
 it (the policy never changes the map). The window and trigger rule live in :class:`CandidateWindow`,
@@ -34,6 +37,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.novelty import NOVELTY_RADIUS_M, NOVELTY_VOXEL_M, ObservedSurface, fuse_novelty
 from roigsf_ros.nbv.scorer import NBVResult
 from roigsf_ros.nbv.state import ScoringState, running_h_train_fits
 from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_policy
@@ -109,8 +113,13 @@ class StreamNBVPolicy(KeyframePolicy):
       1 / ``budget_every`` (None: ``window``) of a keyframe, at most ``budget_burst`` (3) are banked, and a trigger
       holding a whole one inserts its best when the gain reaches ``adaptive_ratio`` x the median of the recent
       triggers' gains, or when the next trigger would overflow the bank; so a sequence of F frames yields at most
-      1 + (F - 1) // ``budget_every`` keyframes, placed where the gain is high. The gain is the unseen fraction
-      U when ``unseen_weight`` > 0 (new space is what a keyframe should bring), else F (Eq. 10) / I_vis.
+      1 + (F - 1) // ``budget_every`` keyframes, placed where the gain is high. The gain is the novelty N when it
+      is scored (below), else the unseen fraction U when ``unseen_weight`` > 0 (new space is what a keyframe should
+      bring), else F (Eq. 10) / I_vis.
+    - ``novelty_weight`` (0; beyond the paper): adds ``novelty_weight x z(N)`` to the scored modes' fused score, N
+      the candidate's observed novelty (:meth:`roigsf_ros.nbv.novelty.ObservedSurface.new_area_m2`: the area of its
+      back-projected depth farther than ``novelty_radius_m`` (0.05) from all the depth of the frames this policy
+      returned, voxelised at ``novelty_voxel_m`` (0.025)). The ``"novelty"`` policy ranks by N alone.
     - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m`` and any
       other :class:`roigsf_ros.nbv.config.NBVConfig` field by name (e.g. ``unseen_weight``): passed to the
       scorer's config (None: its default). The mode is the policy name; unknown names raise InputError.
@@ -126,7 +135,9 @@ class StreamNBVPolicy(KeyframePolicy):
     """
 
     mode: str | None = None
-    """NBV score mode (None: random pick)."""
+    """NBV score mode (None: random pick, or the novelty alone when :attr:`novelty_only`)."""
+    novelty_only: bool = False
+    """Rank by the observed novelty alone (policy ``"novelty"``)."""
 
     def __init__(
         self,
@@ -149,14 +160,26 @@ class StreamNBVPolicy(KeyframePolicy):
         adaptive_max_gap: int = 4,
         budget_every: float | None = None,
         budget_burst: float = 3.0,
+        novelty_weight: float = 0.0,
+        novelty_voxel_m: float = NOVELTY_VOXEL_M,
+        novelty_radius_m: float = NOVELTY_RADIUS_M,
         **nbv_options: Any,
     ) -> None:
         self.candidates = CandidateWindow(window, trigger_every)
+        if not (isinstance(novelty_weight, int | float) and np.isfinite(novelty_weight) and novelty_weight >= 0):
+            raise InputError("novelty_weight", f"must be a finite number >= 0, got {novelty_weight!r}")
+        if novelty_weight > 0 and self.mode is None:
+            alone = " (it ranks by the novelty alone)" if self.novelty_only else " (policy novelty ranks by it alone)"
+            raise InputError("novelty_weight", f"policy {self.name!r} has no fused score to add it to{alone}")
+        self.novelty_weight = float(novelty_weight)
+        ObservedSurface(novelty_voxel_m, novelty_radius_m)  # checks both now, not at the first frame
+        self.novelty_voxel_m = float(novelty_voxel_m)
+        self.novelty_radius_m = float(novelty_radius_m)
         if min_alpha is not None and not 0.0 <= float(min_alpha) <= 1.0:
             raise InputError("min_alpha", f"must be in [0, 1], got {min_alpha}")
         if trigger not in TRIGGERS:
             raise InputError("trigger", f"must be one of {', '.join(TRIGGERS)}, got {trigger!r}")
-        if trigger != "window" and self.mode is None:
+        if trigger != "window" and self.mode is None and not self.novelty_only:
             raise InputError("trigger", f"{trigger!r} needs a scored mode (random has no gain)")
         if not (np.isfinite(adaptive_ratio) and adaptive_ratio >= 0):
             raise InputError("adaptive_ratio", f"must be a finite number >= 0, got {adaptive_ratio!r}")
@@ -213,6 +236,10 @@ class StreamNBVPolicy(KeyframePolicy):
         self._gap = 0
         self.tokens = 0.0
         """Keyframes banked (``trigger="budget"``): + 1 / ``budget_every`` per frame after the first."""
+        self.observed = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m) if self.uses_novelty else None
+        """What the depth of the frames this policy returned observed (when novelty is scored)."""
+        self.last_novelty: np.ndarray | None = None
+        """[M] observed novelty (m^2) of the last trigger's candidates, when novelty is scored."""
 
     def params(self) -> dict[str, Any]:
         """Window, trigger, seed, TSDF settings and the NBV overrides, for metrics.json."""
@@ -224,8 +251,18 @@ class StreamNBVPolicy(KeyframePolicy):
             out |= {"trigger": self.trigger, "adaptive_ratio": self.adaptive_ratio,
                     "adaptive_history": self.adaptive_history, "budget_every": self.budget_every,
                     "budget_burst": self.budget_burst}  # fmt: skip
+        if self.uses_novelty:
+            out |= {"novelty_voxel_m": self.novelty_voxel_m, "novelty_radius_m": self.novelty_radius_m}
+            out |= {"novelty_weight": self.novelty_weight} if not self.novelty_only else {}
+        if self.mode is None:
+            return out
         out |= {"voxel_size_m": self.voxel_size_m, "sdf_trunc_m": self.sdf_trunc_m, "min_alpha": self.min_alpha}
         return out | dict(self._nbv_overrides)
+
+    @property
+    def uses_novelty(self) -> bool:
+        """Whether candidates' observed novelty is scored (policy ``"novelty"`` or ``novelty_weight`` > 0)."""
+        return self.novelty_only or self.novelty_weight > 0
 
     @property
     def pending_ids(self) -> list[int]:
@@ -275,10 +312,32 @@ class StreamNBVPolicy(KeyframePolicy):
         needed = [p for p in self.config.fisher_params if p != "sh_rest" or keyframe_map.map.sh_rest is not None]
         return h if fits and all(p in h for p in needed) else None
 
+    def novelty(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> np.ndarray:
+        """[M] observed novelty (m^2) of each candidate's valid depth against the frames returned so far."""
+        if self.observed is None:
+            raise InputError("novelty_weight", "novelty is not scored by this policy")
+        out = np.zeros(len(candidates))
+        for i, f in enumerate(candidates):
+            if f.depth_m.shape != (keyframe_map.intr.height, keyframe_map.intr.width):
+                raise InputError(f"frame {f.index} depth_m", f"shape {f.depth_m.shape}: novelty needs the frame's "
+                                 "depth image (a pose-only candidate, as in the pool setting, has none)")  # fmt: skip
+            out[i] = self.observed.new_area_m2(f.depth_m, f.T_wc, keyframe_map.intr,
+                                               keyframe_map.valid_depth_mask(f.depth_m))  # fmt: skip
+        return out
+
+    def _returned(self, frame: Frame, keyframe_map: KeyframeMap) -> None:
+        """Note a frame this policy returns (the caller inserts it): its depth is observed from now on."""
+        if self.observed is not None:
+            valid = keyframe_map.valid_depth_mask(frame.depth_m)
+            self.observed.add(frame.depth_m, frame.T_wc, keyframe_map.intr, valid)
+
     def choose(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> int:
-        """Index into ``candidates`` of the frame to insert (scores poses only)."""
+        """Index into ``candidates`` of the frame to insert (scores poses, and with novelty the frames' depth)."""
+        self.last_novelty = self.novelty(candidates, keyframe_map) if self.uses_novelty else None
         if self.mode is None:
             self.last_result = None
+            if self.novelty_only:
+                return int(np.argmax(self.last_novelty))  # ties: the oldest
             return int(self._rng.integers(len(candidates)))
         mcfg = keyframe_map.config
         result = self._state(keyframe_map).score(
@@ -292,7 +351,9 @@ class StreamNBVPolicy(KeyframePolicy):
             mode=self.mode,
         )
         self.last_result = result
-        return result.best_index
+        if self.last_novelty is None:
+            return result.best_index
+        return int(np.argmax(fuse_novelty(result.fused, self.last_novelty, self.novelty_weight)))
 
     # ------------------------------------------------------------------------------ stream
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
@@ -308,6 +369,8 @@ class StreamNBVPolicy(KeyframePolicy):
         candidates, first = self.candidates.push(frame)
         if not first:
             self.tokens = min(self.tokens + 1.0 / self.budget_every, self.budget_burst)
+        if first:
+            self._returned(frame, keyframe_map)
         if first or not candidates:
             return candidates
         if self.trigger == "budget" and self.tokens < 1.0 - 1e-9:
@@ -324,13 +387,16 @@ class StreamNBVPolicy(KeyframePolicy):
             self.tokens -= 1.0
         self.candidates.remove(winner)
         self.inserted_ids.append(int(winner.index))
+        self._returned(winner, keyframe_map)
         return [winner]
 
     def gain(self, pick: int) -> float:
         """Raw (not z-scored, so comparable across windows) expected gain of candidate ``pick`` of the last
-        trigger: F of Eq. 10 for the Fisher modes, I_vis of Eq. 14 for close-front; for ``trigger="budget"``
-        with the unseen term on, its unseen fraction U.
+        trigger: its observed novelty N (m^2) when novelty is scored; else F of Eq. 10 for the Fisher modes, I_vis of
+        Eq. 14 for close-front; for ``trigger="budget"`` with the unseen term on, its unseen fraction U.
         """
+        if self.last_novelty is not None:
+            return float(self.last_novelty[pick])
         r = self.last_result
         if r is None:
             return 0.0
@@ -360,14 +426,13 @@ TRIGGERS = ("window", "adaptive", "budget")
 :meth:`StreamNBVPolicy._accept`)."""
 
 
-def _make(name: str, mode: str | None) -> type[StreamNBVPolicy]:
+def _make(name: str, mode: str | None, novelty_only: bool = False) -> type[StreamNBVPolicy]:
+    what = f"NBV mode {mode!r}." if mode is not None else "seeded random pick."
+    what = "observed novelty alone." if novelty_only else what
     cls = type(
         "StreamPolicy_" + name.replace("-", "_"),
         (StreamNBVPolicy,),
-        {
-            "mode": mode,
-            "__doc__": f"Stream policy {name!r}: " + ("seeded random pick." if mode is None else f"NBV mode {mode!r}."),
-        },
+        {"mode": mode, "novelty_only": novelty_only, "__doc__": f"Stream policy {name!r}: {what}"},
     )
     return register_policy(name)(cls)  # type: ignore[return-value]
 
@@ -377,8 +442,9 @@ ROIGSurFisherStream = _make("roi-gsurfisher", "roi-gsurfisher")
 ROIFisherStream = _make("roi-fisher", "roi-fisher")
 CloseFrontStream = _make("close-front", "close-front")
 FisherRFStream = _make("fisherrf", "fisherrf")
+NoveltyStream = _make("novelty", None, novelty_only=True)
 
-STREAM_POLICIES = ("random", "roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
+STREAM_POLICIES = ("random", "roi-gsurfisher", "roi-fisher", "close-front", "fisherrf", "novelty")
 """Names this module registers."""
 
 __all__ = [
@@ -387,6 +453,7 @@ __all__ = [
     "CandidateWindow",
     "CloseFrontStream",
     "FisherRFStream",
+    "NoveltyStream",
     "ROIFisherStream",
     "ROIGSurFisherStream",
     "RandomStream",

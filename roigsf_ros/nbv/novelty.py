@@ -1,0 +1,123 @@
+"""Observed novelty of a captured frame: how much surface its depth shows that no keyframe's depth has shown.
+
+Beyond the paper, for the stream setting only (issue 10). There the candidates are frames the camera has already
+captured, so their depth is known; the pose-only scores (Eq. 10, 14 and the unseen term) can only guess which of them
+sees new surface. The mesh recall of a keyframe set is bounded, tightly, by how much of the surface its keyframes'
+depth observes (``scripts/coverage_bound.py``), and a frame's novelty is that quantity measured on the frame's own
+points instead of the ground truth: the area of its back-projected depth farther than ``radius_m`` from every point
+the keyframes' depth observed.
+
+Both sides are voxelised at ``voxel_m``: :class:`ObservedSurface` keeps the voxels within ``radius_m`` (plus half a
+voxel: a point in either voxel may lie that close) of the keyframes' observed voxels in an open3d hash set, so a
+frame costs one back-projection, one ``np.unique`` and one hash lookup of its voxels. Nothing here needs ROS.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.nbv.scorer import zscore
+
+NOVELTY_VOXEL_M = 0.025
+"""Default voxel (m) of the observed surface: about the pixel spacing of a 240 px wide Replica view at 2 m."""
+NOVELTY_RADIUS_M = 0.05
+"""Default reach (m): a point within 5 cm of observed depth is observed, the threshold of the mesh recall R@5cm."""
+
+_MAX_INDEX = 1 << 30
+"""Voxel indices stay within int32 (+-2^30 voxels: far beyond any map; larger means a broken pose or depth)."""
+
+
+def depth_points_w(depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> np.ndarray:
+    """World points [N, 3] float64 (metres) of the ``valid`` pixels [H, W] of a z-depth image [H, W] at ``T_wc``."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if depth.shape != (intr.height, intr.width) or np.shape(valid) != depth.shape:
+        raise InputError(
+            "depth_m", f"shape {depth.shape} (mask {np.shape(valid)}) does not match the camera's "
+            f"{intr.height}x{intr.width}"
+        )  # fmt: skip
+    T = check_pose(T_wc, "T_wc")
+    v, u = np.nonzero(valid)
+    z = depth[v, u]
+    cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    return cam @ T[:3, :3].T + T[:3, 3]
+
+
+class ObservedSurface:
+    """Voxels [``voxel_m``] within ``radius_m`` of some observed point; the novelty of a frame against them.
+
+    ``add`` the depth of each keyframe as it is inserted; :meth:`new_area_m2` of a candidate is then the number of
+    its own occupied voxels that are not within reach of an observed one, times ``voxel_m``^2 (the area of surface
+    it shows for the first time, in m^2 up to the voxelisation). A voxel v is within reach of an observed voxel o
+    when their centres are at most ``radius_m + voxel_m / 2`` apart. A pixel marks one voxel, so surface whose
+    pixels are more than ``voxel_m`` apart (beyond ``fx x voxel_m``: 3 m at 240 px wide on Replica) counts less
+    than its area: an estimate, biased towards near surface, as the mesh's own sampling is.
+    """
+
+    def __init__(self, voxel_m: float = NOVELTY_VOXEL_M, radius_m: float = NOVELTY_RADIUS_M) -> None:
+        if not (np.isfinite(voxel_m) and voxel_m > 0):
+            raise InputError("novelty_voxel_m", f"must be a finite number > 0, got {voxel_m!r}")
+        if not (np.isfinite(radius_m) and radius_m >= 0):
+            raise InputError("novelty_radius_m", f"must be a finite number >= 0, got {radius_m!r}")
+        self.voxel_m = float(voxel_m)
+        self.radius_m = float(radius_m)
+        r = (self.radius_m + 0.5 * self.voxel_m) / self.voxel_m
+        n = int(np.floor(r))
+        grid = np.arange(-n, n + 1)
+        offs = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), axis=-1).reshape(-1, 3)
+        self._offsets = offs[(offs**2).sum(axis=1) <= r * r + 1e-9].astype(np.int64)
+        """Integer voxel offsets within reach: [K, 3]."""
+        self._reached = o3d.core.HashSet(1 << 16, o3d.core.int32, [3], o3d.core.Device("CPU:0"))
+        self.n_added = 0
+        """Frames added so far."""
+
+    def _voxels(self, points_w: np.ndarray) -> np.ndarray:
+        """Distinct voxel indices [N, 3] int32 of the points [N, 3] (world, metres)."""
+        pts = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(pts)):
+            raise InputError("points_w", "non-finite points")
+        ijk = np.floor(pts / self.voxel_m)
+        if ijk.size and np.abs(ijk).max() >= _MAX_INDEX:
+            raise InputError("points_w", f"points beyond {_MAX_INDEX * self.voxel_m:.3g} m from the origin")
+        return np.unique(ijk.astype(np.int32), axis=0)
+
+    def add_points(self, points_w: np.ndarray) -> None:
+        """Mark the voxels within reach of ``points_w`` [N, 3] (world, metres) as observed."""
+        ijk = self._voxels(points_w)
+        if len(ijk):  # open3d hashes the [3] keys itself (packing them into one int64 hashed badly: 100x slower)
+            reached = (ijk[:, None, :] + self._offsets[None].astype(np.int32)).reshape(-1, 3)
+            self._reached.insert(o3d.core.Tensor(np.ascontiguousarray(reached)))
+        self.n_added += 1
+
+    def add(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> None:
+        """Mark what a keyframe's depth [H, W] (its ``valid`` pixels) observes."""
+        self.add_points(depth_points_w(depth_m, T_wc, intr, valid))
+
+    def new_voxels(self, points_w: np.ndarray) -> int:
+        """How many distinct voxels of ``points_w`` [N, 3] no added observation reaches."""
+        ijk = self._voxels(points_w)
+        if len(ijk) == 0 or self.n_added == 0:
+            return len(ijk)
+        _, found = self._reached.find(o3d.core.Tensor(ijk))
+        return int(len(ijk) - np.count_nonzero(found.numpy()))
+
+    def new_area_m2(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> float:
+        """Novelty of a frame: its voxels no keyframe's observation reaches, as an area (count x ``voxel_m``^2)."""
+        return self.new_voxels(depth_points_w(depth_m, T_wc, intr, valid)) * self.voxel_m**2
+
+
+def fuse_novelty(fused: np.ndarray, novelty_m2: np.ndarray, weight: float) -> np.ndarray:
+    """[M] ``fused + weight z(N)``: a scored mode's fused score (Eq. 15, plus any unseen term) and the novelty.
+
+    A candidate the scorer flagged (no mapped surface in view) keeps its fused 0 and competes by its novelty.
+    """
+    fused = np.asarray(fused, dtype=np.float64).reshape(-1)
+    novelty = np.asarray(novelty_m2, dtype=np.float64).reshape(-1)
+    if fused.shape != novelty.shape:
+        raise InputError("novelty_m2", f"{novelty.size} values for {fused.size} candidates")
+    return fused + float(weight) * zscore(novelty)
+
+
+__all__ = ["NOVELTY_RADIUS_M", "NOVELTY_VOXEL_M", "ObservedSurface", "depth_points_w", "fuse_novelty"]

@@ -1,0 +1,94 @@
+"""Observed novelty (stream setting, beyond the paper): the hash-set count against a k-d tree, and its meaning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
+
+INTR = Intrinsics(width=64, height=48, fx=160.0, fy=160.0, cx=31.5, cy=23.5)  # 1.3 cm pixels at 2 m
+
+
+def reference_new_voxels(added: list[np.ndarray], query: np.ndarray, voxel_m: float, radius_m: float) -> int:
+    """Distinct voxels of ``query`` whose centre is farther than radius + voxel / 2 from every added voxel's centre."""
+    q = np.unique(np.floor(query / voxel_m).astype(np.int64), axis=0)
+    if not added:
+        return len(q)
+    a = np.unique(np.floor(np.concatenate(added) / voxel_m).astype(np.int64), axis=0)
+    dist, _ = cKDTree(a.astype(np.float64)).query(q.astype(np.float64), k=1)
+    return int(np.count_nonzero(dist > (radius_m + 0.5 * voxel_m) / voxel_m + 1e-9))
+
+
+@pytest.mark.parametrize(("voxel_m", "radius_m"), [(0.025, 0.05), (0.05, 0.05), (0.1, 0.0), (0.03, 0.1)])
+def test_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -> None:
+    rng = np.random.default_rng(5)
+    clouds = [c + rng.normal(0.0, 0.15, (800, 3)) for c in rng.uniform(-1.0, 1.0, (4, 3))]
+    surface = ObservedSurface(voxel_m, radius_m)
+    assert surface.new_voxels(clouds[3]) == reference_new_voxels([], clouds[3], voxel_m, radius_m)  # nothing added
+    for k in range(3):
+        surface.add_points(clouds[k])
+        for q in (clouds[3], clouds[k] + 0.04, rng.uniform(-1.5, 1.5, (500, 3))):
+            assert surface.new_voxels(q) == reference_new_voxels(clouds[: k + 1], q, voxel_m, radius_m)
+    assert surface.n_added == 3
+    assert surface.new_voxels(clouds[1]) == 0  # what was added is not new
+
+
+def plane_depth(z_m: float) -> np.ndarray:
+    return np.full((INTR.height, INTR.width), z_m, dtype=np.float32)
+
+
+def test_novelty_is_the_area_of_surface_no_keyframe_observed() -> None:
+    """A fronto-parallel wall: its area before any keyframe, none once seen, about half after a half-view pan."""
+    z = 2.0125  # mid-voxel, so the wall is one voxel thick
+    valid = np.ones((INTR.height, INTR.width), dtype=bool)
+    T0 = np.eye(4)
+    area = (INTR.width / INTR.fx * z) * (INTR.height / INTR.fy * z)  # 0.80 x 0.60 m
+    surface = ObservedSurface(0.025, 0.05)
+    assert surface.new_area_m2(plane_depth(z), T0, INTR, valid) == pytest.approx(area, rel=0.05)
+    surface.add(plane_depth(z), T0, INTR, valid)
+    assert surface.new_area_m2(plane_depth(z), T0, INTR, valid) == 0.0
+    assert surface.new_area_m2(plane_depth(z + 0.03), T0, INTR, valid) == 0.0  # within 5 cm: observed
+    assert surface.new_area_m2(plane_depth(z + 0.2), T0, INTR, valid) == pytest.approx(
+        area * ((z + 0.2) / z) ** 2, rel=0.05
+    )
+    T1 = np.eye(4)
+    T1[0, 3] = 0.5 * INTR.width / INTR.fx * z  # pan by half the wall: new, the half less the 6.25 cm reached
+    new_half = (0.5 * INTR.width / INTR.fx * z - 0.0625) * (INTR.height / INTR.fy * z)
+    assert surface.new_area_m2(plane_depth(z), T1, INTR, valid) == pytest.approx(new_half, rel=0.1)
+    half = valid.copy()
+    half[:, : INTR.width // 2] = False  # only the valid pixels count
+    assert surface.new_area_m2(plane_depth(z), T1, INTR, half) == pytest.approx(new_half, rel=0.1)
+    assert surface.new_area_m2(plane_depth(z), T1, INTR, ~half) == pytest.approx(0.0, abs=0.02 * area)
+
+
+def test_depth_points_are_the_back_projected_valid_pixels() -> None:
+    T = np.eye(4)
+    T[:3, 3] = (1.0, -2.0, 0.5)
+    depth = plane_depth(1.5)
+    valid = np.zeros(depth.shape, dtype=bool)
+    valid[10, 20] = valid[47, 0] = True
+    pts = depth_points_w(depth, T, INTR, valid)
+    expected = [[(20 - INTR.cx) / INTR.fx * 1.5, (10 - INTR.cy) / INTR.fy * 1.5, 1.5],
+                [(0 - INTR.cx) / INTR.fx * 1.5, (47 - INTR.cy) / INTR.fy * 1.5, 1.5]]  # fmt: skip
+    np.testing.assert_allclose(pts, np.array(expected) + T[:3, 3], atol=1e-12)
+
+
+def test_bad_input_names_the_field() -> None:
+    with pytest.raises(InputError, match="novelty_voxel_m"):
+        ObservedSurface(0.0)
+    with pytest.raises(InputError, match="novelty_radius_m"):
+        ObservedSurface(0.025, float("nan"))
+    surface = ObservedSurface()
+    with pytest.raises(InputError, match="points_w"):
+        surface.add_points(np.array([[0.0, np.inf, 0.0]]))
+    with pytest.raises(InputError, match=r"points_w.*from the origin"):
+        surface.new_voxels(np.array([[3.0e7, 0.0, 0.0]]))
+    with pytest.raises(InputError, match="depth_m"):
+        surface.new_area_m2(np.ones((4, 4)), np.eye(4), INTR, np.ones((4, 4), dtype=bool))
+    with pytest.raises(InputError, match="T_wc"):
+        surface.add(plane_depth(1.0), np.zeros((4, 4)), INTR, np.ones((INTR.height, INTR.width), dtype=bool))
+    assert surface.n_added == 0 and surface.new_voxels(np.zeros((0, 3))) == 0
