@@ -7,7 +7,10 @@
 #   variants/   roi-gsurfisher:window=12:unseen_weight=1, the same with window=24 (trigger every 12), the budget
 #               trigger (trigger_every=4, window 12 and 24), random:window=12
 #   baselines/  every-n:n=12, roi-gsurfisher:window=12 (the paper)
-# Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s.
+#   novelty/    roi-gsurfisher:window=12:unseen_weight=1:novelty_weight=1, novelty:window=12 (observed novelty,
+#               eighteenth session)
+# Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
+# about 100 s. BENCHES="a b ..." runs only those folders (default: all).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
@@ -22,10 +25,14 @@ stream_bench() {  # stream_bench OUT POLICIES
     nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$2" --uncertainty-views 0 --out "$1" \
         --overwrite
 }
-stream_bench "$OUT/gaus-slam" "gaus-slam"
+bench_group() {  # bench_group NAME POLICIES: one folder, unless BENCHES leaves it out
+    case " ${BENCHES:-$1} " in *" $1 "*) stream_bench "$OUT/$1" "$2" ;; esac
+}
+bench_group gaus-slam "gaus-slam"
 R=roi-gsurfisher
 W2=$((2 * WINDOW))
-stream_bench "$OUT/variants" "$R:window=$WINDOW:unseen_weight=1,$R:window=$W2:trigger_every=$WINDOW:unseen_weight=1,\
+bench_group variants "$R:window=$WINDOW:unseen_weight=1,$R:window=$W2:trigger_every=$WINDOW:unseen_weight=1,\
 $R:window=$WINDOW:trigger_every=4:trigger=budget:unseen_weight=1,\
 $R:window=$W2:trigger_every=4:trigger=budget:budget_every=$WINDOW:unseen_weight=1,random:window=$WINDOW"
-stream_bench "$OUT/baselines" "every-n:n=$WINDOW,roi-gsurfisher:window=$WINDOW"
+bench_group baselines "every-n:n=$WINDOW,roi-gsurfisher:window=$WINDOW"
+bench_group novelty "$R:window=$WINDOW:unseen_weight=1:novelty_weight=1,novelty:window=$WINDOW"
