@@ -646,9 +646,17 @@ class TestLateStart:
 
 
 LOOP_MAPPER = {"frame_buffer_size": 32, "map_publish_rate_hz": 0.5}
-LOOP_SELECTOR = {"window": 8, "trigger_every": 8, "planner_timeout_s": 15.0}
+LOOP_SELECTOR = {
+    "window": 8,
+    "trigger_every": 8,
+    "planner_timeout_s": 15.0,
+    "novelty_weight": 1.0,
+    "fallback_policy": "novelty",
+}
 """The looping system: a window every 0.8 s, and time for a planner in its own process (which recomputes
-H_train from every keyframe pose when the map changed) to answer."""
+H_train from every keyframe pose when the map changed) to answer. The selector adds the observed novelty of the
+frames it holds to the planner's fused scores and decides by it alone while the planner is down (the random
+fallback is tested in-process, test_nodes.py)."""
 
 
 @pytest.fixture(scope="class")
@@ -691,7 +699,8 @@ class TestFaultTolerance:
         down = sel()
         assert down["planner_answers"] <= before["planner_answers"] + 1  # at most one answer was already on its way
         selector_log = _process(ps, "keyframe_selector").log()
-        assert "fallback random" in selector_log and "nbv_planner/get_next_best_view" in selector_log
+        assert "fallback novelty" in selector_log and "nbv_planner/get_next_best_view" in selector_log
+        assert "fused scores for" not in selector_log  # the real planner's fused scores fit: the novelty term applied
         # The keyframes keep coming while the planner is down: the fallback decides every window.
         assert down["keyframes_published"] - before["keyframes_published"] >= 2
 
