@@ -49,16 +49,15 @@ POOL_POLICIES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf", "ran
 """Policies valid in the pool setting (the per-frame rules gaus-slam, every-n, all are stream-only)."""
 
 SCHEDULES = ("fixed", "epochs")
+"""``fixed``: step counts as given; ``epochs``: counts times the current number of training views."""
 
 
 def check_pool_params(params: dict[str, Any]) -> None:
     """InputError for policy parameters that need a candidate's images: the pool scores poses only."""
-    if float(params.get("novelty_weight") or 0.0) > 0:
+    weight = params.get("novelty_weight")
+    if weight is not None and weight != 0:
         raise InputError("novelty_weight", "reads a candidate's captured depth: stream setting only (the pool scores "
                          "views before they are taken, from their poses)")  # fmt: skip
-
-
-"""``fixed``: step counts as given; ``epochs``: counts times the current number of training views."""
 
 
 @dataclass(frozen=True)
