@@ -19,6 +19,8 @@ import open3d as o3d
 
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.mapping.mapper import MapperConfig, valid_depth_mask
 from roigsf_ros.nbv.scorer import zscore
 
 NOVELTY_VOXEL_M = 0.025
@@ -106,6 +108,23 @@ class ObservedSurface:
     def new_area_m2(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> float:
         """Novelty of a frame: its voxels no keyframe's observation reaches, as an area (count x ``voxel_m``^2)."""
         return self.new_voxels(depth_points_w(depth_m, T_wc, intr, valid)) * self.voxel_m**2
+
+    def add_frame(self, frame: Frame, intr: Intrinsics, config: MapperConfig) -> None:
+        """:meth:`add` a keyframe's depth within the mapper's depth range (``config``)."""
+        self.add(_depth_of(frame, intr), frame.T_wc, intr, valid_depth_mask(frame.depth_m, config))
+
+    def frames_new_area_m2(self, frames: list[Frame], intr: Intrinsics, config: MapperConfig) -> np.ndarray:
+        """[M] :meth:`new_area_m2` of each frame's depth within the mapper's depth range (``config``)."""
+        return np.array([self.new_area_m2(_depth_of(f, intr), f.T_wc, intr, valid_depth_mask(f.depth_m, config))
+                         for f in frames], dtype=np.float64)  # fmt: skip
+
+
+def _depth_of(frame: Frame, intr: Intrinsics) -> np.ndarray:
+    """The frame's depth [H, W], or InputError naming the frame when it has none of the camera's size."""
+    if np.shape(frame.depth_m) != (intr.height, intr.width):
+        raise InputError(f"frame {frame.index} depth_m", f"shape {np.shape(frame.depth_m)}: novelty needs the frame's "
+                         "depth image (a pose-only candidate, as in the pool setting, has none)")  # fmt: skip
+    return frame.depth_m
 
 
 def fuse_novelty(fused: np.ndarray, novelty_m2: np.ndarray, weight: float) -> np.ndarray:

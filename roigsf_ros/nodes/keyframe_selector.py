@@ -54,7 +54,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig, valid_depth_mask
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nbv.novelty import NOVELTY_RADIUS_M, NOVELTY_VOXEL_M, ObservedSurface, fuse_novelty
 from roigsf_ros.nodes.bag_player import reliable_qos
@@ -345,9 +345,7 @@ class KeyframeSelectorNode(SystemNode):
     def _novelty(self, candidates: list[Frame], intr: Intrinsics) -> np.ndarray:
         """[M] observed novelty (m^2) of the candidates against the keyframes published so far."""
         assert self._observed is not None
-        cfg = self._mapper_config()
-        return np.array([self._observed.new_area_m2(f.depth_m, f.T_wc, intr, valid_depth_mask(f.depth_m, cfg))
-                         for f in candidates])  # fmt: skip
+        return self._observed.frames_new_area_m2(candidates, intr, self._mapper_config())
 
     def _with_novelty(self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int) -> int:
         """The pick of ``fused + novelty_weight z(N)``; the planner's own ``best`` when its scores do not fit."""
@@ -362,8 +360,7 @@ class KeyframeSelectorNode(SystemNode):
         self.keyframe_ids.append(int(frame.index))
         self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
         if self._observed is not None:  # what the keyframe's depth observes no longer counts as new
-            valid = valid_depth_mask(frame.depth_m, self._mapper_config())
-            self._observed.add(frame.depth_m, frame.T_wc, intr, valid)
+            self._observed.add_frame(frame, intr, self._mapper_config())
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""

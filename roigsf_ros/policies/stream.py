@@ -316,20 +316,12 @@ class StreamNBVPolicy(KeyframePolicy):
         """[M] observed novelty (m^2) of each candidate's valid depth against the frames returned so far."""
         if self.observed is None:
             raise InputError("novelty_weight", "novelty is not scored by this policy")
-        out = np.zeros(len(candidates))
-        for i, f in enumerate(candidates):
-            if f.depth_m.shape != (keyframe_map.intr.height, keyframe_map.intr.width):
-                raise InputError(f"frame {f.index} depth_m", f"shape {f.depth_m.shape}: novelty needs the frame's "
-                                 "depth image (a pose-only candidate, as in the pool setting, has none)")  # fmt: skip
-            out[i] = self.observed.new_area_m2(f.depth_m, f.T_wc, keyframe_map.intr,
-                                               keyframe_map.valid_depth_mask(f.depth_m))  # fmt: skip
-        return out
+        return self.observed.frames_new_area_m2(candidates, keyframe_map.intr, keyframe_map.config)
 
     def _returned(self, frame: Frame, keyframe_map: KeyframeMap) -> None:
         """Note a frame this policy returns (the caller inserts it): its depth is observed from now on."""
         if self.observed is not None:
-            valid = keyframe_map.valid_depth_mask(frame.depth_m)
-            self.observed.add(frame.depth_m, frame.T_wc, keyframe_map.intr, valid)
+            self.observed.add_frame(frame, keyframe_map.intr, keyframe_map.config)
 
     def choose(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> int:
         """Index into ``candidates`` of the frame to insert (scores poses, and with novelty the frames' depth)."""
