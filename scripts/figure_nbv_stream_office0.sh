@@ -22,6 +22,10 @@
 #   paper-novelty/     roi-gsurfisher:window=13:novelty_weight=1 (the paper's score plus z(novelty))
 #   budget-novelty/    the budget row with novelty_weight=1 (its gain is then the novelty)
 #   unseen-novelty-it52/  unseen-novelty with 52 steps per keyframe (31 x 52 ~ gaus-slam's 160 x 10 steps)
+#   novelty-lookahead/         novelty:window=13:lookahead=13 (beyond the paper: each window decided once the next
+#                              13 frames are in, by the pair a frame makes with the best of them; nineteenth session)
+#   unseen-novelty-lookahead/  unseen-novelty with lookahead=13
+#   novelty-lookahead-it52/    novelty-lookahead with 52 steps per keyframe
 # ROWS="a b ..." runs only those folders (default: all). SENSOR=kinect renders the frames through the simulated
 # Kinect v1 (`roigsf scene render --sensor kinect`) into runs/office0_240_s5_kinect/ and writes
 # runs/bench_stream_office0_w13_kinect/ instead (recall and precision still against the true mesh).
@@ -78,6 +82,9 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row paper-novelty "$R:novelty_weight=1"
     row budget-novelty "$BUDGET:novelty_weight=1"
     row unseen-novelty-it52 "$R:unseen_weight=1:novelty_weight=1" --set iters_per_keyframe=52
+    row novelty-lookahead "novelty:window=$WINDOW10:lookahead=$WINDOW10"
+    row unseen-novelty-lookahead "$R:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW10"
+    row novelty-lookahead-it52 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set iters_per_keyframe=52
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"

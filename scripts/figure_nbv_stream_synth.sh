@@ -9,18 +9,29 @@
 #   baselines/  every-n:n=12, roi-gsurfisher:window=12 (the paper)
 #   novelty/    roi-gsurfisher:window=12:unseen_weight=1:novelty_weight=1, novelty:window=12 (observed novelty,
 #               eighteenth session)
+#   lookahead/  novelty:window=12:lookahead=12 and the unseen variant with novelty_weight=1:lookahead=12 (each window
+#               decided once the next one is in; nineteenth session)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all).
+#
+# KIND=suite: the same on `roigsf scene synth --kind suite --seed 7` (two rooms joined by a doorway: a loop in one,
+# a walk through the doorway, a loop in the other; nineteenth session, made after the lookahead was fixed), 400
+# frames at 160x120, into runs/bench_stream_suite/; gaus-slam takes 182 keyframes there, so WINDOW stays 12 (34
+# keyframes, 18.7 %).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-WINDOW="${WINDOW:-12}"
+KIND="${KIND:-room}"
+case "$KIND" in
+    room) WINDOW="${WINDOW:-12}" SCENE=runs/synth_s7_400 OUT=runs/bench_stream_synth ;;
+    suite) WINDOW="${WINDOW:-12}" SCENE=runs/suite_s7_400 OUT=runs/bench_stream_suite ;;
+    *) echo "KIND must be room or suite, got $KIND" >&2; exit 2 ;;
+esac
 NICE="${NICE:-5}"
 cd "$REPO"
-SCENE=runs/synth_s7_400
-[ -f "$SCENE/mesh.ply" ] || roigsf scene synth --out "$SCENE" --seed 7 --frames 400 --width 160 --height 120 --overwrite
-OUT=runs/bench_stream_synth
+[ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed 7 --frames 400 --width 160 \
+    --height 120 --overwrite
 stream_bench() {  # stream_bench OUT POLICIES
     nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$2" --uncertainty-views 0 --out "$1" \
         --overwrite
@@ -36,3 +47,5 @@ $R:window=$WINDOW:trigger_every=4:trigger=budget:unseen_weight=1,\
 $R:window=$W2:trigger_every=4:trigger=budget:budget_every=$WINDOW:unseen_weight=1,random:window=$WINDOW"
 bench_group baselines "every-n:n=$WINDOW,roi-gsurfisher:window=$WINDOW"
 bench_group novelty "$R:window=$WINDOW:unseen_weight=1:novelty_weight=1,novelty:window=$WINDOW"
+bench_group lookahead "novelty:window=$WINDOW:lookahead=$WINDOW,\
+$R:window=$WINDOW:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW"

@@ -206,7 +206,7 @@ def test_rescore_bad_input(scene: Path, tmp_path: Path, capsys: pytest.CaptureFi
 
 def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     out = tmp_path / "stream"
-    policies = "every-n:n=6,random:window=6"
+    policies = "every-n:n=6,random:window=6,novelty:window=6:lookahead=6"
     argv = ["bench", "--scene", str(scene), "--setting", "stream", "--policies", policies, "--out", str(out),
             "--no-progress", "--uncertainty-views", "2", "--max-frames", "14", *MAPPER_SET]  # fmt: skip
     assert main(argv) == 0
@@ -215,6 +215,10 @@ def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     every = next(r for r in res["runs"] if r["label"] == "every-n:n=6")
     assert every["metrics"]["keyframe_ids"] == [0, 6, 12] and every["chosen_positions"] == [0, 6, 12]
     assert res["summary"]["every-n:n=6"]["n_keyframes"]["mean"] == 3
+    # deciding one window late: the second trigger decides the first window, the end of the sequence the rest
+    late = next(r for r in res["runs"] if r["label"] == "novelty:window=6:lookahead=6")["metrics"]
+    assert len(late["keyframe_ids"]) == 3 and 1 <= late["keyframe_ids"][1] <= 6
+    assert late["policy_params"]["lookahead"] == 6
     assert (out / "chosen_views.png").is_file() and (out / "uncertainty_every-n_n_6.png").is_file()
     rescored = rescore_ause(out, progress=False)
     assert [r["uncertainty_per_view"] for r in rescored["runs"]] == [r["uncertainty_per_view"] for r in res["runs"]]

@@ -52,6 +52,8 @@ def run_stream(policy: StreamNBVPolicy, frames: list[Frame], check=None) -> Mapp
             check(policy, mapper, k)
         for keyframe in policy.observe(frame, mapper):
             mapper.add_keyframe(keyframe)
+    for keyframe in policy.finish(mapper):
+        mapper.add_keyframe(keyframe)
     return mapper
 
 
@@ -156,7 +158,7 @@ def test_adaptive_trigger_inserts_only_high_gain_windows(frames: list[Frame], mo
 
     gains = iter([5.0, 4.0, 1.0, 9.0, 1.0, 1.0, 1.0, 1.0, 8.0, 1.0, 1.0])
 
-    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper) -> int:
+    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper, ahead: object = None) -> int:
         self.last_result = SimpleNamespace(fisher=np.array([next(gains)]), close_front=np.zeros(1))
         return 0
 
@@ -185,7 +187,7 @@ def test_budget_trigger_spends_a_fixed_keyframe_budget_on_high_gain_windows(
 
     gains = iter([0.5, 0.4, 0.1, 0.9, 0.1, 0.2, 0.0, 0.8])
 
-    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper) -> int:
+    def fake_choose(self: StreamNBVPolicy, candidates: list[Frame], mapper: Mapper, ahead: object = None) -> int:
         g = np.array([next(gains)])
         self.last_result = SimpleNamespace(fisher=np.ones(1), close_front=np.zeros(1), unseen=g)
         return 0
@@ -253,6 +255,41 @@ def test_novelty_policy_picks_the_frame_whose_depth_shows_the_most_new_surface(f
     assert len(checked) == (N_FRAMES - 1) // WINDOW  # every trigger, checked at the next frame
     assert pol.observed is not None and pol.observed.n_added == len(mapper.keyframe_ids)
     assert pol.last_result is None and pol.gain(0) == pytest.approx(float(pol.last_novelty[0]))
+
+
+def test_lookahead_decides_each_window_one_trigger_late_by_the_pair_it_makes(frames: list[Frame]) -> None:
+    """``lookahead``: a window's pick is judged by its new surface plus the most one newer frame adds after it."""
+    pol = make_policy("novelty", window=WINDOW, lookahead=WINDOW)
+    assert pol.params()["lookahead"] == WINDOW and pol.window == WINDOW and pol.trigger_every == WINDOW
+    by_id = {f.index: f for f in frames}
+    seen: list[tuple[list[int], list[int], np.ndarray]] = []
+
+    def check(policy: StreamNBVPolicy, mapper: Mapper, k: int) -> None:
+        if k == 1 + WINDOW:  # the first trigger: every frame held is still ahead, nothing decided
+            assert len(mapper.keyframe_ids) == 1 and policy.triggers == 0
+        if policy.triggers > len(seen):
+            returned = [by_id[i] for i in mapper.keyframe_ids[:-1]]
+            ref = [reference_novelty(returned, by_id[c], mapper)
+                   + max(reference_novelty([*returned, by_id[c]], by_id[g], mapper) for g in policy.last_ahead_ids)
+                   for c in policy.last_candidate_ids]  # fmt: skip
+            np.testing.assert_allclose(policy.last_novelty, ref, rtol=0, atol=1e-12)
+            assert mapper.keyframe_ids[-1] == policy.last_candidate_ids[int(np.argmax(ref))]
+            seen.append((list(policy.last_candidate_ids), list(policy.last_ahead_ids), policy.last_novelty))
+
+    mapper = run_stream(pol, frames, check)
+    assert len(seen) == (N_FRAMES - 1) // WINDOW - 1  # every trigger but the first decided, each checked
+    cands, ahead, _ = seen[0]
+    assert cands == [f.index for f in frames[1 : 1 + WINDOW]] and ahead == [f.index for f in frames[1 + WINDOW : 9]]
+    # finish() decided the frames still held, with nothing ahead: the same count as one keyframe per window
+    assert len(mapper.keyframe_ids) == 1 + (N_FRAMES - 1) // WINDOW and pol.last_ahead_ids == []
+    assert pol.finish(mapper) == []  # once
+    assert make_policy("novelty", window=WINDOW).finish(mapper) == []  # nothing held back without lookahead
+    assert make_policy("roi-gsurfisher", window=WINDOW, novelty_weight=1.0, lookahead=2).params()["lookahead"] == 2
+    for name, params in [("roi-fisher", {"lookahead": 4}), ("random", {"lookahead": 4}),
+                         ("novelty", {"lookahead": -1}), ("novelty", {"lookahead": 1.5}),
+                         ("novelty", {"lookahead": 4, "trigger": "adaptive"})]:  # fmt: skip
+        with pytest.raises(InputError, match="lookahead"):
+            make_policy(name, **params)
 
 
 def test_novelty_weight_adds_its_z_score_to_the_fused_score(frames: list[Frame]) -> None:

@@ -503,6 +503,42 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
 
 
+@pytest.mark.parametrize("policy", ["novelty", "roi-fisher"])
+def test_selector_lookahead_decides_each_window_as_the_library_does(ros_context: Any, scene: Any, policy: str) -> None:
+    """``lookahead`` 2: each window of 2 is decided once the next 2 frames judged it, as the library's policy decides
+    (alone, and as the fallback of a planner policy without a planner)."""
+    frames, _ = scene
+    seq = [replace(f, index=i) for i, f in enumerate(_novelty_sequence(frames, 5))]
+    library = make_policy("novelty", window=2, lookahead=2)
+    view = Mapper(INTR, MapperConfig())
+    expected = [(f.index + 1) * 1000 for frame in seq for f in library.observe(frame, view)]
+    assert len(expected) == 5 and library.triggers == 4  # the first window waits for the frames after it
+    plain = make_policy("novelty", window=2)
+    assert expected != [(f.index + 1) * 1000 for frame in seq[:-2] for f in plain.observe(frame, view)]
+    overrides = [
+        Parameter("policy", value=policy),
+        Parameter("window", value=2),
+        Parameter("lookahead", value=2),
+        Parameter("fallback_policy", value="novelty"),
+        Parameter("novelty_weight", value=1.0 if policy != "novelty" else 0.0),
+        Parameter("planner_service", value="/no_planner_here/nbv"),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        for frame in seq:
+            cam.publish(_frame_msgs(frame, (frame.index + 1) * 1000))
+        _wait(lambda: selector.status()["keyframes_published"] == 5, 20.0, "five keyframes")
+        time.sleep(0.3)
+        status = selector.status()
+    assert status["keyframe_ids"] == expected
+    assert status["fallbacks"] == (4 if policy == "roi-fisher" else 0)
+    with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="roi-fisher"),
+                                                                       Parameter("lookahead", value=2)])  # fmt: skip
+
+
 def test_selector_adds_the_novelty_term_to_the_planners_fused_scores(ros_context: Any, scene: Any) -> None:
     """novelty_weight 1: the pick is argmax(fused + z(N)), not the planner's best_index (always 0 here)."""
     frames, _ = scene

@@ -37,6 +37,41 @@ def test_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -
     assert surface.new_voxels(clouds[1]) == 0  # what was added is not new
 
 
+@pytest.mark.parametrize(("voxel_m", "radius_m"), [(0.025, 0.05), (0.1, 0.0), (0.03, 0.1)])
+def test_lookahead_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -> None:
+    """Each candidate's new voxels plus the most one frame ahead still adds after it, against the k-d tree count."""
+    rng = np.random.default_rng(8)
+    centres = rng.uniform(-0.6, 0.6, (7, 3))
+    clouds = [c + rng.normal(0.0, 0.2, (600, 3)) for c in centres]
+    surface = ObservedSurface(voxel_m, radius_m)
+    surface.add_points(clouds[0])
+    cands, ahead = [clouds[1], clouds[2], clouds[3], np.zeros((0, 3))], [clouds[4], clouds[5], clouds[1] + 0.02]
+    got = surface.lookahead_new_voxels(cands, ahead)
+    ref = [reference_new_voxels(clouds[:1], c, voxel_m, radius_m)
+           + max(reference_new_voxels([clouds[0], c], g, voxel_m, radius_m) for g in ahead) for c in cands]  # fmt: skip
+    np.testing.assert_array_equal(got, ref)
+    plain = [surface.new_voxels(c) for c in cands]
+    np.testing.assert_array_equal(surface.lookahead_new_voxels(cands, []), plain)  # nothing ahead: the novelty
+    assert np.all(got >= plain)
+
+
+def test_lookahead_leaves_surface_a_later_frame_shows_to_it() -> None:
+    """Two walls: the larger one a later frame also shows, the smaller one only this window shows."""
+
+    def patch(x0: float, x1: float) -> np.ndarray:
+        x, z = np.meshgrid(np.arange(x0, x1, 0.01), np.arange(0.0, 1.0, 0.01))
+        return np.stack([x.ravel(), np.full(x.size, 2.0), z.ravel()], axis=1)
+
+    surface = ObservedSurface(0.025, 0.05)
+    seen_later, only_now = patch(0.0, 1.0), patch(3.0, 3.8)
+    later = patch(0.0, 1.5)
+    plain = surface.lookahead_new_voxels([seen_later, only_now], [])
+    assert np.argmax(plain) == 0  # the larger wall has more new surface
+    with_ahead = surface.lookahead_new_voxels([seen_later, only_now], [later])
+    assert np.argmax(with_ahead) == 1  # but the pair (small wall, later frame) shows more
+    assert with_ahead[1] == plain[1] + surface.new_voxels(later)
+
+
 def plane_depth(z_m: float) -> np.ndarray:
     return np.full((INTR.height, INTR.width), z_m, dtype=np.float32)
 

@@ -75,6 +75,8 @@ def test_config_errors(source: MemoryFrameSource, tmp_path) -> None:
         PoolConfig(policy="novelty")  # reads a candidate's captured depth
     with pytest.raises(InputError, match="novelty_weight"):
         PoolConfig(policy="roi-gsurfisher", policy_params={"novelty_weight": 1.0})
+    with pytest.raises(InputError, match="lookahead"):
+        PoolConfig(policy="roi-gsurfisher", policy_params={"lookahead": 4})
     with pytest.raises(InputError, match="n_views"):
         PoolConfig(n_views=3, n_initial=4)
     with pytest.raises(InputError, match="schedule"):

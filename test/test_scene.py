@@ -519,3 +519,35 @@ def test_synth_object_dome_views_the_objects_from_a_hemisphere(tmp_path: Path) -
         azim.append(np.degrees(np.arctan2(rel[1], rel[0])))
     assert min(elev) >= 10.0 and max(elev) <= 75.0 and np.all(np.diff(elev) > 0)  # rising along the sequence
     assert len({round(a) for a in azim}) == 8  # golden-angle azimuths: no two views from one direction
+
+
+def test_synth_suite_joins_two_rooms_by_a_doorway_the_walk_goes_through(tmp_path: Path) -> None:
+    """``scene synth --kind suite``: two rooms and a doorway; the loop of the first room, the walk through the doorway
+    and the loop of the second are smooth, never inside anything, and every ray hits (a closed suite)."""
+    out = tmp_path / "suite"
+    assert main(["scene", "synth", "--kind", "suite", "--frames", "12", "--width", "48", "--out", str(out)]) == 0
+    assert len(ReplicaSequence(out)) == 12
+    mesh = scene.synth_suite(7)
+    assert np.array_equal(np.asarray(mesh.vertices), np.asarray(scene.synth_suite(7).vertices))
+    np.testing.assert_allclose(mesh.get_min_bound(), scene.ROOM_MIN, atol=1e-9)
+    np.testing.assert_allclose(mesh.get_max_bound(), scene.ROOM_MAX + scene.SUITE_OFFSET_M, atol=1e-9)
+    door_x, wall_y = scene.suite_door_x(7), float(scene.ROOM_MAX[1])
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    rays = [[door_x, wall_y - 1.0, 1.0, 0.0, 1.0, 0.0], [door_x + 0.6, wall_y - 1.0, 1.0, 0.0, 1.0, 0.0]]
+    t_hit = rs.cast_rays(o3d.core.Tensor(np.array(rays, dtype=np.float32)))["t_hit"].numpy()
+    assert t_hit[0] > 2.0 and t_hit[1] == pytest.approx(1.0, abs=1e-4)  # through the doorway; beside it, the wall
+
+    poses = scene.suite_trajectory(7, 400)
+    for i, T in enumerate(poses):
+        check_pose(T, f"pose {i}", tol=1e-9)
+    pos = poses[:, :3, 3]
+    assert np.all(pos[:168, 1] < wall_y - 0.5) and np.all(pos[232:, 1] > wall_y + 0.5)  # one room, then the other
+    crossing = np.argmax(pos[:, 1] > wall_y)
+    assert abs(pos[crossing, 0] - door_x) < 1e-9 and abs(pos[crossing, 2] - 1.4) < 1e-9  # through the doorway
+    assert np.linalg.norm(np.diff(pos, axis=0), axis=1).max() < 0.1
+    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    assert np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))).max() < 6.0
+    renderer = MeshRenderer(mesh, texture_strength=0.0)
+    depths = np.stack([renderer.render_depth(T, synth_intrinsics(40, 30)) for T in poses[::2]])
+    assert depths.min() > 0.3 and depths.max() < MAX_DEPTH_M

@@ -114,11 +114,13 @@ def _synth(args: argparse.Namespace) -> int:
         dome_trajectory,
         orbit_trajectory,
         render_sequence,
+        suite_trajectory,
         synth_bins,
         synth_clutter,
         synth_object,
         synth_room,
         synth_shelf,
+        synth_suite,
         synth_trajectory,
     )
 
@@ -140,6 +142,8 @@ def _synth(args: argparse.Namespace) -> int:
         mesh, poses = synth_shelf(args.seed), dome_trajectory(args.frames)
     elif args.kind == "bins-dome":
         mesh, poses = synth_bins(args.seed), dome_trajectory(args.frames)
+    elif args.kind == "suite":
+        mesh, poses = synth_suite(args.seed), suite_trajectory(args.seed, args.frames)
     else:
         mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
@@ -253,7 +257,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--kind",
-        choices=("room", "object", "object-dome", "clutter-dome", "shelf-dome", "bins-dome"),
+        choices=("room", "object", "object-dome", "clutter-dome", "shelf-dome", "bins-dome", "suite"),
         default="room",
         help="room: the procedural room and a handheld loop inside it (default); object: an object-centric scene "
         "(five primitives on a disc) and one orbit around it, the background empty (no depth); object-dome: the "
@@ -261,7 +265,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "8 cm apart and four open cabinets facing outward, seen from the same hemisphere (insides only a few views "
         "see); shelf-dome: an open shelf, a table with a crate under it and an L of two walls, from the same "
         "hemisphere (the scene the NBV options are tuned on; clutter-dome is reported); bins-dome: two open-top bins, "
-        "a tunnel and a screen with a crate behind it, from the same hemisphere (made after the options were fixed)",
+        "a tunnel and a screen with a crate behind it, from the same hemisphere (made after the options were fixed); "
+        "suite: two rooms (seeds SEED and SEED + 1) joined by a doorway, a loop in the first, a walk through the "
+        "doorway and a loop in the second (a stream that meets a new room; made for the stream NBV check)",
     )
     p.add_argument("--frames", type=int, default=100, metavar="N", help="number of frames along one loop (default 100)")
     p.add_argument(

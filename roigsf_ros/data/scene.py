@@ -499,6 +499,67 @@ def synth_room(seed: int) -> o3d.geometry.TriangleMesh:
     return b.mesh()
 
 
+SUITE_OFFSET_M = np.array([0.0, ROOM_MAX[1] - ROOM_MIN[1], 0.0])
+"""Shift (m) of the suite's second room (:func:`synth_suite`): it stands beside the first, sharing the wall y = 2."""
+SUITE_DOOR_M = (0.9, 2.1)
+"""Width and height (m) of the doorway between the suite's two rooms."""
+
+
+def _suite_rooms(seed: int) -> tuple[o3d.geometry.TriangleMesh, o3d.geometry.TriangleMesh]:
+    """The suite's rooms: :func:`synth_room` of ``seed`` and of ``seed + 1`` moved by :data:`SUITE_OFFSET_M`."""
+    return synth_room(seed), synth_room(seed + 1).translate(SUITE_OFFSET_M)
+
+
+def _centroids(mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
+    return np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)
+
+
+def suite_door_x(seed: int) -> float:
+    """The x (m) of the doorway's centre in the wall y = 2 between the suite's rooms, for ``seed``.
+
+    The doorway spans whole wall cells (0.1 m); of the positions from x = -2.0 to 1.1 (its left edge), the one whose
+    passage (the doorway plus 0.15 m either side, 1.2 m deep into both rooms, below the lintel) holds the fewest
+    furniture triangles, the nearest the centre on a tie, so the camera passes no furniture.
+    """
+    wall_y = float(ROOM_MAX[1])
+    width, height = SUITE_DOOR_M
+    parts = []
+    bounds = ((ROOM_MIN, ROOM_MAX), (ROOM_MIN + SUITE_OFFSET_M, ROOM_MAX + SUITE_OFFSET_M))
+    for mesh, (lo, hi) in zip(_suite_rooms(seed), bounds, strict=True):
+        c = _centroids(mesh)
+        shell = (np.abs(c - lo) < 0.02).any(axis=1) | (np.abs(c - hi) < 0.02).any(axis=1)  # walls, floor, ceiling
+        parts.append(c[~shell])
+    furniture = np.concatenate(parts)
+    best: tuple[int, float, float] | None = None
+    for left in np.round(np.arange(-2.0, 1.1 + 1e-9, 0.1), 6):
+        x0, x1 = left - 0.15, left + width + 0.15
+        inside = (furniture[:, 0] > x0) & (furniture[:, 0] < x1) & (np.abs(furniture[:, 1] - wall_y) < 1.2)
+        inside &= furniture[:, 2] < height
+        key = (int(inside.sum()), abs(left + width / 2), float(left + width / 2))
+        best = key if best is None or key[:2] < best[:2] else best
+    assert best is not None
+    return best[2]
+
+
+def synth_suite(seed: int) -> o3d.geometry.TriangleMesh:
+    """Two :func:`synth_room` rooms side by side (seeds ``seed`` and ``seed + 1``, the second at y = 2..6) joined by a
+    doorway in their shared wall (:func:`suite_door_x`, :data:`SUITE_DOOR_M`): a stream scene where a trajectory
+    meets a whole new room (:func:`suite_trajectory`), unlike one loop inside one room. Deterministic for a seed.
+    """
+    door_x = suite_door_x(seed)
+    width, height = SUITE_DOOR_M
+    wall_y = float(ROOM_MAX[1])
+    out = o3d.geometry.TriangleMesh()
+    for mesh in _suite_rooms(seed):
+        c = _centroids(mesh)
+        door = (np.abs(c[:, 1] - wall_y) < 0.02) & (np.abs(c[:, 0] - door_x) < width / 2) & (c[:, 2] < height)
+        mesh.remove_triangles_by_mask(door)
+        mesh.remove_unreferenced_vertices()
+        out += mesh
+    out.compute_vertex_normals()
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Trajectories
 # --------------------------------------------------------------------------------------------
@@ -578,6 +639,42 @@ def synth_trajectory(
     poses = np.stack([look_at(pos[i], tgt[i], up, roll[i]) for i in range(n_frames)])
     for i, T in enumerate(poses):
         check_pose(T, f"synth_trajectory pose {i}")
+    return poses
+
+
+def suite_trajectory(seed: int, n_frames: int) -> np.ndarray:
+    """Camera-to-world poses [N, 4, 4] through :func:`synth_suite`: a loop in the first room (42 % of the frames),
+    a walk through the doorway (16 %), a loop in the second room (the rest); each loop is :func:`synth_trajectory`
+    of its room's seed. The walk turns smoothly (slerp) from the first loop's last view to the doorway's direction
+    (+y, 15 deg down), goes 1 m either side of the wall at 1.4 m height, and turns to the second loop's first view.
+    """
+    if n_frames < 10:
+        raise InputError("n_frames", f"the suite's walk needs >= 10 frames, got {n_frames}")
+    from scipy.spatial.transform import Rotation, Slerp
+
+    n_a, n_walk = round(0.42 * n_frames), round(0.16 * n_frames)
+    first = synth_trajectory(seed, n_a)
+    second = synth_trajectory(seed + 1, n_frames - n_a - n_walk, ROOM_MIN + SUITE_OFFSET_M, ROOM_MAX + SUITE_OFFSET_M)
+    door_x, wall_y = suite_door_x(seed), float(ROOM_MAX[1])
+    ahead = np.array([0.0, 1.0, -np.tan(np.radians(15.0))])
+    door_R = look_at(np.zeros(3), ahead, np.array([0.0, 0.0, 1.0]))[:3, :3]
+    knots = np.stack([first[-1][:3, 3], [door_x, wall_y - 1.0, 1.4], [door_x, wall_y + 1.0, 1.4], second[0][:3, 3]])
+    seg = np.linalg.norm(np.diff(knots, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    turn_in = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([first[-1][:3, :3], door_R])))
+    turn_out = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([door_R, second[0][:3, :3]])))
+    walk = np.empty((n_walk, 4, 4))
+    for i, d in enumerate(cum[-1] * (np.arange(n_walk) + 1) / (n_walk + 1)):
+        k = min(int(np.searchsorted(cum, d, side="right")) - 1, 2)
+        u = (d - cum[k]) / seg[k]
+        T = np.eye(4)
+        T[:3, 3] = knots[k] + u * (knots[k + 1] - knots[k])
+        R = turn_in(u).as_matrix() if k == 0 else door_R if k == 1 else turn_out(u).as_matrix()
+        T[:3, :3] = R
+        walk[i] = T
+    poses = np.concatenate([first, walk, second])
+    for i, T in enumerate(poses):
+        check_pose(T, f"suite_trajectory pose {i}")
     return poses
 
 
@@ -877,6 +974,8 @@ __all__ = [
     "REPLICA_PIXEL_OFFSET",
     "ROOM_MAX",
     "ROOM_MIN",
+    "SUITE_DOOR_M",
+    "SUITE_OFFSET_M",
     "MeshRenderer",
     "camera_rays",
     "dome_trajectory",
@@ -884,11 +983,14 @@ __all__ = [
     "look_at",
     "orbit_trajectory",
     "render_sequence",
+    "suite_door_x",
+    "suite_trajectory",
     "surface_texture",
     "synth_bins",
     "synth_clutter",
     "synth_object",
     "synth_room",
     "synth_shelf",
+    "synth_suite",
     "synth_trajectory",
 ]

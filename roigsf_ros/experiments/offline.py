@@ -113,6 +113,8 @@ def run_offline(
         bar.update(1)
         bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)
     bar.close()
+    for keyframe in policy.finish(mapper):  # what a policy deciding late still holds at the end
+        mapper.add_keyframe(keyframe)
     if cfg.final_iters and mapper.keyframes:
         mapper.refine(cfg.final_iters)
     t_map = time.perf_counter() - t0

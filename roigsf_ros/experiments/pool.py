@@ -54,10 +54,11 @@ SCHEDULES = ("fixed", "epochs")
 
 def check_pool_params(params: dict[str, Any]) -> None:
     """InputError for policy parameters that need a candidate's images: the pool scores poses only."""
-    weight = params.get("novelty_weight")
-    if weight is not None and weight != 0:
-        raise InputError("novelty_weight", "reads a candidate's captured depth: stream setting only (the pool scores "
-                         "views before they are taken, from their poses)")  # fmt: skip
+    for name in ("novelty_weight", "lookahead"):
+        value = params.get(name)
+        if value is not None and value != 0:
+            raise InputError(name, "reads a candidate's captured depth: stream setting only (the pool scores "
+                             "views before they are taken, from their poses)")  # fmt: skip
 
 
 @dataclass(frozen=True)

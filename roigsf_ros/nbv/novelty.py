@@ -10,12 +10,17 @@ the keyframes' depth observed.
 Both sides are voxelised at ``voxel_m``: :class:`ObservedSurface` keeps the voxels within ``radius_m`` (plus half a
 voxel: a point in either voxel may lie that close) of the keyframes' observed voxels in an open3d hash set, so a
 frame costs one back-projection, one ``np.unique`` and one hash lookup of its voxels. Nothing here needs ROS.
+
+Deciding a window late (the stream policies' ``lookahead``): :meth:`ObservedSurface.lookahead_new_voxels` scores a
+candidate by the pair it makes with the best of the newer frames, so surface that a later frame shows anyway is left
+to that frame (the coverage study's "one window late" scorer, with each frame's depth instead of the ground truth).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
@@ -97,13 +102,43 @@ class ObservedSurface:
         """Mark what a keyframe's depth [H, W] (its ``valid`` pixels) observes."""
         self.add_points(depth_points_w(depth_m, T_wc, intr, valid))
 
+    def _unreached(self, ijk: np.ndarray) -> np.ndarray:
+        """The voxels [N, 3] int32 of ``ijk`` (distinct) that no added observation reaches."""
+        if len(ijk) == 0 or self.n_added == 0:
+            return ijk
+        _, found = self._reached.find(o3d.core.Tensor(ijk))
+        return ijk[~found.numpy().astype(bool)]
+
     def new_voxels(self, points_w: np.ndarray) -> int:
         """How many distinct voxels of ``points_w`` [N, 3] no added observation reaches."""
-        ijk = self._voxels(points_w)
-        if len(ijk) == 0 or self.n_added == 0:
-            return len(ijk)
-        _, found = self._reached.find(o3d.core.Tensor(ijk))
-        return int(len(ijk) - np.count_nonzero(found.numpy()))
+        return len(self._unreached(self._voxels(points_w)))
+
+    def lookahead_new_voxels(self, candidates_w: list[np.ndarray], ahead_w: list[np.ndarray]) -> np.ndarray:
+        """[M] int: each candidate's new voxels plus the most new voxels one frame ahead would still add after it.
+
+        ``candidates_w`` and ``ahead_w`` hold each frame's points [N, 3] (world, metres). For candidate f, with
+        V_f its voxels and B_g the new voxels of a frame g ahead: |new(f)| + max_g |{b in B_g: no voxel of V_f within
+        reach}|, the voxels the pair (f, best g) shows first. Picking f by it leaves to the next pick the surface
+        that a later frame also shows. With no frames ahead it is :meth:`new_voxels` of each candidate.
+        """
+        cand = [self._voxels(p) for p in candidates_w]
+        own = np.array([len(self._unreached(v)) for v in cand], dtype=np.int64)
+        ahead_new = [self._unreached(self._voxels(p)) for p in ahead_w]
+        sizes = [len(b) for b in ahead_new]
+        if not ahead_new or sum(sizes) == 0:
+            return own
+        union = np.concatenate(ahead_new).astype(np.float64)
+        group = np.repeat(np.arange(len(ahead_new)), sizes)
+        r2 = ((self.radius_m + 0.5 * self.voxel_m) / self.voxel_m) ** 2 + 1e-9  # as the offsets' test
+        after = np.empty(len(cand), dtype=np.int64)
+        for i, v in enumerate(cand):
+            if len(v) == 0:
+                after[i] = max(sizes)
+                continue
+            d, _ = cKDTree(v.astype(np.float64)).query(union, k=1, distance_upper_bound=np.sqrt(r2) + 1.0)
+            left = ~(d * d <= r2)  # inf (nothing within the bound) stays unreached
+            after[i] = np.bincount(group[left], minlength=len(ahead_new)).max()
+        return own + after
 
     def new_area_m2(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> float:
         """Novelty of a frame: its voxels no keyframe's observation reaches, as an area (count x ``voxel_m``^2)."""
@@ -111,12 +146,24 @@ class ObservedSurface:
 
     def add_frame(self, frame: Frame, intr: Intrinsics, config: MapperConfig) -> None:
         """:meth:`add` a keyframe's depth within the mapper's depth range (``config``)."""
-        self.add(_depth_of(frame, intr), frame.T_wc, intr, valid_depth_mask(frame.depth_m, config))
+        self.add_points(_frame_points(frame, intr, config))
 
-    def frames_new_area_m2(self, frames: list[Frame], intr: Intrinsics, config: MapperConfig) -> np.ndarray:
-        """[M] :meth:`new_area_m2` of each frame's depth within the mapper's depth range (``config``)."""
-        return np.array([self.new_area_m2(_depth_of(f, intr), f.T_wc, intr, valid_depth_mask(f.depth_m, config))
-                         for f in frames], dtype=np.float64)  # fmt: skip
+    def frames_new_area_m2(
+        self, frames: list[Frame], intr: Intrinsics, config: MapperConfig, ahead: list[Frame] | None = None
+    ) -> np.ndarray:
+        """[M] :meth:`new_area_m2` of each frame's depth within the mapper's depth range (``config``); with frames
+        ``ahead``, the area of :meth:`lookahead_new_voxels` instead.
+        """
+        points = [_frame_points(f, intr, config) for f in frames]
+        if not ahead:
+            return np.array([self.new_voxels(p) for p in points], dtype=np.float64) * self.voxel_m**2
+        later = [_frame_points(f, intr, config) for f in ahead]
+        return self.lookahead_new_voxels(points, later).astype(np.float64) * self.voxel_m**2
+
+
+def _frame_points(frame: Frame, intr: Intrinsics, config: MapperConfig) -> np.ndarray:
+    """World points [N, 3] of a frame's depth within the mapper's depth range (``config``)."""
+    return depth_points_w(_depth_of(frame, intr), frame.T_wc, intr, valid_depth_mask(frame.depth_m, config))
 
 
 def _depth_of(frame: Frame, intr: Intrinsics) -> np.ndarray:

@@ -25,6 +25,10 @@ scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the libr
 candidate's observed novelty against the depth of the keyframes published so far; the planner scores poses only,
 the selector holds the frames. ``fallback_policy: novelty`` decides an unanswered window by N. Depth counts within
 the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
+``lookahead`` > 0 (with policy ``novelty``, or a planner policy and ``novelty_weight`` > 0) decides each window once
+the next ``lookahead`` frames are in, N becoming the lookahead novelty (the library's ``lookahead``); the planner
+is asked about the window's frames only. A node has no end of stream, so the frames still held when the input stops
+are not decided (the library's ``finish`` decides them).
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
@@ -64,7 +68,7 @@ from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_params, fr
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
-from roigsf_ros.policies.stream import CandidateWindow
+from roigsf_ros.policies.stream import CandidateWindow, split_lookahead
 from roigsf_ros.render.surfels import SurfelMap
 
 PLANNER_POLICIES = MODES
@@ -95,6 +99,7 @@ class KeyframeSelectorNode(SystemNode):
         self.novelty_weight = float(declare(self, "novelty_weight", 0.0, "weight of z(observed novelty) (0 = off)"))
         self.novelty_voxel_m = float(declare(self, "novelty_voxel_m", NOVELTY_VOXEL_M, "novelty's voxel (m)"))
         self.novelty_radius_m = float(declare(self, "novelty_radius_m", NOVELTY_RADIUS_M, "observed within this (m)"))
+        self.lookahead = int(declare(self, "lookahead", 0, "newer frames that judge a window's novelty (0 = off)"))
         camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
@@ -111,6 +116,11 @@ class KeyframeSelectorNode(SystemNode):
         if self.novelty_weight > 0 and self.policy not in PLANNER_POLICIES:
             raise InputError("parameter 'novelty_weight'", f"is added to the planner's scores: policy '{self.policy}' "
                              "does not ask the planner (policy novelty ranks by it alone)")  # fmt: skip
+        check_positive("lookahead", self.lookahead, allow_zero=True)
+        judged = self.policy == "novelty" or (self.policy in PLANNER_POLICIES and self.novelty_weight > 0)
+        if self.lookahead and not judged:
+            raise InputError("parameter 'lookahead'", "judges the observed novelty: it needs policy novelty, or a "
+                             "planner policy with novelty_weight > 0")  # fmt: skip
         check_positive("trigger_every", trigger, allow_zero=True)
         check_positive("planner_timeout_s", self.timeout_s)
         check_positive("qos_depth", qos_depth)
@@ -129,11 +139,12 @@ class KeyframeSelectorNode(SystemNode):
         self._cloud: PointCloud2 | None = None
         self._cloud_version = 0
         self._view: tuple[int, Mapper] | None = None
-        self._window = CandidateWindow(self.window, self.trigger_every)
+        self._window = CandidateWindow(self.window + self.lookahead, self.trigger_every)
         self._seen = 0
         self._request: tuple[Future, list[Frame], float] | None = None
         self._request_intr: Intrinsics | None = None
-        self._waiting: tuple[list[Frame], Intrinsics] | None = None
+        self._request_ahead: list[Frame] = []
+        self._waiting: tuple[list[Frame], Intrinsics, list[Frame]] | None = None
         """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
         self.keyframe_ids: list[int] = []
@@ -173,6 +184,7 @@ class KeyframeSelectorNode(SystemNode):
                 "trigger_every": self.trigger_every,
                 "novelty_voxel_m": self.novelty_voxel_m,
                 "novelty_radius_m": self.novelty_radius_m,
+                "lookahead": self.lookahead,
             },
             "every-n": {"n": self.every_n},
             "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
@@ -216,13 +228,14 @@ class KeyframeSelectorNode(SystemNode):
             if not self.uses_planner:
                 self._decide_alone(self._alone, [frame], bf.intrinsics, force_first=first)
                 return
-            candidates, first = self._window.push(frame)  # the library's stream window and trigger
+            held, first = self._window.push(frame)  # the library's stream window and trigger
             if first:
                 self._publish(frame, bf.intrinsics)
                 return
-            if not candidates:
+            candidates, ahead = split_lookahead(held, self.lookahead)
+            if not candidates:  # nothing due, or (lookahead) every frame held is still ahead
                 return
-        self._ask_planner(candidates, bf.intrinsics)
+        self._ask_planner(candidates, bf.intrinsics, ahead)
 
     def _decide_alone(
         self, policy: KeyframePolicy, frames: list[Frame], intr: Intrinsics, force_first: bool = False
@@ -239,23 +252,25 @@ class KeyframeSelectorNode(SystemNode):
                 self._publish(f, intr)
 
     # ------------------------------------------------------------------------------ planner
-    def _ask_planner(self, candidates: list[Frame], intr: Intrinsics) -> None:
+    def _ask_planner(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> None:
         self._check_request()  # an answer that came since the last timer tick (50 ms) is taken, not called busy
         with self._lock:
             if self._request is not None:  # wait for the answer in flight; at most one window waits
                 if self._waiting is not None:
-                    older, older_intr = self._waiting
-                    self._fall_back(older, older_intr, "is still busy with two windows before this one")
-                self._waiting = (candidates, intr)
+                    older, older_intr, older_ahead = self._waiting
+                    self._fall_back(older, older_intr, "is still busy with two windows before this one", older_ahead)
+                self._waiting = (candidates, intr, ahead)
                 self.counters["planner_waited"] += 1
                 return
-            self._send(candidates, intr)
+            self._send(candidates, intr, ahead)
 
-    def _send(self, candidates: list[Frame], intr: Intrinsics) -> None:
-        """Send a window's poses to the planner (call with the lock held and no request in flight)."""
+    def _send(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> None:
+        """Send a window's poses to the planner (call with the lock held and no request in flight); ``ahead``: the
+        newer frames that judge its novelty (``lookahead``).
+        """
         with self._lock:
             if not self._client.service_is_ready():
-                self._fall_back(candidates, intr, "is not available")
+                self._fall_back(candidates, intr, "is not available", ahead)
                 return
             req = GetNextBestView.Request(mode=self.policy, top_k=0)
             req.candidates = poses_to_array([f.T_wc for f in candidates], self.get_clock().now().nanoseconds)
@@ -263,6 +278,7 @@ class KeyframeSelectorNode(SystemNode):
             self.counters["planner_calls"] += 1
             self._request = (self._client.call_async(req), candidates, time.monotonic())
             self._request_intr = intr
+            self._request_ahead = ahead
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
@@ -272,9 +288,9 @@ class KeyframeSelectorNode(SystemNode):
         with self._lock:
             self._settle_request()
             if self._request is None and self._waiting is not None:
-                candidates, intr = self._waiting
+                candidates, intr, ahead = self._waiting
                 self._waiting = None
-                self._send(candidates, intr)
+                self._send(candidates, intr, ahead)
 
     def _settle_request(self) -> None:
         """Take the answer of the request in flight, or fall back on a timeout (call with the lock held)."""
@@ -282,18 +298,18 @@ class KeyframeSelectorNode(SystemNode):
             if self._request is None:
                 return
             future, candidates, t_sent = self._request
-            intr = self._request_intr
+            intr, ahead = self._request_intr, self._request_ahead
             if future.done():
                 self._request = None
                 res = future.result() if future.exception() is None else None
                 if res is None or not res.success:
                     self.counters["planner_failures"] += 1
                     why = "no answer" if res is None else res.message
-                    self._fall_back(candidates, intr, f"answered success=false ({why})")
+                    self._fall_back(candidates, intr, f"answered success=false ({why})", ahead)
                     return
                 if not 0 <= res.best_index < len(candidates):
                     self.counters["planner_failures"] += 1
-                    self._fall_back(candidates, intr, f"answered an invalid best_index {res.best_index}")
+                    self._fall_back(candidates, intr, f"answered an invalid best_index {res.best_index}", ahead)
                     return
                 self.counters["planner_answers"] += 1
                 if self._planner_down:
@@ -301,7 +317,7 @@ class KeyframeSelectorNode(SystemNode):
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
                 best = res.best_index
                 if self.novelty_weight > 0:
-                    best = self._with_novelty(candidates, intr, res.fused_scores, best)
+                    best = self._with_novelty(candidates, intr, res.fused_scores, best, ahead)
                 winner = candidates[best]
                 self._window.remove(winner)
                 self._publish(winner, intr)
@@ -310,9 +326,9 @@ class KeyframeSelectorNode(SystemNode):
                 self._client.remove_pending_request(future)
                 future.cancel()
                 self.counters["planner_timeouts"] += 1
-                self._fall_back(candidates, intr, f"did not answer within {self.timeout_s:g} s")
+                self._fall_back(candidates, intr, f"did not answer within {self.timeout_s:g} s", ahead)
 
-    def _fall_back(self, candidates: list[Frame], intr: Intrinsics, why: str) -> None:
+    def _fall_back(self, candidates: list[Frame], intr: Intrinsics, why: str, ahead: list[Frame]) -> None:
         """Decide a window with ``fallback_policy`` (call with the lock held); logs the first of a run of them."""
         self.counters["fallbacks"] += 1
         msg = f"planner {self.service_name} {why}: fallback {self.fallback}"
@@ -325,7 +341,7 @@ class KeyframeSelectorNode(SystemNode):
             if self.fallback == "random":
                 winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
             else:
-                winner = candidates[int(np.argmax(self._novelty(candidates, intr)))]  # ties: the oldest
+                winner = candidates[int(np.argmax(self._novelty(candidates, intr, ahead)))]  # ties: the oldest
             self._window.remove(winner)
             self._publish(winner, intr)
             return
@@ -342,18 +358,23 @@ class KeyframeSelectorNode(SystemNode):
         """An empty map with the mapper's settings: what the novelty policy reads (the camera and depth range)."""
         return view_mapper(SurfelMap.empty(), intr, self._mapper_config())
 
-    def _novelty(self, candidates: list[Frame], intr: Intrinsics) -> np.ndarray:
-        """[M] observed novelty (m^2) of the candidates against the keyframes published so far."""
+    def _novelty(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> np.ndarray:
+        """[M] observed novelty (m^2) of the candidates against the keyframes published so far (``ahead``: the
+        lookahead novelty).
+        """
         assert self._observed is not None
-        return self._observed.frames_new_area_m2(candidates, intr, self._mapper_config())
+        return self._observed.frames_new_area_m2(candidates, intr, self._mapper_config(), ahead)
 
-    def _with_novelty(self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int) -> int:
+    def _with_novelty(
+        self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int, ahead: list[Frame]
+    ) -> int:
         """The pick of ``fused + novelty_weight z(N)``; the planner's own ``best`` when its scores do not fit."""
         if len(fused) != len(candidates):
             self.get_logger().warning(f"planner answered {len(fused)} fused scores for {len(candidates)} candidates: "
                                       "its pick is taken without the novelty term")  # fmt: skip
             return best
-        return int(np.argmax(fuse_novelty(np.asarray(fused), self._novelty(candidates, intr), self.novelty_weight)))
+        novelty = self._novelty(candidates, intr, ahead)
+        return int(np.argmax(fuse_novelty(np.asarray(fused), novelty, self.novelty_weight)))
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, frame: Frame, intr: Intrinsics) -> None:

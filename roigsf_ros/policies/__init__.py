@@ -21,6 +21,7 @@ __all__, __getattr__ = lazy_exports(
             "STREAM_POLICIES",
             "StreamNBVPolicy",
             "TRIGGERS",
+            "split_lookahead",
         ],
     },
 )

@@ -2,8 +2,9 @@
 
 A policy sees every frame in order through ``observe(frame, keyframe_map) -> list[Frame]`` and answers
 with the frames to insert now, in order (none, the frame itself, or an earlier frame it held back: the
-stream NBV policies choose from a window of past frames). The caller inserts them; a policy never
-changes the map. Policies are made by name with :func:`make_policy`; :mod:`roigsf_ros.policies`
+stream NBV policies choose from a window of past frames). When the sequence ends the caller inserts what
+``finish(keyframe_map)`` returns (a policy that decides late still holds frames). The caller inserts them; a policy
+never changes the map. Policies are made by name with :func:`make_policy`; :mod:`roigsf_ros.policies`
 imports every module that registers one (:mod:`~roigsf_ros.policies.rules`,
 :mod:`~roigsf_ros.policies.stream`), so the registry is complete once the package is imported.
 """
@@ -69,6 +70,10 @@ class KeyframePolicy:
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
         """The frames to insert as keyframes now (in order), after seeing ``frame``; the caller inserts them."""
         raise NotImplementedError
+
+    def finish(self, keyframe_map: KeyframeMap) -> list[Frame]:
+        """The frames to insert when the sequence ends (a policy deciding late still holds some); default none."""
+        return []
 
     def reset(self) -> None:
         """Forget any state, to start a new sequence."""

@@ -84,12 +84,22 @@ class CandidateWindow:
         self._since_trigger = 0
         return list(self._buffer), False
 
+    def held(self) -> list[Frame]:
+        """The frames in the window now, oldest first (what a selection would decide among)."""
+        return list(self._buffer)
+
     def remove(self, frame: Frame) -> None:
         """Drop ``frame`` (by identity: frames hold arrays) from the window if it is still there."""
         for i, f in enumerate(self._buffer):
             if f is frame:
                 del self._buffer[i]
                 return
+
+
+def split_lookahead(frames: list[Frame], lookahead: int) -> tuple[list[Frame], list[Frame]]:
+    """(candidates, ahead): the held ``frames`` (oldest first) but the newest ``lookahead``, and those newest."""
+    n = len(frames) - max(int(lookahead), 0)
+    return frames[: max(n, 0)], frames[max(n, 0) :]
 
 
 class StreamNBVPolicy(KeyframePolicy):
@@ -120,6 +130,12 @@ class StreamNBVPolicy(KeyframePolicy):
       the candidate's observed novelty (:meth:`roigsf_ros.nbv.novelty.ObservedSurface.new_area_m2`: the area of its
       back-projected depth farther than ``novelty_radius_m`` (0.05) from all the depth of the frames this policy
       returned, voxelised at ``novelty_voxel_m`` (0.025)). The ``"novelty"`` policy ranks by N alone.
+    - ``lookahead`` (0; beyond the paper, needs the novelty): a trigger decides among the window's frames except the
+      newest ``lookahead``, which only judge them: a candidate's N becomes its own new area plus the most one of
+      those newer frames would still add after it (:meth:`ObservedSurface.lookahead_new_voxels`), so surface a
+      later frame also shows is left to the next pick. The window holds ``window + lookahead`` frames; with
+      ``lookahead = trigger_every`` each window is decided one trigger late, and :meth:`finish` decides the
+      frames still held when the sequence ends.
     - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m`` and any
       other :class:`roigsf_ros.nbv.config.NBVConfig` field by name (e.g. ``unseen_weight``): passed to the
       scorer's config (None: its default). The mode is the policy name; unknown names raise InputError.
@@ -130,7 +146,8 @@ class StreamNBVPolicy(KeyframePolicy):
     front) is computed exactly from the keyframe poses on the current TSDF surface.
 
     After a trigger, :attr:`last_result` is the scorer's :class:`NBVResult` (None for random),
-    :attr:`last_candidate_ids` the window's frame ids in the scored order, and
+    :attr:`last_candidate_ids` the window's frame ids in the scored order (:attr:`last_ahead_ids` those that only
+    judged them), and
     :attr:`inserted_ids` lists every frame the policy chose at a trigger (not the first frame).
     """
 
@@ -163,15 +180,25 @@ class StreamNBVPolicy(KeyframePolicy):
         novelty_weight: float = 0.0,
         novelty_voxel_m: float = NOVELTY_VOXEL_M,
         novelty_radius_m: float = NOVELTY_RADIUS_M,
+        lookahead: int = 0,
         **nbv_options: Any,
     ) -> None:
-        self.candidates = CandidateWindow(window, trigger_every)
+        if not (isinstance(lookahead, int | float) and int(lookahead) == lookahead and lookahead >= 0):
+            raise InputError("lookahead", f"must be an integer >= 0, got {lookahead!r}")
+        self.lookahead = int(lookahead)
+        CandidateWindow(window, trigger_every)  # checks both as given
+        every = int(window) if trigger_every is None else trigger_every
+        self.candidates = CandidateWindow(int(window) + self.lookahead, every)
         if not (isinstance(novelty_weight, int | float) and np.isfinite(novelty_weight) and novelty_weight >= 0):
             raise InputError("novelty_weight", f"must be a finite number >= 0, got {novelty_weight!r}")
         if novelty_weight > 0 and self.mode is None:
             alone = " (it ranks by the novelty alone)" if self.novelty_only else " (policy novelty ranks by it alone)"
             raise InputError("novelty_weight", f"policy {self.name!r} has no fused score to add it to{alone}")
         self.novelty_weight = float(novelty_weight)
+        if self.lookahead and not (self.novelty_only or self.novelty_weight > 0):
+            raise InputError("lookahead", "judges the observed novelty: use policy novelty or novelty_weight > 0")
+        if self.lookahead and trigger != "window":
+            raise InputError("lookahead", f"decides one keyframe per trigger: needs trigger 'window', not {trigger!r}")
         ObservedSurface(novelty_voxel_m, novelty_radius_m)  # checks both now, not at the first frame
         self.novelty_voxel_m = float(novelty_voxel_m)
         self.novelty_radius_m = float(novelty_radius_m)
@@ -186,7 +213,7 @@ class StreamNBVPolicy(KeyframePolicy):
         for name, v in (("adaptive_history", adaptive_history), ("adaptive_max_gap", adaptive_max_gap)):
             if int(v) != v or int(v) < 1:
                 raise InputError(name, f"must be a positive integer, got {v!r}")
-        budget_every = float(self.candidates.window if budget_every is None else budget_every)
+        budget_every = float(int(window) if budget_every is None else budget_every)
         every = self.candidates.trigger_every
         if trigger == "budget" and not (np.isfinite(budget_every) and budget_every >= every):
             raise InputError("budget_every", f"must be >= trigger_every ({every}), got {budget_every!r}")
@@ -199,7 +226,7 @@ class StreamNBVPolicy(KeyframePolicy):
         self.adaptive_ratio = float(adaptive_ratio)
         self.adaptive_history = int(adaptive_history)
         self.adaptive_max_gap = int(adaptive_max_gap)
-        self.window = self.candidates.window
+        self.window = int(window)
         self.trigger_every = self.candidates.trigger_every
         self.seed = int(seed)
         self.voxel_size_m = voxel_size_m
@@ -228,6 +255,8 @@ class StreamNBVPolicy(KeyframePolicy):
         """Selections made so far."""
         self.last_result: NBVResult | None = None
         self.last_candidate_ids: list[int] = []
+        self.last_ahead_ids: list[int] = []
+        """Frame ids that judged the last selection's candidates without being candidates (``lookahead``)."""
         self.gains: deque[float] = deque(maxlen=self.adaptive_history)
         """Raw gains of the recent triggers' best candidates (``trigger="adaptive"`` or ``"budget"``)."""
         self.skipped_triggers = 0
@@ -254,6 +283,7 @@ class StreamNBVPolicy(KeyframePolicy):
         if self.uses_novelty:
             out |= {"novelty_voxel_m": self.novelty_voxel_m, "novelty_radius_m": self.novelty_radius_m}
             out |= {"novelty_weight": self.novelty_weight} if not self.novelty_only else {}
+            out |= {"lookahead": self.lookahead} if self.lookahead else {}
         if self.mode is None:
             return out
         out |= {"voxel_size_m": self.voxel_size_m, "sdf_trunc_m": self.sdf_trunc_m, "min_alpha": self.min_alpha}
@@ -312,20 +342,26 @@ class StreamNBVPolicy(KeyframePolicy):
         needed = [p for p in self.config.fisher_params if p != "sh_rest" or keyframe_map.map.sh_rest is not None]
         return h if fits and all(p in h for p in needed) else None
 
-    def novelty(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> np.ndarray:
-        """[M] observed novelty (m^2) of each candidate's valid depth against the frames returned so far."""
+    def novelty(
+        self, candidates: list[Frame], keyframe_map: KeyframeMap, ahead: list[Frame] | None = None
+    ) -> np.ndarray:
+        """[M] observed novelty (m^2) of each candidate's valid depth against the frames returned so far (with the
+        frames ``ahead``: its lookahead novelty, ``lookahead`` in the class docstring).
+        """
         if self.observed is None:
             raise InputError("novelty_weight", "novelty is not scored by this policy")
-        return self.observed.frames_new_area_m2(candidates, keyframe_map.intr, keyframe_map.config)
+        return self.observed.frames_new_area_m2(candidates, keyframe_map.intr, keyframe_map.config, ahead)
 
     def _returned(self, frame: Frame, keyframe_map: KeyframeMap) -> None:
         """Note a frame this policy returns (the caller inserts it): its depth is observed from now on."""
         if self.observed is not None:
             self.observed.add_frame(frame, keyframe_map.intr, keyframe_map.config)
 
-    def choose(self, candidates: list[Frame], keyframe_map: KeyframeMap) -> int:
-        """Index into ``candidates`` of the frame to insert (scores poses, and with novelty the frames' depth)."""
-        self.last_novelty = self.novelty(candidates, keyframe_map) if self.uses_novelty else None
+    def choose(self, candidates: list[Frame], keyframe_map: KeyframeMap, ahead: list[Frame] | None = None) -> int:
+        """Index into ``candidates`` of the frame to insert (scores poses, and with novelty the frames' depth; the
+        frames ``ahead`` only judge the novelty).
+        """
+        self.last_novelty = self.novelty(candidates, keyframe_map, ahead) if self.uses_novelty else None
         if self.mode is None:
             self.last_result = None
             if self.novelty_only:
@@ -368,8 +404,27 @@ class StreamNBVPolicy(KeyframePolicy):
         if self.trigger == "budget" and self.tokens < 1.0 - 1e-9:
             self.skipped_triggers += 1  # nothing banked: not even scored; the window's frames stay candidates
             return []
+        return self._decide(candidates, keyframe_map)
+
+    def finish(self, keyframe_map: KeyframeMap) -> list[Frame]:
+        """With ``lookahead``: the best of the frames still held (nothing is ahead of them now), once; else nothing."""
+        held = self.candidates.held()
+        if not self.lookahead or not held:
+            return []
+        self.sync_tsdf(keyframe_map)
+        chosen = self._decide(held, keyframe_map, lookahead=0)
+        for f in held:
+            self.candidates.remove(f)  # decided: a second call returns nothing
+        return chosen
+
+    def _decide(self, frames: list[Frame], keyframe_map: KeyframeMap, lookahead: int | None = None) -> list[Frame]:
+        """Choose among ``frames`` (all but the newest ``lookahead``, which only judge them) and return the pick."""
+        candidates, ahead = split_lookahead(frames, self.lookahead if lookahead is None else lookahead)
+        if not candidates:
+            return []  # the first trigger of a late decision: every frame held is still ahead
         self.last_candidate_ids = [f.index for f in candidates]
-        pick = self.choose(candidates, keyframe_map)
+        self.last_ahead_ids = [f.index for f in ahead]
+        pick = self.choose(candidates, keyframe_map, ahead)
         winner = candidates[pick]
         self.triggers += 1
         if self.trigger != "window" and not self._accept(pick):
@@ -450,4 +505,5 @@ __all__ = [
     "ROIGSurFisherStream",
     "RandomStream",
     "StreamNBVPolicy",
+    "split_lookahead",
 ]
