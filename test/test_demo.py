@@ -91,3 +91,19 @@ def test_demo_on_a_cold_numba_cache_plans_from_the_first_window(tmp_path: Path) 
     assert metrics["warm_up_s"] > 0
     for row in ("planner answers/calls", "fallbacks", "kernel warm-up (s)"):
         assert re.search(rf"^  {re.escape(row)} +\S", proc.stdout, re.MULTILINE), proc.stdout
+
+
+def test_demo_decides_the_frames_the_selector_holds_when_the_bag_ends(tmp_path: Path) -> None:
+    """With ``lookahead`` the selector holds the last window when the stream ends: the demo calls its ``finish``."""
+    from roigsf_ros.cli import main
+
+    bag = _bag(tmp_path, 7, 32, 24, seed=4)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--rate", "0", "--gt-mesh", "", "--no-progress",
+            "--policy", "novelty", "--final-iters", "0", "--set", "keyframe_selector.window=2",
+            "--set", "keyframe_selector.lookahead=2", "--set", "mapper.iters_per_keyframe=2"]  # fmt: skip
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    # frame 0, then windows of 2 decided one trigger late (triggers at frames 2, 4, 6: the first decides nothing),
+    # and the frames still held at the end: 1 + 2 + 1
+    assert metrics["n_keyframes"] == 4

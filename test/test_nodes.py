@@ -513,6 +513,8 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(ros_context:
     view = Mapper(INTR, MapperConfig())
     expected = [(f.index + 1) * 1000 for frame in seq for f in library.observe(frame, view)]
     assert len(expected) == 5 and library.triggers == 4  # the first window waits for the frames after it
+    last = [(f.index + 1) * 1000 for f in library.finish(view)]  # the end of the stream decides the rest
+    assert len(last) == 1
     plain = make_policy("novelty", window=2)
     assert expected != [(f.index + 1) * 1000 for frame in seq[:-2] for f in plain.observe(frame, view)]
     overrides = [
@@ -532,8 +534,16 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(ros_context:
         _wait(lambda: selector.status()["keyframes_published"] == 5, 20.0, "five keyframes")
         time.sleep(0.3)
         status = selector.status()
-    assert status["keyframe_ids"] == expected
-    assert status["fallbacks"] == (4 if policy == "roi-fisher" else 0)
+        assert status["keyframe_ids"] == expected
+        client = cam.node.create_client(Trigger, "/keyframe_selector/finish")
+        assert client.wait_for_service(timeout_sec=10.0)
+        answer = _call(client, Trigger.Request())
+        assert answer.success and "held frames" in answer.message
+        _wait(lambda: selector.status()["keyframes_published"] == 6, 20.0, "the last keyframe")
+        assert selector.finish() == 0  # once: nothing is held any more
+        status = selector.status()
+    assert status["keyframe_ids"] == expected + last
+    assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
     with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="roi-fisher"),
                                                                        Parameter("lookahead", value=2)])  # fmt: skip

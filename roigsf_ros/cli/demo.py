@@ -7,7 +7,8 @@ participant, so they match at once: with the player in a process of its own the 
 to discovery on a loaded machine (4 of 150 with a 1 s start delay). The player's timing does not matter
 to the result (the nodes go by the messages' stamps), and the report reads the final map directly.
 
-At the end of the stream the mapper finishes its queue, the map gets ``--final-iters`` refinement
+At the end of the stream the selector decides the frames it still holds (``~/finish``; only with its
+``lookahead``), the mapper finishes its queue, the map gets ``--final-iters`` refinement
 steps over all keyframes, and the run folder receives (atomically) ``metrics.json``, ``mesh.ply``,
 ``map.ply`` + ``keyframes.json``, ``strip.png`` (input vs rendered colour and depth of non-keyframes),
 ``plot.png`` (trajectory with keyframes, next to the strip) and ``replay.json`` (player and node
@@ -375,9 +376,14 @@ def run_demo(
             bar.update(system.status())
         if player.error is not None:
             raise RuntimeError(f"bag player failed: {player.error}")
-        # The stream is over: let the selector see the last frames and the mapper insert every keyframe it
-        # named (its idle optimisation is not waited for: the refinement below does that work).
+        # The stream is over: once the selector has seen the last frames (or 5 s passed), it decides what it still
+        # holds (only with its lookahead); then the mapper inserts every keyframe it named (its idle optimisation
+        # is not waited for: the refinement below does that work).
         deadline = time.monotonic() + drain_timeout_s
+        seen_by = time.monotonic() + min(5.0, drain_timeout_s)
+        while system.selector.status()["frames"] < len(frames) and time.monotonic() < seen_by:
+            time.sleep(0.05)
+        system.selector.finish()
         settled_since, last = time.monotonic(), None
         while time.monotonic() < deadline:
             st = system.status()
@@ -524,7 +530,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_POLICY,
         metavar="P",
         help=f"keyframe selector policy (default {DEFAULT_POLICY}; also roi-fisher, close-front, fisherrf, "
-        "random, gaus-slam, every-n, all)",
+        "random, gaus-slam, every-n, all, novelty)",
     )
     p.add_argument(
         "--rate",

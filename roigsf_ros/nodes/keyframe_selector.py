@@ -27,8 +27,9 @@ the selector holds the frames. ``fallback_policy: novelty`` decides an unanswere
 the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
 ``lookahead`` > 0 (with policy ``novelty``, or a planner policy and ``novelty_weight`` > 0) decides each window once
 the next ``lookahead`` frames are in, N becoming the lookahead novelty (the library's ``lookahead``); the planner
-is asked about the window's frames only. A node has no end of stream, so the frames still held when the input stops
-are not decided (the library's ``finish`` decides them).
+is asked about the window's frames only. A stream has no end a node could see, so the frames still held when the
+input stops are decided when ``~/finish`` (``std_srvs/Trigger``) is called, as the library's ``finish`` decides them
+(``roigsf demo`` calls it when the bag ends); without lookahead it does nothing.
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
@@ -52,6 +53,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from roigsf_interfaces.srv import GetNextBestView
 from roigsf_ros.core.camera import Intrinsics
@@ -68,7 +70,7 @@ from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_params, fr
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
-from roigsf_ros.policies.stream import CandidateWindow, split_lookahead
+from roigsf_ros.policies.stream import CandidateWindow, StreamNBVPolicy, split_lookahead
 from roigsf_ros.render.surfels import SurfelMap
 
 PLANNER_POLICIES = MODES
@@ -147,6 +149,7 @@ class KeyframeSelectorNode(SystemNode):
         self._waiting: tuple[list[Frame], Intrinsics, list[Frame]] | None = None
         """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
+        self._last_intr: Intrinsics | None = None
         self.keyframe_ids: list[int] = []
         """Stamps (ns) of the keyframes published, in order."""
         self.counters: dict[str, int] = dict.fromkeys(
@@ -168,6 +171,7 @@ class KeyframeSelectorNode(SystemNode):
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         self._client = self.create_client(GetNextBestView, self.service_name, callback_group=planner)
+        self.create_service(Trigger, "~/finish", self._on_finish, callback_group=planner)
         self.create_timer(0.05, self._check_request, callback_group=planner)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
@@ -223,6 +227,7 @@ class KeyframeSelectorNode(SystemNode):
     def _on_frame(self, bf: BagFrame) -> None:
         frame = frame_of(bf)
         with self._lock:
+            self._last_intr = bf.intrinsics
             first = self._seen == 0
             self._seen += 1
             if not self.uses_planner:
@@ -250,6 +255,36 @@ class KeyframeSelectorNode(SystemNode):
             force_first = False
             for f in chosen:
                 self._publish(f, intr)
+
+    def finish(self) -> int:
+        """End of the stream: with ``lookahead``, decide the frames still held (nothing is ahead of them now), once.
+
+        Policy novelty: the library policy's ``finish``; a planner policy: the held frames go to the planner as one
+        more window (its fallback when it does not answer). Returns how many frames were decided among (0: none).
+        """
+        with self._lock:
+            intr = self._last_intr
+            if not self.lookahead or intr is None:
+                return 0
+            if not self.uses_planner:
+                policy = self._alone
+                assert isinstance(policy, StreamNBVPolicy)  # lookahead needs policy novelty (checked at start)
+                n_held = len(policy.candidates.held())
+                for f in policy.finish(self._depth_view(intr)):
+                    self._publish(f, intr)
+                return n_held
+            held = self._window.held()
+            for f in held:
+                self._window.remove(f)  # decided now: never a candidate again
+        if held:
+            self._ask_planner(held, intr, [])
+        return len(held)
+
+    def _on_finish(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        n = self.finish()
+        res.success = True
+        res.message = f"decided among {n} held frames" if n else "nothing held (lookahead 0, or no frames)"
+        return res
 
     # ------------------------------------------------------------------------------ planner
     def _ask_planner(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> None:
