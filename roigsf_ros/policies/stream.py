@@ -14,7 +14,9 @@ the window frame whose *captured* depth shows the most surface no keyframe's dep
 candidate's depth, which a stream frame has (the camera took it) and a pool candidate has not.
 
 At a trigger ``observe`` returns the window's winner, generally a *past* frame: the caller inserts
-it (the policy never changes the map). The window and trigger rule live in :class:`CandidateWindow`,
+it (the policy never changes the map). With ``lookahead`` (beyond the paper) a trigger decides the frames before the
+newest ``lookahead``, so a window is decided later and :meth:`StreamNBVPolicy.finish` decides what is still held at
+the end of the sequence. The window and trigger rule live in :class:`CandidateWindow`,
 which the keyframe selector node also runs when the planner node chooses for it.
 
 The TSDF the ROI and close-front scores need is fused, as in the paper, from the map's *rendered*
