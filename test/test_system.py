@@ -645,18 +645,20 @@ class TestLateStart:
         assert not UNCLEAN_EXIT.search(node.log()), node.log()[-3000:]
 
 
-LOOP_MAPPER = {"frame_buffer_size": 32, "map_publish_rate_hz": 0.5}
+LOOP_MAPPER = {"frame_buffer_size": 48, "map_publish_rate_hz": 0.5}
 LOOP_SELECTOR = {
     "window": 8,
     "trigger_every": 8,
     "planner_timeout_s": 15.0,
     "novelty_weight": 1.0,
     "fallback_policy": "novelty",
+    "lookahead": 8,
 }
 """The looping system: a window every 0.8 s, and time for a planner in its own process (which recomputes
 H_train from every keyframe pose when the map changed) to answer. The selector adds the observed novelty of the
 frames it holds to the planner's fused scores and decides by it alone while the planner is down (the random
-fallback is tested in-process, test_nodes.py)."""
+fallback is tested in-process, test_nodes.py); each window is decided once the next 8 frames judged it
+(``lookahead``), so a keyframe is named up to 16 frames late plus the planner's time: the mapper keeps 48."""
 
 
 @pytest.fixture(scope="class")
@@ -746,6 +748,18 @@ class TestFaultTolerance:
             now["keyframes_inserted"] + 1,
         )  # +1 in insertion
         assert "resumed map" in _process(ps, "mapper").log()
+
+    def test_selector_finish_service_decides_the_frames_it_holds(self, looping_system: Processes, watch: Watcher):
+        """``~/finish`` from another process: the selector (lookahead 8) decides the frames it holds, as at the end
+        of a stream; the planner (or its fallback) names one more keyframe."""
+        from std_srvs.srv import Trigger
+
+        ps = looping_system
+        sel = lambda: watch.get("keyframe_selector")  # noqa: E731
+        wait_until("a selector status", lambda: bool(sel()), 30, ps)
+        res = watch.call(Trigger, "/keyframe_selector/finish", Trigger.Request())
+        assert res.success and res.message.startswith("decided among ") and "held frames" in res.message
+        assert 0 < int(res.message.split()[2]) <= 16  # window + lookahead frames at most
 
 
 @pytest.fixture(scope="module")
