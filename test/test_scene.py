@@ -537,6 +537,9 @@ def test_synth_suite_joins_two_rooms_by_a_doorway_the_walk_goes_through(tmp_path
     rays = [[door_x, wall_y - 1.0, 1.0, 0.0, 1.0, 0.0], [door_x + 0.6, wall_y - 1.0, 1.0, 0.0, 1.0, 0.0]]
     t_hit = rs.cast_rays(o3d.core.Tensor(np.array(rays, dtype=np.float32)))["t_hit"].numpy()
     assert t_hit[0] > 2.0 and t_hit[1] == pytest.approx(1.0, abs=1e-4)  # through the doorway; beside it, the wall
+    for seed in range(12):  # no furniture the walk (at 1.4 m) could meet stands in the doorway's passage
+        door = scene.suite_door_x(seed)
+        assert scene._suite_passage_counts(scene._suite_furniture(seed), door - scene.SUITE_DOOR_M[0] / 2)[0] == 0
 
     poses = scene.suite_trajectory(7, 400)
     for i, T in enumerate(poses):

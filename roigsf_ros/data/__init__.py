@@ -67,6 +67,7 @@ __all__, __getattr__ = lazy_exports(
             "ROOM_MIN",
             "SUITE_DOOR_M",
             "SUITE_OFFSET_M",
+            "SUITE_WALK_CLEAR_M",
             "camera_rays",
             "dome_trajectory",
             "load_mesh",
