@@ -23,9 +23,10 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 KIND="${KIND:-room}"
+WINDOW="${WINDOW:-12}"
 case "$KIND" in
-    room) WINDOW="${WINDOW:-12}" SCENE=runs/synth_s7_400 OUT=runs/bench_stream_synth ;;
-    suite) WINDOW="${WINDOW:-12}" SCENE=runs/suite_s7_400 OUT=runs/bench_stream_suite ;;
+    room) SCENE=runs/synth_s7_400 OUT=runs/bench_stream_synth ;;
+    suite) SCENE=runs/suite_s7_400 OUT=runs/bench_stream_suite ;;
     *) echo "KIND must be room or suite, got $KIND" >&2; exit 2 ;;
 esac
 NICE="${NICE:-5}"
