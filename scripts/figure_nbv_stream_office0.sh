@@ -26,6 +26,13 @@
 #                              13 frames are in, by the pair a frame makes with the best of them; nineteenth session)
 #   unseen-novelty-lookahead/  unseen-novelty with lookahead=13
 #   novelty-lookahead-it52/    novelty-lookahead with 52 steps per keyframe
+#   gaus-slam-it40/, novelty-lookahead-it40/      both at 40 steps per keyframe (GauS-SLAM's own mapping budget on a
+#                              GPU; the bench's 10 is scaled for the CPU; twentieth session)
+#   gaus-slam-stretch4/, novelty-lookahead-stretch4/  both with the mapper's new surfels stretched along the surface's
+#                              tilt (init_max_stretch=4; twentieth session)
+# Every row is also evaluated on runs/office0_240_s5_between/ (the poses 2, 7, 12, ... of traj.txt, between the
+# mapped ones, which no policy sees: `roigsf bench --test-scene`, columns "PSNR test scene" and "Depth L1 (cm) test
+# scene"; the bench's own PSNR is over each run's non-keyframes, a different set for each policy).
 # ROWS="a b ..." runs only those folders (default: all). SENSOR=kinect renders the frames through the simulated
 # Kinect v1 (`roigsf scene render --sensor kinect`) into runs/office0_240_s5_kinect/ and writes
 # runs/bench_stream_office0_w13_kinect/ instead (recall and precision still against the true mesh).
@@ -55,11 +62,16 @@ if [ ! -f "$SCENE/mesh.ply" ]; then
     roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
         --out "$SCENE" --width 240 --height 136 --stride 5 ${SENSOR:+--sensor "$SENSOR"} --overwrite
 fi
+TEST_SCENE=${SCENE}_between
+if [ ! -f "$TEST_SCENE/mesh.ply" ]; then  # the true frames (no sensor model): what the map should render
+    roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
+        --out "$TEST_SCENE" --width 240 --height 136 --stride 5 --offset 2 --overwrite
+fi
 stream_bench() {  # stream_bench OUT POLICIES [bench options]
     local out=$1 policies=$2
     shift 2
     nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$policies" --seeds "$SEEDS" \
-        --uncertainty-views 0 --out "$out" --overwrite "$@"
+        --uncertainty-views 0 --test-scene "$TEST_SCENE" --out "$out" --overwrite "$@"
 }
 row() {  # row NAME POLICIES [bench options]: one folder of the issue-10 table, unless ROWS leaves it out
     local name=$1
@@ -85,6 +97,10 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row novelty-lookahead "novelty:window=$WINDOW10:lookahead=$WINDOW10"
     row unseen-novelty-lookahead "$R:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW10"
     row novelty-lookahead-it52 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set iters_per_keyframe=52
+    row gaus-slam-it40 "gaus-slam" --set iters_per_keyframe=40
+    row novelty-lookahead-it40 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set iters_per_keyframe=40
+    row gaus-slam-stretch4 "gaus-slam" --set init_max_stretch=4
+    row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"

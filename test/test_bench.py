@@ -13,6 +13,7 @@ from roigsf_ros.cli.scene import synth_intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 from roigsf_ros.data.sources import open_frames
+from roigsf_ros.evaluation import render_metrics
 from roigsf_ros.experiments.bench import (
     BenchConfig,
     PolicySpec,
@@ -229,3 +230,36 @@ def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     kf_path.write_text(json.dumps(kf))
     with pytest.raises(InputError, match="keyframes differ"):
         rescore_ause(out, progress=False)
+
+
+def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--test-scene``: every run is also evaluated on frames no policy sees, the same frames for all policies."""
+    test_scene = tmp_path / "between"
+    poses = synth_trajectory(0, 48)[1::8]  # 6 poses of the room's loop, off the mapped ones
+    render_sequence(synth_room(0), poses, synth_intrinsics(48, 36), test_scene, progress=False)
+    out = tmp_path / "stream"
+    argv = ["bench", "--scene", str(scene), "--setting", "stream", "--policies", "every-n:n=6,every-n:n=3",
+            "--out", str(out), "--no-progress", "--uncertainty-views", "0", "--max-frames", "12",
+            "--test-scene", str(test_scene), *MAPPER_SET]  # fmt: skip
+    assert main(argv) == 0
+    res = check_md_matches_json(out)
+    assert res["test_scene"] == str(test_scene) and "frames no policy sees" in (out / "results.md").read_text()
+    frames = list(open_frames(test_scene))
+    for run in res["runs"]:
+        m = run["metrics"]
+        assert m["test_scene_frames"] == 6 and m["test_scene_frames_skipped_bad_pose"] == 0
+        mapper = Mapper.load(out / run["dir"])  # the saved map, evaluated here on the same frames
+        again = render_metrics(mapper.render_rgb_depth, frames, mapper.valid_depth_mask).means()
+        assert m["test_scene_psnr"] == pytest.approx(again["psnr"], abs=1e-6)
+        assert m["test_scene_depth_l1_cm"] == pytest.approx(again["depth_l1_cm"], abs=1e-6)
+        assert m["test_scene_psnr"] != pytest.approx(m["psnr"], abs=1e-3)  # not the non-keyframes' numbers
+    assert res["summary"]["every-n:n=3"]["test_scene_psnr"]["n"] == 1
+    # the pool holds out its own views; another camera is refused before any run
+    with pytest.raises(InputError, match="stream setting only"):
+        BenchConfig(scene=scene, setting="pool", policies=[PolicySpec("random")], test_scene=test_scene).validate()
+    small = tmp_path / "small"
+    render_sequence(synth_room(0), poses[:2], synth_intrinsics(40, 30), small, progress=False)
+    argv[argv.index(str(test_scene))] = str(small)
+    argv[argv.index(str(out))] = str(tmp_path / "o2")
+    assert main(argv) == 2
+    assert "camera differs" in capsys.readouterr().err and not (tmp_path / "o2").exists()

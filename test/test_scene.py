@@ -330,6 +330,17 @@ def test_cli_render_small_inputs_work(small_inputs: dict[str, Path], tmp_path: P
     np.testing.assert_allclose(seq.frame(2).depth_m, 3.0, atol=1e-4)
 
 
+def test_cli_render_offset_takes_the_poses_between(
+    small_inputs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--offset K --stride S`` renders poses K, K + S, ...: a test set between another render's frames."""
+    out = tmp_path / "between"
+    assert main(_render_args(small_inputs, out, "--stride", "2", "--offset", "1")) == 0
+    np.testing.assert_array_equal(ReplicaSequence(out).poses, load_traj(small_inputs["traj"])[1::2])
+    assert main(_render_args(small_inputs, tmp_path / "bad", "--stride", "2", "--offset", "2")) == 2
+    assert "--offset" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
 @pytest.mark.parametrize(
     ("bad_line", "what"),
     [

@@ -10,6 +10,7 @@ import torch
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SH_C0, SurfelMap, quat_to_rotmat, rotmat_to_quat, surfels_from_rgbd
 
 # The vertex properties hbb1/2d-gaussian-splatting writes (construct_list_of_attributes, SH degree 1).
@@ -198,6 +199,50 @@ def test_rgbd_on_a_plane(stride: int) -> None:
     assert np.allclose(m.scales().numpy(), expected_s[:, None])
     assert np.allclose(m.opacities().numpy(), 0.8)
     assert np.allclose(m.colors().numpy(), rgb[sl].reshape(-1, 3))
+
+
+@pytest.mark.parametrize("max_stretch", [1.0, 1.5, 4.0])
+def test_rgbd_stretch_follows_the_incidence(max_stretch: float) -> None:
+    """The first axis lies along the tilt and is 1 / cos(incidence) longer, clamped at ``max_stretch``."""
+    intr, depth, T_wc, n_cam, _ = plane_scene()
+    rgb = np.full((intr.height, intr.width, 3), 0.5)
+    m = surfels_from_rgbd(rgb, depth, T_wc, intr, max_stretch=max_stretch, dtype=torch.float64)
+    ys, xs = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float64)
+    rays = np.stack([(xs - intr.cx) / intr.fx, (ys - intr.cy) / intr.fy, np.ones_like(xs)], -1).reshape(-1, 3)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    cos = np.abs(rays @ n_cam)
+    footprint = depth.reshape(-1) / math.sqrt(intr.fx * intr.fy)
+    scales = m.scales().numpy()
+    assert np.allclose(scales[:, 1], footprint)
+    assert np.allclose(scales[:, 0], footprint / np.maximum(cos, 1.0 / max_stretch))
+    if max_stretch > 1.0:  # the stretched axis, in the camera frame, is the ray's part in the plane
+        R = T_wc[:3, :3]
+        tu_cam = (R.T @ quat_to_rotmat(m.quats).numpy()[:, :, 0].T).T
+        tilt = rays - (rays @ n_cam)[:, None] * n_cam
+        tilt /= np.linalg.norm(tilt, axis=-1, keepdims=True)
+        assert np.abs(np.abs((tu_cam * tilt).sum(-1)) - 1.0).max() < 1e-9
+    with pytest.raises(InputError, match="max_stretch"):
+        surfels_from_rgbd(rgb, depth, T_wc, intr, max_stretch=0.5)
+
+
+def test_rgbd_stretch_closes_the_gaps_of_a_grazing_surface() -> None:
+    """Isotropic surfels seeded from a floor seen at ~80 deg leave holes in a frontal view; stretched ones do not."""
+    intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    T_grazing = np.eye(4)  # camera 0.3 m above the floor y = 0.3 (camera frame, y down), looking along z
+    ray_y = (np.arange(48, dtype=np.float64)[:, None].repeat(64, 1) - intr.cy) / intr.fy
+    depth = np.where(ray_y > 0.05, 0.3 / np.maximum(ray_y, 1e-9), 0.0)  # rows that hit the floor within 6 m
+    depth[depth > 6.0] = 0.0
+    rgb = np.full((48, 64, 3), 0.5)
+    # A camera 1 m above the floor looking straight down at x = 0, z = 1.5 (in the frame of the first camera), where
+    # the first one sees the floor at 78-80 deg.
+    T_top = np.array([[1.0, 0, 0, 0.0], [0, 0, 1, -0.7], [0, -1, 0, 1.5], [0, 0, 0, 1]])
+    alpha = {}
+    for stretch in (1.0, 4.0):
+        m = surfels_from_rgbd(rgb, depth, T_grazing, intr, opacity=0.9, scale_factor=0.7, max_stretch=stretch)
+        out = render_map(m, T_top, intr, with_distortion=False)
+        alpha[stretch] = out.alpha.numpy()[16:32, 16:48]  # floor 1.3-1.7 m from the first camera
+    assert (alpha[1.0] < 0.5).mean() > 0.2  # gaps between the isotropic surfels
+    assert (alpha[4.0] < 0.5).mean() < 0.01
 
 
 def test_rgbd_skips_invalid_depth_and_mask() -> None:

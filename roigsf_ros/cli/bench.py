@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")
     p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
     p.add_argument("--eval-every", type=int, default=1, help="stream: evaluate every K-th non-keyframe")
+    p.add_argument("--test-scene", type=Path, metavar="DIR_OR_BAG",
+                   help="stream: also evaluate every run on these frames, which no policy sees (the same camera; e.g. "
+                   "`roigsf scene render --offset` poses between the scene's)")  # fmt: skip
     p.add_argument("--uncertainty-views", type=int, help="held-out views per run for AUSE (0: none; default 6, "
                    "with --rescore-ause: the bench's)")  # fmt: skip
     p.add_argument("--uncertainty-maps", type=int, help="of those, views drawn per policy (default 3)")
@@ -111,6 +114,7 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
         mapper=mapper,
         pool=pool,
         eval_every=args.eval_every,
+        test_scene=args.test_scene,
         uncertainty_views=6 if args.uncertainty_views is None else args.uncertainty_views,
         uncertainty_maps=3 if args.uncertainty_maps is None else args.uncertainty_maps,
     ).validate()

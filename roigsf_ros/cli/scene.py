@@ -82,13 +82,15 @@ def _render(args: argparse.Namespace) -> int:
     sensor = _sensor(args)
     if args.stride < 1:
         raise InputError("--stride", f"must be >= 1, got {args.stride}")
+    if not 0 <= args.offset < args.stride:
+        raise InputError("--offset", f"must be in 0..{args.stride - 1} (below --stride), got {args.offset}")
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
     size = image_size(args)
     intr = _camera(args.cam)
     if size is not None:
         intr = intr.resized(*size)
-    poses = load_traj(args.traj)[:: args.stride]
+    poses = load_traj(args.traj)[args.offset :: args.stride]
     if args.max_frames is not None:
         poses = poses[: args.max_frames]
     mesh = load_mesh(args.mesh)
@@ -101,7 +103,7 @@ def _render(args: argparse.Namespace) -> int:
         texture_seed=args.texture_seed,
         overwrite=args.overwrite,
         metadata={"source_mesh": str(args.mesh), "source_traj": str(args.traj), "source_cam": str(args.cam),
-                  "stride": args.stride},
+                  "stride": args.stride, "offset": args.offset},
         sensor=sensor,
     )  # fmt: skip
     print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} to {out}{_sensor_note(sensor)}")
@@ -226,6 +228,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="output height in px; intrinsics are scaled (alone: the width keeps CAM_JSON's aspect ratio)",
     )
     p.add_argument("--stride", type=int, default=1, metavar="S", help="render every S-th pose of TRAJ (default 1)")
+    p.add_argument(
+        "--offset",
+        type=int,
+        default=0,
+        metavar="K",
+        help="start at pose K (below S): with --stride S, --offset K gives the poses between another render's, "
+        "a test set no policy sees (roigsf bench --test-scene; default 0)",
+    )
     p.add_argument("--max-frames", type=int, metavar="N", help="render at most N frames (after --stride; default all)")
     p.add_argument(
         "--texture-strength",

@@ -59,6 +59,9 @@ SUMMARY_KEYS = (
     "psnr",
     "ssim",
     "depth_l1_cm",
+    "test_scene_psnr",
+    "test_scene_ssim",
+    "test_scene_depth_l1_cm",
     "precision@1cm",
     "recall@1cm",
     "fscore@1cm",
@@ -274,6 +277,9 @@ class BenchConfig(Config):
     """Held-out views per run for the AUSE study (0: none)."""
     uncertainty_maps: int = 3
     """Of those, views whose maps are drawn (seed 0 of each policy)."""
+    test_scene: Path | None = None
+    """Stream: frames no policy sees (same camera; resized like the scene), evaluated for every run: one test set
+    for all policies, where the non-keyframes differ from one policy to the next."""
 
     def validate(self) -> BenchConfig:
         """Self, or InputError naming the bad field."""
@@ -294,6 +300,11 @@ class BenchConfig(Config):
         for name in ("eval_every", "stride"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"--{name.replace('_', '-')}", f"must be at least 1, got {getattr(self, name)}")
+        if self.test_scene is not None:
+            if self.setting != "stream":
+                raise InputError("--test-scene", "stream setting only (the pool holds out its own test views)")
+            if not Path(self.test_scene).exists():
+                raise InputError(self.test_scene, "no such bag or scene folder (--test-scene)")
         if self.uncertainty_views < 0 or self.uncertainty_maps < 0:
             raise InputError("--uncertainty-views", "must be >= 0")
         self.mapper.validate()
@@ -302,6 +313,10 @@ class BenchConfig(Config):
     def source(self) -> FrameSource:
         """The frame source every run reads (the same frames, sizes and stride for all)."""
         return open_frames(self.scene, size=self.size, stride=self.stride, max_frames=self.max_frames)
+
+    def test_source(self) -> FrameSource | None:
+        """The test scene's frames at the scene's size (all of them), or None."""
+        return open_frames(self.test_scene, size=self.size) if self.test_scene is not None else None
 
 
 def versions() -> dict[str, str]:
@@ -328,7 +343,7 @@ def _stream_run(cfg: BenchConfig, spec: PolicySpec, seed: int, run_dir: Path, gt
         policy = make_policy(spec.name, **(spec.params | {"seed": seed}))
     mcfg = replace(cfg.mapper, seed=seed)
     metrics = run_offline(source, policy, mcfg, run_dir, gt_mesh=gt, eval_config=EvalConfig(eval_every=cfg.eval_every),
-                          progress=False, overwrite=True)  # fmt: skip
+                          progress=False, overwrite=True, test_source=cfg.test_source())  # fmt: skip
     frames = list(source)
     kf = set(metrics["keyframe_ids"])
     positions = {int(f.index): i for i, f in enumerate(frames)}
@@ -431,6 +446,9 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     source = cfg.source()
+    test_source = cfg.test_source()
+    if test_source is not None and test_source.intrinsics != source.intrinsics:
+        raise InputError(cfg.test_scene, f"--test-scene: its camera differs from the scene's ({source.intrinsics})")
     gt = cfg.gt_mesh if cfg.gt_mesh is not None else source.gt_mesh_path
     t0 = time.perf_counter()
     runs: list[dict[str, Any]] = []
@@ -466,6 +484,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
         "mapper_config": cfg.mapper.to_dict(),
         "pool_config": cfg.pool.to_dict() if cfg.setting == "pool" else None,
         "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
+        "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
         "uncertainty_views": cfg.uncertainty_views,
         "uncertainty_maps": cfg.uncertainty_maps,
         "versions": versions(),

@@ -27,6 +27,33 @@ log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------------- offline run
+def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bool) -> dict[str, Any]:
+    """PSNR, SSIM and depth L1 of the final map at every frame of ``test_source`` (a bad pose: skipped, counted)."""
+    skipped = 0
+
+    def frames() -> Iterator[Frame]:
+        nonlocal skipped
+        for frame in tqdm(test_source, desc="test scene", unit="frame", disable=not progress, dynamic_ncols=True):
+            try:
+                check_pose(frame.T_wc, f"test frame {frame.index} pose")
+            except InputError as exc:
+                skipped += 1
+                log.warning("%s: %s; not evaluated", getattr(test_source, "path", "test_source"), exc)
+                continue
+            yield frame
+
+    res = evaluation.render_metrics(mapper.render_rgb_depth, frames(), mapper.valid_depth_mask)
+    means = res.means()
+    return {
+        "test_scene": str(getattr(test_source, "path", "given")),
+        "test_scene_frames": means["n_eval_frames"],
+        "test_scene_psnr": means["psnr"],
+        "test_scene_ssim": means["ssim"],
+        "test_scene_depth_l1_cm": means["depth_l1_cm"],
+        "test_scene_frames_skipped_bad_pose": skipped,
+    }
+
+
 @dataclass(frozen=True)
 class EvalConfig(Config):
     """What an offline run evaluates and how (not part of the mapper's state)."""
@@ -64,6 +91,7 @@ def run_offline(
     progress: bool = True,
     overwrite: bool = False,
     eval_source: FrameSequence | None = None,
+    test_source: FrameSequence | None = None,
 ) -> dict[str, Any]:
     """Map a whole frame sequence (e.g. :func:`roigsf_ros.data.sources.open_frames`) offline into ``out_dir``.
 
@@ -72,13 +100,18 @@ def run_offline(
     over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
     counted. ``eval_source``: the image metrics compare with its frames, at its poses, instead of the
     mapped ones (the same frames in the same order and size: e.g. the noise-free render of a simulated
-    sensor's sequence, so that sensor noise is not counted as map error). Returns the metrics dict.
+    sensor's sequence, so that sensor noise is not counted as map error). ``test_source``: frames the policy never
+    sees (e.g. poses between the mapped ones, ``roigsf scene render --offset``), the same set for every policy,
+    also evaluated (``test_scene_*`` metrics; the non-keyframes differ from one policy to the next). Returns the
+    metrics dict.
     """
     if eval_source is not None:
         if len(eval_source) != len(source):
             raise InputError("eval_source", f"has {len(eval_source)} frames, the mapped sequence {len(source)}")
         if eval_source.intrinsics != source.intrinsics:
             raise InputError("eval_source", "its camera differs from the mapped sequence's")
+    if test_source is not None and test_source.intrinsics != source.intrinsics:
+        raise InputError(getattr(test_source, "path", "test_source"), "its camera differs from the mapped sequence's")
     ev = eval_config or EvalConfig()
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
     if gt_path is not None and not gt_path.is_file():
@@ -151,6 +184,7 @@ def run_offline(
             rgb, depth = mapper.render_rgb_depth(kf.T_wc)
             strip_rows.append((kf.rgb_u8.cpu().numpy(), rgb, kf.depth_m.cpu().numpy(), depth))
 
+    test_metrics = _test_scene_metrics(mapper, test_source, progress) if test_source is not None else {}
     mesh = mapper.mesh()
     metrics: dict[str, Any] = {
         "policy": policy.name,
@@ -165,6 +199,7 @@ def run_offline(
         "eval_against": "the mapped frames" if eval_source is None else str(getattr(eval_source, "path", "other")),
         "eval_depth": cfg.eval_depth,
         "eval_frames_without_gt_depth": images.frames_without_gt_depth,
+        **test_metrics,
         "frames_skipped_bad_pose": bad_pose,
         "mesh_vertices": len(mesh.vertices),
         "mesh_triangles": len(mesh.triangles),

@@ -27,6 +27,8 @@ TABLE_COLUMNS = (
     ("PSNR", "psnr", "{:.2f}"),
     ("SSIM", "ssim", "{:.3f}"),
     ("Depth L1 (cm)", "depth_l1_cm", "{:.2f}"),
+    ("PSNR test scene", "test_scene_psnr", "{:.2f}"),
+    ("Depth L1 (cm) test scene", "test_scene_depth_l1_cm", "{:.2f}"),
     ("P@1cm", "precision@1cm", "{:.3f}"),
     ("R@1cm", "recall@1cm", "{:.3f}"),
     ("F@1cm", "fscore@1cm", "{:.3f}"),
@@ -94,6 +96,9 @@ def markdown(results: dict[str, Any]) -> str:
         lines.append("- images metrics over the held-out test views; #views = training views")
     else:
         lines.append("- image metrics over the non-keyframes; #views = keyframes")
+        if results.get("test_scene"):
+            lines.append(f"- test scene: `{results['test_scene']}` (frames no policy sees, the same for every run):"
+                         " columns 'PSNR test scene' and 'Depth L1 (cm) test scene'")  # fmt: skip
     lines.append(
         f"- AUSE: pixel uncertainty vs |depth error| on {results.get('uncertainty_views', '?')} held-out views per run"
         " (lower is better), mean over views"

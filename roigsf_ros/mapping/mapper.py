@@ -90,6 +90,9 @@ class MapperConfig(Config):
     """Opacity of new surfels."""
     init_scale_factor: float = 0.7
     """New surfel radius (std) as a fraction of its pixel footprint times the seeding stride."""
+    init_max_stretch: float = 1.0
+    """New surfels' axis along the surface's tilt is their radius over the cosine of the incidence angle, at most
+    this many times longer (a pixel's footprint on a tilted surface; 1 = isotropic, as in SplaTAM and GauS-SLAM)."""
     densify_stride: int = 1
     """One new surfel per ``densify_stride`` x ``densify_stride`` pixel block."""
     densify_alpha_threshold: float = 0.5
@@ -147,6 +150,7 @@ class MapperConfig(Config):
             "max_depth_m": self.max_depth_m > max(self.min_depth_m, self.near_m),
             "init_opacity": 0.0 < self.init_opacity < 1.0,
             "init_scale_factor": self.init_scale_factor > 0,
+            "init_max_stretch": self.init_max_stretch >= 1.0,
             "densify_stride": self.densify_stride >= 1,
             "densify_alpha_threshold": 0.0 < self.densify_alpha_threshold <= 1.0,
             "densify_depth_margin_m": self.densify_depth_margin_m > 0,
@@ -542,6 +546,7 @@ class Mapper:
             stride=cfg.densify_stride,
             opacity=cfg.init_opacity,
             scale_factor=cfg.init_scale_factor,
+            max_stretch=cfg.init_max_stretch,
             min_depth=max(cfg.min_depth_m, cfg.near_m),
             max_depth=cfg.max_depth_m,
             device=self.device,

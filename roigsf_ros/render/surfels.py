@@ -412,8 +412,8 @@ def depth_normals(pts: Tensor, valid: Tensor) -> Tensor:
 
 
 def frame_from_normals(normals: Tensor, hint: Tensor) -> Tensor:
-    """Rotations [N, 3, 3] with third column ``normals`` [N, 3] and first column ``hint`` [3] projected
-    onto the tangent plane (another axis where the hint is nearly parallel to the normal).
+    """Rotations [N, 3, 3] with third column ``normals`` [N, 3] and first column ``hint`` ([3] or one per
+    normal, [N, 3]) projected onto the tangent plane (another axis where the hint is nearly parallel to the normal).
     """
     n = normals / normals.norm(dim=-1, keepdim=True)
     h = hint.to(n).expand_as(n)
@@ -437,6 +437,7 @@ def surfels_from_rgbd(
     min_depth: float = 0.0,
     max_depth: float = math.inf,
     sh_degree: int = 0,
+    max_stretch: float = 1.0,
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> SurfelMap:
@@ -444,8 +445,11 @@ def surfels_from_rgbd(
 
     ``rgb`` [H, W, 3] in 0..1 (uint8 is divided by 255), ``depth_m`` [H, W] metres (NaN, <= min_depth
     or > max_depth skipped), ``T_wc`` [4, 4] camera-to-world, ``mask`` [H, W] bool keeps pixels.
-    Normals come from the depth map (facing the camera); scales are isotropic, ``scale_factor *
-    stride * depth / f`` metres (the pixel footprint); every surfel gets ``opacity``.
+    Normals come from the depth map (facing the camera); both scales are ``scale_factor * stride * depth / f``
+    metres (the pixel footprint, isotropic as in SplaTAM and GauS-SLAM) when ``max_stretch`` is 1; above 1 the
+    axis along the surface's tilt away from the camera is divided by the cosine of the incidence angle (at most
+    ``max_stretch`` times longer), since a pixel's footprint on a tilted surface is that much longer along it and
+    isotropic surfels leave gaps between them there. Every surfel gets ``opacity``.
     """
     T = check_pose(T_wc.detach().cpu().numpy() if isinstance(T_wc, Tensor) else T_wc, "T_wc")
     if stride < 1 or int(stride) != stride:
@@ -454,6 +458,8 @@ def surfels_from_rgbd(
         raise InputError("opacity", f"must be in (0, 1), got {opacity}")
     if sh_degree not in (0, 1):
         raise InputError("sh_degree", f"must be 0 or 1, got {sh_degree}")
+    if not max_stretch >= 1.0:
+        raise InputError("max_stretch", f"must be at least 1, got {max_stretch}")
     h, w = intr.height, intr.width
     rgb_is_u8 = (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8) or (
         isinstance(rgb, Tensor) and rgb.dtype == torch.uint8
@@ -483,10 +489,22 @@ def surfels_from_rgbd(
     R = torch.from_numpy(T[:3, :3])
     t = torch.from_numpy(T[:3, 3])
     means = p_c @ R.T + t
-    rot = R @ frame_from_normals(n_c, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)) if len(p_c) else None
-    quats = rotmat_to_quat(rot) if rot is not None else torch.zeros(0, 4, dtype=torch.float64)
     f = math.sqrt(intr.fx * intr.fy)
     log_s = torch.log(p_c[:, 2] * (scale_factor * s / f))[:, None].expand(-1, 2)
+    if max_stretch > 1.0:
+        # Tangent axis u along the tilt (the viewing ray's part in the surface plane), stretched by 1 / cos.
+        ray = p_c / p_c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        cos = (ray * n_c).sum(-1).abs()
+        hint = ray - (ray * n_c).sum(-1, keepdim=True) * n_c
+        frontal = hint.norm(dim=-1) < 1e-6  # any axis will do: the stretch there is 1
+        hint = torch.where(frontal[:, None], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), hint)
+        axes = frame_from_normals(n_c, hint)
+        stretch = torch.log(1.0 / cos.clamp_min(1.0 / max_stretch))
+        log_s = log_s + torch.stack([stretch, torch.zeros_like(stretch)], dim=-1)
+    else:
+        axes = frame_from_normals(n_c, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    rot = R @ axes if len(p_c) else None
+    quats = rotmat_to_quat(rot) if rot is not None else torch.zeros(0, 4, dtype=torch.float64)
     logit = math.log(opacity / (1.0 - opacity))
     out = SurfelMap(
         means=means,
