@@ -28,6 +28,8 @@
 #   novelty-lookahead-it52/    novelty-lookahead with 52 steps per keyframe
 #   gaus-slam-it40/, novelty-lookahead-it40/      both at 40 steps per keyframe (GauS-SLAM's own mapping budget on a
 #                              GPU; the bench's 10 is scaled for the CPU; twentieth session)
+#   novelty-lookahead-w14-it40/  the same with window = lookahead = 14 (29 keyframes: gaus-slam takes 154 at 40 steps,
+#                              and 31 would be 20.1 % of them)
 #   gaus-slam-stretch4/, novelty-lookahead-stretch4/  both with the mapper's new surfels stretched along the surface's
 #                              tilt (init_max_stretch=4; twentieth session)
 # Every row is also evaluated on runs/office0_240_s5_between/ (the poses 2, 7, 12, ... of traj.txt, between the
@@ -99,6 +101,7 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row novelty-lookahead-it52 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set iters_per_keyframe=52
     row gaus-slam-it40 "gaus-slam" --set iters_per_keyframe=40
     row novelty-lookahead-it40 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set iters_per_keyframe=40
+    row novelty-lookahead-w14-it40 "novelty:window=14:lookahead=14" --set iters_per_keyframe=40
     row gaus-slam-stretch4 "gaus-slam" --set init_max_stretch=4
     row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
 fi

@@ -249,8 +249,12 @@ def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.Cap
         m = run["metrics"]
         assert m["test_scene_frames"] == 6 and m["test_scene_frames_skipped_bad_pose"] == 0
         mapper = Mapper.load(out / run["dir"])  # the saved map, evaluated here on the same frames
-        again = render_metrics(mapper.render_rgb_depth, frames, mapper.valid_depth_mask).means()
+        again = render_metrics(mapper.render_rgb_depth, frames, mapper.valid_depth_mask,
+                               covered=mapper.covered_mask).means()  # fmt: skip
         assert m["test_scene_psnr"] == pytest.approx(again["psnr"], abs=1e-6)
+        assert m["test_scene_psnr_covered"] == pytest.approx(again["psnr_covered"], abs=1e-6)
+        assert m["test_scene_uncovered_error_share"] == pytest.approx(again["uncovered_error_share"], abs=1e-9)
+        assert 0.0 <= m["test_scene_uncovered_pixel_fraction"] < 0.5
         assert m["test_scene_depth_l1_cm"] == pytest.approx(again["depth_l1_cm"], abs=1e-6)
         assert m["test_scene_psnr"] != pytest.approx(m["psnr"], abs=1e-3)  # not the non-keyframes' numbers
     assert res["summary"]["every-n:n=3"]["test_scene_psnr"]["n"] == 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -21,6 +22,7 @@ from roigsf_ros.evaluation.metrics import (
     mesh_metrics,
     psnr,
     raycast_depth,
+    render_metrics,
     sample_surface,
     save_comparison_strip,
     ssim,
@@ -284,3 +286,24 @@ def test_raycast_depth_of_a_plane() -> None:
     intr = Intrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
     depth = raycast_depth(grid_plane(-5, 5, -5, 5), down_camera(0.0, 0.0, 2.0), intr)
     assert depth.shape == (24, 32) and np.allclose(depth, 2.0, atol=1e-5)
+
+
+def test_render_metrics_splits_the_error_between_holes_and_the_rest() -> None:
+    """With ``covered``, the squared colour error is split between uncovered pixels and the rest."""
+    gt = np.full((4, 5, 3), 128, np.uint8)
+    pred = np.full((4, 5, 3), 128 / 255 + 0.1)  # every pixel off by 0.1 per channel ...
+    pred[0, :2] = 0.0  # ... except two holes, rendered black
+    covered = np.ones((4, 5), bool)
+    covered[0, :2] = False
+    frame = SimpleNamespace(rgb=gt, depth_m=np.ones((4, 5)), T_wc=np.eye(4))
+
+    def render(T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return pred, np.ones((4, 5))
+
+    m = render_metrics(render, [frame, frame], lambda d: d > 0, False, covered=lambda T_wc: covered).means()
+    hole_err, rest_err = 2 * 3 * (128 / 255) ** 2, 18 * 3 * 0.1**2
+    assert m["uncovered_pixel_fraction"] == pytest.approx(2 / 20)
+    assert m["uncovered_error_share"] == pytest.approx(hole_err / (hole_err + rest_err))
+    assert m["psnr_covered"] == pytest.approx(20.0)  # MSE 0.01 over the covered pixels
+    assert m["psnr"] == pytest.approx(-10 * math.log10((hole_err + rest_err) / 60))
+    assert "uncovered_error_share" not in render_metrics(render, [frame], lambda d: d > 0, False).means()

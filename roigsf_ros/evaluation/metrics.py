@@ -501,17 +501,30 @@ class RenderMetrics:
     frames_without_gt_depth: int = 0
     strip_rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
     """(input rgb, rendered rgb, input depth (valid pixels), rendered depth) of the strip frames."""
+    uncovered_fraction: list[float] = field(default_factory=list)
+    """Per frame, the share of pixels the map does not cover (with ``covered``; holes: surface no keyframe saw)."""
+    psnr_covered: list[float] = field(default_factory=list)
+    """Per frame with covered pixels, the PSNR over those pixels alone."""
+    sq_err_uncovered: float = 0.0
+    """Sum over frames and pixels of the squared colour error (summed over channels) at uncovered pixels."""
+    sq_err_total: float = 0.0
+    """The same sum over all pixels."""
 
     def means(self) -> dict[str, float | int | None]:
-        """Means over the frames (None where no frame had the metric), for metrics.json."""
+        """Means over the frames (None where no frame had the metric), for metrics.json; the hole split when taken."""
         dl1 = float(np.mean(self.depth_l1_m)) if self.depth_l1_m else None
-        return {
+        out: dict[str, float | int | None] = {
             "n_eval_frames": len(self.psnr),
             "psnr": float(np.mean(self.psnr)) if self.psnr else None,
             "ssim": float(np.mean(self.ssim)) if self.ssim else None,
             "depth_l1_m": dl1,
             "depth_l1_cm": dl1 * 100.0 if dl1 is not None else None,
         }
+        if self.uncovered_fraction:
+            out["uncovered_pixel_fraction"] = float(np.mean(self.uncovered_fraction))
+            out["uncovered_error_share"] = self.sq_err_uncovered / self.sq_err_total if self.sq_err_total else 0.0
+            out["psnr_covered"] = float(np.mean(self.psnr_covered)) if self.psnr_covered else None
+        return out
 
 
 def render_metrics(
@@ -520,17 +533,29 @@ def render_metrics(
     valid_depth: Callable[[np.ndarray], np.ndarray],
     with_ssim_and_depth: bool = True,
     strip: Collection[int] = (),
+    covered: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> RenderMetrics:
     """PSNR (and SSIM, depth L1) of ``render`` at each frame's pose against its image; one loop for every caller.
 
     ``frames``: objects with ``rgb`` [H, W, 3] uint8, ``depth_m`` [H, W] and ``T_wc`` [4, 4];
     ``valid_depth``: the input depth pixels that count (the mapper's range test); ``strip``: positions
-    in ``frames`` whose images go into :attr:`RenderMetrics.strip_rows`.
+    in ``frames`` whose images go into :attr:`RenderMetrics.strip_rows`; ``covered``: the pixels [H, W] bool the
+    map covers at a pose, to split the colour error between holes and the rest (where a PSNR gap comes from).
     """
     out = RenderMetrics()
     for i, f in enumerate(frames):
         rgb, depth = render(f.T_wc)
         out.psnr.append(psnr(rgb, f.rgb))
+        if covered is not None:
+            mask = np.asarray(covered(f.T_wc), dtype=bool)
+            pred, gt = _pair_rgb(rgb, f.rgb)
+            err = ((pred - gt) ** 2).sum(-1)
+            out.uncovered_fraction.append(float(1.0 - mask.mean()))
+            out.sq_err_uncovered += float(err[~mask].sum())
+            out.sq_err_total += float(err.sum())
+            if mask.any():
+                mse = float(err[mask].mean()) / 3.0
+                out.psnr_covered.append(math.inf if mse == 0.0 else -10.0 * math.log10(mse))
         if not with_ssim_and_depth:
             continue
         out.ssim.append(ssim(rgb, f.rgb))

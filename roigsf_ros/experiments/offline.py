@@ -28,7 +28,9 @@ log = logging.getLogger(__name__)
 
 # ----------------------------------------------------------------------------------- offline run
 def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bool) -> dict[str, Any]:
-    """PSNR, SSIM and depth L1 of the final map at every frame of ``test_source`` (a bad pose: skipped, counted)."""
+    """PSNR, SSIM, depth L1 and the hole split (see :func:`evaluation.render_metrics`) of the final map at every
+    frame of ``test_source`` (a bad pose: skipped, counted).
+    """
     skipped = 0
 
     def frames() -> Iterator[Frame]:
@@ -42,7 +44,8 @@ def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bo
                 continue
             yield frame
 
-    res = evaluation.render_metrics(mapper.render_rgb_depth, frames(), mapper.valid_depth_mask)
+    res = evaluation.render_metrics(mapper.render_rgb_depth, frames(), mapper.valid_depth_mask,
+                                    covered=mapper.covered_mask)  # fmt: skip
     means = res.means()
     return {
         "test_scene": str(getattr(test_source, "path", "given")),
@@ -50,6 +53,9 @@ def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bo
         "test_scene_psnr": means["psnr"],
         "test_scene_ssim": means["ssim"],
         "test_scene_depth_l1_cm": means["depth_l1_cm"],
+        "test_scene_psnr_covered": means.get("psnr_covered"),
+        "test_scene_uncovered_pixel_fraction": means.get("uncovered_pixel_fraction"),
+        "test_scene_uncovered_error_share": means.get("uncovered_error_share"),
         "test_scene_frames_skipped_bad_pose": skipped,
     }
 

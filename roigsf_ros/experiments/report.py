@@ -29,6 +29,7 @@ TABLE_COLUMNS = (
     ("Depth L1 (cm)", "depth_l1_cm", "{:.2f}"),
     ("PSNR test scene", "test_scene_psnr", "{:.2f}"),
     ("Depth L1 (cm) test scene", "test_scene_depth_l1_cm", "{:.2f}"),
+    ("Error share in holes, test scene", "test_scene_uncovered_error_share", "{:.2f}"),
     ("P@1cm", "precision@1cm", "{:.3f}"),
     ("R@1cm", "recall@1cm", "{:.3f}"),
     ("F@1cm", "fscore@1cm", "{:.3f}"),
@@ -97,8 +98,11 @@ def markdown(results: dict[str, Any]) -> str:
     else:
         lines.append("- image metrics over the non-keyframes; #views = keyframes")
         if results.get("test_scene"):
-            lines.append(f"- test scene: `{results['test_scene']}` (frames no policy sees, the same for every run):"
-                         " columns 'PSNR test scene' and 'Depth L1 (cm) test scene'")  # fmt: skip
+            lines.append(
+                f"- test scene: `{results['test_scene']}` (frames no policy sees, the same for every run): columns"
+                " 'PSNR test scene', 'Depth L1 (cm) test scene' and 'Error share in holes, test scene' (the part of"
+                " the squared colour error at pixels the map leaves uncovered: alpha < 0.5)"
+            )
     lines.append(
         f"- AUSE: pixel uncertainty vs |depth error| on {results.get('uncertainty_views', '?')} held-out views per run"
         " (lower is better), mean over views"

@@ -763,6 +763,10 @@ class Mapper:
             self._fisher_pending = list(self.keyframes)
         return self.h_train
 
+    def covered_mask(self, T_wc: np.ndarray) -> np.ndarray:
+        """Bool [H, W]: the pixels where the map at ``T_wc`` renders alpha of at least ``densify_alpha_threshold``."""
+        return (self.render(T_wc).alpha >= self.config.densify_alpha_threshold).cpu().numpy()
+
     def render_rgb_depth(self, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The map at ``T_wc`` as evaluation sees it: rgb [H, W, 3] float in [0, 1], depth_m [H, W] (``eval_depth``)."""
         out = self.render(T_wc)
