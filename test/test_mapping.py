@@ -294,6 +294,18 @@ def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -
     assert metrics["n_keyframes"] == 4 and "precision@5cm" in metrics  # GT mesh found beside the frames
     assert metrics["config"]["mesh_voxel_size_m"] == 0.05
     assert "keyframes" in capsys.readouterr().out
+    # --test-scene: frames the policy never sees, evaluated on the final map
+    between = tmp_path / "between"
+    write_replica(between, INTR, frames[4:6])
+    rc = cli_main(["map", str(scene), "--policy", "every-n", "--every-n", "2", "--out", str(tmp_path / "run_t"),
+                   "--width", "32", "--height", "24", "--iters-per-keyframe", "2", "--no-progress",
+                   "--test-scene", str(between), "--set", "mesh_voxel_size_m=0.05",
+                   "--set", "mesh_sdf_trunc_m=0.15"])  # fmt: skip
+    assert rc == 0
+    m_t = json.loads((tmp_path / "run_t" / "metrics.json").read_text())
+    assert m_t["test_scene_frames"] == 2 and m_t["test_scene"] == str(between)
+    assert np.isfinite(m_t["test_scene_psnr"]) and 0.0 <= m_t["test_scene_uncovered_error_share"] <= 1.0
+    assert "test-scene PSNR" in capsys.readouterr().out
 
     assert cli_main(["map", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")]) == 2
     assert cli_main(["map", str(scene), "--out", str(run)]) == 2  # exists, no --overwrite

@@ -22,6 +22,10 @@ _SUMMARY_KEYS = (
     ("PSNR (dB)", "psnr", "{:.2f}"),
     ("SSIM", "ssim", "{:.3f}"),
     ("depth L1 (cm)", "depth_l1_cm", "{:.2f}"),
+    ("test-scene frames", "test_scene_frames", "{:d}"),
+    ("test-scene PSNR (dB)", "test_scene_psnr", "{:.2f}"),
+    ("test-scene depth L1 (cm)", "test_scene_depth_l1_cm", "{:.2f}"),
+    ("test-scene hole error", "test_scene_uncovered_error_share", "{:.3f}"),
     ("precision @1cm", "precision@1cm", "{:.3f}"),
     ("recall @1cm", "recall@1cm", "{:.3f}"),
     ("precision @5cm", "precision@5cm", "{:.3f}"),
@@ -61,6 +65,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="BAG_OR_DIR",
         help="image metrics against these frames (same sequence, read with the same size and stride) instead of "
         "the mapped ones: e.g. the noise-free render of a 'scene render --sensor' sequence",
+    )
+    p.add_argument(
+        "--test-scene",
+        metavar="BAG_OR_DIR",
+        help="also evaluate the final map on these frames, which the policy never sees (same camera, read at the same "
+        "size; e.g. `roigsf scene render --offset`: poses between the mapped ones)",
     )
     p.add_argument("--no-h-train", action="store_true", help="do not track the training Fisher (faster)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mapper")
@@ -122,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     if args.eval_against is not None:
         eval_source = open_frames(args.eval_against, size=size, stride=args.stride, max_frames=args.max_frames,
                                   allow_partial=args.allow_partial, topics=topics)  # fmt: skip
+    test_source = open_frames(args.test_scene, size=size, topics=topics) if args.test_scene is not None else None
     gt_mesh = args.gt_mesh if args.gt_mesh is not None else source.gt_mesh_path
     metrics = run_offline(
         source,
@@ -133,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         overwrite=args.overwrite,
         eval_source=eval_source,
+        test_source=test_source,
     )
     print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
     if eval_source is not None:
