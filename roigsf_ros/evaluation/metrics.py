@@ -84,7 +84,10 @@ def psnr(pred_rgb: Any, gt_rgb: Any) -> float:
     Accepts numpy or torch, [H, W, 3] or [3, H, W], uint8 (divided by 255) or float (clipped to [0, 1]).
     """
     pred, gt = _pair_rgb(pred_rgb, gt_rgb)
-    mse = float(np.mean((pred - gt) ** 2))
+    return _psnr_of_mse(float(np.mean((pred - gt) ** 2)))
+
+
+def _psnr_of_mse(mse: float) -> float:
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
@@ -554,8 +557,7 @@ def render_metrics(
             out.sq_err_uncovered += float(err[~mask].sum())
             out.sq_err_total += float(err.sum())
             if mask.any():
-                mse = float(err[mask].mean()) / 3.0
-                out.psnr_covered.append(math.inf if mse == 0.0 else -10.0 * math.log10(mse))
+                out.psnr_covered.append(_psnr_of_mse(float(err[mask].mean()) / 3.0))
         if not with_ssim_and_depth:
             continue
         out.ssim.append(ssim(rgb, f.rgb))

@@ -449,9 +449,6 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     source = cfg.source()
-    test_source = cfg.test_source()
-    if test_source is not None and test_source.intrinsics != source.intrinsics:
-        raise InputError(cfg.test_scene, f"--test-scene: its camera differs from the scene's ({source.intrinsics})")
     gt = cfg.gt_mesh if cfg.gt_mesh is not None else source.gt_mesh_path
     t0 = time.perf_counter()
     runs: list[dict[str, Any]] = []

@@ -491,18 +491,17 @@ def surfels_from_rgbd(
     means = p_c @ R.T + t
     f = math.sqrt(intr.fx * intr.fy)
     log_s = torch.log(p_c[:, 2] * (scale_factor * s / f))[:, None].expand(-1, 2)
+    hint = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
     if max_stretch > 1.0:
         # Tangent axis u along the tilt (the viewing ray's part in the surface plane), stretched by 1 / cos.
         ray = p_c / p_c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        cos = (ray * n_c).sum(-1).abs()
-        hint = ray - (ray * n_c).sum(-1, keepdim=True) * n_c
-        frontal = hint.norm(dim=-1) < 1e-6  # any axis will do: the stretch there is 1
-        hint = torch.where(frontal[:, None], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), hint)
-        axes = frame_from_normals(n_c, hint)
-        stretch = torch.log(1.0 / cos.clamp_min(1.0 / max_stretch))
+        cos = (ray * n_c).sum(-1, keepdim=True)
+        tilt = ray - cos * n_c
+        frontal = tilt.norm(dim=-1, keepdim=True) < 1e-6  # any axis will do: the stretch there is 1
+        hint = torch.where(frontal, hint, tilt)
+        stretch = -torch.log(cos[:, 0].abs().clamp_min(1.0 / max_stretch))
         log_s = log_s + torch.stack([stretch, torch.zeros_like(stretch)], dim=-1)
-    else:
-        axes = frame_from_normals(n_c, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    axes = frame_from_normals(n_c, hint)
     rot = R @ axes if len(p_c) else None
     quats = rotmat_to_quat(rot) if rot is not None else torch.zeros(0, 4, dtype=torch.float64)
     logit = math.log(opacity / (1.0 - opacity))
