@@ -13,7 +13,7 @@ from roigsf_ros.core.camera import Intrinsics, load_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import load_traj
 from roigsf_ros.evaluation.metrics import mesh_metrics, raycast_depth, raycasting_scene
-from roigsf_ros.mapping.tsdf import TSDFVolume, tsdf_mesh_from_depths
+from roigsf_ros.mapping.tsdf import TSDFVolume, canonical_mesh, tsdf_mesh_from_depths
 
 INTR = Intrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
 
@@ -63,6 +63,30 @@ def test_sphere_mesh_lies_on_the_surface_and_covers_it(sphere_volume: tuple) -> 
     assert m["precision@1cm"] > 0.98 and m["recall@1cm"] > 0.98
     assert m["accuracy_cm"] < 0.5 and m["completion_cm"] < 0.5
     assert not mesh.has_vertex_colors()  # no colour was fused
+
+
+def test_extracted_mesh_is_in_canonical_order_whatever_order_open3d_emits(sphere_volume: tuple) -> None:
+    """The mesh metrics sample a mesh by triangle order: the same geometry in any order must give the same mesh."""
+    volume, sphere, _ = sphere_volume
+    mesh = volume.extract_mesh()
+    verts, tris = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert np.all(np.diff(verts[:, 0]) >= 0)  # vertices sorted (x first)
+    assert np.all(tris[:, 0] == tris.min(axis=1))  # each triangle starts at its smallest index
+    assert np.all(np.diff(tris[:, 0]) >= 0)  # triangles sorted
+    rng = np.random.default_rng(0)
+    v_perm, t_perm = rng.permutation(len(verts)), rng.permutation(len(tris))
+    inv = np.empty_like(v_perm)
+    inv[v_perm] = np.arange(len(v_perm))
+    shuffled = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts[v_perm]),
+                                         o3d.utility.Vector3iVector(np.roll(inv[tris[t_perm]], 1, axis=1)))  # fmt: skip
+    shuffled.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals)[v_perm])
+    again = canonical_mesh(shuffled)
+    np.testing.assert_array_equal(np.asarray(again.vertices), verts)
+    np.testing.assert_array_equal(np.asarray(again.triangles), tris)  # the same triangles, orientation kept
+    np.testing.assert_array_equal(np.asarray(again.vertex_normals), np.asarray(mesh.vertex_normals))
+    a = mesh_metrics(mesh, sphere, n_samples=5_000)
+    assert mesh_metrics(again, sphere, n_samples=5_000) == a
+    assert mesh_metrics(shuffled, sphere, n_samples=5_000)["precision@1cm"] != a["precision@1cm"]  # order mattered
 
 
 def test_surface_voxels_normals_point_outward(sphere_volume: tuple) -> None:

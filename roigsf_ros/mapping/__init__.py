@@ -26,6 +26,6 @@ __all__, __getattr__ = lazy_exports(
             "read_map_meta",
             "valid_depth_mask",
         ],
-        "tsdf": ["SurfaceVoxels", "TSDFVolume", "o3c", "tsdf_mesh_from_depths"],
+        "tsdf": ["SurfaceVoxels", "TSDFVolume", "canonical_mesh", "o3c", "tsdf_mesh_from_depths"],
     },
 )

@@ -157,13 +157,14 @@ class TSDFVolume:
     def extract_mesh(self, min_weight: float = 1.0) -> o3d.geometry.TriangleMesh:
         """Marching-cubes mesh (legacy open3d) of the zero level set over voxels with weight >= ``min_weight``.
 
-        Vertex colours are kept when a fused frame had colour; vertex normals come from open3d.
+        Vertex colours are kept when a fused frame had colour; vertex normals come from open3d. The order of
+        vertices and triangles is :func:`canonical_mesh`'s, so the same TSDF gives the same mesh in every run.
         """
         if self.vbg.hashmap().size() == 0:  # open3d raises on an empty grid
             return o3d.geometry.TriangleMesh()
         # open3d keeps voxels with weight strictly above the threshold; weights count frames.
         mesh_t = self.vbg.extract_triangle_mesh(weight_threshold=float(min_weight) - 1e-3)
-        mesh = mesh_t.to_legacy()
+        mesh = canonical_mesh(mesh_t.to_legacy())
         if not self.has_color:
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
         return mesh
@@ -323,6 +324,31 @@ def _empty_surface_voxels() -> SurfaceVoxels:
     )
 
 
+def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """The same mesh with vertices sorted by (x, y, z), each triangle rotated to start at its smallest vertex index
+    (orientation kept) and triangles sorted; vertex normals and colours follow their vertices.
+
+    open3d's marching cubes runs on several threads and emits the same triangles in a different order on each run,
+    and the seeded area sampling of the mesh metrics (precision, F-score) draws its points by triangle order, so
+    the same map gave precision differing by up to 0.002 between runs. In this order it gives the same numbers.
+    """
+    verts = np.asarray(mesh.vertices)
+    tris = np.asarray(mesh.triangles, dtype=np.int64).reshape(-1, 3)
+    order = np.lexsort((verts[:, 2], verts[:, 1], verts[:, 0])) if len(verts) else np.zeros(0, np.int64)
+    rank = np.empty(len(verts), dtype=np.int64)
+    rank[order] = np.arange(len(verts))
+    tris = rank[tris]
+    first = np.argmin(tris, axis=1)
+    tris = np.take_along_axis(tris, (first[:, None] + np.arange(3)[None]) % 3, axis=1)
+    tris = tris[np.lexsort((tris[:, 2], tris[:, 1], tris[:, 0]))]
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts[order]), o3d.utility.Vector3iVector(tris))
+    if mesh.has_vertex_normals():
+        out.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals)[order])
+    if mesh.has_vertex_colors():
+        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
+    return out
+
+
 def tsdf_mesh_from_depths(
     frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
     intr: Intrinsics,
@@ -342,6 +368,7 @@ def tsdf_mesh_from_depths(
 __all__ = [
     "SurfaceVoxels",
     "TSDFVolume",
+    "canonical_mesh",
     "o3c",
     "tsdf_mesh_from_depths",
 ]
