@@ -32,6 +32,10 @@
 #                              and 31 would be 20.1 % of them)
 #   gaus-slam-stretch4/, novelty-lookahead-stretch4/  both with the mapper's new surfels stretched along the surface's
 #                              tilt (init_max_stretch=4; twentieth session)
+#   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
+#                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
+#   novelty-lookahead-w10/     novelty-lookahead with window = lookahead = 10 (40 keyframes, 25 % of gaus-slam's 160:
+#                              the ratio of the paper's own Replica claim, 200+ keyframes against GauS-SLAM's 800+)
 # Every row is also evaluated on runs/office0_240_s5_between/ (the poses 2, 7, 12, ... of traj.txt, between the
 # mapped ones, which no policy sees: `roigsf bench --test-scene`, columns "PSNR test scene" and "Depth L1 (cm) test
 # scene"; the bench's own PSNR is over each run's non-keyframes, a different set for each policy).
@@ -104,6 +108,8 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row novelty-lookahead-w14-it40 "novelty:window=14:lookahead=14" --set iters_per_keyframe=40
     row gaus-slam-stretch4 "gaus-slam" --set init_max_stretch=4
     row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
+    row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
+    row novelty-lookahead-w10 "novelty:window=10:lookahead=10"
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"

@@ -11,8 +11,10 @@
 #               eighteenth session)
 #   lookahead/  novelty:window=12:lookahead=12 and the unseen variant with novelty_weight=1:lookahead=12 (each window
 #               decided once the next one is in; nineteenth session)
+#   pixels/     novelty:window=12:lookahead=12:novelty_measure=pixels (the novelty counted in the held frames'
+#               pixels a frame brings within reach; twenty-first session, tuned on the suite)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
-# about 100 s. BENCHES="a b ..." runs only those folders (default: all).
+# about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
 # KIND=suite: the same on `roigsf scene synth --kind suite --seed 7` (two rooms joined by a doorway: a loop in one,
 # a walk through the doorway, a loop in the other; nineteenth session, made after the lookahead was fixed), 400
@@ -30,12 +32,13 @@ case "$KIND" in
     *) echo "KIND must be room or suite, got $KIND" >&2; exit 2 ;;
 esac
 NICE="${NICE:-5}"
+SEEDS="${SEEDS:-1}"
 cd "$REPO"
 [ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed 7 --frames 400 --width 160 \
     --height 120 --overwrite
 stream_bench() {  # stream_bench OUT POLICIES
-    nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$2" --uncertainty-views 0 --out "$1" \
-        --overwrite
+    nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$2" --seeds "$SEEDS" --uncertainty-views 0 \
+        --out "$1" --overwrite
 }
 bench_group() {  # bench_group NAME POLICIES: one folder, unless BENCHES leaves it out
     case " ${BENCHES:-$1} " in *" $1 "*) stream_bench "$OUT/$1" "$2" ;; esac
@@ -50,3 +53,4 @@ bench_group baselines "every-n:n=$WINDOW,roi-gsurfisher:window=$WINDOW"
 bench_group novelty "$R:window=$WINDOW:unseen_weight=1:novelty_weight=1,novelty:window=$WINDOW"
 bench_group lookahead "novelty:window=$WINDOW:lookahead=$WINDOW,\
 $R:window=$WINDOW:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW"
+bench_group pixels "novelty:window=$WINDOW:lookahead=$WINDOW:novelty_measure=pixels"

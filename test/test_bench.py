@@ -11,6 +11,7 @@ import pytest
 from roigsf_ros.cli import main
 from roigsf_ros.cli.scene import synth_intrinsics
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation import render_metrics
@@ -232,6 +233,25 @@ def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
         rescore_ause(out, progress=False)
 
 
+def unseen_hole_share(mapper: Mapper, frames: list[Frame], keyframes: list[Frame]) -> float:
+    """Of the test frames' hole pixels with depth, the share whose voxel (2.5 cm) lies farther than 5 cm plus half a
+    voxel from every voxel of the keyframes' valid depth: a k-d tree over the keyframes' own frames."""
+    from scipy.spatial import cKDTree
+
+    from roigsf_ros.nbv.novelty import depth_points_w
+
+    def voxels(f: Frame, mask: np.ndarray) -> np.ndarray:
+        return np.floor(depth_points_w(f.depth_m, f.T_wc, mapper.intr, mask) / 0.025)
+
+    tree = cKDTree(np.concatenate([voxels(k, mapper.valid_depth_mask(k.depth_m)) for k in keyframes]))
+    n = unseen = 0
+    for f in frames:
+        hole = ~mapper.covered_mask(f.T_wc) & mapper.valid_depth_mask(f.depth_m)
+        d, _ = tree.query(voxels(f, hole), k=1)
+        n, unseen = n + len(d), unseen + int(np.count_nonzero(d > (0.05 + 0.0125) / 0.025 + 1e-9))
+    return unseen / n if n else 0.0
+
+
 def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--test-scene``: every run is also evaluated on frames no policy sees, the same frames for all policies."""
     test_scene = tmp_path / "between"
@@ -245,6 +265,8 @@ def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.Cap
     res = check_md_matches_json(out)
     assert res["test_scene"] == str(test_scene) and "frames no policy sees" in (out / "results.md").read_text()
     frames = list(open_frames(test_scene))
+    by_id = {f.index: f for f in open_frames(scene)}
+    shares: list[float] = []
     for run in res["runs"]:
         m = run["metrics"]
         assert m["test_scene_frames"] == 6 and m["test_scene_frames_skipped_bad_pose"] == 0
@@ -257,6 +279,9 @@ def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.Cap
         assert 0.0 <= m["test_scene_uncovered_pixel_fraction"] < 0.5
         assert m["test_scene_depth_l1_cm"] == pytest.approx(again["depth_l1_cm"], abs=1e-6)
         assert m["test_scene_psnr"] != pytest.approx(m["psnr"], abs=1e-3)  # not the non-keyframes' numbers
+        shares.append(m["test_scene_holes_unseen_share"])
+        assert shares[-1] == pytest.approx(unseen_hole_share(mapper, frames, [by_id[i] for i in m["keyframe_ids"]]))
+    assert shares[0] > 0.0 and shares[0] != shares[1]  # 2 keyframes leave unseen surface in view, 4 less of it
     assert res["summary"]["every-n:n=3"]["test_scene_psnr"]["n"] == 1
     # the pool holds out its own views; another camera is refused before any run
     with pytest.raises(InputError, match="stream setting only"):

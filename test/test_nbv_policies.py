@@ -292,6 +292,38 @@ def test_lookahead_decides_each_window_one_trigger_late_by_the_pair_it_makes(fra
             make_policy(name, **params)
 
 
+def test_novelty_measure_pixels_ranks_by_the_held_frames_pixels_each_pick_covers(frames: list[Frame]) -> None:
+    """``novelty_measure=pixels``: each trigger's novelty is ObservedSurface.held_pixels_covered of the window's frames
+    against the keyframes returned before, and the pick is its best."""
+    from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
+
+    pol = make_policy("novelty", window=WINDOW, lookahead=WINDOW, novelty_measure="pixels")
+    assert pol.params()["novelty_measure"] == "pixels" and "novelty_measure" not in make_policy("novelty").params()
+    by_id = {f.index: f for f in frames}
+    checked: list[int] = []
+
+    def check(policy: StreamNBVPolicy, mapper: Mapper, k: int) -> None:
+        if policy.triggers > len(checked):
+
+            def points(i: int) -> np.ndarray:
+                f = by_id[i]
+                return depth_points_w(f.depth_m, f.T_wc, INTR, mapper.valid_depth_mask(f.depth_m))
+
+            ref = ObservedSurface(measure="pixels")
+            for i in mapper.keyframe_ids[:-1]:  # the keyframes before the last trigger's pick
+                ref.add_points(points(i))
+            want = ref.held_pixels_covered([points(i) for i in policy.last_candidate_ids],
+                                           [points(i) for i in policy.last_ahead_ids])  # fmt: skip
+            np.testing.assert_array_equal(policy.last_novelty, want)
+            assert mapper.keyframe_ids[-1] == policy.last_candidate_ids[int(np.argmax(want))]
+            checked.append(k)
+
+    mapper = run_stream(pol, frames, check)
+    assert len(checked) == (N_FRAMES - 1) // WINDOW - 1 and len(mapper.keyframe_ids) == 1 + (N_FRAMES - 1) // WINDOW
+    with pytest.raises(InputError, match="novelty_measure"):
+        make_policy("novelty", novelty_measure="volume")
+
+
 def test_novelty_weight_adds_its_z_score_to_the_fused_score(frames: list[Frame]) -> None:
     from roigsf_ros.nbv.scorer import zscore
 

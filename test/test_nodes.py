@@ -503,13 +503,15 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
 
 
-@pytest.mark.parametrize("policy", ["novelty", "roi-fisher"])
-def test_selector_lookahead_decides_each_window_as_the_library_does(ros_context: Any, scene: Any, policy: str) -> None:
+@pytest.mark.parametrize(("policy", "measure"), [("novelty", "area"), ("roi-fisher", "area"), ("novelty", "pixels")])
+def test_selector_lookahead_decides_each_window_as_the_library_does(
+    ros_context: Any, scene: Any, policy: str, measure: str
+) -> None:
     """``lookahead`` 2: each window of 2 is decided once the next 2 frames judged it, as the library's policy decides
-    (alone, and as the fallback of a planner policy without a planner)."""
+    (alone, and as the fallback of a planner policy without a planner), with the novelty in either measure."""
     frames, _ = scene
     seq = [replace(f, index=i) for i, f in enumerate(_novelty_sequence(frames, 5))]
-    library = make_policy("novelty", window=2, lookahead=2)
+    library = make_policy("novelty", window=2, lookahead=2, novelty_measure=measure)
     view = Mapper(INTR, MapperConfig())
     expected = [(f.index + 1) * 1000 for frame in seq for f in library.observe(frame, view)]
     assert len(expected) == 5 and library.triggers == 4  # the first window waits for the frames after it
@@ -517,10 +519,14 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(ros_context:
     assert len(last) == 1
     plain = make_policy("novelty", window=2)
     assert expected != [(f.index + 1) * 1000 for frame in seq[:-2] for f in plain.observe(frame, view)]
+    if measure != "area":  # the measure changes the picks here: a node that dropped it would publish others
+        area = make_policy("novelty", window=2, lookahead=2)
+        assert expected != [(f.index + 1) * 1000 for frame in seq for f in area.observe(frame, view)]
     overrides = [
         Parameter("policy", value=policy),
         Parameter("window", value=2),
         Parameter("lookahead", value=2),
+        Parameter("novelty_measure", value=measure),
         Parameter("fallback_policy", value="novelty"),
         Parameter("novelty_weight", value=1.0 if policy != "novelty" else 0.0),
         Parameter("planner_service", value="/no_planner_here/nbv"),

@@ -35,6 +35,10 @@ def test_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -
             assert surface.new_voxels(q) == reference_new_voxels(clouds[: k + 1], q, voxel_m, radius_m)
     assert surface.n_added == 3
     assert surface.new_voxels(clouds[1]) == 0  # what was added is not new
+    q = np.concatenate([clouds[3], clouds[3][:100]])  # points, not voxels: repeats count
+    a = np.unique(np.floor(np.concatenate(clouds[:3]) / voxel_m), axis=0)
+    dist, _ = cKDTree(a).query(np.floor(q / voxel_m), k=1)
+    assert surface.unreached_points(q) == np.count_nonzero(dist > (radius_m + 0.5 * voxel_m) / voxel_m + 1e-9)
 
 
 @pytest.mark.parametrize(("voxel_m", "radius_m"), [(0.025, 0.05), (0.1, 0.0), (0.03, 0.1)])
@@ -70,6 +74,60 @@ def test_lookahead_leaves_surface_a_later_frame_shows_to_it() -> None:
     with_ahead = surface.lookahead_new_voxels([seen_later, only_now], [later])
     assert np.argmax(with_ahead) == 1  # but the pair (small wall, later frame) shows more
     assert with_ahead[1] == plain[1] + surface.new_voxels(later)
+
+
+def reference_held_pixels(added: list[np.ndarray], cands: list[np.ndarray], ahead: list[np.ndarray], voxel_m: float,
+                          radius_m: float) -> list[int]:  # fmt: skip
+    """Pixel by pixel: a held pixel is uncovered when its voxel is out of reach of every added voxel; a frame covers
+    it when one of the frame's voxels is within reach; each candidate's count with the best frame ahead."""
+    reach = (radius_m + 0.5 * voxel_m) / voxel_m + 1e-9
+
+    def within(pix: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
+        out = np.zeros(len(pix), dtype=bool)
+        for f in frames:
+            if len(f):
+                d, _ = cKDTree(np.floor(f / voxel_m)).query(pix, k=1)
+                out |= d <= reach
+        return out
+
+    pix = np.floor(np.concatenate([*cands, *ahead]) / voxel_m)
+    pix = pix[~within(pix, added)]
+    return [int(within(pix, [c]).sum()) + max([int((within(pix, [g]) & ~within(pix, [c])).sum()) for g in ahead],
+                                              default=0) for c in cands]  # fmt: skip
+
+
+@pytest.mark.parametrize(("voxel_m", "radius_m"), [(0.025, 0.05), (0.1, 0.0), (0.03, 0.1)])
+def test_held_pixels_covered_equal_a_pixel_by_pixel_reference(voxel_m: float, radius_m: float) -> None:
+    rng = np.random.default_rng(9)
+    clouds = [c + rng.normal(0.0, 0.2, (500, 3)) for c in rng.uniform(-0.6, 0.6, (6, 3))]
+    clouds[4] = np.concatenate([clouds[4], np.repeat(clouds[4][:50], 3, axis=0)])  # pixels sharing voxels count each
+    surface = ObservedSurface(voxel_m, radius_m, measure="pixels")
+    cands, ahead = [clouds[1], clouds[2], np.zeros((0, 3))], [clouds[3], clouds[4], clouds[1] + 0.02]
+    np.testing.assert_array_equal(surface.held_pixels_covered(cands, ahead),
+                                  reference_held_pixels([], cands, ahead, voxel_m, radius_m))  # fmt: skip
+    added = [clouds[0], clouds[5]]
+    for c in added:
+        surface.add_points(c)
+    np.testing.assert_array_equal(surface.held_pixels_covered(cands, ahead),
+                                  reference_held_pixels(added, cands, ahead, voxel_m, radius_m))  # fmt: skip
+    np.testing.assert_array_equal(surface.held_pixels_covered(cands, []),
+                                  reference_held_pixels(added, cands, [], voxel_m, radius_m))  # fmt: skip
+
+
+def test_held_pixels_weigh_surface_the_held_frames_look_at() -> None:
+    """Two new walls of equal area: the one the other held frames also look at wins by pixels, ties by area."""
+
+    def patch(x0: float, x1: float, step: float = 0.01) -> np.ndarray:
+        x, z = np.meshgrid(np.arange(x0, x1, step), np.arange(0.0, 1.0, step))
+        return np.stack([x.ravel(), np.full(x.size, 2.0), z.ravel()], axis=1)
+
+    looked_at, glimpsed = patch(0.0, 1.0), patch(3.0, 4.0)
+    others = [patch(0.0, 1.0, 0.005), patch(0.2, 0.8, 0.005)]  # two more held frames, nearer: more pixels there
+    area = ObservedSurface(0.025, 0.05).lookahead_new_voxels([looked_at, glimpsed], [])
+    assert area[0] == area[1]
+    pixels = ObservedSurface(0.025, 0.05, measure="pixels").held_pixels_covered([looked_at, glimpsed, *others], [])
+    assert pixels[0] > 4 * pixels[1]  # the wall the held frames look at: its pixels in three frames, not one
+    assert pixels[1] == len(glimpsed)
 
 
 def plane_depth(z_m: float) -> np.ndarray:
@@ -117,6 +175,8 @@ def test_bad_input_names_the_field() -> None:
         ObservedSurface(0.0)
     with pytest.raises(InputError, match="novelty_radius_m"):
         ObservedSurface(0.025, float("nan"))
+    with pytest.raises(InputError, match=r"novelty_measure.*area, pixels"):
+        ObservedSurface(measure="volume")
     surface = ObservedSurface()
     with pytest.raises(InputError, match="points_w"):
         surface.add_points(np.array([[0.0, np.inf, 0.0]]))

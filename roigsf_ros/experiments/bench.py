@@ -65,6 +65,7 @@ SUMMARY_KEYS = (
     "test_scene_psnr_covered",
     "test_scene_uncovered_pixel_fraction",
     "test_scene_uncovered_error_share",
+    "test_scene_holes_unseen_share",
     "precision@1cm",
     "recall@1cm",
     "fscore@1cm",

@@ -21,6 +21,7 @@ from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
 from roigsf_ros.policies.base import KeyframePolicy
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,10 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------- offline run
 def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bool) -> dict[str, Any]:
     """PSNR, SSIM, depth L1 and the hole split (see :func:`evaluation.render_metrics`) of the final map at every
-    frame of ``test_source`` (a bad pose: skipped, counted).
+    frame of ``test_source`` (a bad pose: skipped, counted), and which holes are on surface that no keyframe's depth
+    observed (``test_scene_holes_unseen_share``: of the hole pixels with depth, those farther than the novelty's 5 cm
+    from every keyframe's depth, so a matter of which frames were keyframes; the rest the map saw and does not
+    render).
     """
     skipped = 0
 
@@ -44,8 +48,28 @@ def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bo
                 continue
             yield frame
 
-    res = evaluation.render_metrics(mapper.render_rgb_depth, frames(), mapper.valid_depth_mask,
-                                    covered=mapper.covered_mask)  # fmt: skip
+    seen = ObservedSurface()  # what the keyframes' depth observed, as the novelty counts it (5 cm)
+    for kf in mapper.keyframes:
+        seen.add(kf.depth_m.cpu().numpy(), kf.T_wc, mapper.intr, kf.valid.cpu().numpy())
+    current: list[Frame] = []
+    holes = [0, 0]  # hole pixels with depth, of which on surface no keyframe's depth reaches
+
+    def evaluated() -> Iterator[Frame]:
+        for frame in frames():
+            current[:] = [frame]
+            yield frame
+
+    def covered(T_wc: np.ndarray) -> np.ndarray:
+        mask = mapper.covered_mask(T_wc)
+        frame = current[0]
+        hole = ~mask & mapper.valid_depth_mask(frame.depth_m)
+        if hole.any():
+            points = depth_points_w(frame.depth_m, frame.T_wc, mapper.intr, hole)
+            holes[0] += len(points)
+            holes[1] += seen.unreached_points(points)
+        return mask
+
+    res = evaluation.render_metrics(mapper.render_rgb_depth, evaluated(), mapper.valid_depth_mask, covered=covered)
     means = res.means()
     return {
         "test_scene": str(getattr(test_source, "path", "given")),
@@ -56,6 +80,7 @@ def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bo
         "test_scene_psnr_covered": means.get("psnr_covered"),
         "test_scene_uncovered_pixel_fraction": means.get("uncovered_pixel_fraction"),
         "test_scene_uncovered_error_share": means.get("uncovered_error_share"),
+        "test_scene_holes_unseen_share": holes[1] / holes[0] if holes[0] else 0.0,
         "test_scene_frames_skipped_bad_pose": skipped,
     }
 

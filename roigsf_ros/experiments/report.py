@@ -30,6 +30,7 @@ TABLE_COLUMNS = (
     ("PSNR test scene", "test_scene_psnr", "{:.2f}"),
     ("Depth L1 (cm) test scene", "test_scene_depth_l1_cm", "{:.2f}"),
     ("Error share in holes, test scene", "test_scene_uncovered_error_share", "{:.2f}"),
+    ("Holes on surface no keyframe saw, test scene", "test_scene_holes_unseen_share", "{:.2f}"),
     ("P@1cm", "precision@1cm", "{:.3f}"),
     ("R@1cm", "recall@1cm", "{:.3f}"),
     ("F@1cm", "fscore@1cm", "{:.3f}"),
@@ -100,8 +101,10 @@ def markdown(results: dict[str, Any]) -> str:
         if results.get("test_scene"):
             lines.append(
                 f"- test scene: `{results['test_scene']}` (frames no policy sees, the same for every run): columns"
-                " 'PSNR test scene', 'Depth L1 (cm) test scene' and 'Error share in holes, test scene' (the part of"
-                " the squared colour error at pixels the map leaves uncovered: alpha < 0.5)"
+                " 'PSNR test scene', 'Depth L1 (cm) test scene', 'Error share in holes, test scene' (the part of"
+                " the squared colour error at pixels the map leaves uncovered: alpha < 0.5) and 'Holes on surface no"
+                " keyframe saw, test scene' (of those pixels, the share farther than 5 cm from every keyframe's depth:"
+                " a matter of which frames were keyframes; the rest the map saw and does not render)"
             )
     lines.append(
         f"- AUSE: pixel uncertainty vs |depth error| on {results.get('uncertainty_views', '?')} held-out views per run"

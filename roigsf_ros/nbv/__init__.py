@@ -9,7 +9,14 @@ __all__, __getattr__ = lazy_exports(
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
         "config": ["BACKFACE_TESTS", "MODES", "NBVConfig"],
-        "novelty": ["NOVELTY_RADIUS_M", "NOVELTY_VOXEL_M", "ObservedSurface", "depth_points_w", "fuse_novelty"],
+        "novelty": [
+            "NOVELTY_MEASURES",
+            "NOVELTY_RADIUS_M",
+            "NOVELTY_VOXEL_M",
+            "ObservedSurface",
+            "depth_points_w",
+            "fuse_novelty",
+        ],
         "roi": [
             "LUMA_RGB",
             "BatchROI",

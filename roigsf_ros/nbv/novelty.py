@@ -33,6 +33,10 @@ NOVELTY_VOXEL_M = 0.025
 NOVELTY_RADIUS_M = 0.05
 """Default reach (m): a point within 5 cm of observed depth is observed, the threshold of the mesh recall R@5cm."""
 
+NOVELTY_MEASURES = ("area", "pixels")
+"""What a frame's novelty counts: the area of surface it shows first (the default), or the held frames' pixels
+it brings within reach (:meth:`ObservedSurface.held_pixels_covered`)."""
+
 _MAX_INDEX = 1 << 30
 """Voxel indices stay within int32 (+-2^30 voxels: far beyond any map; larger means a broken pose or depth)."""
 
@@ -63,7 +67,13 @@ class ObservedSurface:
     than its area: an estimate, biased towards near surface, as the mesh's own sampling is.
     """
 
-    def __init__(self, voxel_m: float = NOVELTY_VOXEL_M, radius_m: float = NOVELTY_RADIUS_M) -> None:
+    def __init__(
+        self, voxel_m: float = NOVELTY_VOXEL_M, radius_m: float = NOVELTY_RADIUS_M, measure: str = "area"
+    ) -> None:
+        if measure not in NOVELTY_MEASURES:
+            raise InputError("novelty_measure", f"must be one of {', '.join(NOVELTY_MEASURES)}, got {measure!r}")
+        self.measure = measure
+        """What :meth:`frames_novelty` counts: "area" (m^2 of new surface) or "pixels" (held frames' pixels)."""
         if not (np.isfinite(voxel_m) and voxel_m > 0):
             raise InputError("novelty_voxel_m", f"must be a finite number > 0, got {voxel_m!r}")
         if not (np.isfinite(radius_m) and radius_m >= 0):
@@ -102,12 +112,23 @@ class ObservedSurface:
         """Mark what a keyframe's depth [H, W] (its ``valid`` pixels) observes."""
         self.add_points(depth_points_w(depth_m, T_wc, intr, valid))
 
+    def _unreached_mask(self, ijk: np.ndarray) -> np.ndarray:
+        """[N] bool: which voxels of ``ijk`` [N, 3] int32 (distinct) no added observation reaches."""
+        if len(ijk) == 0 or self.n_added == 0:
+            return np.ones(len(ijk), dtype=bool)
+        _, found = self._reached.find(o3d.core.Tensor(np.ascontiguousarray(ijk)))
+        return ~found.numpy().astype(bool)
+
     def _unreached(self, ijk: np.ndarray) -> np.ndarray:
         """The voxels [N, 3] int32 of ``ijk`` (distinct) that no added observation reaches."""
-        if len(ijk) == 0 or self.n_added == 0:
-            return ijk
-        _, found = self._reached.find(o3d.core.Tensor(ijk))
-        return ijk[~found.numpy().astype(bool)]
+        return ijk[self._unreached_mask(ijk)]
+
+    def unreached_points(self, points_w: np.ndarray) -> int:
+        """How many of ``points_w`` [N, 3] (world, metres; each counted, not per voxel) no added observation reaches."""
+        pts = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
+        self._voxels(pts)  # the checks of every other entry: finite, within the index range
+        voxels, inverse = np.unique(np.floor(pts / self.voxel_m).astype(np.int32), axis=0, return_inverse=True)
+        return int(self._unreached_mask(voxels)[inverse.reshape(-1)].sum())
 
     def new_voxels(self, points_w: np.ndarray) -> int:
         """How many distinct voxels of ``points_w`` [N, 3] no added observation reaches."""
@@ -140,6 +161,40 @@ class ObservedSurface:
             after[i] = np.bincount(group[left], minlength=len(ahead_new)).max()
         return own + after
 
+    def held_pixels_covered(self, candidates_w: list[np.ndarray], ahead_w: list[np.ndarray]) -> np.ndarray:
+        """[M] int: pixels of the held frames each candidate (with the best frame ahead) would bring within reach.
+
+        ``candidates_w`` and ``ahead_w`` hold each frame's points [N, 3] (world, metres), one per valid pixel. The
+        held frames' pixels whose voxel no added observation reaches are the *uncovered* pixels, each voxel u
+        weighing w(u), its number of such pixels over all held frames. For candidate f with voxels V_f and a frame
+        g ahead: sum of w(u) over the u within reach of V_f, plus the most that one g reaches that f does not:
+        the held frames' pixels the pair (f, best g) shows first. It is :meth:`lookahead_new_voxels` counted in
+        the pixels of the frames around the candidate instead of the candidate's own voxels, so surface the
+        trajectory looks at often, or from near, weighs more than surface one far frame shows.
+        """
+        cand = [self._voxels(p) for p in candidates_w]
+        ahead = [self._voxels(p) for p in ahead_w]
+        pts = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in (*candidates_w, *ahead_w)]
+        every = np.floor(np.concatenate(pts) / self.voxel_m).astype(np.int32) if pts else np.zeros((0, 3), np.int32)
+        voxels, weight = np.unique(every, axis=0, return_counts=True)
+        keep = self._unreached_mask(voxels)
+        uncovered, weight = voxels[keep].astype(np.float64), weight[keep]
+        r = np.sqrt(((self.radius_m + 0.5 * self.voxel_m) / self.voxel_m) ** 2 + 1e-9)  # as the offsets' test
+
+        def reached(v: np.ndarray) -> np.ndarray:
+            if len(v) == 0 or len(uncovered) == 0:
+                return np.zeros(len(uncovered), dtype=bool)
+            d, _ = cKDTree(v.astype(np.float64)).query(uncovered, k=1, distance_upper_bound=r + 1.0)
+            return d <= r  # inf (nothing within the bound) is not reached
+
+        by_ahead = [reached(v) for v in ahead]
+        out = np.empty(len(cand), dtype=np.int64)
+        for i, v in enumerate(cand):
+            mine = reached(v)
+            after = max((int(weight[g & ~mine].sum()) for g in by_ahead), default=0)
+            out[i] = int(weight[mine].sum()) + after
+        return out
+
     def new_area_m2(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> float:
         """Novelty of a frame: its voxels no keyframe's observation reaches, as an area (count x ``voxel_m``^2)."""
         return self.new_voxels(depth_points_w(depth_m, T_wc, intr, valid)) * self.voxel_m**2
@@ -159,6 +214,18 @@ class ObservedSurface:
             return np.array([self.new_voxels(p) for p in points], dtype=np.float64) * self.voxel_m**2
         later = [_frame_points(f, intr, config) for f in ahead]
         return self.lookahead_new_voxels(points, later).astype(np.float64) * self.voxel_m**2
+
+    def frames_novelty(
+        self, frames: list[Frame], intr: Intrinsics, config: MapperConfig, ahead: list[Frame] | None = None
+    ) -> np.ndarray:
+        """[M] the novelty of each of ``frames`` in this surface's :attr:`measure`: :meth:`frames_new_area_m2` (m^2)
+        or :meth:`held_pixels_covered` (pixels of ``frames`` and ``ahead``, the frames held around them).
+        """
+        if self.measure == "area":
+            return self.frames_new_area_m2(frames, intr, config, ahead)
+        points = [_frame_points(f, intr, config) for f in frames]
+        later = [_frame_points(f, intr, config) for f in ahead or []]
+        return self.held_pixels_covered(points, later).astype(np.float64)
 
 
 def _frame_points(frame: Frame, intr: Intrinsics, config: MapperConfig) -> np.ndarray:
@@ -186,4 +253,11 @@ def fuse_novelty(fused: np.ndarray, novelty_m2: np.ndarray, weight: float) -> np
     return fused + float(weight) * zscore(novelty)
 
 
-__all__ = ["NOVELTY_RADIUS_M", "NOVELTY_VOXEL_M", "ObservedSurface", "depth_points_w", "fuse_novelty"]
+__all__ = [
+    "NOVELTY_MEASURES",
+    "NOVELTY_RADIUS_M",
+    "NOVELTY_VOXEL_M",
+    "ObservedSurface",
+    "depth_points_w",
+    "fuse_novelty",
+]

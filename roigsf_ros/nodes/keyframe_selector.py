@@ -101,6 +101,7 @@ class KeyframeSelectorNode(SystemNode):
         self.novelty_weight = float(declare(self, "novelty_weight", 0.0, "weight of z(observed novelty) (0 = off)"))
         self.novelty_voxel_m = float(declare(self, "novelty_voxel_m", NOVELTY_VOXEL_M, "novelty's voxel (m)"))
         self.novelty_radius_m = float(declare(self, "novelty_radius_m", NOVELTY_RADIUS_M, "observed within this (m)"))
+        self.novelty_measure = str(declare(self, "novelty_measure", "area", "novelty counts: area | pixels"))
         self.lookahead = int(declare(self, "lookahead", 0, "newer frames that judge a window's novelty (0 = off)"))
         camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
@@ -133,7 +134,8 @@ class KeyframeSelectorNode(SystemNode):
         self._fallback = self._make_alone(self.fallback)
         self._fallback_rng = np.random.default_rng(self.seed)
         needs = self.uses_planner and (self.novelty_weight > 0 or self.fallback == "novelty")
-        self._observed = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m) if needs else None
+        surface = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m, self.novelty_measure)  # checks them
+        self._observed = surface if needs else None
         """The keyframes' observed surface, for the planner policies' novelty term or fallback."""
 
         self.shared = shared
@@ -188,6 +190,7 @@ class KeyframeSelectorNode(SystemNode):
                 "trigger_every": self.trigger_every,
                 "novelty_voxel_m": self.novelty_voxel_m,
                 "novelty_radius_m": self.novelty_radius_m,
+                "novelty_measure": self.novelty_measure,
                 "lookahead": self.lookahead,
             },
             "every-n": {"n": self.every_n},
@@ -394,11 +397,11 @@ class KeyframeSelectorNode(SystemNode):
         return view_mapper(SurfelMap.empty(), intr, self._mapper_config())
 
     def _novelty(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> np.ndarray:
-        """[M] observed novelty (m^2) of the candidates against the keyframes published so far (``ahead``: the
-        lookahead novelty).
+        """[M] observed novelty (``novelty_measure``: m^2 or pixels) of the candidates against the keyframes
+        published so far (``ahead``: the lookahead novelty).
         """
         assert self._observed is not None
-        return self._observed.frames_new_area_m2(candidates, intr, self._mapper_config(), ahead)
+        return self._observed.frames_novelty(candidates, intr, self._mapper_config(), ahead)
 
     def _with_novelty(
         self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int, ahead: list[Frame]

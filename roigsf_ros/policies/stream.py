@@ -138,6 +138,11 @@ class StreamNBVPolicy(KeyframePolicy):
       later frame also shows is left to the next pick. The window holds ``window + lookahead`` frames; with
       ``lookahead = trigger_every`` each window is decided one trigger late, and :meth:`finish` decides the
       frames still held when the sequence ends.
+    - ``novelty_measure`` ("area"; beyond the paper): what N counts. "area" is the candidate's own new surface
+      (above); "pixels" counts the pixels of all the frames the window holds (candidates and those ahead) whose
+      surface no keyframe observed and the candidate (with the best frame ahead, under ``lookahead``) brings within
+      ``novelty_radius_m`` (:meth:`ObservedSurface.held_pixels_covered`): surface the trajectory looks at often or
+      from near weighs more, as it does in the PSNR of the frames between keyframes.
     - ``epsilon``, ``delta``, ``fisher_downsample``, ``sigma_p``, ``phi``, ``near_m``, ``far_m`` and any
       other :class:`roigsf_ros.nbv.config.NBVConfig` field by name (e.g. ``unseen_weight``): passed to the
       scorer's config (None: its default). The mode is the policy name; unknown names raise InputError.
@@ -182,6 +187,7 @@ class StreamNBVPolicy(KeyframePolicy):
         novelty_weight: float = 0.0,
         novelty_voxel_m: float = NOVELTY_VOXEL_M,
         novelty_radius_m: float = NOVELTY_RADIUS_M,
+        novelty_measure: str = "area",
         lookahead: int = 0,
         **nbv_options: Any,
     ) -> None:
@@ -201,7 +207,8 @@ class StreamNBVPolicy(KeyframePolicy):
             raise InputError("lookahead", "judges the observed novelty: use policy novelty or novelty_weight > 0")
         if self.lookahead and trigger != "window":
             raise InputError("lookahead", f"decides one keyframe per trigger: needs trigger 'window', not {trigger!r}")
-        ObservedSurface(novelty_voxel_m, novelty_radius_m)  # checks both now, not at the first frame
+        ObservedSurface(novelty_voxel_m, novelty_radius_m, novelty_measure)  # checks them now, not at the first frame
+        self.novelty_measure = novelty_measure
         self.novelty_voxel_m = float(novelty_voxel_m)
         self.novelty_radius_m = float(novelty_radius_m)
         if min_alpha is not None and not 0.0 <= float(min_alpha) <= 1.0:
@@ -267,10 +274,14 @@ class StreamNBVPolicy(KeyframePolicy):
         self._gap = 0
         self.tokens = 0.0
         """Keyframes banked (``trigger="budget"``): + 1 / ``budget_every`` per frame after the first."""
-        self.observed = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m) if self.uses_novelty else None
+        self.observed = (
+            ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m, self.novelty_measure)
+            if self.uses_novelty
+            else None
+        )
         """What the depth of the frames this policy returned observed (when novelty is scored)."""
         self.last_novelty: np.ndarray | None = None
-        """[M] observed novelty (m^2) of the last trigger's candidates, when novelty is scored."""
+        """[M] observed novelty (m^2, or pixels) of the last trigger's candidates, when novelty is scored."""
 
     def params(self) -> dict[str, Any]:
         """Window, trigger, seed, TSDF settings and the NBV overrides, for metrics.json."""
@@ -284,6 +295,7 @@ class StreamNBVPolicy(KeyframePolicy):
                     "budget_burst": self.budget_burst}  # fmt: skip
         if self.uses_novelty:
             out |= {"novelty_voxel_m": self.novelty_voxel_m, "novelty_radius_m": self.novelty_radius_m}
+            out |= {"novelty_measure": self.novelty_measure} if self.novelty_measure != "area" else {}
             out |= {"novelty_weight": self.novelty_weight} if not self.novelty_only else {}
             out |= {"lookahead": self.lookahead} if self.lookahead else {}
         if self.mode is None:
@@ -347,12 +359,12 @@ class StreamNBVPolicy(KeyframePolicy):
     def novelty(
         self, candidates: list[Frame], keyframe_map: KeyframeMap, ahead: list[Frame] | None = None
     ) -> np.ndarray:
-        """[M] observed novelty (m^2) of each candidate's valid depth against the frames returned so far (with the
-        frames ``ahead``: its lookahead novelty, ``lookahead`` in the class docstring).
+        """[M] observed novelty (``novelty_measure``: m^2 or pixels) of each candidate's valid depth against the frames
+        returned so far (with the frames ``ahead``: its lookahead novelty, ``lookahead`` in the class docstring).
         """
         if self.observed is None:
             raise InputError("novelty_weight", "novelty is not scored by this policy")
-        return self.observed.frames_new_area_m2(candidates, keyframe_map.intr, keyframe_map.config, ahead)
+        return self.observed.frames_novelty(candidates, keyframe_map.intr, keyframe_map.config, ahead)
 
     def _returned(self, frame: Frame, keyframe_map: KeyframeMap) -> None:
         """Note a frame this policy returns (the caller inserts it): its depth is observed from now on."""
