@@ -54,7 +54,7 @@ def _test_scene_metrics(mapper: Mapper, test_source: FrameSequence, progress: bo
     current: list[Frame] = []
     holes = [0, 0]  # hole pixels with depth, of which on surface no keyframe's depth reaches
 
-    def evaluated() -> Iterator[Frame]:
+    def evaluated() -> Iterator[Frame]:  # render_metrics calls covered() once per frame, after drawing it from here
         for frame in frames():
             current[:] = [frame]
             yield frame

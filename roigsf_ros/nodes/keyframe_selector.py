@@ -62,7 +62,13 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import MODES
-from roigsf_ros.nbv.novelty import NOVELTY_RADIUS_M, NOVELTY_VOXEL_M, ObservedSurface, fuse_novelty
+from roigsf_ros.nbv.novelty import (
+    NOVELTY_MEASURES,
+    NOVELTY_RADIUS_M,
+    NOVELTY_VOXEL_M,
+    ObservedSurface,
+    fuse_novelty,
+)
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
@@ -120,6 +126,9 @@ class KeyframeSelectorNode(SystemNode):
             raise InputError("parameter 'novelty_weight'", f"is added to the planner's scores: policy '{self.policy}' "
                              "does not ask the planner (policy novelty ranks by it alone)")  # fmt: skip
         check_positive("lookahead", self.lookahead, allow_zero=True)
+        if self.novelty_measure not in NOVELTY_MEASURES:
+            raise InputError("parameter 'novelty_measure'", f"'{self.novelty_measure}' must be one of "
+                             f"{', '.join(NOVELTY_MEASURES)}")  # fmt: skip
         judged = self.policy == "novelty" or (self.policy in PLANNER_POLICIES and self.novelty_weight > 0)
         if self.lookahead and not judged:
             raise InputError("parameter 'lookahead'", "judges the observed novelty: it needs policy novelty, or a "
@@ -134,8 +143,9 @@ class KeyframeSelectorNode(SystemNode):
         self._fallback = self._make_alone(self.fallback)
         self._fallback_rng = np.random.default_rng(self.seed)
         needs = self.uses_planner and (self.novelty_weight > 0 or self.fallback == "novelty")
-        surface = ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m, self.novelty_measure)  # checks them
-        self._observed = surface if needs else None
+        self._observed = (
+            ObservedSurface(self.novelty_voxel_m, self.novelty_radius_m, self.novelty_measure) if needs else None
+        )
         """The keyframes' observed surface, for the planner policies' novelty term or fallback."""
 
         self.shared = shared
