@@ -36,6 +36,7 @@
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-w10/     novelty-lookahead with window = lookahead = 10 (40 keyframes, 25 % of gaus-slam's 160:
 #                              the ratio of the paper's own Replica claim, 200+ keyframes against GauS-SLAM's 800+)
+#   novelty-lookahead-w11/, novelty-lookahead-w12/  the same with 11 and 12 (37 and 34 keyframes, 23 % and 21 %)
 # Every row is also evaluated on runs/office0_240_s5_between/ (the poses 2, 7, 12, ... of traj.txt, between the
 # mapped ones, which no policy sees: `roigsf bench --test-scene`, columns "PSNR test scene" and "Depth L1 (cm) test
 # scene"; the bench's own PSNR is over each run's non-keyframes, a different set for each policy).
@@ -110,6 +111,8 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
     row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
     row novelty-lookahead-w10 "novelty:window=10:lookahead=10"
+    row novelty-lookahead-w11 "novelty:window=11:lookahead=11"
+    row novelty-lookahead-w12 "novelty:window=12:lookahead=12"
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"
