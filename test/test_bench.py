@@ -281,7 +281,7 @@ def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.Cap
         assert m["test_scene_psnr"] != pytest.approx(m["psnr"], abs=1e-3)  # not the non-keyframes' numbers
         shares.append(m["test_scene_holes_unseen_share"])
         assert shares[-1] == pytest.approx(unseen_hole_share(mapper, frames, [by_id[i] for i in m["keyframe_ids"]]))
-    assert shares[0] > 0.0 and shares[0] != shares[1]  # 2 keyframes leave unseen surface in view, 4 less of it
+    assert shares[0] > 0.0 and shares[0] != shares[1]  # some holes are unseen surface, and it depends on the keyframes
     assert res["summary"]["every-n:n=3"]["test_scene_psnr"]["n"] == 1
     # the pool holds out its own views; another camera is refused before any run
     with pytest.raises(InputError, match="stream setting only"):
