@@ -66,6 +66,8 @@ def test_parse_policies() -> None:
         parse_policies("novelty", "pool")
     with pytest.raises(InputError, match=r"novelty_weight.*stream setting only"):
         parse_policies("roi-gsurfisher:unseen_weight=1:novelty_weight=1", "pool")
+    with pytest.raises(InputError, match=r"novelty_measure.*stream setting only"):
+        parse_policies("roi-fisher:novelty_measure=pixels", "pool")
     assert parse_policies("roi-gsurfisher:novelty_weight=1,novelty:window=5", "stream")[1].params == {"window": 5}
     with pytest.raises(InputError, match="takes no parameter"):
         parse_policies("fisherrf:windows=3", "pool")

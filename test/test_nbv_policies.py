@@ -320,8 +320,13 @@ def test_novelty_measure_pixels_ranks_by_the_held_frames_pixels_each_pick_covers
 
     mapper = run_stream(pol, frames, check)
     assert len(checked) == (N_FRAMES - 1) // WINDOW - 1 and len(mapper.keyframe_ids) == 1 + (N_FRAMES - 1) // WINDOW
-    with pytest.raises(InputError, match="novelty_measure"):
-        make_policy("novelty", novelty_measure="volume")
+    for name, params in [("novelty", {"novelty_measure": "volume"}), ("roi-fisher", {"novelty_measure": "pixels"}),
+                         ("random", {"novelty_measure": "pixels"})]:  # fmt: skip
+        with pytest.raises(InputError, match="novelty_measure"):  # unknown, or no novelty to count
+            make_policy(name, **params)
+    assert (
+        make_policy("roi-fisher", novelty_weight=1.0, novelty_measure="pixels").params()["novelty_measure"] == "pixels"
+    )
 
 
 def test_novelty_weight_adds_its_z_score_to_the_fused_score(frames: list[Frame]) -> None:

@@ -552,6 +552,9 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
     with pytest.raises(InputError, match=r"parameter 'novelty_measure'.*area, pixels"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_measure", value="volume")])
+    with pytest.raises(InputError, match=r"parameter 'novelty_measure'.*counts the observed novelty"):
+        pixels_alone = [Parameter("policy", value="random"), Parameter("novelty_measure", value="pixels")]
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=pixels_alone)
     with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="roi-fisher"),
                                                                        Parameter("lookahead", value=2)])  # fmt: skip

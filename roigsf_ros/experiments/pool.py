@@ -54,9 +54,9 @@ SCHEDULES = ("fixed", "epochs")
 
 def check_pool_params(params: dict[str, Any]) -> None:
     """InputError for policy parameters that need a candidate's images: the pool scores poses only."""
-    for name in ("novelty_weight", "lookahead"):
+    for name, off in (("novelty_weight", 0), ("lookahead", 0), ("novelty_measure", "area")):
         value = params.get(name)
-        if value is not None and value != 0:
+        if value is not None and value != off:
             raise InputError(name, "reads a candidate's captured depth: stream setting only (the pool scores "
                              "views before they are taken, from their poses)")  # fmt: skip
 

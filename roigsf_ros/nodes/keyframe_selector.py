@@ -126,13 +126,17 @@ class KeyframeSelectorNode(SystemNode):
             raise InputError("parameter 'novelty_weight'", f"is added to the planner's scores: policy '{self.policy}' "
                              "does not ask the planner (policy novelty ranks by it alone)")  # fmt: skip
         check_positive("lookahead", self.lookahead, allow_zero=True)
-        if self.novelty_measure not in NOVELTY_MEASURES:
-            raise InputError("parameter 'novelty_measure'", f"'{self.novelty_measure}' must be one of "
-                             f"{', '.join(NOVELTY_MEASURES)}")  # fmt: skip
         judged = self.policy == "novelty" or (self.policy in PLANNER_POLICIES and self.novelty_weight > 0)
         if self.lookahead and not judged:
             raise InputError("parameter 'lookahead'", "judges the observed novelty: it needs policy novelty, or a "
                              "planner policy with novelty_weight > 0")  # fmt: skip
+        if self.novelty_measure not in NOVELTY_MEASURES:
+            raise InputError("parameter 'novelty_measure'", f"'{self.novelty_measure}' must be one of "
+                             f"{', '.join(NOVELTY_MEASURES)}")  # fmt: skip
+        counted = judged or (self.policy in PLANNER_POLICIES and self.fallback == "novelty")
+        if self.novelty_measure != "area" and not counted:
+            raise InputError("parameter 'novelty_measure'", "counts the observed novelty: it needs policy novelty, "
+                             "a planner policy with novelty_weight > 0, or fallback_policy novelty")  # fmt: skip
         check_positive("trigger_every", trigger, allow_zero=True)
         check_positive("planner_timeout_s", self.timeout_s)
         check_positive("qos_depth", qos_depth)

@@ -208,6 +208,8 @@ class StreamNBVPolicy(KeyframePolicy):
         if self.lookahead and trigger != "window":
             raise InputError("lookahead", f"decides one keyframe per trigger: needs trigger 'window', not {trigger!r}")
         ObservedSurface(novelty_voxel_m, novelty_radius_m, novelty_measure)  # checks them now, not at the first frame
+        if novelty_measure != "area" and not (self.novelty_only or self.novelty_weight > 0):
+            raise InputError("novelty_measure", "counts the observed novelty: use policy novelty or novelty_weight > 0")
         self.novelty_measure = novelty_measure
         self.novelty_voxel_m = float(novelty_voxel_m)
         self.novelty_radius_m = float(novelty_radius_m)
