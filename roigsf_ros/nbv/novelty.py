@@ -90,15 +90,19 @@ class ObservedSurface:
         self.n_added = 0
         """Frames added so far."""
 
-    def _voxels(self, points_w: np.ndarray) -> np.ndarray:
-        """Distinct voxel indices [N, 3] int32 of the points [N, 3] (world, metres)."""
+    def _voxel_index(self, points_w: np.ndarray) -> np.ndarray:
+        """The voxel index [N, 3] int32 of each point [N, 3] (world, metres; InputError when not finite or too far)."""
         pts = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
         if not np.all(np.isfinite(pts)):
             raise InputError("points_w", "non-finite points")
         ijk = np.floor(pts / self.voxel_m)
         if ijk.size and np.abs(ijk).max() >= _MAX_INDEX:
             raise InputError("points_w", f"points beyond {_MAX_INDEX * self.voxel_m:.3g} m from the origin")
-        return np.unique(ijk.astype(np.int32), axis=0)
+        return ijk.astype(np.int32)
+
+    def _voxels(self, points_w: np.ndarray) -> np.ndarray:
+        """Distinct voxel indices [N, 3] int32 of the points [N, 3] (world, metres)."""
+        return np.unique(self._voxel_index(points_w), axis=0)
 
     def add_points(self, points_w: np.ndarray) -> None:
         """Mark the voxels within reach of ``points_w`` [N, 3] (world, metres) as observed."""
@@ -125,9 +129,7 @@ class ObservedSurface:
 
     def unreached_points(self, points_w: np.ndarray) -> int:
         """How many of ``points_w`` [N, 3] (world, metres; each counted, not per voxel) no added observation reaches."""
-        pts = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
-        self._voxels(pts)  # the checks of every other entry: finite, within the index range
-        voxels, inverse = np.unique(np.floor(pts / self.voxel_m).astype(np.int32), axis=0, return_inverse=True)
+        voxels, inverse = np.unique(self._voxel_index(points_w), axis=0, return_inverse=True)
         return int(self._unreached_mask(voxels)[inverse.reshape(-1)].sum())
 
     def new_voxels(self, points_w: np.ndarray) -> int:
@@ -172,10 +174,10 @@ class ObservedSurface:
         the pixels of the frames around the candidate instead of the candidate's own voxels, so surface the
         trajectory looks at often, or from near, weighs more than surface one far frame shows.
         """
-        cand = [self._voxels(p) for p in candidates_w]
-        ahead = [self._voxels(p) for p in ahead_w]
-        pts = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in (*candidates_w, *ahead_w)]
-        every = np.floor(np.concatenate(pts) / self.voxel_m).astype(np.int32) if pts else np.zeros((0, 3), np.int32)
+        index = [self._voxel_index(p) for p in (*candidates_w, *ahead_w)]  # one per pixel
+        cand = [np.unique(i, axis=0) for i in index[: len(candidates_w)]]
+        ahead = [np.unique(i, axis=0) for i in index[len(candidates_w) :]]
+        every = np.concatenate(index) if index else np.zeros((0, 3), np.int32)
         voxels, weight = np.unique(every, axis=0, return_counts=True)
         keep = self._unreached_mask(voxels)
         uncovered, weight = voxels[keep].astype(np.float64), weight[keep]

@@ -203,12 +203,12 @@ class StreamNBVPolicy(KeyframePolicy):
             alone = " (it ranks by the novelty alone)" if self.novelty_only else " (policy novelty ranks by it alone)"
             raise InputError("novelty_weight", f"policy {self.name!r} has no fused score to add it to{alone}")
         self.novelty_weight = float(novelty_weight)
-        if self.lookahead and not (self.novelty_only or self.novelty_weight > 0):
+        if self.lookahead and not self.uses_novelty:
             raise InputError("lookahead", "judges the observed novelty: use policy novelty or novelty_weight > 0")
         if self.lookahead and trigger != "window":
             raise InputError("lookahead", f"decides one keyframe per trigger: needs trigger 'window', not {trigger!r}")
         ObservedSurface(novelty_voxel_m, novelty_radius_m, novelty_measure)  # checks them now, not at the first frame
-        if novelty_measure != "area" and not (self.novelty_only or self.novelty_weight > 0):
+        if novelty_measure != "area" and not self.uses_novelty:
             raise InputError("novelty_measure", "counts the observed novelty: use policy novelty or novelty_weight > 0")
         self.novelty_measure = novelty_measure
         self.novelty_voxel_m = float(novelty_voxel_m)
