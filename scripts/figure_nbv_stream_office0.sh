@@ -31,7 +31,7 @@
 #   novelty-lookahead-w14-it40/  the same with window = lookahead = 14 (29 keyframes: gaus-slam takes 154 at 40 steps,
 #                              and 31 would be 20.1 % of them)
 #   gaus-slam-stretch4/, novelty-lookahead-stretch4/  both with the mapper's new surfels stretched along the surface's
-#                              tilt (init_max_stretch=4; twentieth session)
+#                              tilt (init_max_stretch=4; twentieth session; with SEEDS=3 in the twenty-second)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-w10/     novelty-lookahead with window = lookahead = 10 (40 keyframes, 25 % of gaus-slam's 160:

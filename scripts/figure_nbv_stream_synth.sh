@@ -13,6 +13,8 @@
 #               decided once the next one is in; nineteenth session)
 #   pixels/     novelty:window=12:lookahead=12:novelty_measure=pixels (the novelty counted in the held frames'
 #               pixels a frame brings within reach; twenty-first session, tuned on the suite)
+#   stretch/    novelty:window=12:lookahead=12 and gaus-slam, both with the mapper's init_max_stretch=4 (new surfels
+#               stretched along the surface's tilt; twentieth session's option, twenty-second session's rows)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
@@ -36,12 +38,16 @@ SEEDS="${SEEDS:-1}"
 cd "$REPO"
 [ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed 7 --frames 400 --width 160 \
     --height 120 --overwrite
-stream_bench() {  # stream_bench OUT POLICIES
-    nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$2" --seeds "$SEEDS" --uncertainty-views 0 \
-        --out "$1" --overwrite
+stream_bench() {  # stream_bench OUT POLICIES [bench options]
+    local out=$1 policies=$2
+    shift 2
+    nice -n "$NICE" roigsf bench --scene "$SCENE" --setting stream --policies "$policies" --seeds "$SEEDS" \
+        --uncertainty-views 0 --out "$out" --overwrite "$@"
 }
-bench_group() {  # bench_group NAME POLICIES: one folder, unless BENCHES leaves it out
-    case " ${BENCHES:-$1} " in *" $1 "*) stream_bench "$OUT/$1" "$2" ;; esac
+bench_group() {  # bench_group NAME POLICIES [bench options]: one folder, unless BENCHES leaves it out
+    local name=$1
+    shift
+    case " ${BENCHES:-$name} " in *" $name "*) stream_bench "$OUT/$name" "$@" ;; esac
 }
 bench_group gaus-slam "gaus-slam"
 R=roi-gsurfisher
@@ -54,3 +60,4 @@ bench_group novelty "$R:window=$WINDOW:unseen_weight=1:novelty_weight=1,novelty:
 bench_group lookahead "novelty:window=$WINDOW:lookahead=$WINDOW,\
 $R:window=$WINDOW:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW"
 bench_group pixels "novelty:window=$WINDOW:lookahead=$WINDOW:novelty_measure=pixels"
+bench_group stretch "novelty:window=$WINDOW:lookahead=$WINDOW,gaus-slam" --set init_max_stretch=4
