@@ -555,6 +555,8 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
     with pytest.raises(InputError, match=r"parameter 'novelty_measure'.*counts the observed novelty"):
         pixels_alone = [Parameter("policy", value="random"), Parameter("novelty_measure", value="pixels")]
         KeyframeSelectorNode(context=ros_context, parameter_overrides=pixels_alone)
+    with pytest.raises(InputError, match=r"parameter 'novelty_voxel_m'.*> 0"):  # checked though nothing counts novelty
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_voxel_m", value=0.0)])
     with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="roi-fisher"),
                                                                        Parameter("lookahead", value=2)])  # fmt: skip

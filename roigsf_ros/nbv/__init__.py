@@ -14,6 +14,7 @@ __all__, __getattr__ = lazy_exports(
             "NOVELTY_RADIUS_M",
             "NOVELTY_VOXEL_M",
             "ObservedSurface",
+            "check_novelty_settings",
             "depth_points_w",
             "fuse_novelty",
         ],

@@ -41,6 +41,16 @@ _MAX_INDEX = 1 << 30
 """Voxel indices stay within int32 (+-2^30 voxels: far beyond any map; larger means a broken pose or depth)."""
 
 
+def check_novelty_settings(voxel_m: float, radius_m: float, measure: str) -> None:
+    """InputError naming the first of :class:`ObservedSurface`'s settings out of range (callers check them up front)."""
+    if measure not in NOVELTY_MEASURES:
+        raise InputError("novelty_measure", f"must be one of {', '.join(NOVELTY_MEASURES)}, got {measure!r}")
+    if not (np.isfinite(voxel_m) and voxel_m > 0):
+        raise InputError("novelty_voxel_m", f"must be a finite number > 0, got {voxel_m!r}")
+    if not (np.isfinite(radius_m) and radius_m >= 0):
+        raise InputError("novelty_radius_m", f"must be a finite number >= 0, got {radius_m!r}")
+
+
 def depth_points_w(depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> np.ndarray:
     """World points [N, 3] float64 (metres) of the ``valid`` pixels [H, W] of a z-depth image [H, W] at ``T_wc``."""
     depth = np.asarray(depth_m, dtype=np.float64)
@@ -70,14 +80,9 @@ class ObservedSurface:
     def __init__(
         self, voxel_m: float = NOVELTY_VOXEL_M, radius_m: float = NOVELTY_RADIUS_M, measure: str = "area"
     ) -> None:
-        if measure not in NOVELTY_MEASURES:
-            raise InputError("novelty_measure", f"must be one of {', '.join(NOVELTY_MEASURES)}, got {measure!r}")
+        check_novelty_settings(voxel_m, radius_m, measure)
         self.measure = measure
         """What :meth:`frames_novelty` counts: "area" (m^2 of new surface) or "pixels" (held frames' pixels)."""
-        if not (np.isfinite(voxel_m) and voxel_m > 0):
-            raise InputError("novelty_voxel_m", f"must be a finite number > 0, got {voxel_m!r}")
-        if not (np.isfinite(radius_m) and radius_m >= 0):
-            raise InputError("novelty_radius_m", f"must be a finite number >= 0, got {radius_m!r}")
         self.voxel_m = float(voxel_m)
         self.radius_m = float(radius_m)
         r = (self.radius_m + 0.5 * self.voxel_m) / self.voxel_m
@@ -260,6 +265,7 @@ __all__ = [
     "NOVELTY_RADIUS_M",
     "NOVELTY_VOXEL_M",
     "ObservedSurface",
+    "check_novelty_settings",
     "depth_points_w",
     "fuse_novelty",
 ]

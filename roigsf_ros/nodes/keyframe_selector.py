@@ -63,10 +63,10 @@ from roigsf_ros.data.bags import BagFrame
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nbv.novelty import (
-    NOVELTY_MEASURES,
     NOVELTY_RADIUS_M,
     NOVELTY_VOXEL_M,
     ObservedSurface,
+    check_novelty_settings,
     fuse_novelty,
 )
 from roigsf_ros.nodes.bag_player import reliable_qos
@@ -130,9 +130,10 @@ class KeyframeSelectorNode(SystemNode):
         if self.lookahead and not judged:
             raise InputError("parameter 'lookahead'", "judges the observed novelty: it needs policy novelty, or a "
                              "planner policy with novelty_weight > 0")  # fmt: skip
-        if self.novelty_measure not in NOVELTY_MEASURES:
-            raise InputError("parameter 'novelty_measure'", f"'{self.novelty_measure}' must be one of "
-                             f"{', '.join(NOVELTY_MEASURES)}")  # fmt: skip
+        try:  # checked even where nothing counts the novelty, as the stream policies do
+            check_novelty_settings(self.novelty_voxel_m, self.novelty_radius_m, self.novelty_measure)
+        except InputError as exc:
+            raise InputError(f"parameter '{exc.where}'", exc.problem) from None
         counted = judged or (self.policy in PLANNER_POLICIES and self.fallback == "novelty")
         if self.novelty_measure != "area" and not counted:
             raise InputError("parameter 'novelty_measure'", "counts the observed novelty: it needs policy novelty, "

@@ -39,7 +39,13 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.nbv.novelty import NOVELTY_RADIUS_M, NOVELTY_VOXEL_M, ObservedSurface, fuse_novelty
+from roigsf_ros.nbv.novelty import (
+    NOVELTY_RADIUS_M,
+    NOVELTY_VOXEL_M,
+    ObservedSurface,
+    check_novelty_settings,
+    fuse_novelty,
+)
 from roigsf_ros.nbv.scorer import NBVResult
 from roigsf_ros.nbv.state import ScoringState, running_h_train_fits
 from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_policy
@@ -207,7 +213,7 @@ class StreamNBVPolicy(KeyframePolicy):
             raise InputError("lookahead", "judges the observed novelty: use policy novelty or novelty_weight > 0")
         if self.lookahead and trigger != "window":
             raise InputError("lookahead", f"decides one keyframe per trigger: needs trigger 'window', not {trigger!r}")
-        ObservedSurface(novelty_voxel_m, novelty_radius_m, novelty_measure)  # checks them now, not at the first frame
+        check_novelty_settings(novelty_voxel_m, novelty_radius_m, novelty_measure)  # now, not at the first frame
         if novelty_measure != "area" and not self.uses_novelty:
             raise InputError("novelty_measure", "counts the observed novelty: use policy novelty or novelty_weight > 0")
         self.novelty_measure = novelty_measure
