@@ -485,6 +485,32 @@ def test_unseen_backfaces_count_the_back_of_the_mapped_surface_as_unseen(world: 
     assert not facing[: world.n_a].any() and bool(surfels_facing(world.map, world.view_a)[: world.n_a].all())
 
 
+def test_unconfirmed_backfaces_spare_the_back_a_keyframe_saw(world: World) -> None:
+    """``unseen_backfaces="unconfirmed"``: panel A is 2 cm thick, within the mapper's 5 cm densify margin, so a view
+    of its back seeds nothing and A's surfels keep facing the front. Its back counts as unseen (as with "surfels")
+    while no keyframe saw it from behind; a keyframe behind A that looks away, or the ones in front of A, confirm
+    nothing; once a keyframe behind A looked at it, its back is seen and U falls to the alpha test's."""
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([world.view_a, behind])
+    cfg = NBVConfig(unseen_weight=1.0, unseen_backfaces="unconfirmed")
+
+    def unseen(config: NBVConfig, poses: list[np.ndarray]) -> np.ndarray:
+        return NBVScorer(config).score(world.map, world.h_train, world.tsdf, poses, cands, INTR).unseen
+
+    surfels = unseen(replace(cfg, unseen_backfaces="surfels"), world.train)
+    assert surfels[1] > 0.7
+    np.testing.assert_allclose(unseen(cfg, world.train), surfels)
+    away = look_at(np.array([3.0, 0.2, 1.0]), np.array([4.0, 0.2, 1.0]), UP)  # behind A, looking away from it
+    np.testing.assert_allclose(unseen(cfg, [*world.train, away]), surfels)
+    saw = look_at(np.array([3.5, 0.2, 1.1]), np.array([2.0, 0.0, 1.0]), UP)  # behind A, looking at its back
+    confirmed = unseen(cfg, [*world.train, saw])
+    alpha_only = unseen(NBVConfig(unseen_weight=1.0), [*world.train, saw])
+    assert confirmed[1] < 0.2 and confirmed[1] == pytest.approx(alpha_only[1], abs=0.03)
+    assert confirmed[0] == pytest.approx(surfels[0])  # a view of A's front has no backs to confirm
+    with pytest.raises(InputError, match="unseen_confirm_margin_m"):
+        NBVConfig(unseen_confirm_margin_m=0.0)
+
+
 def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:
     """``unseen_backfaces="tsdf"``'s test: a pixel is back-facing where its point lies in a surface voxel's cell and
     that voxel's outward normal points away from the camera; a point in no surface voxel's cell is not."""

@@ -35,6 +35,7 @@ __all__, __getattr__ = lazy_exports(
             "voxel_weight",
         ],
         "scorer": [
+            "KeyframeDepths",
             "NBVResult",
             "NBVScorer",
             "ScoringStoppedError",

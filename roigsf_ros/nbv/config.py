@@ -12,7 +12,7 @@ from roigsf_ros.render.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, OUTPUTS
 
 MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
-BACKFACE_TESTS = ("none", "tsdf", "surfels")
+BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
 
 
@@ -124,8 +124,15 @@ class NBVConfig(Config):
     rendered point lies in a TSDF surface voxel whose outward normal (toward the free space the fused views saw)
     faces away from the candidate; ``"surfels"``: most of the pixel's alpha comes from surfels whose normal faces
     away (a surfel's normal faces the camera that seeded it, and keeps its side through the optimisation), which
-    also holds for boards thinner than the TSDF's truncation; ``"none"``: alpha only (not "off", which ROS
-    parameters and YAML read as false)."""
+    also holds for boards thinner than the TSDF's truncation; ``"unconfirmed"``: as ``"surfels"``, but not where a
+    keyframe saw the pixel's point from this side, unoccluded in the map's render at the keyframe
+    (:class:`~roigsf_ros.nbv.scorer.KeyframeDepths`): a shell thinner than the mapper's ``densify_depth_margin_m``
+    (the inside of a bowl) stays mapped by its outside's surfels however often it is seen from inside, and
+    ``"surfels"`` calls it unseen forever; ``"none"``: alpha only (not "off", which ROS parameters and YAML read as
+    false)."""
+    unseen_confirm_margin_m: float = 0.05
+    """``unseen_backfaces="unconfirmed"``: a keyframe saw a point when the map's depth rendered at the keyframe lies
+    within this of the point's (metres); the mapper's ``densify_depth_margin_m``, within which it seeds nothing new."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
@@ -133,6 +140,7 @@ class NBVConfig(Config):
             raise InputError("mode", f"unknown score mode '{self.mode}' (choose from {', '.join(MODES)})")
         positive = ("epsilon", "delta", "beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
         positive += ("texture_radius_voxels", "roi_max_abs_tsdf_voxels", "near_m", "sigma_p", "phi", "fisherrf_lambda")
+        positive += ("unseen_confirm_margin_m",)
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):

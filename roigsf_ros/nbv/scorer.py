@@ -476,6 +476,11 @@ class NBVScorer:
         unseen = np.ones(m) if use_unseen else None
         use_facing = use_unseen and cfg.unseen_backfaces == "tsdf" and vox is not None
         facing = SurfaceFacing.build(vox, voxel_size) if use_facing else None
+        seen_by = None  # unseen_backfaces="unconfirmed": the map as each keyframe sees it, rendered once per call
+        if use_unseen and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
+            seen_by = KeyframeDepths.render(
+                surfel_map, poses, intr_f, cfg.unseen_confirm_margin_m, cfg.near_m, cfg.far_m, should_stop
+            )
         # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
         # score nothing: they are flagged without any rendering.
         box = _mapped_region(vox, voxel_size, None if empty_map or not need_fisher else surfel_map, cfg, use_unseen)
@@ -511,7 +516,7 @@ class NBVScorer:
             for j, i in enumerate(chunk):
                 self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
                                         rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
-                                        unseen, facing, should_stop, acc)  # fmt: skip
+                                        unseen, facing, seen_by, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -579,12 +584,14 @@ class NBVScorer:
         flagged: np.ndarray,
         unseen: np.ndarray | None,
         facing: SurfaceFacing | None,
+        seen_by: KeyframeDepths | None,
         should_stop: ShouldStop,
         acc: dict[str, np.ndarray],
     ) -> None:
         """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
         ``facing`` (``unseen_backfaces="tsdf"``) and ``unseen_backfaces="surfels"`` also count the pixels that render
-        the back of the surface as unseen.
+        the back of the surface as unseen; ``seen_by`` (``"unconfirmed"``) spares the back pixels a keyframe saw from
+        this side.
         """
         cfg = self.config
         ds = cfg.fisher_downsample
@@ -608,7 +615,8 @@ class NBVScorer:
         if unseen is not None and len(surfel_map) > 0:
             m = surfel_map.detach()
             # With the surfel back-face test the render composites which surfels face this camera; else colours.
-            feats = surfels_facing(m, T)[:, None].to(m.dtype) if cfg.unseen_backfaces == "surfels" else None
+            by_side = cfg.unseen_backfaces in ("surfels", "unconfirmed")
+            feats = surfels_facing(m, T)[:, None].to(m.dtype) if by_side else None
             with torch.no_grad():
                 out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m,
                                  with_distortion=False)  # fmt: skip
@@ -617,7 +625,10 @@ class NBVScorer:
             if facing is not None:  # the back of the mapped surface: what is in front of it is unseen
                 hole |= facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
             if feats is not None:  # most of the pixel's alpha from surfels that face away: their back
-                hole |= seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
+                back = seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
+                if seen_by is not None and back.any():
+                    back &= ~seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
+                hole |= back
             if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
                 meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
                                       vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
@@ -635,6 +646,80 @@ def surfels_facing(surfel_map: SurfelMap, T_wc: np.ndarray) -> Tensor:
     normal = quat_to_rotmat(m.quats.detach())[:, :, 2]
     centre = torch.as_tensor(np.asarray(T_wc, dtype=np.float64)[:3, 3], dtype=m.dtype, device=m.device)
     return ((centre - m.means.detach()) * normal).sum(-1) > 0
+
+
+@dataclass
+class KeyframeDepths:
+    """The map's median depth rendered at each keyframe pose, for ``NBVConfig.unseen_backfaces="unconfirmed"``
+    (:meth:`confirmed`): which back pixels of a candidate a keyframe already saw from the candidate's side.
+
+    Why: the mapper seeds no surfel where a keyframe's depth lies within ``densify_depth_margin_m`` of the rendered
+    surface, so a shell thinner than that (a 1 cm bowl) seen from inside stays mapped by the outside's surfels, whose
+    backs the keyframe's depth confirmed; the surfel test alone calls its inside unseen however often it is seen.
+    """
+
+    poses: np.ndarray
+    """[K, 4, 4] camera-to-world keyframe poses."""
+    depth_m: np.ndarray
+    """[K, H, W] the map's median depth at each pose (camera z, metres; 0 where nothing renders)."""
+    intr: Intrinsics
+    """Intrinsics of the renders, and of the candidate images :meth:`confirmed` takes."""
+    margin_m: float
+    """A point is unoccluded in a keyframe's render when that render's depth there lies within this of the point's."""
+
+    @classmethod
+    def render(
+        cls,
+        surfel_map: SurfelMap,
+        poses: Sequence[np.ndarray] | np.ndarray,
+        intr: Intrinsics,
+        margin_m: float,
+        near_m: float,
+        far_m: float,
+        should_stop: ShouldStop = None,
+    ) -> KeyframeDepths:
+        """Render ``surfel_map``'s median depth at every pose of ``poses`` ([K, 4, 4]); ``should_stop`` is checked
+        before each render.
+        """
+        m = surfel_map.detach()
+        pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        depth = np.zeros((len(pose_arr), intr.height, intr.width))
+        with torch.no_grad():
+            for k, T in enumerate(pose_arr):
+                check_stop(should_stop)
+                out = render_map(m, T, intr, near=near_m, far=far_m, with_distortion=False)
+                depth[k] = out.median_depth.cpu().numpy()
+        return cls(pose_arr, depth, intr, float(margin_m))
+
+    def confirmed(self, T_wc: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Bool [H, W]: the ``mask`` pixels of the camera at ``T_wc`` (at :attr:`intr`) whose point, at camera-z
+        ``depth_m`` [H, W], some keyframe saw from the same side of the surface and unoccluded: the keyframe's centre
+        lies in front of the pixel's ``normal_cam`` [H, W, 3] (the render's normal, camera frame, facing the camera)
+        and the keyframe's rendered depth at the point's projection is within :attr:`margin_m` of the point's depth.
+        """
+        z = np.asarray(depth_m, dtype=np.float64)
+        out = np.zeros(z.shape, dtype=bool)
+        v, u = np.nonzero(np.asarray(mask, dtype=bool) & (z > 0))
+        if len(v) == 0 or len(self.poses) == 0:
+            return out
+        T = np.asarray(T_wc, dtype=np.float64)
+        intr = self.intr
+        p = depth_to_points(torch.from_numpy(z), intr).numpy()[v, u] @ T[:3, :3].T + T[:3, 3]
+        n = np.asarray(normal_cam, dtype=np.float64)[v, u] @ T[:3, :3].T
+        hit = np.zeros(len(v), dtype=bool)
+        for Tk, dk in zip(self.poses, self.depth_m, strict=True):
+            same_side = np.einsum("ij,ij->i", n, Tk[:3, 3] - p) > 0.0
+            pc = (p - Tk[:3, 3]) @ Tk[:3, :3]  # the points in the keyframe's camera frame
+            zc = pc[:, 2]
+            ok = same_side & ~hit & (zc > 0)
+            uk = np.rint(np.where(ok, pc[:, 0] / np.where(ok, zc, 1.0), 0.0) * intr.fx + intr.cx).astype(np.int64)
+            vk = np.rint(np.where(ok, pc[:, 1] / np.where(ok, zc, 1.0), 0.0) * intr.fy + intr.cy).astype(np.int64)
+            ok &= (uk >= 0) & (uk < intr.width) & (vk >= 0) & (vk < intr.height)
+            j = np.flatnonzero(ok)
+            dj = dk[vk[j], uk[j]]
+            hit[j[(dj > 0) & (np.abs(dj - zc[j]) <= self.margin_m)]] = True
+        out[v, u] = hit
+        return out
 
 
 @dataclass
@@ -774,6 +859,7 @@ def _check_entries(h_train: dict[str, Tensor], shapes: dict[str, tuple[int, ...]
 
 
 __all__ = [
+    "KeyframeDepths",
     "NBVResult",
     "NBVScorer",
     "ScoringStoppedError",
