@@ -2,26 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import pytest
+from conftest import load_script
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.data.scene import look_at, render_sequence
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "backface_split.py"
-_spec = importlib.util.spec_from_file_location("backface_split", SCRIPT)
-assert _spec is not None and _spec.loader is not None
-bs = importlib.util.module_from_spec(_spec)
-sys.modules["backface_split"] = bs
-_spec.loader.exec_module(bs)
+bs = load_script("backface_split")
 
 INTR = Intrinsics(48, 36, 40.0, 40.0, 23.5, 17.5)
 UP = np.array([0.0, 0.0, 1.0])

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import pytest
 import torch
+from conftest import load_script
 
 from roigsf_ros.cli.scene import synth_intrinsics
 from roigsf_ros.data.scene import dome_trajectory, render_sequence, synth_clutter
@@ -18,12 +17,7 @@ from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import sample_surface
 from roigsf_ros.render.surfels import surfels_from_rgbd
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "clutter_missed.py"
-_spec = importlib.util.spec_from_file_location("clutter_missed", SCRIPT)
-assert _spec is not None and _spec.loader is not None
-cm = importlib.util.module_from_spec(_spec)
-sys.modules["clutter_missed"] = cm
-_spec.loader.exec_module(cm)
+cm = load_script("clutter_missed")
 
 
 def test_the_parts_cover_the_four_cabinet_insides_and_the_box_block() -> None:

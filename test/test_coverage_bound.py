@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
+from conftest import load_script
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "coverage_bound.py"
-_spec = importlib.util.spec_from_file_location("coverage_bound", SCRIPT)
-assert _spec is not None and _spec.loader is not None
-cb = importlib.util.module_from_spec(_spec)
-sys.modules["coverage_bound"] = cb  # its dataclasses look their module up
-_spec.loader.exec_module(cb)
+cb = load_script("coverage_bound")
 
 
 def _obs(frames: dict[int, set[int]], n_frames: int, n_samples: int) -> np.ndarray:
