@@ -31,7 +31,10 @@
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
 # thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
 # SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; the README lists
-# the others).
+# the others); twenty-third session: TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed
+# with SCALE=2 and SCENES=clutter, room1, synth, room2, bins, office0 (and SENSOR=kinect), then without SCALE with
+# SCENES=shelf, clutter, synth, room1, office0 (2.5-8 min each); TAG=base23 SCALE=2 SCENES="room1 clutter"
+# POLICIES=fisherrf,random re-ran two scenes' baselines.
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.
