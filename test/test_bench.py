@@ -240,7 +240,7 @@ def unseen_hole_share(mapper: Mapper, frames: list[Frame], keyframes: list[Frame
     voxel from every voxel of the keyframes' valid depth: a k-d tree over the keyframes' own frames."""
     from scipy.spatial import cKDTree
 
-    from roigsf_ros.nbv.novelty import depth_points_w
+    from roigsf_ros.core.camera import depth_points_w
 
     def voxels(f: Frame, mask: np.ndarray) -> np.ndarray:
         return np.floor(depth_points_w(f.depth_m, f.T_wc, mapper.intr, mask) / 0.025)

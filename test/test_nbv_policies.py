@@ -224,7 +224,7 @@ def reference_novelty(returned: list[Frame], cand: Frame, mapper: Mapper, voxel_
     """Area (m^2) of the candidate's depth voxels farther than 5 cm + half a voxel from the returned frames' voxels."""
     from scipy.spatial import cKDTree
 
-    from roigsf_ros.nbv.novelty import depth_points_w
+    from roigsf_ros.core.camera import depth_points_w
 
     def vox(f: Frame) -> np.ndarray:
         pts = depth_points_w(f.depth_m, f.T_wc, INTR, mapper.valid_depth_mask(f.depth_m))
@@ -295,7 +295,8 @@ def test_lookahead_decides_each_window_one_trigger_late_by_the_pair_it_makes(fra
 def test_novelty_measure_pixels_ranks_by_the_held_frames_pixels_each_pick_covers(frames: list[Frame]) -> None:
     """``novelty_measure=pixels``: each trigger's novelty is ObservedSurface.held_pixels_covered of the window's frames
     against the keyframes returned before, and the pick is its best."""
-    from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
+    from roigsf_ros.core.camera import depth_points_w
+    from roigsf_ros.nbv.novelty import ObservedSurface
 
     pol = make_policy("novelty", window=WINDOW, lookahead=WINDOW, novelty_measure="pixels")
     assert pol.params()["novelty_measure"] == "pixels" and "novelty_measure" not in make_policy("novelty").params()

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.camera import Intrinsics, depth_points_w
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
+from roigsf_ros.nbv.novelty import ObservedSurface
 
 INTR = Intrinsics(width=64, height=48, fx=160.0, fy=160.0, cx=31.5, cy=23.5)  # 1.3 cm pixels at 2 m
 

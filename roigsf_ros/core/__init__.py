@@ -10,6 +10,7 @@ __all__, __getattr__ = lazy_exports(
             "POSE_RIGID_TOL",
             "REPLICA_DEPTH_SCALE",
             "check_pose",
+            "depth_points_w",
             "derive_size",
             "load_cam_params",
             "load_pose",

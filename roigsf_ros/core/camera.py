@@ -248,11 +248,27 @@ def pose_from_position_quat(position: np.ndarray, quat_xyzw: np.ndarray, where: 
     return T
 
 
+def depth_points_w(depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> np.ndarray:
+    """World points [N, 3] float64 (metres) of the ``valid`` pixels [H, W] of a z-depth image [H, W] at ``T_wc``."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if depth.shape != (intr.height, intr.width) or np.shape(valid) != depth.shape:
+        raise InputError(
+            "depth_m", f"shape {depth.shape} (mask {np.shape(valid)}) does not match the camera's "
+            f"{intr.height}x{intr.width}"
+        )  # fmt: skip
+    T = check_pose(T_wc, "T_wc")
+    v, u = np.nonzero(valid)
+    z = depth[v, u]
+    cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    return cam @ T[:3, :3].T + T[:3, 3]
+
+
 __all__ = [
     "POSE_RIGID_TOL",
     "REPLICA_DEPTH_SCALE",
     "Intrinsics",
     "check_pose",
+    "depth_points_w",
     "derive_size",
     "load_cam_params",
     "load_pose",

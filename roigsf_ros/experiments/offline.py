@@ -14,14 +14,14 @@ import open3d as o3d
 from tqdm import tqdm
 
 from roigsf_ros import evaluation
-from roigsf_ros.core.camera import check_pose
+from roigsf_ros.core.camera import check_pose, depth_points_w
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
-from roigsf_ros.nbv.novelty import ObservedSurface, depth_points_w
+from roigsf_ros.nbv.novelty import ObservedSurface
 from roigsf_ros.policies.base import KeyframePolicy
 
 log = logging.getLogger(__name__)

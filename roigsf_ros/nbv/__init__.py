@@ -15,7 +15,6 @@ __all__, __getattr__ = lazy_exports(
             "NOVELTY_VOXEL_M",
             "ObservedSurface",
             "check_novelty_settings",
-            "depth_points_w",
             "fuse_novelty",
         ],
         "roi": [

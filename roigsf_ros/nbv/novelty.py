@@ -22,7 +22,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.camera import Intrinsics, depth_points_w
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.mapper import MapperConfig, valid_depth_mask
@@ -49,21 +49,6 @@ def check_novelty_settings(voxel_m: float, radius_m: float, measure: str) -> Non
         raise InputError("novelty_voxel_m", f"must be a finite number > 0, got {voxel_m!r}")
     if not (np.isfinite(radius_m) and radius_m >= 0):
         raise InputError("novelty_radius_m", f"must be a finite number >= 0, got {radius_m!r}")
-
-
-def depth_points_w(depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> np.ndarray:
-    """World points [N, 3] float64 (metres) of the ``valid`` pixels [H, W] of a z-depth image [H, W] at ``T_wc``."""
-    depth = np.asarray(depth_m, dtype=np.float64)
-    if depth.shape != (intr.height, intr.width) or np.shape(valid) != depth.shape:
-        raise InputError(
-            "depth_m", f"shape {depth.shape} (mask {np.shape(valid)}) does not match the camera's "
-            f"{intr.height}x{intr.width}"
-        )  # fmt: skip
-    T = check_pose(T_wc, "T_wc")
-    v, u = np.nonzero(valid)
-    z = depth[v, u]
-    cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
-    return cam @ T[:3, :3].T + T[:3, 3]
 
 
 class ObservedSurface:
@@ -266,6 +251,5 @@ __all__ = [
     "NOVELTY_VOXEL_M",
     "ObservedSurface",
     "check_novelty_settings",
-    "depth_points_w",
     "fuse_novelty",
 ]

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from roigsf_ros.core.camera import Intrinsics, check_pose, pose_from_position_quat
+from roigsf_ros.core.camera import Intrinsics, check_pose, depth_points_w, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.evaluation.metrics import ause
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
@@ -47,7 +47,7 @@ from roigsf_ros.nbv.config import MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
 from roigsf_ros.render.rasterize import camera_tensors, render_map
-from roigsf_ros.render.surfels import SurfelMap, depth_to_points, quat_to_rotmat
+from roigsf_ros.render.surfels import SurfelMap, quat_to_rotmat
 
 ShouldStop = Callable[[], bool] | None
 """A check scoring calls between its units of work (a candidate, a training view); True stops it."""
@@ -704,7 +704,7 @@ class KeyframeDepths:
             return out
         T = np.asarray(T_wc, dtype=np.float64)
         intr = self.intr
-        p = depth_to_points(torch.from_numpy(z), intr).numpy()[v, u] @ T[:3, :3].T + T[:3, 3]
+        p = depth_points_w(z, T, intr, np.asarray(mask, dtype=bool) & (z > 0))  # in the order of (v, u)
         n = np.asarray(normal_cam, dtype=np.float64)[v, u] @ T[:3, :3].T
         hit = np.zeros(len(v), dtype=bool)
         for Tk, dk in zip(self.poses, self.depth_m, strict=True):
@@ -756,7 +756,7 @@ class SurfaceFacing:
         if len(self.keys) == 0 or len(v) == 0:
             return out
         T = np.asarray(T_wc, dtype=np.float64)
-        p = depth_to_points(torch.from_numpy(z), intr).numpy()[v, u] @ T[:3, :3].T + T[:3, 3]
+        p = depth_points_w(z, T, intr, z > 0)
         keys = voxel_keys(p - self.origin_m, self.voxel_size_m)
         j = np.clip(np.searchsorted(self.keys, keys), 0, len(self.keys) - 1)
         found = self.keys[j] == keys
