@@ -66,12 +66,19 @@ def split_bench(bench: Path, tau_m: float) -> dict[str, Any]:
     res_path = bench / "results.json"
     if not res_path.is_file():
         raise InputError(bench, "no such folder or no results.json in it (give a `roigsf bench` output folder)")
-    res = json.loads(res_path.read_text())
+    try:
+        res = json.loads(res_path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(res_path, f"not JSON ({e})") from e
     if res.get("setting") != "pool":
         raise InputError(res_path, f"setting is {res.get('setting')!r}; only pool benches are split")
-    for key in ("scene", "gt_mesh"):
+    for key in ("scene", "gt_mesh", "runs"):
         if not res.get(key):
             raise InputError(res_path, f"field {key!r} is missing or empty")
+    for i, run in enumerate(res["runs"]):
+        for key in ("label", "seed", "dir", "metrics"):
+            if key not in run:
+                raise InputError(res_path, f"runs[{i}] has no field {key!r}")
     src = open_frames(res["scene"], size=tuple(res["size"]) if res.get("size") else None, stride=res.get("stride", 1),
                       max_frames=res.get("max_frames"))  # fmt: skip
     poses = np.stack([f.T_wc for f in src])

@@ -72,8 +72,9 @@ def test_the_misses_of_a_mesh_without_its_floor_are_all_on_the_floor_away_from_t
 
 
 def test_bad_benches_are_refused_naming_the_file(tmp_path: Path) -> None:
-    """A recall that the meshes do not reproduce, a stream bench and a folder without results are refused with one
-    line naming the file."""
+    """A recall that the meshes do not reproduce, a stream bench, a run without its folder, a truncated results.json
+    and a folder without one are refused with one line naming the file.
+    """
     bench, _ = _bench(tmp_path)
     res_path = bench / "results.json"
     res = json.loads(res_path.read_text())
@@ -83,6 +84,13 @@ def test_bad_benches_are_refused_naming_the_file(tmp_path: Path) -> None:
         ms.main([str(bench)])
     res_path.write_text(json.dumps({**res, "setting": "stream"}))
     with pytest.raises(SystemExit, match=r"results.json: setting is 'stream'"):
+        ms.main([str(bench)])
+    del res["runs"][0]["dir"]
+    res_path.write_text(json.dumps(res))
+    with pytest.raises(SystemExit, match=r"results.json: runs\[0\] has no field 'dir'"):
+        ms.main([str(bench)])
+    res_path.write_text(json.dumps(res)[:-20])
+    with pytest.raises(SystemExit, match=r"results.json: not JSON"):
         ms.main([str(bench)])
     with pytest.raises(SystemExit, match=r"no results\.json"):
         ms.main([str(tmp_path)])
