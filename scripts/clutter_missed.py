@@ -10,6 +10,10 @@ where some frame of the scene sees them), so a run's misses over all parts are i
 bench folder given, every ``runs/<policy>/seed<k>/mesh.ply`` is compared with them; prints a table and, with
 ``--out``, writes it as JSON.
 
+``miss_split.py`` splits any pool bench the same way by the ground truth's connected parts (no layout needed, and it
+checks the recomputed recall against the bench's); this one knows the clutter layout's regions, which are not
+connected parts, and can render the maps at the cabinets' insides (``--render-check``).
+
     .venv/bin/python scripts/clutter_missed.py --scene runs/clutter_dome_240 runs/bench_pool_clutter_240
 """
 

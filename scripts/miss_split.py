@@ -12,6 +12,10 @@ and the misses off the largest part (mean and std over the seeds: the objects, w
 Prints a table (means over the seeds) and, with ``--out``, writes JSON. The recomputed recall of each run must equal
 the one in its ``results.json`` (it is checked), so the split adds up to the bench's figure.
 
+``clutter_missed.py`` is the hand-made twin for one scene: it splits the clutter scene by regions that are not
+connected parts (a cabinet's inside and outside are faces of the same boards) and renders the maps at the insides;
+this one needs no layout, so it works on any scene whose parts are separate meshes.
+
     .venv/bin/python scripts/miss_split.py runs/bench_pool_shelf_unconfirmed runs/bench_pool_shelf
 """
 
