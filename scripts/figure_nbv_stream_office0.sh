@@ -34,6 +34,7 @@
 #                              tilt (init_max_stretch=4; twentieth session; with SEEDS=3 in the twenty-second)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
+#   novelty-lookahead-pixels-stretch4/  the two together (twenty-fifth session: the suite's best, checked here)
 #   novelty-lookahead-w10/     novelty-lookahead with window = lookahead = 10 (40 keyframes, 25 % of gaus-slam's 160:
 #                              the ratio of the paper's own Replica claim, 200+ keyframes against GauS-SLAM's 800+)
 #   novelty-lookahead-w11/, novelty-lookahead-w12/  the same with 11 and 12 (37 and 34 keyframes, 23 % and 21 %)
@@ -110,6 +111,8 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row gaus-slam-stretch4 "gaus-slam" --set init_max_stretch=4
     row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
     row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
+    row novelty-lookahead-pixels-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels" \
+        --set init_max_stretch=4
     row novelty-lookahead-w10 "novelty:window=10:lookahead=10"
     row novelty-lookahead-w11 "novelty:window=11:lookahead=11"
     row novelty-lookahead-w12 "novelty:window=12:lookahead=12"

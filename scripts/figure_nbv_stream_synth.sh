@@ -15,6 +15,7 @@
 #               pixels a frame brings within reach; twenty-first session, tuned on the suite)
 #   stretch/    novelty:window=12:lookahead=12 and gaus-slam, both with the mapper's init_max_stretch=4 (new surfels
 #               stretched along the surface's tilt; twentieth session's option, twenty-second session's rows)
+#   pixels-stretch/  the pixels row with init_max_stretch=4 (twenty-fifth session: the two options together)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
@@ -61,3 +62,4 @@ bench_group lookahead "novelty:window=$WINDOW:lookahead=$WINDOW,\
 $R:window=$WINDOW:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW"
 bench_group pixels "novelty:window=$WINDOW:lookahead=$WINDOW:novelty_measure=pixels"
 bench_group stretch "novelty:window=$WINDOW:lookahead=$WINDOW,gaus-slam" --set init_max_stretch=4
+bench_group pixels-stretch "novelty:window=$WINDOW:lookahead=$WINDOW:novelty_measure=pixels" --set init_max_stretch=4

@@ -172,7 +172,21 @@ def test_pool_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     picks = {(r["label"], r["seed"]): r["metrics"]["chosen_positions"] for r in runs}
     assert picks[("random", 0)] != picks[("random", 1)]
     assert main(argv) == 2  # --out exists
+    check_targets(out, res, "close-front", "random")
     check_rescore(out, res)
+
+
+def check_targets(out: Path, res: dict, candidate: str, other: str) -> None:
+    """`roigsf targets` reads a real bench's results.json: its checks hold the summary's means and stds."""
+    verdict_path = out / "targets.json"
+    assert main(["targets", f"{out}#{candidate}", "--against", f"{out}#{other}", "--out", str(verdict_path)]) == 0
+    verdict = json.loads(verdict_path.read_text())
+    assert verdict["setting"] == res["setting"] and verdict["checks"] and verdict["config_differences"] == {}
+    for check in verdict["checks"]:
+        key = "n_keyframes" if check["what"].startswith("keyframes") else check["what"].split(" ")[0]
+        assert check["candidate"]["mean"] == res["summary"][candidate][key]["mean"]
+        assert check["other"]["std"] == res["summary"][other][key]["std"]
+        assert len(check["seed_margins"]) == (0 if key == "n_keyframes" else len(res["seeds"]))
 
 
 def check_rescore(out: Path, res: dict) -> None:
@@ -224,6 +238,7 @@ def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     assert len(late["keyframe_ids"]) == 3 and 1 <= late["keyframe_ids"][1] <= 6
     assert late["policy_params"]["lookahead"] == 6
     assert (out / "chosen_views.png").is_file() and (out / "uncertainty_every-n_n_6.png").is_file()
+    check_targets(out, res, "novelty:window=6:lookahead=6", "every-n:n=6")
     rescored = rescore_ause(out, progress=False)
     assert [r["uncertainty_per_view"] for r in rescored["runs"]] == [r["uncertainty_per_view"] for r in res["runs"]]
     # the saved map folder must be the run's: other keyframes are refused

@@ -23,7 +23,7 @@ from roigsf_ros.data.bags import (
 )
 
 # Subcommand modules, in the order `roigsf --help` lists them.
-_COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "perf")
+_COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "targets", "perf")
 
 
 def image_size(args: argparse.Namespace) -> tuple[int | None, int | None] | None:

@@ -1,4 +1,4 @@
-"""Experiments: offline runs, the pool setting, the policy benchmark and its report."""
+"""Experiments: offline runs, the pool setting, the policy benchmark, its report and issue 10's targets."""
 
 from roigsf_ros.core.exports import lazy_exports
 
@@ -38,5 +38,18 @@ __all__, __getattr__ = lazy_exports(
             "split_pool",
         ],
         "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "write_report"],
+        "targets": [
+            "MUST_MATCH",
+            "POOL_METRICS",
+            "Check",
+            "PolicyResults",
+            "Verdict",
+            "check_comparable",
+            "config_differences",
+            "load_policy",
+            "pool_target",
+            "seed_margins",
+            "stream_target",
+        ],
     },
 )

@@ -1,0 +1,74 @@
+"""``roigsf targets``: is a policy measurably ahead? Issue 10's pool and stream targets from bench results.
+
+Pool: ``roigsf targets runs/A#CANDIDATE --against runs/A#fisherrf --against runs/B#random`` (each ``FOLDER`` written by
+``roigsf bench --out``; ``#LABEL`` picks a policy where the folder holds several). Stream: one ``--against``, the
+reference (``gaus-slam``). Prints a table of every check with its margin, what was required and the slack, and with
+``--out`` writes the verdict as JSON. The setting is the candidate bench's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from roigsf_ros.cli import check_writable
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import write_json
+from roigsf_ros.experiments.targets import load_policy, pool_target, stream_target
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``targets`` subcommand."""
+    p = sub.add_parser("targets", help="check issue 10's pool / stream targets from bench results", description=__doc__)
+    p.add_argument("candidate", metavar="FOLDER[#LABEL]", help="the candidate policy's bench folder (and label)")
+    p.add_argument(
+        "--against",
+        action="append",
+        required=True,
+        metavar="FOLDER[#LABEL]",
+        help="a baseline (pool: repeat for each) or the reference (stream: exactly one)",
+    )
+    p.add_argument("--psnr-margin-db", type=float, help="PSNR it may trail by (default pool 0.3, stream 0.5)")
+    p.add_argument("--recall-margin", type=float, default=0.01, help="stream: R@5cm it may trail by (default 0.01)")
+    p.add_argument(
+        "--max-keyframe-ratio", type=float, default=0.2, help="stream: its keyframes / the reference's (default 0.2)"
+    )
+    p.add_argument(
+        "--allow-config-difference",
+        action="store_true",
+        help="compare benches whose mapper or pool settings differ (they are listed in the verdict)",
+    )
+    p.add_argument("--out", type=Path, help="write the verdict here as JSON")
+    p.add_argument("--fail-if-not-met", action="store_true", help="exit 1 when the target is not met")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load, compare, print; write JSON atomically."""
+    if args.out is not None:
+        check_writable(args.out)
+    candidate = load_policy(args.candidate)
+    others = [load_policy(spec) for spec in args.against]
+    setting = candidate.bench["setting"]
+    if setting == "pool":
+        margin = 0.3 if args.psnr_margin_db is None else args.psnr_margin_db
+        verdict = pool_target(
+            candidate, others, psnr_margin_db=margin, allow_config_difference=args.allow_config_difference
+        )
+    else:
+        if len(others) != 1:
+            raise InputError("--against", f"the stream target compares with one reference, got {len(others)}")
+        margin = 0.5 if args.psnr_margin_db is None else args.psnr_margin_db
+        verdict = stream_target(
+            candidate,
+            others[0],
+            max_keyframe_ratio=args.max_keyframe_ratio,
+            recall_margin=args.recall_margin,
+            psnr_margin_db=margin,
+            allow_config_difference=args.allow_config_difference,
+        )
+    sys.stdout.write(verdict.markdown())
+    if args.out is not None:
+        write_json(args.out, verdict.as_dict())
+    return 1 if args.fail_if_not_met and not verdict.met else 0

@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# Issue 10's targets, checked by `roigsf targets` on the benches the figure scripts write (twenty-fifth session):
+# every verdict of the README's "Where each variant stands" tables, from a command instead of by hand.
+#
+# Pool: the `unconfirmed` variant (TAG=unconfirmed benches of scripts/figure_nbv_pool.sh) against `fisherrf` and
+# `random` re-run beside it (TAG=base25), or, on the fourth and fifth rooms, the one bench that holds all of them:
+#   TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2 SCENES=<s> \
+#       bash scripts/figure_nbv_pool.sh          (and TAG=base25 POLICIES=fisherrf,random; also without SCALE=2)
+# Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
+# KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
+# where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
+# Writes runs/targets/<name>.json (one verdict each) and runs/targets/targets.md (every table); a bench that is not
+# there is listed as skipped, and a pair `roigsf targets` refuses (other seeds, say) with its error. About 30 s.
+set -euo pipefail
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/setup.sh
+source "$REPO/scripts/setup.sh"
+cd "$REPO"
+OUT=runs/targets
+mkdir -p "$OUT"
+MD="$OUT/.targets.md.tmp-$$"
+trap 'rm -f "$MD"' EXIT
+V="roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed"
+: > "$MD"
+verdict() {  # verdict NAME CANDIDATE AGAINST... [-- roigsf targets options]
+    local name=$1 spec
+    shift
+    local specs=() opts=()
+    while [ $# -gt 0 ]; do
+        if [ "$1" = -- ]; then shift; opts=("$@"); break; fi
+        specs+=("$1"); shift
+    done
+    for spec in "${specs[@]}"; do
+        if [ ! -f "${spec%%#*}/results.json" ]; then
+            printf '### %s\n\nskipped: %s/results.json not found (see the commands at the top of %s)\n\n' \
+                "$name" "${spec%%#*}" "scripts/figure_targets.sh" >> "$MD"
+            return 0
+        fi
+    done
+    local against=()
+    for spec in "${specs[@]:1}"; do against+=(--against "$spec"); done
+    printf '### %s\n\n' "$name" >> "$MD"
+    if ! roigsf targets "${specs[0]}" "${against[@]}" "${opts[@]}" --out "$OUT/$name.json" >> "$MD" 2>&1; then
+        rm -f "$OUT/$name.json"  # an older verdict must not stand for this one
+    fi
+    printf '\n' >> "$MD"
+}
+pool() {  # pool NAME BENCH_PREFIX: the variant's TAG=unconfirmed bench against the TAG=base25 baselines
+    verdict "pool_$1" "runs/bench_pool_$2_unconfirmed" "runs/bench_pool_$2_base25#fisherrf" \
+        "runs/bench_pool_$2_base25#random"
+}
+pool office0_240 office0_240
+pool office0_240_kinect office0_240_kinect
+pool synth_240 synth_240
+pool room1_240 room1_240
+pool room2_240 room2_240
+for room in room3 room4; do
+    verdict "pool_${room}_240" "runs/bench_pool_${room}_240#$V" "runs/bench_pool_${room}_240#fisherrf" \
+        "runs/bench_pool_${room}_240#random"
+done
+pool clutter_240 clutter_240
+pool bins_240 bins_240
+pool office0_120 office0_120
+pool synth_120 synth
+pool room1_120 room1
+pool clutter_120 clutter
+pool shelf_120 shelf
+
+S=runs/bench_stream_office0_w13
+K=${S}_kinect
+U=runs/bench_stream_suite
+verdict stream_office0_stretch4 "$S/novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
+verdict stream_office0_stretch4_vs_default "$S/novelty-lookahead-stretch4" "$S/gaus-slam" -- --allow-config-difference
+verdict stream_office0_pixels "$S/novelty-lookahead-pixels" "$S/gaus-slam"
+verdict stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4"
+verdict stream_office0_pixels_stretch4_vs_default "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam" \
+    -- --allow-config-difference
+for w in w10 w11 w12; do
+    verdict "stream_office0_lookahead_$w" "$S/novelty-lookahead-$w" "$S/gaus-slam"
+done
+verdict stream_kinect_lookahead "$K/novelty-lookahead" "$K/gaus-slam"
+verdict stream_kinect_stretch4 "$K/novelty-lookahead-stretch4" "$K/gaus-slam-stretch4"
+verdict stream_kinect_stretch4_vs_default "$K/novelty-lookahead-stretch4" "$K/gaus-slam" -- --allow-config-difference
+verdict stream_kinect_pixels "$K/novelty-lookahead-pixels" "$K/gaus-slam"
+verdict stream_kinect_pixels_stretch4 "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam-stretch4"
+verdict stream_kinect_pixels_stretch4_vs_default "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam" \
+    -- --allow-config-difference
+verdict stream_suite_stretch4 "$U/stretch#novelty:window=12:lookahead=12" "$U/stretch#gaus-slam"
+verdict stream_suite_pixels "$U/pixels" "$U/gaus-slam"
+verdict stream_suite_pixels_stretch4 "$U/pixels-stretch" "$U/stretch#gaus-slam"
+verdict stream_suite_pixels_stretch4_vs_default "$U/pixels-stretch" "$U/gaus-slam" -- --allow-config-difference
+mv "$MD" "$OUT/targets.md"
+trap - EXIT
+grep -E '^(###|skipped|roigsf targets: error|.*target for)' "$OUT/targets.md"

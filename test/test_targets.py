@@ -1,0 +1,189 @@
+"""`roigsf targets`: issue 10's pool and stream verdicts from bench results, and the inputs they refuse."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roigsf_ros.cli import main
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.experiments.targets import load_policy, pool_target, seed_margins, stream_target
+
+MAPPER = {"iters_per_keyframe": 10, "init_max_stretch": 1.0, "seed": 0}
+POOL = {"n_views": 20, "policy": "random", "policy_params": {}, "seed": 0}
+
+
+def bench(folder: Path, setting: str, policies: dict[str, dict[str, tuple[float, float]]], **changes: Any) -> Path:
+    """A results.json as `roigsf bench` writes it, with the given (mean, std) per policy and metric."""
+    res = {
+        "setting": setting,
+        "scene": "runs/synth_room3_240",
+        "size": [240, 180],
+        "stride": 1,
+        "max_frames": None,
+        "n_frames": 96,
+        "seeds": [0, 1, 2],
+        "mapper_config": dict(MAPPER),
+        "pool_config": dict(POOL) if setting == "pool" else None,
+        "summary": {
+            label: {k: {"mean": m, "std": s, "n": 3} for k, (m, s) in metrics.items()}
+            for label, metrics in policies.items()
+        },
+        "runs": [],
+    }
+    for key, value in changes.items():
+        if key in ("mapper_config", "pool_config"):
+            res[key] = {**res[key], **value}
+        else:
+            res[key] = value
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps(res))
+    return folder
+
+
+# the fourth room's figures (twenty-fourth session): R@5cm met, F@5cm 0.00009 short of the candidate's own std
+FOURTH_ROOM = {
+    "variant": {"recall@5cm": (0.98537, 0.00160), "fscore@5cm": (0.99057, 0.00095), "psnr": (30.45, 0.10)},
+    "fisherrf": {"recall@5cm": (0.98300, 0.00169), "fscore@5cm": (0.98971, 0.00060), "psnr": (30.14, 0.15)},
+    "random": {"recall@5cm": (0.98071, 0.00110), "fscore@5cm": (0.98827, 0.00060), "psnr": (30.05, 0.20)},
+}
+
+
+def test_pool_target_is_the_larger_std_of_the_two_and_psnr_within_0_3_db(tmp_path: Path) -> None:
+    folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
+    cand, fis, rnd = (load_policy(f"{folder}#{label}") for label in ("variant", "fisherrf", "random"))
+    verdict = pool_target(cand, [fis, rnd])
+    failed = [c for c in verdict.checks if not c.met]
+    assert not verdict.met and [(c.what, c.against.split("@")[0]) for c in failed] == [("fscore@5cm", "fisherrf")]
+    f = failed[0]
+    assert f.required == pytest.approx(0.00095) and f.slack == pytest.approx(0.00086 - 0.00095)
+    r = next(c for c in verdict.checks if c.what == "recall@5cm" and c.against.startswith("fisherrf"))
+    assert r.required == pytest.approx(0.00169) and r.met  # the baseline's std when it is the larger
+    # PSNR: compared with the best baseline; up to 0.3 dB below it passes, more does not
+    psnr = next(c for c in verdict.checks if c.what.startswith("psnr"))
+    assert psnr.against.startswith("fisherrf") and psnr.met
+    low = bench(tmp_path / "low", "pool", {"v": {**FOURTH_ROOM["variant"], "psnr": (29.845, 0.1)}})
+    assert next(c for c in pool_target(load_policy(low), [fis]).checks if c.what.startswith("psnr")).met
+    lower = bench(tmp_path / "lower", "pool", {"v": {**FOURTH_ROOM["variant"], "psnr": (29.835, 0.1)}})
+    assert not next(c for c in pool_target(load_policy(lower), [fis]).checks if c.what.startswith("psnr")).met
+    # a wider F@5cm lead meets every check
+    wide = bench(tmp_path / "wide", "pool", {"v": {**FOURTH_ROOM["variant"], "fscore@5cm": (0.99067, 0.00095)}})
+    assert pool_target(load_policy(wide), [fis, rnd]).met
+
+
+def test_stream_target_counts_keyframes_recall_and_psnr_against_the_reference(tmp_path: Path) -> None:
+    ref = {"n_keyframes": (160.0, 0.0), "recall@5cm": (0.9909, 0.0002), "psnr": (30.25, 0.13)}
+    cases = {  # keyframes, R@5cm, PSNR -> met
+        "office0": ((31.0, 0.9826, 29.84), True),
+        "one more keyframe": ((33.0, 0.9826, 29.84), False),
+        "recall 0.0112 short": ((31.0, 0.9797, 29.84), False),
+        "psnr 0.51 dB short": ((31.0, 0.9826, 29.74), False),
+    }
+    reference = load_policy(bench(tmp_path / "ref", "stream", {"gaus-slam": ref}))
+    for i, (name, ((kf, rec, psnr), met)) in enumerate(cases.items()):
+        cand = bench(
+            tmp_path / f"c{i}", "stream", {"n": {"n_keyframes": (kf, 0), "recall@5cm": (rec, 0), "psnr": (psnr, 0)}}
+        )
+        assert stream_target(load_policy(cand), reference).met is met, name
+    spare = stream_target(load_policy(tmp_path / "c0"), reference).checks[0]
+    assert spare.margin == pytest.approx(1.0) and spare.required == 0.0  # 32 allowed, 31 taken
+    exactly = bench(
+        tmp_path / "exact", "stream", {"n": {"n_keyframes": (33.0, 0), "recall@5cm": (0.99, 0), "psnr": (30.0, 0)}}
+    )
+    assert stream_target(
+        load_policy(exactly), load_policy(bench(tmp_path / "r165", "stream", {"g": {**ref, "n_keyframes": (165.0, 0)}}))
+    ).met
+
+
+def test_benches_that_are_not_comparable_are_refused_naming_the_file_and_field(tmp_path: Path) -> None:
+    one = {"v": FOURTH_ROOM["variant"]}
+    cand = load_policy(bench(tmp_path / "cand", "pool", one))
+    for field, value in (("size", [120, 90]), ("seeds", [0, 1]), ("scene", "runs/synth_room4_240")):
+        other = load_policy(bench(tmp_path / field, "pool", {"fisherrf": FOURTH_ROOM["fisherrf"]}, **{field: value}))
+        with pytest.raises(InputError, match=rf"{field}/results.json: field '{field}'"):
+            pool_target(cand, [other])
+    stretched = load_policy(
+        bench(
+            tmp_path / "stretch", "pool", {"fisherrf": FOURTH_ROOM["fisherrf"]}, mapper_config={"init_max_stretch": 4.0}
+        )
+    )
+    with pytest.raises(InputError, match=r"stretch/results.json: configured differently.*init_max_stretch: 1.0 != 4.0"):
+        pool_target(cand, [stretched])
+    allowed = pool_target(cand, [stretched], allow_config_difference=True)
+    assert allowed.differences == {stretched.name: ["mapper_config.init_max_stretch: 1.0 != 4.0"]}
+    assert "Configured differently" in allowed.markdown()
+    # the per-policy keys of a pool config (its policy, parameters and seed) are not a difference
+    other_policy = bench(tmp_path / "pp", "pool", {"f": FOURTH_ROOM["fisherrf"]}, pool_config={"policy": "fisherrf"})
+    assert pool_target(cand, [load_policy(other_policy)]).differences == {}
+    stream = load_policy(bench(tmp_path / "stream", "stream", one))
+    with pytest.raises(InputError, match="setting is 'stream', not 'pool'"):
+        pool_target(stream, [cand])
+    with pytest.raises(InputError, match="setting is 'pool', not 'stream'"):
+        stream_target(cand, stream)
+
+
+def test_bad_bench_folders_are_refused_naming_the_file(tmp_path: Path) -> None:
+    both = bench(tmp_path / "both", "pool", FOURTH_ROOM)
+    with pytest.raises(InputError, match=r"both/results.json: holds 3 policies; name one as .*#LABEL"):
+        load_policy(both)
+    with pytest.raises(
+        InputError, match=r"no policy 'nope' in 'summary'; it holds \['variant', 'fisherrf', 'random'\]"
+    ):
+        load_policy(f"{both}#nope")
+    with pytest.raises(InputError, match=r"results.json: not found"):
+        load_policy(tmp_path / "missing")
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / "results.json").write_text((both / "results.json").read_text()[:200])
+    with pytest.raises(InputError, match=r"cut/results.json: not valid JSON"):
+        load_policy(cut)
+    res = json.loads((both / "results.json").read_text())
+    del res["seeds"]
+    (cut / "results.json").write_text(json.dumps(res))
+    with pytest.raises(InputError, match=r"cut/results.json: field 'seeds' is missing"):
+        load_policy(f"{cut}#variant")
+    res["seeds"], res["summary"]["variant"] = [0, 1, 2], {"psnr": {"mean": 30.0, "std": 0.1}}
+    (cut / "results.json").write_text(json.dumps(res))
+    with pytest.raises(InputError, match="policy 'variant' has no summary of 'recall@5cm'"):
+        pool_target(load_policy(f"{cut}#variant"), [load_policy(f"{both}#fisherrf")])
+
+
+def test_cli_prints_the_table_writes_json_and_fails_only_when_asked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
+    out = tmp_path / "verdict.json"
+    argv = ["targets", f"{folder}#variant", "--against", f"{folder}#fisherrf", "--against", f"{folder}#random"]
+    assert main([*argv, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "**not met**" in text and "| fscore@5cm | `fisherrf@" in text and "-0.00009 | no |" in text
+    verdict = json.loads(out.read_text())
+    assert verdict["met"] is False and len(verdict["checks"]) == 5 and verdict["setting"] == "pool"
+    assert main([*argv, "--fail-if-not-met"]) == 1
+    assert main([*argv, "--psnr-margin-db", "0.3", "--fail-if-not-met", "--against", str(tmp_path / "none")]) == 2
+    assert "none/results.json: not found" in capsys.readouterr().err
+    ref = bench(tmp_path / "ref", "stream", {"gaus-slam": {"n_keyframes": (160.0, 0.0)}})
+    cand = bench(tmp_path / "cand", "stream", {"n": {"n_keyframes": (31.0, 0.0)}})
+    assert main(["targets", str(cand), "--against", str(ref), "--against", str(ref)]) == 2
+    assert "--against: the stream target compares with one reference, got 2" in capsys.readouterr().err
+
+
+def test_seed_by_seed_margins_pair_the_seeds_both_ran(tmp_path: Path) -> None:
+    folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
+    res = json.loads((folder / "results.json").read_text())
+    recall = {"variant": [0.98, 0.97, 0.99], "random": [0.96, 0.80, 0.97]}  # random's seed 1 is an outlier
+    res["runs"] = [
+        {"label": label, "seed": seed, "metrics": {"recall@5cm": value}}
+        for label, values in recall.items()
+        for seed, value in zip((2, 0, 1), values, strict=True)  # written out of seed order
+    ]
+    res["runs"].pop()  # random has no seed 1 here: only the seeds both ran are paired
+    (folder / "results.json").write_text(json.dumps(res))
+    cand, rnd = load_policy(f"{folder}#variant"), load_policy(f"{folder}#random")
+    assert seed_margins(cand, rnd, "recall@5cm") == pytest.approx((0.97 - 0.80, 0.98 - 0.96))
+    check = next(c for c in pool_target(cand, [rnd]).checks if c.what == "recall@5cm")
+    assert check.seed_margins == pytest.approx((0.17, 0.02))
+    assert seed_margins(cand, rnd, "fscore@5cm") == ()  # no per-run values: nothing to pair
