@@ -85,6 +85,7 @@ verdict stream_kinect_pixels "$K/novelty-lookahead-pixels" "$K/gaus-slam"
 verdict stream_kinect_pixels_stretch4 "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam-stretch4"
 verdict stream_kinect_pixels_stretch4_vs_default "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam" \
     -- --allow-config-difference
+verdict stream_suite_lookahead "$U/lookahead#novelty:window=12:lookahead=12" "$U/gaus-slam"
 verdict stream_suite_stretch4 "$U/stretch#novelty:window=12:lookahead=12" "$U/stretch#gaus-slam"
 verdict stream_suite_pixels "$U/pixels" "$U/gaus-slam"
 verdict stream_suite_pixels_stretch4 "$U/pixels-stretch" "$U/stretch#gaus-slam"

@@ -59,6 +59,7 @@ def test_pool_target_is_the_larger_std_of_the_two_and_psnr_within_0_3_db(tmp_pat
     failed = [c for c in verdict.checks if not c.met]
     assert not verdict.met and [(c.what, c.against.split("@")[0]) for c in failed] == [("fscore@5cm", "fisherrf")]
     f = failed[0]
+    assert verdict.tightest is f and verdict.failed == [f]
     assert f.required == pytest.approx(0.00095) and f.slack == pytest.approx(0.00086 - 0.00095)
     r = next(c for c in verdict.checks if c.what == "recall@5cm" and c.against.startswith("fisherrf"))
     assert r.required == pytest.approx(0.00169) and r.met  # the baseline's std when it is the larger
@@ -159,7 +160,11 @@ def test_cli_prints_the_table_writes_json_and_fails_only_when_asked(
     argv = ["targets", f"{folder}#variant", "--against", f"{folder}#fisherrf", "--against", f"{folder}#random"]
     assert main([*argv, "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "**not met**" in text and "| fscore@5cm | `fisherrf@" in text and "-0.00009 | no |" in text
+    assert (
+        "**not met** (missed: fscore@5cm against `fisherrf`, margin +0.00086 for +0.00095)" in text
+        and "| fscore@5cm | `fisherrf@" in text
+        and "-0.00009 | no |" in text
+    )
     verdict = json.loads(out.read_text())
     assert verdict["met"] is False and len(verdict["checks"]) == 5 and verdict["setting"] == "pool"
     assert main([*argv, "--fail-if-not-met"]) == 1

@@ -196,6 +196,16 @@ class Verdict:
         """True when every check holds."""
         return all(c.met for c in self.checks)
 
+    @property
+    def failed(self) -> list[Check]:
+        """The checks that do not hold, in order."""
+        return [c for c in self.checks if not c.met]
+
+    @property
+    def tightest(self) -> Check:
+        """The check closest to failing: least slack as a share of what it requires (1 keyframe where that is 0)."""
+        return min(self.checks, key=lambda c: c.slack / (abs(c.required) or 1.0))
+
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
         return {
@@ -208,8 +218,16 @@ class Verdict:
 
     def markdown(self) -> str:
         """A readable table: one row per check, with the margin, what was required and the slack."""
+
+        def brief(c: Check) -> str:
+            return f"{c.what} against `{c.against.split('@')[0]}`, margin {c.margin:+.5f} for {c.required:+.5f}"
+
+        if self.met:
+            head = f"**met** (narrowest: {brief(self.tightest)})"
+        else:
+            head = f"**not met** (missed: {'; '.join(brief(c) for c in self.failed)})"
         lines = [
-            f"{self.setting} target for `{self.candidate}`: **{'met' if self.met else 'not met'}**",
+            f"{self.setting} target for `{self.candidate}`: {head}",
             "",
             "| check | against | candidate | other | margin | required | slack | met | margin seed by seed |",
             "|---|---|---|---|---|---|---|---|---|",
