@@ -36,7 +36,10 @@
 # SCENES=shelf, clutter, synth, room1, office0 (2.5-8 min each); TAG=base23 SCALE=2 SCENES="room1 clutter"
 # POLICIES=fisherrf,random re-ran two scenes' baselines. Twenty-fourth session, without TAG: SCALE=2 SCENES=room3 and
 # SCENES=room4 with POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed,roi-gsurfisher:unseen_weight=1,
-# fisherrf,random (one comma-separated list; room3 also ,roi-gsurfisher): 23 and 16 min.
+# fisherrf,random (one comma-separated list; room3 also ,roi-gsurfisher): 23 and 16 min. Twenty-fifth session:
+# TAG=base25 POLICIES=fisherrf,random beside every unconfirmed bench (SCALE=2 with SCENES=office0, synth, room1, room2,
+# clutter, bins and SENSOR=kinect SCENES=office0; without SCALE office0, synth, room1, clutter, shelf; 58 min), for
+# scripts/figure_targets.sh.
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.
