@@ -10,7 +10,7 @@
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
 # Writes runs/targets/<name>.json (one verdict each) and runs/targets/targets.md (every table); a bench that is not
-# there is listed as skipped, and a pair `roigsf targets` refuses (other seeds, say) with its error. About 30 s.
+# there is listed as skipped, and a pair `roigsf targets` refuses (other seeds, say) with its error. 2 min with the set-up's reinstall.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
