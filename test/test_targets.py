@@ -146,7 +146,11 @@ def test_bad_bench_folders_are_refused_naming_the_file(tmp_path: Path) -> None:
     (cut / "results.json").write_text(json.dumps(res))
     with pytest.raises(InputError, match=r"cut/results.json: field 'seeds' is missing"):
         load_policy(f"{cut}#variant")
-    res["seeds"], res["summary"]["variant"] = [0, 1, 2], {"psnr": {"mean": 30.0, "std": 0.1}}
+    res["seeds"], res["summary"]["variant"] = [0, 1, 2], ["not", "metrics"]
+    (cut / "results.json").write_text(json.dumps(res))
+    with pytest.raises(InputError, match=r"field 'summary\.variant' is not an object of metrics"):
+        load_policy(f"{cut}#variant")
+    res["summary"]["variant"] = {"psnr": {"mean": 30.0, "std": 0.1}}
     (cut / "results.json").write_text(json.dumps(res))
     with pytest.raises(InputError, match="policy 'variant' has no summary of 'recall@5cm'"):
         pool_target(load_policy(f"{cut}#variant"), [load_policy(f"{both}#fisherrf")])
@@ -192,3 +196,6 @@ def test_seed_by_seed_margins_pair_the_seeds_both_ran(tmp_path: Path) -> None:
     check = next(c for c in pool_target(cand, [rnd]).checks if c.what == "recall@5cm")
     assert check.seed_margins == pytest.approx((0.17, 0.02))
     assert seed_margins(cand, rnd, "fscore@5cm") == ()  # no per-run values: nothing to pair
+    res["runs"] += ["junk", {"label": "random", "seed": "1", "metrics": {"recall@5cm": 0.5}}, {"label": "random"}]
+    (folder / "results.json").write_text(json.dumps(res))  # malformed runs are not paired, and do not crash
+    assert seed_margins(cand, load_policy(f"{folder}#random"), "recall@5cm") == pytest.approx((0.17, 0.02))

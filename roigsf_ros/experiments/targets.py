@@ -53,10 +53,13 @@ class PolicyResults:
     def per_seed(self, key: str) -> dict[int, float]:
         """``key`` of each of this policy's runs, by seed (empty when the bench kept no runs)."""
         out = {}
-        for run in self.bench.get("runs") or []:
-            value = (run.get("metrics") or {}).get(key) if isinstance(run, dict) else None
-            if run.get("label") == self.label and isinstance(value, (int, float)):
-                out[int(run.get("seed", -1))] = float(value)
+        runs = self.bench.get("runs")
+        for run in runs if isinstance(runs, list) else []:
+            if not isinstance(run, dict) or run.get("label") != self.label or not isinstance(run.get("seed"), int):
+                continue
+            value = run["metrics"].get(key) if isinstance(run.get("metrics"), dict) else None
+            if isinstance(value, (int, float)):
+                out[run["seed"]] = float(value)
         return out
 
     @property
@@ -105,6 +108,8 @@ def load_policy(spec: str | Path) -> PolicyResults:
         label = next(iter(summary))
     if label not in summary:
         raise InputError(path, f"no policy {label!r} in 'summary'; it holds {list(summary)}")
+    if not isinstance(summary[label], dict):
+        raise InputError(path, f"field 'summary.{label}' is not an object of metrics")
     return PolicyResults(label=label, source=folder, bench=bench, summary=summary[label])
 
 
