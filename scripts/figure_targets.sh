@@ -10,7 +10,8 @@
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
 # Writes runs/targets/<name>.json (one verdict each) and runs/targets/targets.md (every table); a bench that is not
-# there is listed as skipped, and a pair `roigsf targets` refuses (other seeds, say) with its error. 2 min with the set-up's reinstall.
+# there is listed as skipped, and a pair `roigsf targets` refuses (other seeds, say) with its error; neither keeps an
+# older verdict JSON. 2 min with the set-up's reinstall.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
@@ -34,6 +35,7 @@ verdict() {  # verdict NAME CANDIDATE AGAINST... [-- roigsf targets options]
         if [ ! -f "${spec%%#*}/results.json" ]; then
             printf '### %s\n\nskipped: %s/results.json not found (see the commands at the top of %s)\n\n' \
                 "$name" "${spec%%#*}" "scripts/figure_targets.sh" >> "$MD"
+            rm -f "$OUT/$name.json"  # an older verdict must not stand for a bench that is gone
             return 0
         fi
     done

@@ -15,7 +15,15 @@ from pathlib import Path
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
-from roigsf_ros.experiments.targets import load_policy, pool_target, stream_target
+from roigsf_ros.experiments.targets import (
+    POOL_PSNR_MARGIN_DB,
+    STREAM_MAX_KEYFRAME_RATIO,
+    STREAM_PSNR_MARGIN_DB,
+    STREAM_RECALL_MARGIN,
+    load_policy,
+    pool_target,
+    stream_target,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,10 +37,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FOLDER[#LABEL]",
         help="a baseline (pool: repeat for each) or the reference (stream: exactly one)",
     )
-    p.add_argument("--psnr-margin-db", type=float, help="PSNR it may trail by (default pool 0.3, stream 0.5)")
-    p.add_argument("--recall-margin", type=float, default=0.01, help="stream: R@5cm it may trail by (default 0.01)")
     p.add_argument(
-        "--max-keyframe-ratio", type=float, default=0.2, help="stream: its keyframes / the reference's (default 0.2)"
+        "--psnr-margin-db",
+        type=float,
+        help=f"PSNR it may trail by (default pool {POOL_PSNR_MARGIN_DB}, stream {STREAM_PSNR_MARGIN_DB})",
+    )
+    p.add_argument(
+        "--recall-margin",
+        type=float,
+        default=STREAM_RECALL_MARGIN,
+        help=f"stream: R@5cm it may trail by (default {STREAM_RECALL_MARGIN})",
+    )
+    p.add_argument(
+        "--max-keyframe-ratio",
+        type=float,
+        default=STREAM_MAX_KEYFRAME_RATIO,
+        help=f"stream: its keyframes / the reference's (default {STREAM_MAX_KEYFRAME_RATIO})",
     )
     p.add_argument(
         "--allow-config-difference",
@@ -52,14 +72,14 @@ def run(args: argparse.Namespace) -> int:
     others = [load_policy(spec) for spec in args.against]
     setting = candidate.bench["setting"]
     if setting == "pool":
-        margin = 0.3 if args.psnr_margin_db is None else args.psnr_margin_db
+        margin = POOL_PSNR_MARGIN_DB if args.psnr_margin_db is None else args.psnr_margin_db
         verdict = pool_target(
             candidate, others, psnr_margin_db=margin, allow_config_difference=args.allow_config_difference
         )
     else:
         if len(others) != 1:
             raise InputError("--against", f"the stream target compares with one reference, got {len(others)}")
-        margin = 0.5 if args.psnr_margin_db is None else args.psnr_margin_db
+        margin = STREAM_PSNR_MARGIN_DB if args.psnr_margin_db is None else args.psnr_margin_db
         verdict = stream_target(
             candidate,
             others[0],

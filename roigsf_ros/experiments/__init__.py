@@ -41,6 +41,10 @@ __all__, __getattr__ = lazy_exports(
         "targets": [
             "MUST_MATCH",
             "POOL_METRICS",
+            "POOL_PSNR_MARGIN_DB",
+            "STREAM_MAX_KEYFRAME_RATIO",
+            "STREAM_PSNR_MARGIN_DB",
+            "STREAM_RECALL_MARGIN",
             "Check",
             "PolicyResults",
             "Verdict",

@@ -26,6 +26,18 @@ from roigsf_ros.core.errors import InputError
 POOL_METRICS = ("recall@5cm", "fscore@5cm")
 """Mesh metrics the pool target compares (higher is better)."""
 
+POOL_PSNR_MARGIN_DB = 0.3
+"""Pool: how far (dB) the candidate's test PSNR may trail the best baseline's."""
+
+STREAM_PSNR_MARGIN_DB = 0.5
+"""Stream: how far (dB) the candidate's PSNR may trail the reference's."""
+
+STREAM_RECALL_MARGIN = 0.01
+"""Stream: how far the candidate's R@5cm may trail the reference's."""
+
+STREAM_MAX_KEYFRAME_RATIO = 0.2
+"""Stream: the most keyframes the candidate may keep, as a share of the reference's."""
+
 MUST_MATCH = ("setting", "scene", "size", "stride", "max_frames", "n_frames", "seeds")
 """results.json fields that must be equal for two policies to be compared at all."""
 
@@ -254,18 +266,25 @@ def _pm(stat: tuple[float, float]) -> str:
     return f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}"
 
 
+def _require_setting(candidate: PolicyResults, setting: str) -> None:
+    """InputError naming the candidate's file unless its bench ran in ``setting``."""
+    if candidate.bench["setting"] != setting:
+        raise InputError(
+            candidate.source / "results.json", f"setting is {candidate.bench['setting']!r}, not {setting!r}"
+        )
+
+
 def pool_target(
     candidate: PolicyResults,
     baselines: list[PolicyResults],
     metrics: tuple[str, ...] = POOL_METRICS,
-    psnr_margin_db: float = 0.3,
+    psnr_margin_db: float = POOL_PSNR_MARGIN_DB,
     allow_config_difference: bool = False,
 ) -> Verdict:
     """Issue 10's pool target: ahead of each baseline by the larger std on ``metrics``, PSNR within the margin."""
     if not baselines:
         raise InputError("baselines", "the pool target needs at least one baseline (fisherrf, random)")
-    if candidate.bench["setting"] != "pool":
-        raise InputError(candidate.source / "results.json", f"setting is {candidate.bench['setting']!r}, not 'pool'")
+    _require_setting(candidate, "pool")
     diffs = {b.name: d for b in baselines if (d := check_comparable(candidate, b, allow_config_difference))}
     checks = []
     for key in metrics:
@@ -285,9 +304,9 @@ def pool_target(
 def stream_target(
     candidate: PolicyResults,
     reference: PolicyResults,
-    max_keyframe_ratio: float = 0.2,
-    recall_margin: float = 0.01,
-    psnr_margin_db: float = 0.5,
+    max_keyframe_ratio: float = STREAM_MAX_KEYFRAME_RATIO,
+    recall_margin: float = STREAM_RECALL_MARGIN,
+    psnr_margin_db: float = STREAM_PSNR_MARGIN_DB,
     allow_config_difference: bool = False,
 ) -> Verdict:
     """Issue 10's stream target: at most the ratio of the reference's keyframes, recall and PSNR within margins.
@@ -295,8 +314,7 @@ def stream_target(
     The keyframe check's margin is the keyframes to spare: the ratio times the reference's mean count, less the
     candidate's (31 against 160 at 20 % leaves 1.0 to spare), so that, as in every check, a positive slack passes.
     """
-    if candidate.bench["setting"] != "stream":
-        raise InputError(candidate.source / "results.json", f"setting is {candidate.bench['setting']!r}, not 'stream'")
+    _require_setting(candidate, "stream")
     diffs = check_comparable(candidate, reference, allow_config_difference)
     kf, ref_kf = candidate.stat("n_keyframes"), reference.stat("n_keyframes")
     if ref_kf[0] <= 0:
@@ -315,6 +333,10 @@ def stream_target(
 __all__ = [
     "MUST_MATCH",
     "POOL_METRICS",
+    "POOL_PSNR_MARGIN_DB",
+    "STREAM_MAX_KEYFRAME_RATIO",
+    "STREAM_PSNR_MARGIN_DB",
+    "STREAM_RECALL_MARGIN",
     "Check",
     "PolicyResults",
     "Verdict",
