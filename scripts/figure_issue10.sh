@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Issue 10's headline verdicts from one command (twenty-sixth session): the pool rows of the three scenes the issue
+# names, at 240 wide (office0 at 240x136, the first synthetic room and the cluttered objects at 240x180: the variant
+# roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed, then fisherrf and random beside it, 3 seeds each), the
+# office0 stream rows of issue 10's 20 % budget (gaus-slam and N with lookahead, on the default mapper and with
+# init_max_stretch=4, 3 seeds), then scripts/figure_targets.sh on whatever benches are there.
+# The same commands as the README's tables (scripts/figure_nbv_pool.sh with TAG=unconfirmed / TAG=base25,
+# scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
+# into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
+# Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,base25}/, runs/bench_stream_office0_w13/<row>/,
+# runs/targets/ (targets.md: every verdict), and prints each step's wall time.
+# Measured 2026-11-28 on a fresh 2-core machine from a fresh clone: 28 min for the pool rows (set-up from nothing
+# included), 25 min for the stream rows.
+set -euo pipefail
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$REPO"
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+V="roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed"
+step() {  # step NAME CMD...: run a figure script, print its wall time
+    local name=$1 t0
+    shift
+    t0=$(date +%s)
+    "$@"
+    echo "[issue10] $name: $(($(date +%s) - t0)) s"
+}
+for scene in office0 synth clutter; do
+    step "pool $scene 240, the variant" env TAG=unconfirmed POLICIES="$V" SCALE=2 SCENES="$scene" \
+        bash scripts/figure_nbv_pool.sh
+    step "pool $scene 240, fisherrf and random" env TAG=base25 POLICIES=fisherrf,random SCALE=2 SCENES="$scene" \
+        bash scripts/figure_nbv_pool.sh
+done
+step "stream office0, 3 seeds" env SEEDS=3 \
+    ROWS="gaus-slam gaus-slam-stretch4 novelty-lookahead-stretch4 novelty-lookahead-pixels-stretch4" \
+    bash scripts/figure_nbv_stream_office0.sh
+step "verdicts" bash scripts/figure_targets.sh
