@@ -9,8 +9,8 @@
 # into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
 # Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,base25}/, runs/bench_stream_office0_w13/<row>/,
 # runs/targets/ (targets.md: every verdict), and prints each step's wall time.
-# Measured 2026-11-28 on a fresh 2-core machine from a fresh clone: 28 min for the pool rows (set-up from nothing
-# included), 25 min for the stream rows.
+# Measured 2026-11-28 on a fresh 2-core machine in a fresh clone: 55 min (30 min for the pool rows, the set-up from
+# nothing included, 25 min for the stream rows).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
