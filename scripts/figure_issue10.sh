@@ -2,8 +2,8 @@
 # Issue 10's headline verdicts from one command (twenty-sixth session): the pool rows of the three scenes the issue
 # names, at 240 wide (office0 at 240x136, the first synthetic room and the cluttered objects at 240x180: the variant
 # roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed, then fisherrf and random beside it, 3 seeds each), the
-# office0 stream rows of issue 10's 20 % budget (gaus-slam and N with lookahead, on the default mapper and with
-# init_max_stretch=4, 3 seeds), then scripts/figure_targets.sh on whatever benches are there.
+# office0 stream rows of issue 10's 20 % budget, 3 seeds (gaus-slam on the default mapper and with init_max_stretch=4;
+# N with lookahead, area and pixels measure, with it), then scripts/figure_targets.sh on whatever benches are there.
 # The same commands as the README's tables (scripts/figure_nbv_pool.sh with TAG=unconfirmed / TAG=base25,
 # scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
 # into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
