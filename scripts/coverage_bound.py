@@ -43,6 +43,7 @@ import argparse
 import json
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -133,14 +134,15 @@ def coverage(obs: np.ndarray, picks: list[int]) -> float:
     return float(np.count_nonzero(obs[picks].any(axis=0))) / obs.shape[1]
 
 
-def offline_greedy(obs: np.ndarray, k_max: int, first: int = 0) -> tuple[list[int], list[float]]:
-    """Greedy max coverage: ``first`` then the frame adding the most new samples, up to ``k_max`` or no gain.
+def offline_greedy(obs: np.ndarray, k_max: int, first: int | Sequence[int] = 0) -> tuple[list[int], list[float]]:
+    """Greedy max coverage: ``first`` (a frame, or frames forced in order) then the frame adding the most new
+    samples, up to ``k_max`` or no gain.
 
-    Returns the picks in order and the coverage after each one.
+    Returns the picks in order and the coverage after each one (one value for all forced frames together).
     """
     n = obs.shape[1]
-    picks = [first]
-    rem = obs[:, ~obs[first]]  # frames x still-uncovered samples
+    picks = [int(first)] if isinstance(first, int | np.integer) else list(dict.fromkeys(int(f) for f in first))
+    rem = obs[:, ~obs[picks].any(axis=0)]  # frames x still-uncovered samples
     covered = n - rem.shape[1]
     curve = [covered / n]
     while len(picks) < k_max and rem.shape[1] > 0:

@@ -8,9 +8,11 @@
 # scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
 # into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
 # Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,base25}/, runs/bench_stream_office0_w13/<row>/,
-# runs/targets/ (targets.md: every verdict), and prints each step's wall time.
+# runs/targets/ (targets.md: every verdict), then scripts/figure_pool_bound.sh on the three pool scenes' benches (what
+# a greedy coverage oracle's 20 views and all pool views reach; runs/pool_bound/), and prints each step's wall time.
 # Measured 2026-11-28 on a fresh 2-core machine in a fresh clone: 55 min (30 min for the pool rows, the set-up from
-# nothing included, 25 min for the stream rows).
+# nothing included, 25 min for the stream rows), before the pool-bound step (twenty-seventh session: about 8 min a
+# scene, measured on its own) was added.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
@@ -33,3 +35,4 @@ step "stream office0, 3 seeds" env SEEDS=3 \
     ROWS="gaus-slam gaus-slam-stretch4 novelty-lookahead-stretch4 novelty-lookahead-pixels-stretch4" \
     bash scripts/figure_nbv_stream_office0.sh
 step "verdicts" bash scripts/figure_targets.sh
+step "pool bound: office0, synth, clutter" env SCENES="office0 synth clutter" bash scripts/figure_pool_bound.sh

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import open3d as o3d
@@ -204,7 +204,25 @@ class PoolResult:
     split: PoolSplit
 
 
-SelectHook = Callable[[Mapper, StreamNBVPolicy, list[int], np.ndarray], None]
+class PoolPolicy(Protocol):
+    """What :func:`run_pool` asks of a selection policy: a :class:`StreamNBVPolicy`, or e.g. a replay of given
+    picks (``scripts/pool_bound.py``'s coverage oracle).
+    """
+
+    mode: str | None
+    """Scoring mode; ``roi-gsurfisher`` and ``roi-fisher`` make the run keep the training Fisher current."""
+
+    def reset(self) -> None:
+        """Forget every earlier run."""
+
+    def choose(self, candidates: list[Frame], keyframe_map: Mapper) -> int:
+        """Index into ``candidates`` (pose-only frames) of the view to add next."""
+
+    def params(self) -> dict[str, Any]:
+        """The policy's parameters, as the run's metrics record them."""
+
+
+SelectHook = Callable[[Mapper, PoolPolicy, list[int], np.ndarray], None]
 """``hook(mapper, policy, candidate_positions, candidate_poses [M, 4, 4])``, called before each selection."""
 
 
@@ -223,13 +241,15 @@ def run_pool(
     gt_mesh: str | Path | None = None,
     overwrite: bool = False,
     on_select: SelectHook | None = None,
+    policy: PoolPolicy | None = None,
 ) -> PoolResult:
     """Run the pool setting on a sequence; write ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json``.
 
     ``mapper_config``'s seed is replaced by ``config.seed``. ``out_dir`` None writes nothing. The metrics
     hold the split, the chosen view positions and frame ids in order, the per-addition ``curve`` (views,
     test PSNR, surfels, seconds of scoring and training, mesh metrics at checkpoints) and the final
-    test-view PSNR / SSIM / depth L1 and mesh metrics.
+    test-view PSNR / SSIM / depth L1 and mesh metrics. ``policy`` selects instead of ``config.policy`` (the
+    metrics then name it by its ``name`` attribute); ``config.seed`` still seeds the mapper.
     """
     t_start = time.perf_counter()
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
@@ -238,7 +258,9 @@ def run_pool(
     if out_dir is not None and Path(out_dir).exists() and not overwrite:
         raise FileExistsError(f"{out_dir}: already exists (pass --overwrite to replace it)")
     mcfg = replace(mapper_config or MapperConfig(), seed=config.seed)
-    policy = make_pool_policy(config)
+    policy_name = config.policy if policy is None else str(getattr(policy, "name", type(policy).__name__))
+    if policy is None:
+        policy = make_pool_policy(config)
     policy.reset()
     frames = list(source)
     if not frames:
@@ -338,7 +360,7 @@ def run_pool(
     t0 = time.perf_counter()
     metrics: dict[str, Any] = {
         "setting": "pool",
-        "policy": config.policy,
+        "policy": policy_name,
         "policy_params": policy.params(),
         "n_frames": len(frames),
         "n_test_views": len(split.test),

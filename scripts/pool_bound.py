@@ -1,0 +1,265 @@
+#!/usr/bin/env python3
+"""How much of the true surface any choice of views from a pool bench's candidates can see (issue 10).
+
+The pool setting's mesh is fused from the map's depth at the chosen views only, so a run's R@5cm follows how much
+of the ground-truth surface those views observe (not a strict bound: the fused mesh reaches a little past the
+observed pixels, so a recall can exceed its coverage by a little). For a ``roigsf bench --setting pool`` folder this
+measures, per seed, on the GT samples the bench's recall counts (same seed, count and culling):
+
+- the coverage of **all pool views** (every candidate, the initial views included): no choice of ``n_views`` of
+  them observes more, and mapped (``--map``) the practical ceiling of a selection rule's recall;
+- the coverage of a **greedy max-coverage pick** of ``n_views`` (the bench's initial views forced, then each
+  time the candidate observing the most samples not yet observed): the oracle a perfect scorer would
+  approach, given the true depth of every candidate;
+- the coverage of each bench run's chosen views, beside its measured R@5cm.
+
+A sample is observed by a view when it lies within ``--tau`` of a back-projected valid pixel of the view's input
+depth (``coverage_bound.observed_sets``). With ``--map`` the greedy pick and all pool views are also mapped by
+``run_pool`` under the bench's own pool and mapper configuration and seeds (the greedy pick replayed in its order,
+one view per training phase; all pool views as that order continued over the remaining candidates, so their
+run trains ``iters_per_view`` more steps per added view), and their measured R@5cm, F@5cm and test PSNR are
+reported. Writes ``bound.json`` and ``bound.md`` under ``--out`` (atomically) and prints the table.
+
+    .venv/bin/python scripts/pool_bound.py runs/bench_pool_synth_240_unconfirmed runs/bench_pool_synth_240_base25 \
+        --out runs/s27/bound_synth_240 --map
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_path, write_json
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.evaluation.metrics import to_json_safe
+from roigsf_ros.experiments.pool import PoolConfig, run_pool, split_pool
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+
+
+def _sibling(name: str) -> ModuleType:
+    """``scripts/<name>.py`` (scripts/ is no package), imported once."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+cb = _sibling("coverage_bound")
+
+METRICS = ("recall@5cm", "fscore@5cm", "psnr")
+"""Measured metrics a row carries when it was mapped (here or by a bench)."""
+
+
+class ReplayPicks:
+    """A pool policy that adds given frames in a given order (by frame id): the oracle's picks, mapped."""
+
+    name = "replay"
+    mode: str | None = None
+
+    def __init__(self, frame_ids: list[int]) -> None:
+        self.frame_ids = [int(i) for i in frame_ids]
+
+    def reset(self) -> None:
+        """Nothing is kept between runs."""
+
+    def choose(self, candidates: list[Frame], keyframe_map: Mapper) -> int:
+        """The first of the frame ids still among the candidates."""
+        by_id = {int(f.index): i for i, f in enumerate(candidates)}
+        for fid in self.frame_ids:
+            if fid in by_id:
+                return by_id[fid]
+        raise InputError("candidates", f"none of the {len(self.frame_ids)} replayed frame ids is a candidate")
+
+    def params(self) -> dict[str, Any]:
+        """The replayed frame ids, in order."""
+        return {"frame_ids": self.frame_ids}
+
+
+def greedy_pick(obs: np.ndarray, forced: list[int], k: int) -> list[int]:
+    """Rows of ``obs`` [views, samples]: ``forced`` in order, then greedy max coverage (``offline_greedy``: the row
+    adding the most samples not yet observed, ties to the lowest); once no row adds any, the lowest rows not taken,
+    until ``k``.
+    """
+    picks = cb.offline_greedy(obs, k, forced)[0][:k]
+    taken = set(picks)
+    rest = [i for i in range(len(obs)) if i not in taken]
+    return picks + rest[: max(0, k - len(picks))]
+
+
+def read_bench(path: Path) -> dict[str, Any]:
+    """A pool bench's ``results.json``; InputError naming the file and field when it is not one."""
+    res_path = path / "results.json"
+    if not res_path.is_file():
+        raise InputError(path, "no such folder or no results.json in it (give a `roigsf bench --setting pool` folder)")
+    try:
+        res = json.loads(res_path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(res_path, f"not JSON ({e})") from e
+    if res.get("setting") != "pool":
+        raise InputError(res_path, f"setting is {res.get('setting')!r}; only pool benches have a candidate pool")
+    for key in ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"):
+        if not res.get(key):
+            raise InputError(res_path, f"field {key!r} is missing or empty")
+    for i, run in enumerate(res["runs"]):
+        for key in ("label", "seed", "chosen_positions", "metrics"):
+            if key not in run:
+                raise InputError(res_path, f"runs[{i}] has no field {key!r}")
+    return res
+
+
+def same_setup(a: dict[str, Any], b: dict[str, Any], path: Path) -> None:
+    """InputError unless bench ``b`` (at ``path``) ran on ``a``'s scene with ``a``'s pool and mapper settings."""
+    for key in ("scene", "size", "stride", "max_frames", "pool_config", "mapper_config"):
+        ka, kb = a.get(key), b.get(key)
+        if key.endswith("_config"):  # the policy and the seed differ from run to run by design
+            ka, kb = ({k: v for k, v in c.items() if k not in ("policy", "policy_params", "seed")} for c in (ka, kb))
+        if ka != kb:
+            raise InputError(path / "results.json", f"field {key!r} differs from the first bench's")
+
+
+def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None) -> dict[str, Any]:
+    """Coverage rows (and with ``do_map`` measured rows) per seed of the benches' shared scene and pool."""
+    results = [read_bench(b) for b in benches]
+    for b, r in zip(benches[1:], results[1:], strict=True):
+        same_setup(results[0], r, b)
+    first = results[0]
+    pcfg = PoolConfig.from_dict({k: v for k, v in first["pool_config"].items() if k in PoolConfig.__dataclass_fields__})
+    mcfg = MapperConfig.from_dict(
+        {k: v for k, v in first["mapper_config"].items() if k in MapperConfig.__dataclass_fields__}
+    )
+    src = open_frames(first["scene"], size=tuple(first["size"]) if first.get("size") else None,
+                      stride=first.get("stride", 1), max_frames=first.get("max_frames"))  # fmt: skip
+    frames = list(src)
+    if src.gt_mesh_path is None:
+        raise InputError(first["scene"], "no mesh.ply (the ground truth) in the scene folder")
+    scene = cb.Scene([int(f.index) for f in frames], np.stack([f.depth_m for f in frames]),
+                     np.stack([f.T_wc for f in frames]), src.intrinsics, Path(first["gt_mesh"]))  # fmt: skip
+    if not pcfg.cull_gt_to_observed:
+        raise InputError(benches[0] / "results.json", "pool_config.cull_gt_to_observed is False: not supported")
+    split = split_pool(scene.poses, pcfg)
+    pool = split.pool
+    k = pcfg.n_views
+    lo = max(mcfg.min_depth_m, mcfg.near_m)
+    seeds = sorted({int(r["seed"]) for res in results for r in res["runs"]})
+    out: dict[str, Any] = {"benches": [str(b) for b in benches], "scene": first["scene"], "tau_m": tau_m, "n_views": k,
+                           "n_pool": len(pool), "initial_positions": split.initial, "seeds": []}  # fmt: skip
+    for seed in seeds:
+        t0 = time.perf_counter()
+        gt, n_drawn = cb.gt_samples(scene, pcfg.mesh_samples, seed, mcfg.max_depth_m)
+        obs = cb.observed_sets(scene, gt, tau_m, lo, mcfg.max_depth_m)[pool]
+        row_of = {p: j for j, p in enumerate(pool)}
+        greedy = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in split.initial], k)]
+        order = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in greedy], len(pool))]
+
+        def cov(positions: list[int]) -> float:
+            return cb.coverage(obs, [row_of[p] for p in positions])  # noqa: B023 (used within the iteration)
+
+        rows: list[dict[str, Any]] = [
+            {"name": f"all {len(pool)} pool views", "n": len(pool), "coverage": cov(pool), "positions": sorted(pool)},
+            {"name": f"greedy max-coverage, {k} views (initial views forced)", "n": k, "coverage": cov(greedy),
+             "positions": greedy},
+        ]  # fmt: skip
+        for bench, res in zip(benches, results, strict=True):
+            for run in res["runs"]:
+                if int(run["seed"]) != seed:
+                    continue
+                m = run["metrics"]
+                if m.get("n_gt_samples") is not None and int(m["n_gt_samples"]) != len(gt):
+                    raise InputError(bench / "results.json", f"{run['label']} seed {seed}: {m['n_gt_samples']} GT "
+                                     f"samples, but {len(gt)} drawn here (another scene or culling?)")  # fmt: skip
+                rows.append({"name": str(run["label"]), "bench": str(bench), "n": len(run["chosen_positions"]),
+                             "coverage": cov([int(p) for p in run["chosen_positions"]]),
+                             "positions": [int(p) for p in run["chosen_positions"]],
+                             **{key: m.get(key) for key in METRICS}})  # fmt: skip
+        if do_map:
+            for row, picks in ((rows[1], greedy), (rows[0], order)):
+                run_dir = None if map_dir is None else map_dir / f"{'greedy' if picks is greedy else 'all'}_seed{seed}"
+                res = run_pool(src, replace(pcfg, n_views=len(picks), seed=seed), mcfg, run_dir,
+                               gt_mesh=first["gt_mesh"], overwrite=True,
+                               policy=ReplayPicks([scene.ids[p] for p in picks]))  # fmt: skip
+                if res.metrics["chosen_positions"] != picks:
+                    raise RuntimeError(f"seed {seed}: the replay added {res.metrics['chosen_positions']}, not {picks}")
+                row |= {key: res.metrics.get(key) for key in METRICS}
+        out["seeds"].append({"seed": seed, "n_gt": len(gt), "n_gt_drawn": n_drawn, "rows": rows,
+                             "wall_s": time.perf_counter() - t0})  # fmt: skip
+    out["summary"] = summarise(out["seeds"])
+    return out
+
+
+def summarise(per_seed: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per row name (in first-seen order): mean and population std over the seeds of coverage and each metric."""
+    names: dict[str, list[dict[str, Any]]] = {}
+    for s in per_seed:
+        for row in s["rows"]:
+            names.setdefault(row["name"], []).append(row)
+    out = []
+    for name, rows in names.items():
+        entry: dict[str, Any] = {"name": name, "n": rows[0]["n"], "seeds": len(rows)}
+        for key in ("coverage", *METRICS):
+            vals = [float(r[key]) for r in rows if r.get(key) is not None]
+            if vals:
+                entry[key] = {"mean": float(np.mean(vals)), "std": float(np.std(vals))}
+        out.append(entry)
+    return out
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The summary as a markdown table (means ± population std over the seeds)."""
+
+    def cell(entry: dict[str, Any], key: str, spec: str) -> str:
+        v = entry.get(key)
+        return "-" if v is None else f"{v['mean']:{spec}} ± {v['std']:{spec}}"
+
+    lines = [
+        f"# Pool coverage at {report['tau_m'] * 100:g} cm: {report['scene']}",
+        "",
+        f"{report['n_pool']} pool views, {report['n_views']} chosen; seeds {[s['seed'] for s in report['seeds']]}; "
+        f"GT samples (culled to observed) {[s['n_gt'] for s in report['seeds']]}",
+        "",
+        "| views | n | coverage | R@5cm | F@5cm | PSNR (dB) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for e in report["summary"]:
+        lines.append(f"| {e['name']} | {e['n']} | {cell(e, 'coverage', '.4f')} | {cell(e, 'recall@5cm', '.4f')} | "
+                     f"{cell(e, 'fscore@5cm', '.4f')} | {cell(e, 'psnr', '.2f')} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse the arguments, measure, write ``bound.json`` and ``bound.md``, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("benches", type=Path, nargs="+", help="roigsf bench --setting pool folders of one scene and pool")
+    ap.add_argument("--out", type=Path, required=True, help="output folder (bound.json, bound.md, maps/ with --map)")
+    ap.add_argument("--tau", type=float, default=0.05, help="distance threshold (m), as in R@5cm")
+    ap.add_argument("--map", action="store_true", help="also map the greedy pick and all pool views (each seed)")
+    args = ap.parse_args(argv)
+    try:
+        report = bound(args.benches, args.tau, args.map, args.out / "maps")
+    except InputError as e:
+        print(f"pool_bound: {e}", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / "bound.json", to_json_safe(report))
+    text = markdown(report)
+    with atomic_path(args.out / "bound.md") as tmp:
+        tmp.write_text(text)
+    print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

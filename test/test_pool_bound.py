@@ -1,0 +1,95 @@
+"""scripts/pool_bound.py: how much of the true surface a pool bench's candidates can see, and the oracle's pick."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from conftest import load_script
+
+from roigsf_ros.cli.scene import synth_intrinsics
+from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.data.sources import open_frames
+from roigsf_ros.experiments.pool import PoolConfig, run_pool
+from roigsf_ros.mapping.mapper import MapperConfig
+
+pb = load_script("pool_bound")
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_greedy_pick_forces_the_initial_views_then_adds_the_most_unseen_then_fills() -> None:
+    """Rows 2 and 0 forced; row 3 adds 3 unseen samples (row 1 only 2, shared with row 3); then nothing adds, so
+    the lowest row not taken fills the budget."""
+    obs = np.zeros((5, 8), dtype=bool)
+    for r, cols in {0: [0], 1: [4, 5], 2: [1], 3: [3, 4, 5], 4: []}.items():
+        obs[r, cols] = True
+    assert pb.greedy_pick(obs, [2, 0], 3) == [2, 0, 3]
+    assert pb.greedy_pick(obs, [2, 0], 5) == [2, 0, 3, 1, 4]
+    assert pb.greedy_pick(obs, [2, 0, 2], 2) == [2, 0]
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthetic room (24 frames at 48x36) and a two-seed `random` pool bench of 6 views on it."""
+    tmp = tmp_path_factory.mktemp("pool_bound")
+    scene = tmp / "scene"
+    render_sequence(synth_room(0), synth_trajectory(0, 24), synth_intrinsics(48, 36), scene, progress=False)
+    o3d.io.write_triangle_mesh(str(scene / "mesh.ply"), synth_room(0))
+    pcfg = PoolConfig(policy="random", n_views=6, initial_iters=6, iters_per_view=2, mesh_checkpoints=(6,),
+                      curve_test_views=1, mesh_samples=3000)  # fmt: skip
+    mcfg = MapperConfig(densify_stride=2, mesh_voxel_size_m=0.05, mesh_sdf_trunc_m=0.15)
+    runs = []
+    for seed in (0, 1):
+        cfg = PoolConfig.from_dict(pcfg.to_dict() | {"seed": seed})
+        m = run_pool(open_frames(scene), cfg, mcfg, gt_mesh=scene / "mesh.ply").metrics
+        runs.append({"label": "random", "seed": seed, "chosen_positions": m["chosen_positions"], "metrics": m})
+    out = tmp / "bench"
+    out.mkdir()
+    results = {"setting": "pool", "scene": str(scene), "gt_mesh": str(scene / "mesh.ply"), "size": None,
+               "stride": 1, "max_frames": None, "pool_config": pcfg.to_dict(), "mapper_config": mcfg.to_dict(),
+               "runs": runs}  # fmt: skip
+    (out / "results.json").write_text(json.dumps(results))
+    return out
+
+
+def test_all_pool_views_bound_every_choice_and_the_oracle_is_replayed(bench: Path, tmp_path: Path) -> None:
+    """Per seed: all pool views cover at least what any chosen set covers; the greedy pick starts with the bench's
+    initial views and covers at least the random run's views; both are mapped (the replay adds exactly the picks, or
+    the script raises) and measured; the bench run's own metrics are carried over; the GT sample counts are the
+    bench's (the script raises otherwise)."""
+    assert pb.main([str(bench), "--out", str(tmp_path / "b"), "--map"]) == 0
+    report = json.loads((tmp_path / "b" / "bound.json").read_text())
+    results = json.loads((bench / "results.json").read_text())
+    assert [s["seed"] for s in report["seeds"]] == [0, 1]
+    for s, run in zip(report["seeds"], results["runs"], strict=True):
+        every, greedy, mine = s["rows"]
+        assert every["n"] == report["n_pool"] and greedy["n"] == 6 == mine["n"]
+        assert greedy["positions"][:4] == report["initial_positions"] == run["metrics"]["initial_positions"]
+        assert every["coverage"] >= greedy["coverage"] >= mine["coverage"] > 0.3
+        assert mine["recall@5cm"] == run["metrics"]["recall@5cm"] and mine["positions"] == run["chosen_positions"]
+        assert s["n_gt"] == run["metrics"]["n_gt_samples"]
+        for row in (every, greedy):
+            assert 0 < row["recall@5cm"] <= 1 and np.isfinite(row["psnr"])
+    assert (tmp_path / "b" / "bound.md").read_text().count("\n| ") == 4  # the header and three rows
+    assert (tmp_path / "b" / "maps" / "greedy_seed1" / "mesh.ply").is_file()
+
+
+def test_bad_benches_are_named(bench: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A stream bench, a bench of another pool and a missing folder: exit 2, the file and the field named."""
+    results = json.loads((bench / "results.json").read_text())
+    stream = tmp_path / "stream"
+    stream.mkdir()
+    (stream / "results.json").write_text(json.dumps(results | {"setting": "stream"}))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "results.json").write_text(json.dumps(results | {"pool_config": results["pool_config"] | {"n_views": 5}}))
+    for args, words in (([stream], ("stream/results.json", "setting")), ([bench, other], ("other/results.json",
+                        "pool_config")), ([tmp_path / "nope"], ("nope", "results.json"))):  # fmt: skip
+        assert pb.main([*map(str, args), "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), err
+    assert not (tmp_path / "x").exists()
