@@ -52,7 +52,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from roigsf_ros.core.camera import Intrinsics
-from roigsf_ros.core.fileio import atomic_path, write_json
+from roigsf_ros.core.fileio import atomic_path, read_json, write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import camera_rays
 from roigsf_ros.data.sources import open_frames
@@ -421,7 +421,7 @@ def map_picks(scene_path: Path, policy: KeyframePolicy, out_dir: Path) -> dict[s
 
 def read_bench(path: Path) -> list[dict[str, Any]]:
     """The stream runs of a ``roigsf bench`` folder: label, seed, keyframe ids and measured mesh metrics."""
-    results = json.loads((path / "results.json").read_text())
+    results = read_json(path / "results.json", "not found (give a `roigsf bench --setting stream` output folder)")
     runs = []
     for rec in results.get("runs", []):
         m = rec.get("metrics", {})

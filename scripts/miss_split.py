@@ -22,7 +22,6 @@ this one needs no layout, so it works on any scene whose parts are separate mesh
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,9 +31,10 @@ import open3d as o3d
 import open3d.core as o3c
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.fileio import read_json, write_json
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation import as_legacy_mesh, gt_visible_mask, raycasting_scene, sample_surface
+from roigsf_ros.experiments.bench import read_results
 
 MIN_SHARE = 0.01
 """Components with less than this share of every policy's misses are pooled as ``other``."""
@@ -67,22 +67,7 @@ def components(gt: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, list[dict[str
 
 def split_bench(bench: Path, tau_m: float) -> dict[str, Any]:
     """Per policy and seed: recall, misses per component, the misses' median horizontal radius per component."""
-    res_path = bench / "results.json"
-    if not res_path.is_file():
-        raise InputError(bench, "no such folder or no results.json in it (give a `roigsf bench` output folder)")
-    try:
-        res = json.loads(res_path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(res_path, f"not JSON ({e})") from e
-    if res.get("setting") != "pool":
-        raise InputError(res_path, f"setting is {res.get('setting')!r}; only pool benches are split")
-    for key in ("scene", "gt_mesh", "runs"):
-        if not res.get(key):
-            raise InputError(res_path, f"field {key!r} is missing or empty")
-    for i, run in enumerate(res["runs"]):
-        for key in ("label", "seed", "dir", "metrics"):
-            if key not in run:
-                raise InputError(res_path, f"runs[{i}] has no field {key!r}")
+    res = read_results(bench, "pool", ("scene", "gt_mesh", "runs"), ("label", "seed", "dir", "metrics"))
     src = open_frames(res["scene"], size=tuple(res["size"]) if res.get("size") else None, stride=res.get("stride", 1),
                       max_frames=res.get("max_frames"))  # fmt: skip
     poses = np.stack([f.T_wc for f in src])
@@ -157,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         benches = [split_bench(b, args.tau) for b in args.benches]
-        scenes = {json.loads((b / "results.json").read_text())["gt_mesh"] for b in args.benches}
+        scenes = {read_json(b / "results.json")["gt_mesh"] for b in args.benches}
         if len(scenes) > 1:
             raise InputError("benches", f"they are of different scenes: {sorted(scenes)}")
     except InputError as e:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import sys
 import time
 from dataclasses import replace
@@ -43,6 +42,7 @@ from roigsf_ros.core.fileio import atomic_path, write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import to_json_safe
+from roigsf_ros.experiments.bench import read_results
 from roigsf_ros.experiments.pool import PoolConfig, run_pool, split_pool
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 
@@ -100,27 +100,6 @@ def greedy_pick(obs: np.ndarray, forced: list[int], k: int) -> list[int]:
     return picks + rest[: max(0, k - len(picks))]
 
 
-def read_bench(path: Path) -> dict[str, Any]:
-    """A pool bench's ``results.json``; InputError naming the file and field when it is not one."""
-    res_path = path / "results.json"
-    if not res_path.is_file():
-        raise InputError(path, "no such folder or no results.json in it (give a `roigsf bench --setting pool` folder)")
-    try:
-        res = json.loads(res_path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(res_path, f"not JSON ({e})") from e
-    if res.get("setting") != "pool":
-        raise InputError(res_path, f"setting is {res.get('setting')!r}; only pool benches have a candidate pool")
-    for key in ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"):
-        if not res.get(key):
-            raise InputError(res_path, f"field {key!r} is missing or empty")
-    for i, run in enumerate(res["runs"]):
-        for key in ("label", "seed", "chosen_positions", "metrics"):
-            if key not in run:
-                raise InputError(res_path, f"runs[{i}] has no field {key!r}")
-    return res
-
-
 def same_setup(a: dict[str, Any], b: dict[str, Any], path: Path) -> None:
     """InputError unless bench ``b`` (at ``path``) ran on ``a``'s scene with ``a``'s pool and mapper settings."""
     for key in ("scene", "size", "stride", "max_frames", "pool_config", "mapper_config"):
@@ -133,7 +112,8 @@ def same_setup(a: dict[str, Any], b: dict[str, Any], path: Path) -> None:
 
 def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None) -> dict[str, Any]:
     """Coverage rows (and with ``do_map`` measured rows) per seed of the benches' shared scene and pool."""
-    results = [read_bench(b) for b in benches]
+    results = [read_results(b, "pool", ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"),
+                            ("label", "seed", "chosen_positions", "metrics")) for b in benches]  # fmt: skip
     for b, r in zip(benches[1:], results[1:], strict=True):
         same_setup(results[0], r, b)
     first = results[0]

@@ -1,4 +1,4 @@
-"""Atomic outputs: replacing leaves nothing but the new output, whatever stood at the target before."""
+"""Atomic outputs: replacing leaves nothing but the new output, whatever stood at the target before; JSON reads."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from roigsf_ros.core.fileio import atomic_dir, atomic_path
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_dir, atomic_path, read_json, write_json
 
 
 def _write_dir(final: Path, overwrite: bool = True) -> None:
@@ -43,3 +44,25 @@ def test_failure_leaves_the_old_output_and_no_temporaries(tmp_path: Path) -> Non
     with pytest.raises(RuntimeError), atomic_path(tmp_path / "x.json"):
         raise RuntimeError("half-way")
     assert [p.name for p in tmp_path.iterdir()] == ["map"]
+
+
+def test_read_json_names_the_file_and_what_is_wrong(tmp_path: Path) -> None:
+    """A written object reads back; a missing file (or a folder) says the caller's hint, a file cut short says it is
+    not valid JSON, a list is not an object; every error names the file."""
+    ok = tmp_path / "results.json"
+    write_json(ok, {"a": [1, 2]})
+    assert read_json(ok) == {"a": [1, 2]}
+    cut = tmp_path / "cut.json"
+    cut.write_text(ok.read_text()[:-4])
+    listed = tmp_path / "list.json"
+    listed.write_text("[1, 2]")
+    cases = (
+        (tmp_path / "none.json", "none.json: give a bench folder"),
+        (tmp_path, ": give a bench folder"),
+        (cut, "cut.json: not valid JSON"),
+        (listed, "list.json: not a JSON object (a list)"),
+    )
+    for path, words in cases:
+        with pytest.raises(InputError) as err:
+            read_json(path, "give a bench folder")
+        assert words in str(err.value)

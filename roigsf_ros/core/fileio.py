@@ -1,6 +1,7 @@
-"""Atomic outputs: write under a temporary name beside the target, rename when complete.
+"""Atomic outputs: write under a temporary name beside the target, rename when complete; and the checked read.
 
-A crash or a bad input half-way never leaves a partial file or folder under the final name.
+A crash or a bad input half-way never leaves a partial file or folder under the final name; a JSON file that is
+missing or cut short is an ``InputError`` naming it.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from roigsf_ros.core.errors import InputError
 
 
 def _umask() -> int:
@@ -81,8 +84,27 @@ def write_json(path: str | Path, data: Any) -> None:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
+def read_json(path: str | Path, missing: str = "not found") -> dict[str, Any]:
+    """The JSON object in ``path``; InputError naming the file when it is absent (``missing`` says what to give
+    instead), unreadable, not JSON (a write cut short) or not an object.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        raise InputError(path, missing) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc}); was its writer interrupted?") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, f"not a JSON object (a {type(data).__name__})")
+    return data
+
+
 __all__ = [
     "atomic_dir",
     "atomic_path",
+    "read_json",
     "write_json",
 ]

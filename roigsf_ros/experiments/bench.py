@@ -17,7 +17,6 @@ whole spec is the row label, so one policy can appear with several parameter set
 
 from __future__ import annotations
 
-import json
 import logging
 import platform
 import time
@@ -34,7 +33,7 @@ from roigsf_ros import evaluation
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.fileio import read_json, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
@@ -501,17 +500,35 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
 
 
 # ---------------------------------------------------------------------------------------- rescore
+def read_results(
+    folder: str | Path, setting: str | None = None, fields: Sequence[str] = (), run_fields: Sequence[str] = ()
+) -> dict[str, Any]:
+    """``folder/results.json`` of a finished bench, for the scripts that read one: InputError naming the file and the
+    first of ``fields`` missing or empty, another ``setting`` than the one asked, or a run without one of
+    ``run_fields``.
+    """
+    path = Path(folder) / "results.json"
+    res = read_json(path, "not found (not a finished `roigsf bench` output folder)")
+    if setting is not None and res.get("setting") != setting:
+        raise InputError(path, f"setting is {res.get('setting')!r}, not {setting!r}")
+    for key in fields:
+        if not res.get(key):
+            raise InputError(path, f"field {key!r} is missing or empty")
+    if run_fields:
+        runs = res.get("runs")
+        if not isinstance(runs, list):
+            raise InputError(path, "field 'runs' is missing or not a list")
+        for i, run in enumerate(runs):
+            missing = [k for k in run_fields if not isinstance(run, dict) or k not in run]
+            if missing:
+                raise InputError(path, f"runs[{i}] has no field {missing[0]!r}")
+    return res
+
+
 def _read_results(out: Path) -> dict[str, Any]:
     """``out/results.json`` of a finished bench, checked for what :func:`rescore_ause` needs."""
     path = out / "results.json"
-    try:
-        results = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "not found (not a finished `roigsf bench` output folder)") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"cannot read: {exc}") from None
-    if not isinstance(results, dict):
-        raise InputError(path, "expected a JSON object")
+    results = read_json(path, "not found (not a finished `roigsf bench` output folder)")
     needed = ("setting", "scene", "size", "stride", "max_frames", "n_frames", "policies", "mapper_config", "runs")
     missing = [k for k in needed if k not in results]
     if missing:

@@ -16,12 +16,12 @@ verdict, so a comparison across mappers is never mistaken for a like-for-like on
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import read_json
 
 POOL_METRICS = ("recall@5cm", "fscore@5cm")
 """Mesh metrics the pool target compares (higher is better)."""
@@ -102,13 +102,8 @@ def load_policy(spec: str | Path) -> PolicyResults:
         head, label = text.rsplit("#", 1)
         folder = Path(head)
     path = folder / "results.json"
-    if not path.is_file():
-        raise InputError(path, "not found: give a folder written by `roigsf bench --out`")
-    try:
-        bench = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc}); was the bench interrupted?") from None
-    summary = bench.get("summary") if isinstance(bench, dict) else None
+    bench = read_json(path, "not found: give a folder written by `roigsf bench --out`")
+    summary = bench.get("summary")
     if not isinstance(summary, dict) or not summary:
         raise InputError(path, "field 'summary' is missing or empty")
     for key in MUST_MATCH:
