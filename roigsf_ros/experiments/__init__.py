@@ -17,6 +17,7 @@ __all__, __getattr__ = lazy_exports(
             "parse_policies",
             "parse_value",
             "pool_curves",
+            "read_results",
             "rescore_ause",
             "run_bench",
             "study_views",
@@ -27,6 +28,7 @@ __all__, __getattr__ = lazy_exports(
         "pool": [
             "POOL_POLICIES",
             "PoolConfig",
+            "PoolPolicy",
             "PoolResult",
             "PoolSplit",
             "SCHEDULES",

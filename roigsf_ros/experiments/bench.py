@@ -499,7 +499,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     return results
 
 
-# ---------------------------------------------------------------------------------------- rescore
+# ------------------------------------------------------------------------------------ read back
 def read_results(
     folder: str | Path, setting: str | None = None, fields: Sequence[str] = (), run_fields: Sequence[str] = ()
 ) -> dict[str, Any]:
@@ -525,6 +525,7 @@ def read_results(
     return res
 
 
+# ---------------------------------------------------------------------------------------- rescore
 def _read_results(out: Path) -> dict[str, Any]:
     """``out/results.json`` of a finished bench, checked for what :func:`rescore_ause` needs."""
     path = out / "results.json"
@@ -650,6 +651,7 @@ __all__ = [
     "parse_policies",
     "parse_value",
     "pool_curves",
+    "read_results",
     "rescore_ause",
     "run_bench",
     "study_views",

@@ -406,6 +406,7 @@ __all__ = [
     "POOL_POLICIES",
     "SCHEDULES",
     "PoolConfig",
+    "PoolPolicy",
     "PoolResult",
     "PoolSplit",
     "check_pool_params",
