@@ -168,12 +168,12 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
         if do_map:
             for row, picks in ((rows[1], greedy), (rows[0], order)):
                 run_dir = None if map_dir is None else map_dir / f"{'greedy' if picks is greedy else 'all'}_seed{seed}"
-                res = run_pool(src, replace(pcfg, n_views=len(picks), seed=seed), mcfg, run_dir,
-                               gt_mesh=first["gt_mesh"], overwrite=True,
-                               policy=ReplayPicks([scene.ids[p] for p in picks]))  # fmt: skip
-                if res.metrics["chosen_positions"] != picks:
-                    raise RuntimeError(f"seed {seed}: the replay added {res.metrics['chosen_positions']}, not {picks}")
-                row |= {key: res.metrics.get(key) for key in METRICS}
+                mapped = run_pool(src, replace(pcfg, n_views=len(picks), seed=seed), mcfg, run_dir,
+                                  gt_mesh=first["gt_mesh"], overwrite=True,
+                                  policy=ReplayPicks([scene.ids[p] for p in picks])).metrics  # fmt: skip
+                if mapped["chosen_positions"] != picks:
+                    raise RuntimeError(f"seed {seed}: the replay added {mapped['chosen_positions']}, not {picks}")
+                row |= {key: mapped.get(key) for key in METRICS}
         out["seeds"].append({"seed": seed, "n_gt": len(gt), "n_gt_drawn": n_drawn, "rows": rows,
                              "wall_s": time.perf_counter() - t0})  # fmt: skip
     out["summary"] = summarise(out["seeds"])
