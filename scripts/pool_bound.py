@@ -39,12 +39,11 @@ import numpy as np
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path, write_json
-from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import to_json_safe
 from roigsf_ros.experiments.bench import read_results
-from roigsf_ros.experiments.pool import PoolConfig, run_pool, split_pool
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.experiments.pool import PoolConfig, ReplayPicks, run_pool, split_pool
+from roigsf_ros.mapping.mapper import MapperConfig
 
 
 def _sibling(name: str) -> ModuleType:
@@ -62,31 +61,6 @@ cb = _sibling("coverage_bound")
 
 METRICS = ("recall@5cm", "fscore@5cm", "psnr")
 """Measured metrics a row carries when it was mapped (here or by a bench)."""
-
-
-class ReplayPicks:
-    """A pool policy that adds given frames in a given order (by frame id): the oracle's picks, mapped."""
-
-    name = "replay"
-    mode: str | None = None
-
-    def __init__(self, frame_ids: list[int]) -> None:
-        self.frame_ids = [int(i) for i in frame_ids]
-
-    def reset(self) -> None:
-        """Nothing is kept between runs."""
-
-    def choose(self, candidates: list[Frame], keyframe_map: Mapper) -> int:
-        """The first of the frame ids still among the candidates."""
-        by_id = {int(f.index): i for i, f in enumerate(candidates)}
-        for fid in self.frame_ids:
-            if fid in by_id:
-                return by_id[fid]
-        raise InputError("candidates", f"none of the {len(self.frame_ids)} replayed frame ids is a candidate")
-
-    def params(self) -> dict[str, Any]:
-        """The replayed frame ids, in order."""
-        return {"frame_ids": self.frame_ids}
 
 
 def greedy_pick(obs: np.ndarray, forced: list[int], k: int) -> list[int]:
@@ -132,6 +106,8 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
         raise InputError(benches[0] / "results.json", "pool_config.cull_gt_to_observed is False: not supported")
     split = split_pool(scene.poses, pcfg)
     pool = split.pool
+    pool_scene = replace(scene, ids=[scene.ids[p] for p in pool], depths=scene.depths[pool], poses=scene.poses[pool])
+    row_of = {p: j for j, p in enumerate(pool)}  # scene position -> row of the observed sets
     k = pcfg.n_views
     lo = max(mcfg.min_depth_m, mcfg.near_m)
     seeds = sorted({int(r["seed"]) for res in results for r in res["runs"]})
@@ -140,8 +116,7 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
     for seed in seeds:
         t0 = time.perf_counter()
         gt, n_drawn = cb.gt_samples(scene, pcfg.mesh_samples, seed, mcfg.max_depth_m)
-        obs = cb.observed_sets(scene, gt, tau_m, lo, mcfg.max_depth_m)[pool]
-        row_of = {p: j for j, p in enumerate(pool)}
+        obs = cb.observed_sets(pool_scene, gt, tau_m, lo, mcfg.max_depth_m)
         greedy = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in split.initial], k)]
         order = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in greedy], len(pool))]
 

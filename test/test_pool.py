@@ -12,7 +12,14 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import MeshRenderer, synth_room, synth_trajectory
 from roigsf_ros.data.sources import MemoryFrameSource
-from roigsf_ros.experiments.pool import PoolConfig, farthest_point_views, pose_only, run_pool, split_pool
+from roigsf_ros.experiments.pool import (
+    PoolConfig,
+    ReplayPicks,
+    farthest_point_views,
+    pose_only,
+    run_pool,
+    split_pool,
+)
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
@@ -146,35 +153,17 @@ def test_seeds_reproduce_and_random_differs(source: MemoryFrameSource, tmp_path)
         run_pool(source, cfg, mapper_config(), tmp_path / "a")
 
 
-class _Replay:
-    """A pool policy that is no StreamNBVPolicy: adds given frame ids in order."""
-
-    name = "replay"
-    mode = None
-
-    def __init__(self, ids: list[int]) -> None:
-        self.ids = ids
-
-    def reset(self) -> None:
-        pass
-
-    def choose(self, candidates: list[Frame], keyframe_map) -> int:
-        by_id = {int(f.index): i for i, f in enumerate(candidates)}
-        return next(by_id[i] for i in self.ids if i in by_id)
-
-    def params(self) -> dict:
-        return {"ids": self.ids}
-
-
 def test_a_policy_object_replaces_the_named_policy(source: MemoryFrameSource) -> None:
     """``policy=`` (e.g. scripts/pool_bound.py's oracle replay) picks instead of ``config.policy``, in its order,
     and the metrics name it; the initial views stay the split's."""
     cfg = pool_config(policy="random", n_views=7)
     split = split_pool(np.stack([f.T_wc for f in source]), cfg)
     want = [p for p in reversed(split.pool) if p not in split.initial][:3]
-    m = run_pool(source, cfg, mapper_config(), policy=_Replay(want)).metrics
+    m = run_pool(source, cfg, mapper_config(), policy=ReplayPicks(want)).metrics
     assert m["chosen_positions"] == split.initial + want
-    assert m["policy"] == "replay" and m["policy_params"] == {"ids": want}
+    assert m["policy"] == "replay" and m["policy_params"] == {"frame_ids": want}
+    with pytest.raises(InputError, match="none of the 1 replayed frame ids is a candidate"):
+        ReplayPicks([N_FRAMES]).choose([pose_only(f) for f in source], None)
 
 
 def test_pose_only() -> None:

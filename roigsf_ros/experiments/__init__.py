@@ -31,6 +31,7 @@ __all__, __getattr__ = lazy_exports(
             "PoolPolicy",
             "PoolResult",
             "PoolSplit",
+            "ReplayPicks",
             "SCHEDULES",
             "check_pool_params",
             "farthest_point_views",

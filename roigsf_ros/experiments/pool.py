@@ -205,8 +205,8 @@ class PoolResult:
 
 
 class PoolPolicy(Protocol):
-    """What :func:`run_pool` asks of a selection policy: a :class:`StreamNBVPolicy`, or e.g. a replay of given
-    picks (``scripts/pool_bound.py``'s coverage oracle).
+    """What :func:`run_pool` asks of a selection policy: a :class:`StreamNBVPolicy`, or :class:`ReplayPicks` (given
+    views, e.g. ``scripts/pool_bound.py``'s coverage oracle).
     """
 
     mode: str | None
@@ -220,6 +220,33 @@ class PoolPolicy(Protocol):
 
     def params(self) -> dict[str, Any]:
         """The policy's parameters, as the run's metrics record them."""
+
+
+class ReplayPicks:
+    """A pool policy that adds given frames in the given order (by frame id): an oracle's picks or a hand-chosen set,
+    mapped under the pool's schedule.
+    """
+
+    name = "replay"
+    mode: str | None = None
+
+    def __init__(self, frame_ids: Sequence[int]) -> None:
+        self.frame_ids = [int(i) for i in frame_ids]
+
+    def reset(self) -> None:
+        """Nothing is kept between runs."""
+
+    def choose(self, candidates: list[Frame], keyframe_map: Mapper) -> int:
+        """The first of the frame ids still among the candidates; InputError when none is."""
+        by_id = {int(f.index): i for i, f in enumerate(candidates)}
+        for fid in self.frame_ids:
+            if fid in by_id:
+                return by_id[fid]
+        raise InputError("candidates", f"none of the {len(self.frame_ids)} replayed frame ids is a candidate")
+
+    def params(self) -> dict[str, Any]:
+        """The replayed frame ids, in order."""
+        return {"frame_ids": self.frame_ids}
 
 
 SelectHook = Callable[[Mapper, PoolPolicy, list[int], np.ndarray], None]
@@ -409,6 +436,7 @@ __all__ = [
     "PoolPolicy",
     "PoolResult",
     "PoolSplit",
+    "ReplayPicks",
     "check_pool_params",
     "farthest_point_views",
     "make_pool_policy",
