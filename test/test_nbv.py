@@ -548,6 +548,58 @@ def test_unseen_term_ignores_rays_that_miss_the_mapped_region(world: World) -> N
     assert res.unseen[2] == 1.0 and not res.flagged[2]  # without the box every empty pixel counts
 
 
+def test_box_exit_depth_is_where_the_ray_leaves_the_box() -> None:
+    """The depth at which ``unseen_measure="area"`` puts unseen surface: from inside a box, looking down +z, the
+    centre ray leaves through the far face (z = 3) and the corner ray, 32 deg off in x, through the side x = -1
+    first; a box behind the camera is never met (0)."""
+    from roigsf_ros.nbv import box_exit_depth, rays_meet_box
+
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 1.0, 3.0])
+    z = box_exit_depth(np.eye(4), INTR, lo, hi)
+    assert z[INTR.height // 2, INTR.width // 2] == pytest.approx(3.0)
+    assert z[0, 0] == pytest.approx(50.0 / 31.5)  # x = -1 at depth fx / cx
+    assert rays_meet_box(np.eye(4), INTR, lo, hi).all()
+    behind = np.eye(4)
+    behind[:3, 3] = [0.0, 0.0, 4.0]
+    assert not box_exit_depth(behind, INTR, lo, hi).any() and not rays_meet_box(behind, INTR, lo, hi).any()
+
+
+def test_unseen_area_weighs_each_unseen_pixel_by_its_footprint(world: World) -> None:
+    """``unseen_measure="area"``: a map of panel A only, in a TSDF that also holds panel B. A near and a far view of
+    unmapped B both see only unseen pixels (the fractions tie), but the far one shows about 3x the surface; the near
+    one's U is the footprint (z / fx)(z / fy) at the box's far face summed over the image; a view of A's back (the
+    surfel test) puts its unseen surface at the back's rendered depth, 1 m, not at the box's face 4 m farther."""
+    map_a = world.map.select(torch.arange(world.n_a))
+    near = look_at(np.array([-0.9, 0.0, 1.0]), np.array([-2.0, 0.0, 1.0]), UP)
+    far = look_at(np.array([0.6, 0.0, 1.0]), np.array([-2.0, 0.0, 1.0]), UP)
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([near, far, behind])
+    base = NBVConfig(unseen_weight=1.0, unseen_backfaces="surfels")
+    h = NBVScorer().train_fisher(map_a, world.train[:3], INTR)
+    args = (map_a, h, world.tsdf, world.train, cands, INTR)
+    pixels = NBVScorer(base).score(*args).unseen
+    area = NBVScorer(replace(base, unseen_measure="area")).score(*args).unseen
+    assert pixels[0] == pytest.approx(1.0) and pixels[1] == pytest.approx(1.0, abs=0.01)
+    vox = NBVScorer().surface(world.tsdf)
+    z_face = -0.9 - (vox.centres_m[:, 0].min() - 0.1)  # from x = -0.9 to the box's face at x = min - 0.1
+    assert area[0] == pytest.approx(INTR.width * INTR.height * z_face**2 / (INTR.fx * INTR.fy), rel=0.01)
+    assert area[1] > 2.5 * area[0]  # 3.1x: the box's sides cut the far view's edge rays short
+    n_back = pixels[2] * rays_meet_count(behind, vox)
+    assert pixels[2] > 0.7 and area[2] == pytest.approx(n_back / (INTR.fx * INTR.fy), rel=0.1)
+    with pytest.raises(InputError, match="unseen_measure"):
+        NBVConfig(unseen_measure="volume")
+    with pytest.raises(InputError, match="finite unseen_bbox_margin_m"):
+        NBVConfig(unseen_measure="area", unseen_bbox_margin_m=float("inf"))
+
+
+def rays_meet_count(T_wc: np.ndarray, vox: object) -> int:
+    """Pixels of ``T_wc`` whose ray meets the unseen term's box (default margin 0.1 m) around the surface voxels."""
+    from roigsf_ros.nbv import rays_meet_box
+
+    c = vox.centres_m  # type: ignore[attr-defined]
+    return int(rays_meet_box(T_wc, INTR, c.min(0) - 0.1, c.max(0) + 0.1).sum())
+
+
 def test_information_gain_is_eq10_summed_over_the_parameters() -> None:
     """Eq. 10 with the denominators precomputed once per score() call equals the plain per-entry formula."""
     g = torch.Generator().manual_seed(3)

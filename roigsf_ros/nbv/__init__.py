@@ -8,7 +8,7 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
-        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig"],
+        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig", "UNSEEN_MEASURES"],
         "novelty": [
             "NOVELTY_MEASURES",
             "NOVELTY_RADIUS_M",
@@ -42,6 +42,7 @@ __all__, __getattr__ = lazy_exports(
             "SurfaceFacing",
             "UncertaintyMaps",
             "block_mean",
+            "box_exit_depth",
             "check_stop",
             "depth_error_ause",
             "downsampled",

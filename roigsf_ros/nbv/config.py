@@ -14,6 +14,8 @@ MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
 BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
+UNSEEN_MEASURES = ("pixels", "area")
+"""Values of ``NBVConfig.unseen_measure``: what U(x) counts of the unseen pixels."""
 
 
 @dataclass(frozen=True)
@@ -106,10 +108,10 @@ class NBVConfig(Config):
     # ---- beyond the paper (0 / off by default = the paper's method)
     unseen_weight: float = 0.0
     """Weight kappa of a third fused term ``kappa z(U(x))`` of the ROI modes, U(x) the fraction of the candidate's
-    pixels where the map renders accumulated alpha below ``unseen_alpha`` (space the map has not seen). Not in the
-    paper: its ROI and Fisher live only on already-mapped surface, so they cannot pull a room-scale map towards
-    what it has not seen. 0: the paper's Eq. 15. With it on, a candidate that sees no mapped surface but unseen
-    pixels is not flagged."""
+    pixels where the map renders accumulated alpha below ``unseen_alpha`` (space the map has not seen; or the surface
+    they can show, ``unseen_measure``). Not in the paper: its ROI and Fisher live only on already-mapped surface, so
+    they cannot pull a room-scale map towards what it has not seen. 0: the paper's Eq. 15. With it on, a candidate
+    that sees no mapped surface but unseen pixels is not flagged."""
     unseen_alpha: float = 0.5
     """Rendered alpha below which a pixel counts as unseen (GauS-SLAM's silhouette threshold)."""
     unseen_bbox_margin_m: float = 0.1
@@ -133,6 +135,13 @@ class NBVConfig(Config):
     unseen_confirm_margin_m: float = 0.05
     """``unseen_backfaces="unconfirmed"``: a keyframe saw a point when the map's depth rendered at the keyframe lies
     within this of the point's (metres); the mapper's ``densify_depth_margin_m``, within which it seeds nothing new."""
+    unseen_measure: str = "pixels"
+    """What U(x) counts. ``"pixels"``: the fraction of the counted pixels that are unseen. ``"area"``: the unseen
+    surface they can show, in m^2: each unseen pixel weighs (z / fx) (z / fy), its footprint on a plane facing the
+    camera at depth z, with z the farthest the unseen surface can lie: where the ray leaves the box of
+    ``unseen_bbox_margin_m`` (``far_m`` without surface voxels), or the rendered depth of a back face, in front of
+    which the unseen surface lies. The mesh recall counts surface by area, so a far view of an unseen wall shows
+    more of it than a near one, which the pixel fraction scores the same. Needs a finite ``unseen_bbox_margin_m``."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
@@ -177,6 +186,12 @@ class NBVConfig(Config):
             raise InputError(
                 "unseen_backfaces", f"must be one of {', '.join(BACKFACE_TESTS)}, got {self.unseen_backfaces!r}"
             )
+        if self.unseen_measure not in UNSEEN_MEASURES:
+            raise InputError(
+                "unseen_measure", f"must be one of {', '.join(UNSEEN_MEASURES)}, got {self.unseen_measure!r}"
+            )
+        if self.unseen_measure == "area" and not np.isfinite(self.unseen_bbox_margin_m):
+            raise InputError("unseen_measure", "area needs a finite unseen_bbox_margin_m (where an unseen ray ends)")
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
@@ -191,4 +206,4 @@ class NBVConfig(Config):
         return self
 
 
-__all__ = ["BACKFACE_TESTS", "MODES", "NBVConfig"]
+__all__ = ["BACKFACE_TESTS", "MODES", "UNSEEN_MEASURES", "NBVConfig"]

@@ -248,7 +248,8 @@ class NBVResult:
     reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
     unseen: np.ndarray | None = None
-    """[M] fraction of unseen pixels U(x) (``NBVConfig.unseen_weight`` > 0 in the ROI modes), else None."""
+    """[M] U(x), the unseen pixels' fraction or their surface in m^2 (``NBVConfig.unseen_measure``), when
+    ``NBVConfig.unseen_weight`` > 0 in the ROI modes; else None."""
     n_skipped: int = 0
 
 
@@ -629,9 +630,16 @@ class NBVScorer:
                 if seen_by is not None and back.any():
                     back &= ~seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
                 hole |= back
+            exit_m = None  # where each ray leaves the box of the mapped region (0: it never meets it)
             if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
-                meets = rays_meet_box(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
-                                      vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
+                exit_m = box_exit_depth(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
+                                        vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
+            if cfg.unseen_measure == "area":  # m^2 the unseen pixels can show: footprints at the farthest depth
+                far = np.full(hole.shape, cfg.far_m) if exit_m is None else np.minimum(exit_m, cfg.far_m)
+                z = np.where(seen, out.median_depth.cpu().numpy(), far)  # seen holes: the back face's depth
+                unseen[i] = float((np.where(hole, z, 0.0) ** 2).sum() / (intr_f.fx * intr_f.fy))
+            elif exit_m is not None:
+                meets = exit_m > 0
                 unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
             else:
                 unseen[i] = float(hole.mean())
@@ -767,8 +775,15 @@ class SurfaceFacing:
 
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Bool [H, W]: pixels whose viewing ray (from the camera centre, forward) meets the box [lo, hi] (slab test)."""
+    return box_exit_depth(T_wc, intr, lo, hi) > 0
+
+
+def box_exit_depth(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[H, W] depth (m, along the camera's z) at which each pixel's forward ray leaves the box [lo, hi] (slab test);
+    0 where the ray never meets it. Inside a room's box, where the ray meets its walls.
+    """
     u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
-    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)
+    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)  # z = 1: t is depth
     d = d_cam @ np.asarray(T_wc)[:3, :3].T
     o = np.asarray(T_wc)[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -776,7 +791,7 @@ def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.nda
     t1, t2 = np.nan_to_num(t1, nan=-np.inf), np.nan_to_num(t2, nan=np.inf)
     t_near = np.minimum(t1, t2).max(-1)
     t_far = np.maximum(t1, t2).min(-1)
-    return t_far >= np.maximum(t_near, 0.0)
+    return np.where(t_far >= np.maximum(t_near, 0.0), np.maximum(t_far, 0.0), 0.0)
 
 
 def frustum_meets_box(
@@ -867,6 +882,7 @@ __all__ = [
     "SurfaceFacing",
     "UncertaintyMaps",
     "block_mean",
+    "box_exit_depth",
     "check_stop",
     "depth_error_ause",
     "downsampled",
