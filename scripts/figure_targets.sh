@@ -6,6 +6,9 @@
 # `random` re-run beside it (TAG=base25), or, on the fourth and fifth rooms, the one bench that holds all of them:
 #   TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2 SCENES=<s> \
 #       bash scripts/figure_nbv_pool.sh          (and TAG=base25 POLICIES=fisherrf,random; also without SCALE=2)
+# and the same variant with unseen_measure=area (twenty-eighth session, rows pool_*_area): TAG=area
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed:unseen_measure=area, against TAG=base25 on
+#   every scene, the fourth and fifth rooms included.
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -67,6 +70,19 @@ pool synth_120 synth
 pool room1_120 room1
 pool clutter_120 clutter
 pool shelf_120 shelf
+# Twenty-eighth session: the same variant with unseen_measure=area (TAG=area benches), against the same baselines.
+pool_area() {  # pool_area NAME BENCH_PREFIX
+    verdict "pool_$1_area" "runs/bench_pool_$2_area" "runs/bench_pool_$2_base25#fisherrf" \
+        "runs/bench_pool_$2_base25#random"
+}
+for s in office0_240 office0_240_kinect synth_240 room1_240 room2_240 room3_240 room4_240 clutter_240 bins_240 \
+    office0_120; do
+    pool_area "$s" "$s"
+done
+pool_area synth_120 synth
+pool_area room1_120 room1
+pool_area clutter_120 clutter
+pool_area shelf_120 shelf
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
