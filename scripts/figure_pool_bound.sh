@@ -8,7 +8,7 @@
 # re-runs them), then scripts/pool_bound.py --map on the three: the coverage of all pool views, of a greedy
 # max-coverage pick of 20 (the initial views forced: an oracle that knows what every candidate sees) and of each run's
 # views, with the oracle's 20 views and all pool views mapped under the bench's own settings, 3 seeds (MAP= leaves
-# the mapping out: coverage only, about 1 min a scene). Writes
+# the mapping out: coverage only, 6-10 s a scene). Writes
 # runs/pool_bound/<scene>_240/ (bound.json, bound.md, maps/) and runs/pool_bound/bound.md (every table). Measured
 # 2026-11-28 on the 2-core machine: pool_bound.py 7.8 min on the cluttered objects alone, 8-10 min a scene beside
 # another bench; the benches 8-14 min a scene when they are not there.
