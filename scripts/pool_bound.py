@@ -30,7 +30,7 @@ import argparse
 import importlib.util
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -39,10 +39,10 @@ import numpy as np
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path, write_json
-from roigsf_ros.data.sources import open_frames
+from roigsf_ros.data.sources import FrameSequence, open_frames
 from roigsf_ros.evaluation.metrics import to_json_safe
 from roigsf_ros.experiments.bench import read_results
-from roigsf_ros.experiments.pool import PoolConfig, ReplayPicks, run_pool, split_pool
+from roigsf_ros.experiments.pool import PoolConfig, PoolSplit, ReplayPicks, run_pool, split_pool
 from roigsf_ros.mapping.mapper import MapperConfig
 
 
@@ -84,6 +84,52 @@ def same_setup(a: dict[str, Any], b: dict[str, Any], path: Path) -> None:
             raise InputError(path / "results.json", f"field {key!r} differs from the first bench's")
 
 
+@dataclass
+class PoolSetup:
+    """A pool bench's scene, split and settings, rebuilt from its results.json."""
+
+    results: dict[str, Any]
+    pcfg: PoolConfig
+    mcfg: MapperConfig
+    src: FrameSequence
+    scene: Any  # coverage_bound.Scene (scripts/ is no package, so no import for the annotation)
+    split: PoolSplit
+    pool_scene: Any  # the scene's pool frames only, the rows of the observed sets
+    row_of: dict[int, int]  # scene position -> row of the observed sets
+
+
+def load_pool(results: dict[str, Any], bench: Path) -> PoolSetup:
+    """The setup of a pool bench (``results``: its ``read_results``); InputError when it cannot be rebuilt."""
+    pcfg = PoolConfig.from_dict(
+        {k: v for k, v in results["pool_config"].items() if k in PoolConfig.__dataclass_fields__}
+    )
+    mcfg = MapperConfig.from_dict(
+        {k: v for k, v in results["mapper_config"].items() if k in MapperConfig.__dataclass_fields__}
+    )
+    src = open_frames(results["scene"], size=tuple(results["size"]) if results.get("size") else None,
+                      stride=results.get("stride", 1), max_frames=results.get("max_frames"))  # fmt: skip
+    frames = list(src)
+    if src.gt_mesh_path is None:
+        raise InputError(results["scene"], "no mesh.ply (the ground truth) in the scene folder")
+    scene = cb.Scene([int(f.index) for f in frames], np.stack([f.depth_m for f in frames]),
+                     np.stack([f.T_wc for f in frames]), src.intrinsics, Path(results["gt_mesh"]))  # fmt: skip
+    if not pcfg.cull_gt_to_observed:
+        raise InputError(bench / "results.json", "pool_config.cull_gt_to_observed is False: not supported")
+    split = split_pool(scene.poses, pcfg)
+    pool = split.pool
+    pool_scene = replace(scene, ids=[scene.ids[p] for p in pool], depths=scene.depths[pool], poses=scene.poses[pool])
+    return PoolSetup(results, pcfg, mcfg, src, scene, split, pool_scene, {p: j for j, p in enumerate(pool)})
+
+
+def observed(setup: PoolSetup, seed: int, tau_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """GT samples of ``seed`` (as the bench's recall counts them), their observed sets [pool views, samples] from the
+    candidates' true depth, and the number drawn before culling.
+    """
+    gt, n_drawn = cb.gt_samples(setup.scene, setup.pcfg.mesh_samples, seed, setup.mcfg.max_depth_m)
+    lo = max(setup.mcfg.min_depth_m, setup.mcfg.near_m)
+    return gt, cb.observed_sets(setup.pool_scene, gt, tau_m, lo, setup.mcfg.max_depth_m), n_drawn
+
+
 def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None) -> dict[str, Any]:
     """Coverage rows (and with ``do_map`` measured rows) per seed of the benches' shared scene and pool."""
     results = [read_results(b, "pool", ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"),
@@ -91,32 +137,16 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
     for b, r in zip(benches[1:], results[1:], strict=True):
         same_setup(results[0], r, b)
     first = results[0]
-    pcfg = PoolConfig.from_dict({k: v for k, v in first["pool_config"].items() if k in PoolConfig.__dataclass_fields__})
-    mcfg = MapperConfig.from_dict(
-        {k: v for k, v in first["mapper_config"].items() if k in MapperConfig.__dataclass_fields__}
-    )
-    src = open_frames(first["scene"], size=tuple(first["size"]) if first.get("size") else None,
-                      stride=first.get("stride", 1), max_frames=first.get("max_frames"))  # fmt: skip
-    frames = list(src)
-    if src.gt_mesh_path is None:
-        raise InputError(first["scene"], "no mesh.ply (the ground truth) in the scene folder")
-    scene = cb.Scene([int(f.index) for f in frames], np.stack([f.depth_m for f in frames]),
-                     np.stack([f.T_wc for f in frames]), src.intrinsics, Path(first["gt_mesh"]))  # fmt: skip
-    if not pcfg.cull_gt_to_observed:
-        raise InputError(benches[0] / "results.json", "pool_config.cull_gt_to_observed is False: not supported")
-    split = split_pool(scene.poses, pcfg)
+    setup = load_pool(first, benches[0])
+    pcfg, mcfg, src, scene, split, row_of = setup.pcfg, setup.mcfg, setup.src, setup.scene, setup.split, setup.row_of
     pool = split.pool
-    pool_scene = replace(scene, ids=[scene.ids[p] for p in pool], depths=scene.depths[pool], poses=scene.poses[pool])
-    row_of = {p: j for j, p in enumerate(pool)}  # scene position -> row of the observed sets
     k = pcfg.n_views
-    lo = max(mcfg.min_depth_m, mcfg.near_m)
     seeds = sorted({int(r["seed"]) for res in results for r in res["runs"]})
     out: dict[str, Any] = {"benches": [str(b) for b in benches], "scene": first["scene"], "tau_m": tau_m, "n_views": k,
                            "n_pool": len(pool), "initial_positions": split.initial, "seeds": []}  # fmt: skip
     for seed in seeds:
         t0 = time.perf_counter()
-        gt, n_drawn = cb.gt_samples(scene, pcfg.mesh_samples, seed, mcfg.max_depth_m)
-        obs = cb.observed_sets(pool_scene, gt, tau_m, lo, mcfg.max_depth_m)
+        gt, obs, n_drawn = observed(setup, seed, tau_m)
         greedy = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in split.initial], k)]
         order = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in greedy], len(pool))]
 

@@ -93,3 +93,26 @@ def test_bad_benches_are_named(bench: Path, tmp_path: Path, capsys: pytest.Captu
         err = capsys.readouterr().err
         assert all(w in err for w in words), err
     assert not (tmp_path / "x").exists()
+
+
+def test_unseen_vs_gain_compares_each_count_with_the_true_gain_of_the_first_pick(bench: Path, tmp_path: Path) -> None:
+    """scripts/unseen_vs_gain.py: the gains it ranks against are the true coverage steps (the best one equals the
+    largest increase any candidate gives the initial views' coverage), each count's pick gains at most the best, the
+    back faces' share of the area count is a share, and every candidate of the pool is scored."""
+    uv = load_script("unseen_vs_gain")
+    assert uv.main([str(bench), "--out", str(tmp_path / "g"), "--seeds", "1"]) == 0
+    report = json.loads((tmp_path / "g" / "unseen_vs_gain.json").read_text())
+    (s,) = report["seeds"]
+    setup = pb.load_pool(json.loads((bench / "results.json").read_text()), bench)
+    _gt, obs, _n = pb.observed(setup, 1, 0.05)
+    initial = [setup.row_of[p] for p in setup.split.initial]
+    rows = [setup.row_of[p] for p in setup.split.pool if p not in setup.split.initial]
+    base = pb.cb.coverage(obs, initial)
+    assert s["best_gain"] == pytest.approx(max(pb.cb.coverage(obs, [*initial, r]) - base for r in rows), abs=1e-12)
+    assert s["candidates"] == len(rows) and s["best_gain"] > 0
+    for name in ("pixels", "area"):
+        r = s[name]
+        assert 0 <= r["gain_of_pick"] <= s["best_gain"] and 0 <= r["gain_of_max_u"] <= s["best_gain"]
+        assert all(np.isnan(v) or -1 <= v <= 1 for v in (r["rho_u"], r["rho_fused"]))
+    assert 0 <= s["back_share_at_max_area"] <= 1 and 0 <= s["back_share_all"] <= 1
+    assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == 2
