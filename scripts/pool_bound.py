@@ -224,6 +224,15 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_report(out: Path, stem: str, report: dict[str, Any], text: str) -> None:
+    """``out/<stem>.json`` and ``out/<stem>.md`` (each written to a temporary name, then renamed); print ``text``."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{stem}.json", to_json_safe(report))
+    with atomic_path(out / f"{stem}.md") as tmp:
+        tmp.write_text(text)
+    print(text, end="")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse the arguments, measure, write ``bound.json`` and ``bound.md``, print the table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -237,12 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"pool_bound: {e}", file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "bound.json", to_json_safe(report))
-    text = markdown(report)
-    with atomic_path(args.out / "bound.md") as tmp:
-        tmp.write_text(text)
-    print(text, end="")
+    write_report(args.out, "bound", report, markdown(report))
     return 0
 
 

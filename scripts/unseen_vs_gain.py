@@ -27,8 +27,6 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_path, write_json
-from roigsf_ros.evaluation.metrics import to_json_safe
 from roigsf_ros.experiments.bench import read_results
 from roigsf_ros.experiments.pool import make_pool_policy, run_pool
 
@@ -133,12 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"unseen_vs_gain: {e}", file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "unseen_vs_gain.json", to_json_safe(report))
-    text = markdown(report)
-    with atomic_path(args.out / "unseen_vs_gain.md") as tmp:
-        tmp.write_text(text)
-    print(text, end="")
+    pb.write_report(args.out, "unseen_vs_gain", report, markdown(report))
     return 0
 
 
