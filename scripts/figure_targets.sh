@@ -8,7 +8,8 @@
 #       bash scripts/figure_nbv_pool.sh          (and TAG=base25 POLICIES=fisherrf,random; also without SCALE=2)
 # and the same variant with unseen_measure=area (twenty-eighth session, rows pool_*_area): TAG=area
 #   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed:unseen_measure=area, against TAG=base25 on
-#   every scene, the fourth and fifth rooms included.
+#   every scene, the fourth and fifth rooms included; and with unseen_weight=2 (rows pool_*_k2): TAG=k2
+#   POLICIES=roi-gsurfisher:unseen_weight=2:unseen_backfaces=unconfirmed (SCENES=room5 also TAG=unconfirmed, TAG=k4).
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -70,19 +71,26 @@ pool synth_120 synth
 pool room1_120 room1
 pool clutter_120 clutter
 pool shelf_120 shelf
-# Twenty-eighth session: the same variant with unseen_measure=area (TAG=area benches), against the same baselines.
-pool_area() {  # pool_area NAME BENCH_PREFIX
-    verdict "pool_$1_area" "runs/bench_pool_$2_area" "runs/bench_pool_$2_base25#fisherrf" \
-        "runs/bench_pool_$2_base25#random"
+# Twenty-eighth session: the same variant with unseen_measure=area (TAG=area benches) and with unseen_weight=2
+# (TAG=k2, the weight chosen on the sixth room, room5, where TAG=unconfirmed and TAG=k4 ran too), against the same
+# baselines.
+pool_tag() {  # pool_tag TAG NAME BENCH_PREFIX
+    verdict "pool_$2_$1" "runs/bench_pool_$3_$1" "runs/bench_pool_$3_base25#fisherrf" "runs/bench_pool_$3_base25#random"
 }
 for s in office0_240 office0_240_kinect synth_240 room1_240 room2_240 room3_240 room4_240 clutter_240 bins_240 \
     office0_120; do
-    pool_area "$s" "$s"
+    pool_tag area "$s" "$s"
 done
-pool_area synth_120 synth
-pool_area room1_120 room1
-pool_area clutter_120 clutter
-pool_area shelf_120 shelf
+pool_tag area synth_120 synth
+pool_tag area room1_120 room1
+pool_tag area clutter_120 clutter
+pool_tag area shelf_120 shelf
+for tag in unconfirmed k2 k4; do
+    pool_tag "$tag" room5_240 room5_240
+done
+for s in office0_240 synth_240 room3_240 room4_240 clutter_240 bins_240; do
+    pool_tag k2 "$s" "$s"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
