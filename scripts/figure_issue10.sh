@@ -13,7 +13,7 @@
 # a greedy coverage oracle's 20 views and all pool views reach; runs/pool_bound/), and prints each step's wall time.
 # Measured 2026-11-28 on a fresh 2-core machine in a fresh clone: 55 min (30 min for the pool rows, the set-up from
 # nothing included, 25 min for the stream rows), before the pool-bound step (twenty-seventh session: about 8 min a
-# scene, measured on its own) was added.
+# scene, measured on its own) and the area benches (twenty-eighth session: 3-5 min a scene) were added.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
