@@ -38,8 +38,12 @@ COUNTS = {
     "pixels": VARIANT | {"unseen_measure": "pixels"},
     "area": VARIANT | {"unseen_measure": "area"},
     "area_holes": VARIANT | {"unseen_measure": "area", "unseen_backfaces": "none"},
+    "carved": VARIANT | {"unseen_measure": "pixels", "unseen_source": "carved"},
+    "carved_area": VARIANT | {"unseen_measure": "area", "unseen_source": "carved"},
 }
-"""The three ways U is counted here: policy parameters of ``roi-gsurfisher``."""
+"""The ways U is counted here: policy parameters of ``roi-gsurfisher``."""
+RHO_COUNTS = ("pixels", "area", "carved", "carved_area")
+"""The counts whose rho with the gain is reported (``area_holes`` only gives the back faces' share)."""
 
 
 def rho(a: np.ndarray, b: np.ndarray) -> float:
@@ -79,7 +83,7 @@ def measure(bench: Path, seeds: list[int] | None, tau_m: float) -> dict[str, Any
             raise RuntimeError(f"seed {seed}: the three runs scored different candidates")
         gain = np.array([np.count_nonzero(obs[setup.row_of[p]] & ~initial) for p in positions]) / obs.shape[1]
         row: dict[str, Any] = {"seed": seed, "candidates": len(positions), "best_gain": float(gain.max())}
-        for name in ("pixels", "area"):
+        for name in RHO_COUNTS:
             _pos, u, fused, flagged = scored[name]
             ok = ~flagged
             row[name] = {
@@ -110,7 +114,7 @@ def markdown(report: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for s in report["seeds"]:
-        for name in ("pixels", "area"):
+        for name in RHO_COUNTS:
             r = s[name]
             share = f"{s['back_share_all']:.2f} / {s['back_share_at_max_area']:.2f}" if name == "area" else "-"
             gains = f"{r['gain_of_max_u']:.4f} | {r['gain_of_pick']:.4f} | {s['best_gain']:.4f}"

@@ -26,6 +26,7 @@ __all__, __getattr__ = lazy_exports(
             "read_map_meta",
             "valid_depth_mask",
         ],
+        "observed_space": ["FREE", "OCCUPIED", "UNKNOWN", "ObservedSpace"],
         "tsdf": ["SurfaceVoxels", "TSDFVolume", "canonical_mesh", "o3c", "tsdf_mesh_from_depths"],
     },
 )

@@ -16,6 +16,8 @@ BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
 UNSEEN_MEASURES = ("pixels", "area")
 """Values of ``NBVConfig.unseen_measure``: what U(x) counts of the unseen pixels."""
+UNSEEN_SOURCES = ("map", "carved")
+"""Values of ``NBVConfig.unseen_source``: what tells an unseen pixel."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,17 @@ class NBVConfig(Config):
     ``unseen_bbox_margin_m`` (``far_m`` without surface voxels), or the rendered depth of a back face, in front of
     which the unseen surface lies. The mesh recall counts surface by area, so a far view of an unseen wall shows
     more of it than a near one, which the pixel fraction scores the same. Needs a finite ``unseen_bbox_margin_m``."""
+    unseen_source: str = "map"
+    """What tells an unseen pixel. ``"map"``: the map's render (alpha below ``unseen_alpha``, and the back faces of
+    ``unseen_backfaces``). ``"carved"``: the pixel's ray reaches observed surface (or the box's side) through space
+    no keyframe observed, in a grid of ``unseen_voxel_m`` cells over the box of ``unseen_bbox_margin_m``, carved
+    from the map's depth rendered at every keyframe (:class:`~roigsf_ros.mapping.observed_space.ObservedSpace`;
+    unknown space crossed before observed free space does not count). The far side of a surface seen from one side,
+    and what lies behind an object no keyframe looked past, are then unseen without a back-face test
+    (``unseen_backfaces`` is not used), and a hole in the map that keyframes saw through counts as seen;
+    ``unseen_measure="area"`` takes z where the unknown stretch ends. Needs a finite ``unseen_bbox_margin_m``."""
+    unseen_voxel_m: float = 0.05
+    """``unseen_source="carved"``: the cell size of the carved grid (metres)."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
@@ -149,7 +162,7 @@ class NBVConfig(Config):
             raise InputError("mode", f"unknown score mode '{self.mode}' (choose from {', '.join(MODES)})")
         positive = ("epsilon", "delta", "beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
         positive += ("texture_radius_voxels", "roi_max_abs_tsdf_voxels", "near_m", "sigma_p", "phi", "fisherrf_lambda")
-        positive += ("unseen_confirm_margin_m",)
+        positive += ("unseen_confirm_margin_m", "unseen_voxel_m")
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
@@ -192,6 +205,10 @@ class NBVConfig(Config):
             )
         if self.unseen_measure == "area" and not np.isfinite(self.unseen_bbox_margin_m):
             raise InputError("unseen_measure", "area needs a finite unseen_bbox_margin_m (where an unseen ray ends)")
+        if self.unseen_source not in UNSEEN_SOURCES:
+            raise InputError("unseen_source", f"must be one of {', '.join(UNSEEN_SOURCES)}, got {self.unseen_source!r}")
+        if self.unseen_source == "carved" and not np.isfinite(self.unseen_bbox_margin_m):
+            raise InputError("unseen_source", "carved needs a finite unseen_bbox_margin_m (the box of the carved grid)")
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
@@ -206,4 +223,4 @@ class NBVConfig(Config):
         return self
 
 
-__all__ = ["BACKFACE_TESTS", "MODES", "UNSEEN_MEASURES", "NBVConfig"]
+__all__ = ["BACKFACE_TESTS", "MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES", "NBVConfig"]

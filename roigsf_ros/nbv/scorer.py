@@ -41,6 +41,7 @@ from torch import Tensor
 from roigsf_ros.core.camera import Intrinsics, check_pose, depth_points_w, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.evaluation.metrics import ause
+from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory, voxel_keys
 from roigsf_ros.nbv.config import MODES, NBVConfig
@@ -475,10 +476,14 @@ class NBVScorer:
         flagged = np.zeros(m, dtype=bool)
         use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
         unseen = np.ones(m) if use_unseen else None
-        use_facing = use_unseen and cfg.unseen_backfaces == "tsdf" and vox is not None
+        use_facing = use_unseen and cfg.unseen_source == "map" and cfg.unseen_backfaces == "tsdf" and vox is not None
         facing = SurfaceFacing.build(vox, voxel_size) if use_facing else None
+        carved = use_unseen and cfg.unseen_source == "carved"
+        space = None  # unseen_source="carved": the space the keyframes' rendered depth observed, carved once per call
+        if carved and vox is not None and not empty_map:
+            space = carved_space(surfel_map, poses, intr_f, *_unseen_box(vox, cfg), cfg, should_stop)
         seen_by = None  # unseen_backfaces="unconfirmed": the map as each keyframe sees it, rendered once per call
-        if use_unseen and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
+        if use_unseen and not carved and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
             seen_by = KeyframeDepths.render(
                 surfel_map, poses, intr_f, cfg.unseen_confirm_margin_m, cfg.near_m, cfg.far_m, should_stop
             )
@@ -517,7 +522,7 @@ class NBVScorer:
             for j, i in enumerate(chunk):
                 self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
                                         rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
-                                        unseen, facing, seen_by, should_stop, acc)  # fmt: skip
+                                        unseen, facing, seen_by, space, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -586,13 +591,14 @@ class NBVScorer:
         unseen: np.ndarray | None,
         facing: SurfaceFacing | None,
         seen_by: KeyframeDepths | None,
+        space: ObservedSpace | None,
         should_stop: ShouldStop,
         acc: dict[str, np.ndarray],
     ) -> None:
         """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
         ``facing`` (``unseen_backfaces="tsdf"``) and ``unseen_backfaces="surfels"`` also count the pixels that render
         the back of the surface as unseen; ``seen_by`` (``"unconfirmed"``) spares the back pixels a keyframe saw from
-        this side.
+        this side; ``space`` (``unseen_source="carved"``) replaces the map's render by the carved grid.
         """
         cfg = self.config
         ds = cfg.fisher_downsample
@@ -613,7 +619,15 @@ class NBVScorer:
                 fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs,
                                                 params=params, pixel_weights=w, near=cfg.near_m,
                                                 far=cfg.far_m)  # fmt: skip
-        if unseen is not None and len(surfel_map) > 0:
+        if unseen is not None and space is not None:
+            enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
+            hole = enter > 0
+            if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
+                unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
+            else:
+                meets = box_exit_depth(T, intr_f, *_unseen_box(vox, cfg)) > 0
+                unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
+        elif unseen is not None and cfg.unseen_source == "map" and len(surfel_map) > 0:
             m = surfel_map.detach()
             # With the surfel back-face test the render composites which surfels face this camera; else colours.
             by_side = cfg.unseen_backfaces in ("surfels", "unconfirmed")
@@ -632,8 +646,7 @@ class NBVScorer:
                 hole |= back
             exit_m = None  # where each ray leaves the box of the mapped region (0: it never meets it)
             if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
-                exit_m = box_exit_depth(T, intr_f, vox.centres_m.min(0) - cfg.unseen_bbox_margin_m,
-                                        vox.centres_m.max(0) + cfg.unseen_bbox_margin_m)  # fmt: skip
+                exit_m = box_exit_depth(T, intr_f, *_unseen_box(vox, cfg))
             if cfg.unseen_measure == "area":  # m^2 the unseen pixels can show: footprints at the farthest depth
                 far = np.full(hole.shape, cfg.far_m) if exit_m is None else np.minimum(exit_m, cfg.far_m)
                 z = np.where(seen, out.median_depth.cpu().numpy(), far)  # seen holes: the back face's depth
@@ -771,6 +784,39 @@ class SurfaceFacing:
         away = np.einsum("ij,ij->i", self.normals[j], T[:3, 3] - p) < 0.0
         out[v, u] = found & away
         return out
+
+
+def _unseen_box(vox: SurfaceVoxels, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the unseen term's box: the surface voxels' bounding box grown by ``unseen_bbox_margin_m``."""
+    return vox.centres_m.min(0) - cfg.unseen_bbox_margin_m, vox.centres_m.max(0) + cfg.unseen_bbox_margin_m
+
+
+def carved_space(
+    surfel_map: SurfelMap,
+    poses: Sequence[np.ndarray] | np.ndarray,
+    intr: Intrinsics,
+    lo_m: np.ndarray,
+    hi_m: np.ndarray,
+    cfg: NBVConfig,
+    should_stop: ShouldStop = None,
+) -> ObservedSpace:
+    """The box [lo_m, hi_m] carved by the map's median depth rendered at every keyframe pose of ``poses``
+    ([K, 4, 4]) where the map's alpha reaches ``unseen_alpha``, and free up to ``far_m`` where it does not (the map,
+    trained on that keyframe, holds nothing along the ray) (``unseen_source="carved"``); cells of ``unseen_voxel_m``.
+    The planner knows the map, not the frames it was trained on, so it carves what the map shows at the keyframes,
+    as its TSDF fuses it.
+    """
+    pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    depth = np.zeros((len(pose_arr), intr.height, intr.width))
+    if len(surfel_map):
+        m = surfel_map.detach()
+        with torch.no_grad():
+            for k, T in enumerate(pose_arr):
+                check_stop(should_stop)
+                out = render_map(m, T, intr, near=cfg.near_m, far=cfg.far_m, with_distortion=False)
+                alpha = out.alpha.cpu().numpy()
+                depth[k] = np.where(alpha >= cfg.unseen_alpha, out.median_depth.cpu().numpy(), np.inf)
+    return ObservedSpace.carve(lo_m, hi_m, cfg.unseen_voxel_m, pose_arr, depth, intr, cfg.far_m)
 
 
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
