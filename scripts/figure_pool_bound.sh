@@ -3,9 +3,10 @@
 # "What a choice of 20 views can reach"). For each scene of SCENES (default: office0 synth room3 room4 clutter bins,
 # the README table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench (TAG=unconfirmed
 # POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2), the same with unseen_measure=area
-# (TAG=area, twenty-eighth session) and the baselines' (TAG=base25
+# (TAG=area, twenty-eighth session), the unseen term from carved space (TAG=carved POLICIES=roi-gsurfisher:
+# unseen_weight=1:unseen_source=carved, twenty-ninth session) and the baselines' (TAG=base25
 # POLICIES=fisherrf,random SCALE=2), each run by scripts/figure_nbv_pool.sh unless its results.json is there (FORCE=1
-# re-runs them), then scripts/pool_bound.py --map on the three: the coverage of all pool views, of a greedy
+# re-runs them), then scripts/pool_bound.py --map on the four: the coverage of all pool views, of a greedy
 # max-coverage pick of 20 (the initial views forced: an oracle that knows what every candidate sees) and of each run's
 # views, with the oracle's 20 views and all pool views mapped under the bench's own settings, 3 seeds (MAP= leaves
 # the mapping out: coverage only, 6-10 s a scene). Writes
@@ -25,7 +26,8 @@ MD="runs/pool_bound/.bound.md.tmp-$$"
 trap 'rm -f "$MD"' EXIT
 : > "$MD"
 for scene in $SCENES; do
-    for pair in "unconfirmed:$V" "area:$V:unseen_measure=area" "base25:fisherrf,random"; do
+    for pair in "unconfirmed:$V" "area:$V:unseen_measure=area" "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" \
+        "base25:fisherrf,random"; do
         tag=${pair%%:*}
         if [ "${FORCE:-0}" = 1 ] || [ ! -f "runs/bench_pool_${scene}_240_$tag/results.json" ]; then
             TAG=$tag POLICIES="${pair#*:}" SCALE=2 SCENES="$scene" bash scripts/figure_nbv_pool.sh
@@ -33,7 +35,7 @@ for scene in $SCENES; do
     done
     t0=$(date +%s)
     python scripts/pool_bound.py "runs/bench_pool_${scene}_240_unconfirmed" "runs/bench_pool_${scene}_240_area" \
-        "runs/bench_pool_${scene}_240_base25" --out "runs/pool_bound/${scene}_240" ${MAP---map}
+        "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_base25" --out "runs/pool_bound/${scene}_240" ${MAP---map}
     echo "[pool_bound] $scene: $(($(date +%s) - t0)) s"
     cat "runs/pool_bound/${scene}_240/bound.md" >> "$MD"
     echo >> "$MD"

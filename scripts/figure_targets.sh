@@ -9,7 +9,9 @@
 # and the same variant with unseen_measure=area (twenty-eighth session, rows pool_*_area): TAG=area
 #   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed:unseen_measure=area, against TAG=base25 on
 #   every scene, the fourth and fifth rooms included; and with unseen_weight=2 (rows pool_*_k2): TAG=k2
-#   POLICIES=roi-gsurfisher:unseen_weight=2:unseen_backfaces=unconfirmed (SCENES=room5 also TAG=unconfirmed, TAG=k4).
+#   POLICIES=roi-gsurfisher:unseen_weight=2:unseen_backfaces=unconfirmed (SCENES=room5 also TAG=unconfirmed, TAG=k4);
+#   and with the unseen term from carved space (twenty-ninth session, rows pool_*_carved and pool_*_carveda): TAG=carved
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved, and TAG=carveda the same with unseen_measure=area.
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -90,6 +92,14 @@ for tag in unconfirmed k2 k4; do
 done
 for s in office0_240 synth_240 room3_240 room4_240 clutter_240 bins_240; do
     pool_tag k2 "$s" "$s"
+done
+# Twenty-ninth session: the unseen term from carved space (unseen_source=carved), counted as the pixel fraction
+# (TAG=carved) and as area (TAG=carveda), chosen on the shelf and the fifth room, run on the six scenes above.
+for tag in carved carveda; do
+    pool_tag "$tag" shelf_120 shelf
+    for s in room5_240 office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240; do
+        pool_tag "$tag" "$s" "$s"
+    done
 done
 
 S=runs/bench_stream_office0_w13

@@ -2,10 +2,11 @@
 """Does the unseen term follow the surface a candidate would add? Measured at a pool bench's first pick (issue 10).
 
 At the first pick every policy of a pool bench stands on the same map (the same initial views and training, same
-seed). This maps a bench's scene up to that pick three times with the `unconfirmed` variant
+seed). This maps a bench's scene up to that pick five times with the `unconfirmed` variant
 (``roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed``), counting U as the pixel fraction, as the area
-(``unseen_measure=area``) and as the area of the alpha holes alone (``unseen_backfaces=none``, so the difference is
-the back faces' area), and compares each candidate's U with its true gain: the fraction of the GT samples (those the
+(``unseen_measure=area``), as the area of the alpha holes alone (``unseen_backfaces=none``, so the difference is
+the back faces' area), and from the space the keyframes carved (``unseen_source=carved``) as the pixel fraction and
+as the area, and compares each candidate's U with its true gain: the fraction of the GT samples (those the
 bench's recall counts) its true depth observes within ``--tau`` that no initial view observes
 (``pool_bound.observed``). Reported per seed: Spearman's rho of U and of the fused score with the gain over the
 candidates that are not flagged, the true gain of each count's pick (its argmax of U and of the fused score) against
@@ -80,7 +81,7 @@ def measure(bench: Path, seeds: list[int] | None, tau_m: float) -> dict[str, Any
         scored = {name: first_pick(setup, seed, params) for name, params in COUNTS.items()}
         positions = scored["pixels"][0]
         if any(s[0] != positions for s in scored.values()):
-            raise RuntimeError(f"seed {seed}: the three runs scored different candidates")
+            raise RuntimeError(f"seed {seed}: the runs scored different candidates")
         gain = np.array([np.count_nonzero(obs[setup.row_of[p]] & ~initial) for p in positions]) / obs.shape[1]
         row: dict[str, Any] = {"seed": seed, "candidates": len(positions), "best_gain": float(gain.max())}
         for name in RHO_COUNTS:

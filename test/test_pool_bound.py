@@ -110,9 +110,9 @@ def test_unseen_vs_gain_compares_each_count_with_the_true_gain_of_the_first_pick
     base = pb.cb.coverage(obs, initial)
     assert s["best_gain"] == pytest.approx(max(pb.cb.coverage(obs, [*initial, r]) - base for r in rows), abs=1e-12)
     assert s["candidates"] == len(rows) and s["best_gain"] > 0
-    for name in ("pixels", "area"):
+    for name in uv.RHO_COUNTS:
         r = s[name]
         assert 0 <= r["gain_of_pick"] <= s["best_gain"] and 0 <= r["gain_of_max_u"] <= s["best_gain"]
         assert all(np.isnan(v) or -1 <= v <= 1 for v in (r["rho_u"], r["rho_fused"]))
     assert 0 <= s["back_share_at_max_area"] <= 1 and 0 <= s["back_share_all"] <= 1
-    assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == 2
+    assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == len(uv.RHO_COUNTS) == 4
