@@ -134,6 +134,28 @@ def test_greedy_picks_are_scorer_argmax(source: MemoryFrameSource) -> None:
     assert np.isfinite(m["psnr"]) and np.isfinite(m["ssim"]) and m["depth_l1_cm"] > 0
 
 
+def test_carved_unseen_term_reaches_the_scorer_with_the_keyframes(source: MemoryFrameSource) -> None:
+    """``unseen_source=carved`` as a policy parameter (``roigsf bench --policies roi-gsurfisher:unseen_weight=1:
+    unseen_source=carved``): each pick is the scorer's argmax with the same options on the same map and keyframes,
+    whose depth carves the grid (an empty keyframe list would leave every pixel unseen and U flat)."""
+    params = {"close_front_exact": True, "unseen_weight": 1.0, "unseen_source": "carved"}
+    cfg = pool_config(policy="roi-gsurfisher", policy_params=params)
+    expected: list[int] = []
+    spreads: list[float] = []
+
+    def hook(mapper, policy, cand_positions, cand_poses) -> None:
+        policy.sync_tsdf(mapper)
+        res = NBVScorer(NBVConfig(mode="roi-gsurfisher", **params)).score(
+            mapper.map, mapper.h_train, policy.tsdf, mapper.keyframe_poses, cand_poses, mapper.intr
+        )
+        expected.append(cand_positions[res.best_index])
+        spreads.append(float(np.ptp(res.unseen[~res.flagged])))
+
+    m = run_pool(source, cfg, mapper_config(), on_select=hook).metrics
+    assert m["chosen_positions"][4:] == expected and m["policy_params"].items() >= params.items()
+    assert all(s > 0.05 for s in spreads)  # U tells the candidates apart
+
+
 def test_seeds_reproduce_and_random_differs(source: MemoryFrameSource, tmp_path) -> None:
     cfg = pool_config(policy="random", n_views=8, seed=3)
     gt = tmp_path / "gt.ply"
