@@ -516,7 +516,7 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     A sees nothing unseen; the view of A's back does (no keyframe looked at it: the space behind A is unknown) with no
     back-face test; once a keyframe behind A looked at it, the space in front of its back is carved and U falls.
     The scorer's U is the carved grid's own count, and the area measure puts the surface where the unknown ends."""
-    from roigsf_ros.nbv.scorer import carved_space
+    from roigsf_ros.nbv import carved_space
 
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
     cands = np.stack([world.view_a, behind])

@@ -1,20 +1,19 @@
 """Which space a set of depth maps has observed: a dense voxel grid of unknown, free and occupied cells.
 
-The NBV's unseen term with ``NBVConfig.unseen_source="carved"`` asks, for each pixel of a candidate view, whether
-its ray reaches observed surface (or the box's side) through space no keyframe has observed: there a new view may show
-new surface.
-The TSDF cannot answer it: open3d's voxel-block grid allocates blocks only within the truncation band of observed
-surfaces, so free space far from a surface and space never seen look the same (unallocated). OctoMap is the field's
-library for such a grid, but it is not among this project's dependencies (no wheel in its pinned set), and the grid
-needed here is small: one box, three states, rebuilt from the keyframes' depth at each scoring call, carved by
-straight ray marching in two numba kernels.
+The NBV's unseen term with ``NBVConfig.unseen_source="carved"`` asks, for each pixel of a candidate view, whether its
+ray reaches observed surface (or the box's side) through space no keyframe has observed: there a new view may show new
+surface. The TSDF cannot answer it: open3d's voxel-block grid allocates blocks only within the truncation band of
+observed surfaces, so free space far from a surface and space never seen look the same (unallocated). OctoMap is the
+field's library for such a grid, but it is not among this project's dependencies, and the grid needed here is small:
+one box, three states, rebuilt from the keyframes' depth at each scoring call, carved by straight ray marching in two
+numba kernels.
 
 Carving is deterministic whatever the thread schedule: every keyframe's rays first mark the cells in front of their
-depth FREE (only cells still UNKNOWN), then every keyframe's rays mark the cells from their depth to one voxel behind it
-OCCUPIED, so a cell some keyframe saw as surface stays occupied whichever order the rays ran in (and the free pass
-can run right up to each depth). The band behind the
-surface keeps candidate rays from slipping between sampled hits; the space behind it stays unknown, so a ray from
-behind a surface seen from one side meets unknown space first: its far side counts as unseen.
+depth FREE (only cells still UNKNOWN), then every keyframe's rays mark the cells from their depth to one voxel behind
+it OCCUPIED, so a cell some keyframe saw as surface stays occupied whichever order the rays ran in (and the free pass
+can run right up to each depth). The band behind the surface keeps candidate rays from slipping between sampled hits;
+the space behind it stays unknown, so a ray from behind a surface seen from one side meets unknown space first: its
+far side counts as unseen.
 """
 
 from __future__ import annotations
@@ -227,3 +226,6 @@ class ObservedSpace:
                 _KERNELS[name](*args)
         else:
             {"carve": _k_carve, "unseen": _k_unseen}[name](*args)
+
+
+__all__ = ["FREE", "OCCUPIED", "UNKNOWN", "ObservedSpace"]

@@ -43,6 +43,7 @@ __all__, __getattr__ = lazy_exports(
             "UncertaintyMaps",
             "block_mean",
             "box_exit_depth",
+            "carved_space",
             "check_stop",
             "depth_error_ause",
             "downsampled",

@@ -929,6 +929,7 @@ __all__ = [
     "UncertaintyMaps",
     "block_mean",
     "box_exit_depth",
+    "carved_space",
     "check_stop",
     "depth_error_ause",
     "downsampled",
