@@ -9,9 +9,10 @@
 # The same commands as the README's tables (scripts/figure_nbv_pool.sh with TAG=unconfirmed / TAG=base25,
 # scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
 # into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
-# Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,area,carved,base25}/, runs/bench_stream_office0_w13/<row>/,
-# runs/targets/ (targets.md: every verdict), then scripts/figure_pool_bound.sh on the three pool scenes' benches (what
-# a greedy coverage oracle's 20 views and all pool views reach; runs/pool_bound/), and prints each step's wall time.
+# Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,area,carved,base25}/,
+# runs/bench_stream_office0_w13/<row>/, runs/targets/ (targets.md: every verdict), then scripts/figure_pool_bound.sh
+# on the three pool scenes' benches (what a greedy coverage oracle's 20 views and all pool views reach;
+# runs/pool_bound/), and prints each step's wall time.
 # Measured 2026-11-28 on a fresh 2-core machine in a fresh clone: 55 min (30 min for the pool rows, the set-up from
 # nothing included, 25 min for the stream rows), before the pool-bound step (twenty-seventh session: about 8 min a
 # scene, measured on its own), the area benches (twenty-eighth session: 3-5 min a scene) and the carved benches

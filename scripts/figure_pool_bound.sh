@@ -26,8 +26,8 @@ MD="runs/pool_bound/.bound.md.tmp-$$"
 trap 'rm -f "$MD"' EXIT
 : > "$MD"
 for scene in $SCENES; do
-    for pair in "unconfirmed:$V" "area:$V:unseen_measure=area" "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" \
-        "base25:fisherrf,random"; do
+    for pair in "unconfirmed:$V" "area:$V:unseen_measure=area" \
+        "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "base25:fisherrf,random"; do
         tag=${pair%%:*}
         if [ "${FORCE:-0}" = 1 ] || [ ! -f "runs/bench_pool_${scene}_240_$tag/results.json" ]; then
             TAG=$tag POLICIES="${pair#*:}" SCALE=2 SCENES="$scene" bash scripts/figure_nbv_pool.sh
@@ -35,7 +35,8 @@ for scene in $SCENES; do
     done
     t0=$(date +%s)
     python scripts/pool_bound.py "runs/bench_pool_${scene}_240_unconfirmed" "runs/bench_pool_${scene}_240_area" \
-        "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_base25" --out "runs/pool_bound/${scene}_240" ${MAP---map}
+        "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_base25" \
+        --out "runs/pool_bound/${scene}_240" ${MAP---map}
     echo "[pool_bound] $scene: $(($(date +%s) - t0)) s"
     cat "runs/pool_bound/${scene}_240/bound.md" >> "$MD"
     echo >> "$MD"
