@@ -120,16 +120,21 @@ def _request(poses: np.ndarray | list[np.ndarray], frame_id: str = "map", mode: 
 
 
 # ---------------------------------------------------------------------------------------- planner
-def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+@pytest.mark.parametrize("params", [{}, {"unseen_weight": 1.0, "unseen_source": "carved"}], ids=["paper", "carved"])
+def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped: Mapper, params: dict) -> None:
+    """The planner's service answers as the library scores, in the paper's mode and with an option beyond it set as
+    ROS parameters (the carved unseen term, which needs the keyframe poses the shared map carries)."""
     frames, _ = scene
     cands = [frames[i].T_wc for i in (1, 2, 5, 10, 11)]
     # The library's own path: the stream policy's TSDF of rendered depth at the keyframes, its scorer.
-    policy = make_policy("roi-gsurfisher")
+    policy = make_policy("roi-gsurfisher", **params)
     policy.sync_tsdf(mapped)
     scorer = NBVScorer(policy.config)
     offline = scorer.score(mapped.map, mapped.h_train, policy.tsdf, mapped.keyframe_poses, cands, INTR)
+    assert (offline.unseen is not None) == bool(params)
 
-    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped), parameter_overrides=overrides)
     client_node = Node("nbv_test_client", context=ros_context)
     best_poses: list[PoseStamped] = []
     client_node.create_subscription(PoseStamped, "/nbv_planner/best_view", best_poses.append, latched_qos())
