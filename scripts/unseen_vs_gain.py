@@ -4,14 +4,15 @@
 At the first pick every policy of a pool bench stands on the same map (the same initial views and training, same
 seed). This maps a bench's scene up to that pick five times with the `unconfirmed` variant
 (``roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed``), counting U as the pixel fraction, as the area
-(``unseen_measure=area``), as the area of the alpha holes alone (``unseen_backfaces=none``, so the difference is
-the back faces' area), and from the space the keyframes carved (``unseen_source=carved``) as the pixel fraction and
-as the area, and compares each candidate's U with its true gain: the fraction of the GT samples (those the
-bench's recall counts) its true depth observes within ``--tau`` that no initial view observes
-(``pool_bound.observed``). Reported per seed: Spearman's rho of U and of the fused score with the gain over the
-candidates that are not flagged, the true gain of each count's pick (its argmax of U and of the fused score) against
-the best gain, and the share of the area count that comes from back faces, over all candidates and at the argmax of U.
-Writes ``unseen_vs_gain.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
+(``unseen_measure=area``), as the area of the alpha holes alone (``unseen_backfaces=none``, so the difference is the
+back faces' area), and, in place of the map's render, from the space the keyframes carved (``unseen_source=carved``,
+which has no back-face test) as the pixel fraction and as the area, and compares each candidate's U with its true
+gain: the fraction of the GT samples (those the bench's recall counts) its true depth observes within ``--tau`` that
+no initial view observes (``pool_bound.observed``). Reported per seed: Spearman's rho of U and of the fused score
+with the gain over the candidates that are not flagged, the true gain of each count's pick (its argmax of U and of
+the fused score) against the best gain, and the share of the area count that comes from back faces, over all
+candidates and at the argmax of U. Writes ``unseen_vs_gain.json`` and ``.md`` under ``--out`` (atomically) and prints
+the table.
 
     .venv/bin/python scripts/unseen_vs_gain.py runs/bench_pool_clutter_240_area --out runs/s28/gain_clutter --seeds 0
 """

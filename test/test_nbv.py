@@ -516,7 +516,7 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     A sees nothing unseen; the view of A's back does (no keyframe looked at it: the space behind A is unknown) with no
     back-face test; once a keyframe behind A looked at it, the space in front of its back is carved and U falls.
     The scorer's U is the carved grid's own count, and the area measure puts the surface where the unknown ends."""
-    from roigsf_ros.nbv import carved_space
+    from roigsf_ros.nbv import carved_space, rays_meet_box
 
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
     cands = np.stack([world.view_a, behind])
@@ -531,7 +531,8 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     lo, hi = vox.centres_m.min(0) - 0.1, vox.centres_m.max(0) + 0.1
     space = carved_space(world.map, world.train, INTR, lo, hi, cfg)
     enter, leave = space.unseen_depths(behind, INTR, cfg.near_m, cfg.far_m)
-    assert u[1] == pytest.approx(((enter > 0) & rays_meet_box_of(behind, lo, hi)).sum() / rays_meet_count(behind, vox))
+    meets = rays_meet_box(behind, INTR, lo, hi)
+    assert u[1] == pytest.approx(((enter > 0) & meets).sum() / rays_meet_count(behind, vox))
     c = (INTR.height // 2, INTR.width // 2)
     assert leave[c] == pytest.approx(1.0, abs=0.1)  # A's back lies 1 m from the camera
     area = unseen(replace(cfg, unseen_measure="area"), world.train)
@@ -544,13 +545,6 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_source="carved", unseen_bbox_margin_m=float("inf"))
     with pytest.raises(InputError, match="unseen_voxel_m"):
         NBVConfig(unseen_voxel_m=0.0)
-
-
-def rays_meet_box_of(T_wc: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Bool [H, W] of :func:`~roigsf_ros.nbv.rays_meet_box` at ``INTR``."""
-    from roigsf_ros.nbv import rays_meet_box
-
-    return rays_meet_box(T_wc, INTR, lo, hi)
 
 
 def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:

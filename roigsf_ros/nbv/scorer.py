@@ -625,7 +625,7 @@ class NBVScorer:
             if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
                 unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
             else:
-                meets = box_exit_depth(T, intr_f, *_unseen_box(vox, cfg)) > 0
+                meets = rays_meet_box(T, intr_f, *_unseen_box(vox, cfg))
                 unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
         elif unseen is not None and cfg.unseen_source == "map" and len(surfel_map) > 0:
             m = surfel_map.detach()
@@ -702,14 +702,8 @@ class KeyframeDepths:
         """Render ``surfel_map``'s median depth at every pose of ``poses`` ([K, 4, 4]); ``should_stop`` is checked
         before each render.
         """
-        m = surfel_map.detach()
         pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-        depth = np.zeros((len(pose_arr), intr.height, intr.width))
-        with torch.no_grad():
-            for k, T in enumerate(pose_arr):
-                check_stop(should_stop)
-                out = render_map(m, T, intr, near=near_m, far=far_m, with_distortion=False)
-                depth[k] = out.median_depth.cpu().numpy()
+        depth, _alpha = _keyframe_renders(surfel_map, pose_arr, intr, near_m, far_m, should_stop)
         return cls(pose_arr, depth, intr, float(margin_m))
 
     def confirmed(self, T_wc: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -807,16 +801,33 @@ def carved_space(
     as its TSDF fuses it.
     """
     pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    depth = np.zeros((len(pose_arr), intr.height, intr.width))
+    depth, alpha = _keyframe_renders(surfel_map, pose_arr, intr, cfg.near_m, cfg.far_m, should_stop)
+    depth = np.where(alpha >= cfg.unseen_alpha, depth, np.inf)
+    return ObservedSpace.carve(lo_m, hi_m, cfg.unseen_voxel_m, pose_arr, depth, intr, cfg.far_m)
+
+
+def _keyframe_renders(
+    surfel_map: SurfelMap,
+    poses: np.ndarray,
+    intr: Intrinsics,
+    near_m: float,
+    far_m: float,
+    should_stop: ShouldStop = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """([K, H, W], [K, H, W]) the map's median depth (camera z, metres; 0 where nothing renders) and alpha rendered
+    at each pose of ``poses`` [K, 4, 4]; zeros for an empty map. ``should_stop`` is checked before each render.
+    """
+    depth = np.zeros((len(poses), intr.height, intr.width))
+    alpha = np.zeros_like(depth)
     if len(surfel_map):
         m = surfel_map.detach()
         with torch.no_grad():
-            for k, T in enumerate(pose_arr):
+            for k, T in enumerate(poses):
                 check_stop(should_stop)
-                out = render_map(m, T, intr, near=cfg.near_m, far=cfg.far_m, with_distortion=False)
-                alpha = out.alpha.cpu().numpy()
-                depth[k] = np.where(alpha >= cfg.unseen_alpha, out.median_depth.cpu().numpy(), np.inf)
-    return ObservedSpace.carve(lo_m, hi_m, cfg.unseen_voxel_m, pose_arr, depth, intr, cfg.far_m)
+                out = render_map(m, T, intr, near=near_m, far=far_m, with_distortion=False)
+                depth[k] = out.median_depth.cpu().numpy()
+                alpha[k] = out.alpha.cpu().numpy()
+    return depth, alpha
 
 
 def rays_meet_box(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
