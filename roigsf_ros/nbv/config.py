@@ -155,6 +155,11 @@ class NBVConfig(Config):
     ``unseen_measure="area"`` takes z where the unknown stretch ends. Needs a finite ``unseen_bbox_margin_m``."""
     unseen_voxel_m: float = 0.05
     """``unseen_source="carved"``: the cell size of the carved grid (metres)."""
+    unseen_min_std: float = 0.0
+    """Floor of the divisor of z(U), in U's units (a fraction of the pixels, or m^2 with ``unseen_measure="area"``):
+    ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a few pixels, and a plain
+    z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
+    counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
 
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
@@ -173,6 +178,7 @@ class NBVConfig(Config):
             "roi_min_weight",
             "occlusion_tol_voxels",
             "unseen_weight",
+            "unseen_min_std",
             "frontier_weight",
         ):
             v = getattr(self, name)

@@ -69,8 +69,9 @@ def check_stop(should_stop: ShouldStop) -> None:
 
 
 # ------------------------------------------------------------------------------------ fusion
-def zscore(x: np.ndarray) -> np.ndarray:
-    """Z-scores of a score vector [M]; a (numerically) constant vector gives zeros, never NaN."""
+def zscore(x: np.ndarray, min_std: float = 0.0) -> np.ndarray:
+    """Z-scores of a score vector [M]; a (numerically) constant vector gives zeros, never NaN. ``min_std`` floors the
+    divisor: a spread below it counts as less than one standard unit (``NBVConfig.unseen_min_std``)."""
     a = np.asarray(x, dtype=np.float64).reshape(-1)
     if a.size == 0:
         return a.copy()
@@ -80,7 +81,7 @@ def zscore(x: np.ndarray) -> np.ndarray:
     if spread <= 1e-12 * max(float(np.abs(a).max()), 1e-300):
         return np.zeros_like(a)
     centred = a - a.mean()
-    return centred / np.sqrt(np.mean(centred**2))
+    return centred / max(float(np.sqrt(np.mean(centred**2))), float(min_std))
 
 
 def fuse_scores(fisher: np.ndarray, close_front: np.ndarray, epsilon: float = 0.4, delta: float = 0.6) -> np.ndarray:
@@ -550,7 +551,7 @@ class NBVScorer:
         else:
             fused[ok] = zscore(fisher[ok])
         if unseen is not None:
-            fused[ok] = fused[ok] + cfg.unseen_weight * zscore(unseen[ok])
+            fused[ok] = fused[ok] + cfg.unseen_weight * zscore(unseen[ok], cfg.unseen_min_std)
         if not np.all(np.isfinite(fused)):  # defensive: scores are built finite
             raise InputError("scores", "non-finite fused score")
         if flagged.all() and not reasons:
