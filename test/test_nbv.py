@@ -21,6 +21,7 @@ from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import (
+    NBVResult,
     NBVScorer,
     SurfaceFacing,
     block_mean,
@@ -58,6 +59,11 @@ def test_zscore_is_finite_and_constant_inputs_give_zero() -> None:
     assert zscore(np.zeros(0)).shape == (0,)
     with pytest.raises(InputError, match="non-finite"):
         zscore(np.array([1.0, np.nan]))
+    # A floor under the divisor: spreads above it are plain z-scores, spreads below it count for less.
+    x = np.array([1.0, 2.0, 3.0, 10.0])
+    np.testing.assert_array_equal(zscore(x, min_std=x.std() / 2), zscore(x))
+    np.testing.assert_allclose(zscore(x, min_std=4 * x.std()), (x - x.mean()) / (4 * x.std()))
+    assert np.all(zscore(np.full(3, 0.2), min_std=1.0) == 0.0)
     # Fusion (Eq. 15): scale-invariant per term; a constant term contributes nothing.
     f, i = np.array([1.0, 5.0, 3.0]), np.array([2.0, 2.0, 2.0])
     np.testing.assert_allclose(fuse_scores(f, i), 0.4 * zscore(f))
@@ -545,6 +551,40 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_source="carved", unseen_bbox_margin_m=float("inf"))
     with pytest.raises(InputError, match="unseen_voxel_m"):
         NBVConfig(unseen_voxel_m=0.0)
+
+
+def test_unseen_min_std_floors_only_the_unseen_terms_divisor(world: World) -> None:
+    """``unseen_min_std``: the unseen term is ``kappa (U - mean U) / max(std U, floor)`` over the scored candidates,
+    beside the paper's unchanged Eq. 15. Floor 0 is the plain z-score; a floor far above U's spread leaves the paper's
+    ranking, so Fisher and close-front decide when the candidates' U hardly differ."""
+    cands = np.stack(
+        [
+            world.view_a,
+            look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP),
+            look_at(np.array([-0.5, 0.6, 1.2]), np.array([2.0, 0.0, 1.0]), UP),
+            look_at(np.array([0.2, -0.7, 0.9]), np.array([2.0, 0.3, 1.0]), UP),
+            look_at(np.array([0.8, 0.1, 1.0]), np.array([2.0, -0.4, 1.1]), UP),
+        ]
+    )
+
+    def scored(config: NBVConfig) -> NBVResult:
+        return NBVScorer(config).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+
+    paper = scored(NBVConfig())
+    plain = scored(NBVConfig(unseen_weight=2.0))
+    ok = ~plain.flagged
+    u = plain.unseen[ok]
+    assert ok.sum() >= 3 and u.std() > 0
+    np.testing.assert_allclose(plain.fused[ok], paper.fused[ok] + 2.0 * zscore(u), atol=1e-9)
+    for floor in (u.std() / 2, 3 * u.std()):
+        floored = scored(NBVConfig(unseen_weight=2.0, unseen_min_std=float(floor)))
+        np.testing.assert_array_equal(floored.unseen, plain.unseen)
+        expect = paper.fused[ok] + 2.0 * (u - u.mean()) / max(u.std(), floor)
+        np.testing.assert_allclose(floored.fused[ok], expect, atol=1e-9)
+    far_above = scored(NBVConfig(unseen_weight=2.0, unseen_min_std=1e6))
+    np.testing.assert_array_equal(far_above.ranking, paper.ranking)
+    with pytest.raises(InputError, match="unseen_min_std"):
+        NBVConfig(unseen_min_std=-0.01)
 
 
 def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:
