@@ -71,7 +71,8 @@ def check_stop(should_stop: ShouldStop) -> None:
 # ------------------------------------------------------------------------------------ fusion
 def zscore(x: np.ndarray, min_std: float = 0.0) -> np.ndarray:
     """Z-scores of a score vector [M]; a (numerically) constant vector gives zeros, never NaN. ``min_std`` floors the
-    divisor: a spread below it counts as less than one standard unit (``NBVConfig.unseen_min_std``)."""
+    divisor: a spread below it counts as less than one standard unit (``NBVConfig.unseen_min_std``).
+    """
     a = np.asarray(x, dtype=np.float64).reshape(-1)
     if a.size == 0:
         return a.copy()
