@@ -11,7 +11,9 @@
 #   every scene, the fourth and fifth rooms included; and with unseen_weight=2 (rows pool_*_k2): TAG=k2
 #   POLICIES=roi-gsurfisher:unseen_weight=2:unseen_backfaces=unconfirmed (SCENES=room5 also TAG=unconfirmed, TAG=k4);
 #   and with the unseen term from carved space (twenty-ninth session, rows pool_*_carved and pool_*_carveda): TAG=carved
-#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved, and TAG=carveda the same with unseen_measure=area.
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved, and TAG=carveda the same with unseen_measure=area;
+#   and (thirtieth session, rows pool_*_floor003, pool_*_floor01, pool_*_cell025) TAG=floor003 / TAG=floor01 the same
+#   with :unseen_min_std=0.003 / 0.01 (tuning scenes only), TAG=cell025 the same with :unseen_voxel_m=0.025.
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -100,6 +102,16 @@ for tag in carved carveda; do
     for s in room5_240 office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240; do
         pool_tag "$tag" "$s" "$s"
     done
+done
+# Thirtieth session: a floor under z(U)'s divisor (TAG=floor003, TAG=floor01: unseen_min_std 0.003, 0.01) on the two
+# tuning scenes only (it lost there), and 2.5 cm carved cells (TAG=cell025: unseen_voxel_m=0.025, chosen there), run
+# on the six scenes above.
+for tag in floor003 floor01 cell025; do
+    pool_tag "$tag" shelf_120 shelf
+    pool_tag "$tag" room5_240 room5_240
+done
+for s in office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240; do
+    pool_tag cell025 "$s" "$s"
 done
 
 S=runs/bench_stream_office0_w13

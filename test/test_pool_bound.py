@@ -116,3 +116,29 @@ def test_unseen_vs_gain_compares_each_count_with_the_true_gain_of_the_first_pick
         assert all(np.isnan(v) or -1 <= v <= 1 for v in (r["rho_u"], r["rho_fused"]))
     assert 0 <= s["back_share_at_max_area"] <= 1 and 0 <= s["back_share_all"] <= 1
     assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == len(uv.RHO_COUNTS) == 4
+
+
+def test_unseen_spread_records_each_scoring_call_and_restores_the_scorer(bench: Path, tmp_path: Path) -> None:
+    """scripts/unseen_spread.py: one record per pick after the initial views (the pool's only scoring calls), each
+    with U's spread over the scored candidates and the pick's U inside its range; the scorer is unwrapped afterwards,
+    even when the bench fails."""
+    from roigsf_ros.nbv.scorer import NBVScorer
+
+    us = load_script("unseen_spread")
+    original = NBVScorer.score
+    scene = bench.parent / "scene"
+    args = ["--scene", str(scene), "--setting", "pool", "--seeds", "1", "--overwrite", "--set", "densify_stride=2",
+            "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15", "--pool-set", "n_views=6",
+            "--pool-set", "initial_iters=6", "--pool-set", "iters_per_view=2", "--pool-set", "mesh_samples=3000",
+            "--policies", "roi-gsurfisher:unseen_weight=1", "--out", str(tmp_path / "b")]  # fmt: skip
+    assert us.main(["--out", str(tmp_path / "spread.json"), "--", *args]) == 0
+    assert NBVScorer.score is original
+    calls = json.loads((tmp_path / "spread.json").read_text())["calls"]
+    assert len(calls) == 2  # 6 views, 4 of them initial
+    for c in calls:
+        assert c["candidates"] > 2 and c["u_std"] >= 0
+        assert c["u_min"] <= c["u_mean"] <= c["u_max"] and c["u_min"] <= c["u_of_pick"] <= c["u_max"]
+        assert not c["pick_is_u_argmax"] or c["u_of_pick"] == c["u_max"]
+    assert us.main(["--out", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"), "--setting",
+                    "pool", "--policies", "random", "--out", str(tmp_path / "c")]) != 0  # fmt: skip
+    assert NBVScorer.score is original and not (tmp_path / "bad.json").exists()
