@@ -45,13 +45,13 @@
 # SCENES=room5 (a sixth room, made to choose the unseen term's weight on a room) with TAG=base25, TAG=unconfirmed and
 # TAG=k2 / TAG=k4 (POLICIES=roi-gsurfisher:unseen_weight=2 / =4:unseen_backfaces=unconfirmed), then TAG=k2 with SCENES=
 # clutter, synth, room3, office0, room4, bins.
-# Twenty-ninth session: TAG=carved POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved and TAG=carveda (the
-# same with :unseen_measure=area), SCENES=shelf, then SCALE=2 SCENES=room5 (the two tuning scenes), then SCALE=2 with
-# SCENES=office0, synth, clutter, room4, bins, room3 (3-7 min each).
-# Thirtieth session: TAG=floor003 / TAG=floor01 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:
-# unseen_min_std=0.003 / =0.01 and TAG=cell025 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:
-# unseen_voxel_m=0.025 with SCENES=shelf, then SCALE=2 SCENES=room5 (the tuning scenes; 1-4 min each); then TAG=cell025
-# with SCALE=2 and SCENES=clutter, office0, synth, room4, bins, room3.
+# Twenty-ninth session: TAG=carved POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05
+# (the default cell then) and TAG=carveda (the same with :unseen_measure=area), SCENES=shelf, then SCALE=2
+# SCENES=room5 (the two tuning scenes), then SCALE=2 with SCENES=office0, synth, clutter, room4, bins, room3 (3-7 min
+# each). Thirtieth session: TAG=floor003 / TAG=floor01 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:
+# unseen_voxel_m=0.05:unseen_min_std=0.003 / =0.01 and TAG=cell025 POLICIES=roi-gsurfisher:unseen_weight=1:
+# unseen_source=carved:unseen_voxel_m=0.025 with SCENES=shelf, then SCALE=2 SCENES=room5 (the tuning scenes; 1-4 min
+# each); then TAG=cell025 with SCALE=2 and SCENES=clutter, office0, synth, room4, bins, room3 (3-5 min each).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

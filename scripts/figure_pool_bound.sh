@@ -4,9 +4,10 @@
 # the README table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench (TAG=unconfirmed
 # POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2), the same with unseen_measure=area
 # (TAG=area, twenty-eighth session), the unseen term from carved space (TAG=carved POLICIES=roi-gsurfisher:
-# unseen_weight=1:unseen_source=carved, twenty-ninth session) and the baselines' (TAG=base25
+# unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05, twenty-ninth session; TAG=cell025 the same with
+# unseen_voxel_m=0.025, thirtieth session) and the baselines' (TAG=base25
 # POLICIES=fisherrf,random SCALE=2), each run by scripts/figure_nbv_pool.sh unless its results.json is there (FORCE=1
-# re-runs them), then scripts/pool_bound.py --map on the four: the coverage of all pool views, of a greedy
+# re-runs them), then scripts/pool_bound.py --map on the five: the coverage of all pool views, of a greedy
 # max-coverage pick of 20 (the initial views forced: an oracle that knows what every candidate sees) and of each run's
 # views, with the oracle's 20 views and all pool views mapped under the bench's own settings, 3 seeds (MAP= leaves
 # the mapping out: coverage only, 6-10 s a scene). Writes
@@ -27,7 +28,8 @@ trap 'rm -f "$MD"' EXIT
 : > "$MD"
 for scene in $SCENES; do
     for pair in "unconfirmed:$V" "area:$V:unseen_measure=area" \
-        "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "base25:fisherrf,random"; do
+        "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05" \
+        "cell025:roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.025" "base25:fisherrf,random"; do
         tag=${pair%%:*}
         if [ "${FORCE:-0}" = 1 ] || [ ! -f "runs/bench_pool_${scene}_240_$tag/results.json" ]; then
             TAG=$tag POLICIES="${pair#*:}" SCALE=2 SCENES="$scene" bash scripts/figure_nbv_pool.sh
@@ -35,7 +37,8 @@ for scene in $SCENES; do
     done
     t0=$(date +%s)
     python scripts/pool_bound.py "runs/bench_pool_${scene}_240_unconfirmed" "runs/bench_pool_${scene}_240_area" \
-        "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_base25" \
+        "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_cell025" \
+        "runs/bench_pool_${scene}_240_base25" \
         --out "runs/pool_bound/${scene}_240" ${MAP---map}
     echo "[pool_bound] $scene: $(($(date +%s) - t0)) s"
     cat "runs/pool_bound/${scene}_240/bound.md" >> "$MD"

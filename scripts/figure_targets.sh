@@ -11,9 +11,11 @@
 #   every scene, the fourth and fifth rooms included; and with unseen_weight=2 (rows pool_*_k2): TAG=k2
 #   POLICIES=roi-gsurfisher:unseen_weight=2:unseen_backfaces=unconfirmed (SCENES=room5 also TAG=unconfirmed, TAG=k4);
 #   and with the unseen term from carved space (twenty-ninth session, rows pool_*_carved and pool_*_carveda): TAG=carved
-#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved, and TAG=carveda the same with unseen_measure=area;
-#   and (thirtieth session, rows pool_*_floor003, pool_*_floor01, pool_*_cell025) TAG=floor003 / TAG=floor01 the same
-#   with :unseen_min_std=0.003 / 0.01 (tuning scenes only), TAG=cell025 the same with :unseen_voxel_m=0.025.
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05, and TAG=carveda the same with
+#   unseen_measure=area;
+#   and (thirtieth session, rows pool_*_floor003, pool_*_floor01, pool_*_cell025) TAG=floor003 / TAG=floor01 the
+#   TAG=carved policy with :unseen_min_std=0.003 / 0.01 (tuning scenes only), TAG=cell025
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.025.
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -96,7 +98,7 @@ for s in office0_240 synth_240 room3_240 room4_240 clutter_240 bins_240; do
     pool_tag k2 "$s" "$s"
 done
 # Twenty-ninth session: the unseen term from carved space (unseen_source=carved), counted as the pixel fraction
-# (TAG=carved) and as area (TAG=carveda), chosen on the shelf and the fifth room, run on the six scenes above.
+# (TAG=carved) and as area (TAG=carveda), chosen on the shelf and the sixth room (room5), run on the six scenes above.
 for tag in carved carveda; do
     pool_tag "$tag" shelf_120 shelf
     for s in room5_240 office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240; do
