@@ -15,7 +15,8 @@
 #   unseen_measure=area;
 #   and (thirtieth session, rows pool_*_floor003, pool_*_floor01, pool_*_cell025) TAG=floor003 / TAG=floor01 the
 #   TAG=carved policy with :unseen_min_std=0.003 / 0.01 (tuning scenes only), TAG=cell025
-#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.025.
+#   POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.025, and TAG=cell025k2 the same with
+#   unseen_weight=2 (tuning scenes only).
 # Stream: the rows of scripts/figure_nbv_stream_office0.sh (SEEDS=3; SENSOR=kinect for the Kinect rows) and of
 # KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh, each against the `gaus-slam` run with the same mapper and,
 # where the mapper differs (init_max_stretch=4), also against the default one (--allow-config-difference).
@@ -105,10 +106,10 @@ for tag in carved carveda; do
         pool_tag "$tag" "$s" "$s"
     done
 done
-# Thirtieth session: a floor under z(U)'s divisor (TAG=floor003, TAG=floor01: unseen_min_std 0.003, 0.01) on the two
-# tuning scenes only (it lost there), and 2.5 cm carved cells (TAG=cell025: unseen_voxel_m=0.025, chosen there), run
-# on the six scenes above.
-for tag in floor003 floor01 cell025; do
+# Thirtieth session: a floor under z(U)'s divisor (TAG=floor003, TAG=floor01: unseen_min_std 0.003, 0.01) and the
+# weight 2 with 2.5 cm cells (TAG=cell025k2) on the two tuning scenes only (they lost there), and 2.5 cm carved cells
+# (TAG=cell025: unseen_voxel_m=0.025, chosen there), run on the six scenes above.
+for tag in floor003 floor01 cell025 cell025k2; do
     pool_tag "$tag" shelf_120 shelf
     pool_tag "$tag" room5_240 room5_240
 done
