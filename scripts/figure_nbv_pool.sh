@@ -52,7 +52,8 @@
 # unseen_voxel_m=0.05:unseen_min_std=0.003 / =0.01 and TAG=cell025 POLICIES=roi-gsurfisher:unseen_weight=1:
 # unseen_source=carved:unseen_voxel_m=0.025 with SCENES=shelf, then SCALE=2 SCENES=room5 (the tuning scenes; 1-4 min
 # each); then TAG=cell025 with SCALE=2 and SCENES=clutter, office0, synth, room4, bins, room3 (3-5 min each); then
-# TAG=cell025k2 (the same with unseen_weight=2) with SCENES=shelf and SCALE=2 SCENES=room5.
+# TAG=cell025k2 (the same with unseen_weight=2) with SCENES=shelf and SCALE=2 SCENES=room5; then TAG=cell025 and
+# TAG=base25 (POLICIES=fisherrf,random) with SCALE=2 and SCENES=room1, SCENES=room2 and SENSOR=kinect SCENES=office0.
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -108,12 +108,13 @@ for tag in carved carveda; do
 done
 # Thirtieth session: a floor under z(U)'s divisor (TAG=floor003, TAG=floor01: unseen_min_std 0.003, 0.01) and the
 # weight 2 with 2.5 cm cells (TAG=cell025k2) on the two tuning scenes only (they lost there), and 2.5 cm carved cells
-# (TAG=cell025: unseen_voxel_m=0.025, chosen there), run on the six scenes above.
+# (TAG=cell025: unseen_voxel_m=0.025, chosen there), run on the six scenes above, then on the second and third rooms and
+# office0 through the Kinect model (with TAG=base25 re-run beside them).
 for tag in floor003 floor01 cell025 cell025k2; do
     pool_tag "$tag" shelf_120 shelf
     pool_tag "$tag" room5_240 room5_240
 done
-for s in office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240; do
+for s in office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240 room1_240 room2_240 office0_240_kinect; do
     pool_tag cell025 "$s" "$s"
 done
 
