@@ -110,3 +110,28 @@ def test_bad_grids_are_refused_naming_the_field() -> None:
         ObservedSpace.carve(LO, HI, 1e-4, [pose()], wall(), INTR)  # 4e10 cells
     with pytest.raises(InputError, match="depth_m"):
         ObservedSpace.carve(LO, HI, 0.05, [pose(), pose()], wall(), INTR)
+
+
+def test_a_slot_no_keyframe_looked_into_is_unseen_only_with_cells_under_half_its_width() -> None:
+    """A wall at 2 m with a 6 cm slot no keyframe looked into (depth 0 there). With 5 cm cells the cells the slot
+    falls in also hold the wall's edges, so they are occupied and a ray down the slot stops there, seen: the slot
+    hides. With 2.5 cm cells (the default, ``NBVConfig.unseen_voxel_m``) the slot's cells hold no wall, and the rays
+    down it meet unknown space up to the box's far side. The cluttered objects' gaps of 8 cm are the case."""
+    from roigsf_ros.nbv.config import NBVConfig
+
+    intr = Intrinsics(width=200, height=20, fx=600.0, fy=600.0, cx=99.5, cy=9.5)
+    x_at_wall = (np.arange(intr.width) - intr.cx) / intr.fx * 2.0
+    slot = np.abs(x_at_wall) < 0.03
+    depth = np.broadcast_to(np.where(slot, 0.0, 2.0), (1, intr.height, intr.width))
+    r = intr.height // 2
+    coarse = ObservedSpace.carve(LO, HI, 0.05, [pose()], depth, intr)
+    enter, _ = coarse.unseen_depths(pose(), intr, 0.1, 10.0)
+    assert not enter[r].any()
+    cell = NBVConfig().unseen_voxel_m
+    assert cell <= 0.025
+    fine = ObservedSpace.carve(LO, HI, cell, [pose()], depth, intr)
+    enter, leave = fine.unseen_depths(pose(), intr, 0.1, 10.0)
+    centre = slot & (np.abs(x_at_wall) < 0.02)  # rays whose cells lie wholly inside the slot
+    assert (enter[r, centre] > 0).all() and (enter[r, centre] < 2.0).all()
+    np.testing.assert_allclose(leave[r, centre], 3.0)  # the box's far face
+    assert not enter[r, ~slot].any()  # the wall itself stays seen
