@@ -4,8 +4,10 @@ r"""How much the candidates' unseen term U differs at each scoring call of a ben
 Eq. 15's terms and the unseen term are z-scored over the candidates, so a spread of U of a few pixels late in a run
 weighs as much as one of a third of the image at the first pick. This runs ``roigsf bench`` with the arguments
 given after ``--`` and records, at every scoring call that has an unseen term, the number of scored candidates, the
-mean, std, min and max of their U, U of the fused score's pick, and whether the pick is also U's argmax. The bench
+mean, std, min and max of their U, U of the fused score's pick, and whether the pick has the largest U. The bench
 has no per-call hook, so the script wraps :meth:`NBVScorer.score` for the run's duration (results are unchanged).
+With several seeds or policies the records follow the bench's run order, one per pick after the initial views of
+each pool run; policies without an unseen term (``fisherrf``, ``random``) add none.
 
     .venv/bin/python scripts/unseen_spread.py --out runs/spread_room5.json -- --scene runs/synth_room5_240 \
         --setting pool --seeds 1 --overwrite --set densify_stride=2 --pool-set n_views=20 --pool-set pool_stride=2 \
@@ -34,10 +36,11 @@ def record_calls(log: list[dict[str, Any]]) -> Any:
 
     def score(self: scorer_module.NBVScorer, *args: Any, **kwargs: Any) -> scorer_module.NBVResult:
         result = original(self, *args, **kwargs)
-        if result.unseen is not None:
-            ok = ~result.flagged
+        if result.unseen is not None and len(result.unseen):
+            # the candidates the scorer z-scores: the unflagged ones, or all of them when every one is flagged
+            ok = ~result.flagged if (~result.flagged).any() else np.ones(len(result.unseen), dtype=bool)
             u = result.unseen[ok]
-            pick = int(np.argmax(result.fused[ok]))
+            u_pick = float(result.unseen[result.best_index])
             log.append(
                 {
                     "candidates": int(ok.sum()),
@@ -45,8 +48,8 @@ def record_calls(log: list[dict[str, Any]]) -> Any:
                     "u_std": float(u.std()),
                     "u_min": float(u.min()),
                     "u_max": float(u.max()),
-                    "u_of_pick": float(u[pick]),
-                    "pick_is_u_argmax": bool(int(np.argmax(u)) == pick),
+                    "u_of_pick": u_pick,
+                    "pick_has_max_u": bool(u_pick == float(u.max())),
                 }
             )
         return result
@@ -77,12 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps({"bench_args": argv[split + 1 :], "calls": log}, indent=1))
     tmp.replace(args.out)
-    print("| call | candidates | U mean | U std | U min | U max | U of the pick | pick = argmax U |")
+    print("| call | candidates | U mean | U std | U min | U max | U of the pick | the pick has the largest U |")
     print("|---|---|---|---|---|---|---|---|")
     for i, c in enumerate(log):
         print(
             f"| {i} | {c['candidates']} | {c['u_mean']:.4f} | {c['u_std']:.4f} | {c['u_min']:.4f} | {c['u_max']:.4f} "
-            f"| {c['u_of_pick']:.4f} | {'yes' if c['pick_is_u_argmax'] else 'no'} |"
+            f"| {c['u_of_pick']:.4f} | {'yes' if c['pick_has_max_u'] else 'no'} |"
         )
     return 0
 
