@@ -480,10 +480,14 @@ class NBVScorer:
         unseen = np.ones(m) if use_unseen else None
         use_facing = use_unseen and cfg.unseen_source == "map" and cfg.unseen_backfaces == "tsdf" and vox is not None
         facing = SurfaceFacing.build(vox, voxel_size) if use_facing else None
+        # The unseen term's box (surface voxels' bounds grown by the margin), found once per call, not per candidate.
+        unseen_box = None
+        if use_unseen and vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
+            unseen_box = _unseen_box(vox, cfg)
         carved = use_unseen and cfg.unseen_source == "carved"
         space = None  # unseen_source="carved": the space the keyframes' rendered depth observed, carved once per call
-        if carved and vox is not None and not empty_map:
-            space = carved_space(surfel_map, poses, intr_f, *_unseen_box(vox, cfg), cfg, should_stop)
+        if carved and unseen_box is not None and not empty_map:
+            space = carved_space(surfel_map, poses, intr_f, *unseen_box, cfg, should_stop)
         seen_by = None  # unseen_backfaces="unconfirmed": the map as each keyframe sees it, rendered once per call
         if use_unseen and not carved and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
             seen_by = KeyframeDepths.render(
@@ -523,8 +527,8 @@ class NBVScorer:
             acc["roi"] += _since(t0)
             for j, i in enumerate(chunk):
                 self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
-                                        rois.weights[j] if rois is not None else None, mass[i], vox, fisher, flagged,
-                                        unseen, facing, seen_by, space, should_stop, acc)  # fmt: skip
+                                        rois.weights[j] if rois is not None else None, mass[i], unseen_box, fisher,
+                                        flagged, unseen, facing, seen_by, space, should_stop, acc)  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -587,7 +591,7 @@ class NBVScorer:
         intr_f: Intrinsics,
         roi_weights: np.ndarray | None,
         mass: float,
-        vox: SurfaceVoxels | None,
+        unseen_box: tuple[np.ndarray, np.ndarray] | None,
         fisher: np.ndarray,
         flagged: np.ndarray,
         unseen: np.ndarray | None,
@@ -627,7 +631,7 @@ class NBVScorer:
             if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
                 unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
             else:
-                meets = rays_meet_box(T, intr_f, *_unseen_box(vox, cfg))
+                meets = rays_meet_box(T, intr_f, *unseen_box)
                 unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
         elif unseen is not None and cfg.unseen_source == "map" and len(surfel_map) > 0:
             m = surfel_map.detach()
@@ -647,8 +651,8 @@ class NBVScorer:
                     back &= ~seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
                 hole |= back
             exit_m = None  # where each ray leaves the box of the mapped region (0: it never meets it)
-            if vox is not None and np.isfinite(cfg.unseen_bbox_margin_m):
-                exit_m = box_exit_depth(T, intr_f, *_unseen_box(vox, cfg))
+            if unseen_box is not None:
+                exit_m = box_exit_depth(T, intr_f, *unseen_box)
             if cfg.unseen_measure == "area":  # m^2 the unseen pixels can show: footprints at the farthest depth
                 far = np.full(hole.shape, cfg.far_m) if exit_m is None else np.minimum(exit_m, cfg.far_m)
                 z = np.where(seen, out.median_depth.cpu().numpy(), far)  # seen holes: the back face's depth
