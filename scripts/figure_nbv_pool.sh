@@ -57,6 +57,9 @@
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.
+# OFFSET=K (office0 only, 1-19): render every 20th pose from pose K instead of 0, a pool of other poses of the same
+# trajectory, into runs/office0_<W>_s20[_kinect]_o<K> and bench into runs/bench_pool_office0_<W>[_kinect]_o<K>[_<TAG>]
+# (thirty-first session: OFFSET=10, a pool no option was chosen on).
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
@@ -92,12 +95,16 @@ cd "$REPO"
 if [ -n "${SENSOR:-}" ] && [ "$SCENES" != office0 ]; then
     echo "SENSOR=$SENSOR is for SCENES=office0 only (got SCENES=\"$SCENES\")" >&2; exit 2
 fi
+if [ "${OFFSET:-0}" != 0 ] && { [ "$SCENES" != office0 ] || ! [[ "$OFFSET" =~ ^[0-9]+$ ]] || [ "$OFFSET" -ge 20 ]; }; then
+    echo "OFFSET=$OFFSET is for SCENES=office0 only, a pose number 1-19 (got SCENES=\"$SCENES\")" >&2; exit 2
+fi
 for scene in $SCENES; do
     case "$scene" in
     office0)
         [ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
         KS=""; SENS=()
         [ -z "${SENSOR:-}" ] || { KS="_$SENSOR"; SENS=(--sensor "$SENSOR"); }
+        [ "${OFFSET:-0}" = 0 ] || { KS="${KS}_o$OFFSET"; SENS+=(--offset "$OFFSET"); }
         if [ ! -f "runs/office0_${W}_s20$KS/mesh.ply" ]; then
             roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" \
                 --cam "$DATA/cam_params.json" --out "runs/office0_${W}_s20$KS" --width "$W" --height "$H" --stride 20 \
