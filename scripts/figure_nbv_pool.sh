@@ -54,6 +54,9 @@
 # each); then TAG=cell025 with SCALE=2 and SCENES=clutter, office0, synth, room4, bins, room3 (3-5 min each); then
 # TAG=cell025k2 (the same with unseen_weight=2) with SCENES=shelf and SCALE=2 SCENES=room5; then TAG=cell025 and
 # TAG=base25 (POLICIES=fisherrf,random) with SCALE=2 and SCENES=room1, SCENES=room2 and SENSOR=kinect SCENES=office0.
+# Thirty-first session (scenes nothing was chosen on, each run once): TAG=held31 SCALE=2 POLICIES=roi-gsurfisher:
+# unseen_weight=1:unseen_source=carved,roi-gsurfisher,fisherrf,random with SCENES=room6, room7, room8 and SCENES=office0
+# OFFSET=10 (8-10 min each, 40 min in all with the clone's set-up from nothing).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -117,6 +117,18 @@ done
 for s in office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240 room1_240 room2_240 office0_240_kinect; do
     pool_tag cell025 "$s" "$s"
 done
+# Thirty-first session: scenes nothing was chosen or looked at on, run once with every setting fixed beforehand (the
+# seventh, eighth and ninth rooms, and office0's pool from pose 10 instead of 0), one bench each holding the variant
+# reported first, the paper's score and the baselines:
+#   TAG=held31 SCALE=2 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved,roi-gsurfisher,fisherrf,random \
+#       SCENES=<room6|room7|room8> bash scripts/figure_nbv_pool.sh   (and SCENES=office0 OFFSET=10)
+C="roi-gsurfisher:unseen_weight=1:unseen_source=carved"
+for s in room6_240 room7_240 room8_240 office0_240_o10; do
+    for p in "$C" roi-gsurfisher; do
+        verdict "pool_${s}_held31_$([ "$p" = "$C" ] && echo carved || echo paper)" "runs/bench_pool_${s}_held31#$p" \
+            "runs/bench_pool_${s}_held31#fisherrf" "runs/bench_pool_${s}_held31#random"
+    done
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
