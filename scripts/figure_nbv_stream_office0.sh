@@ -32,6 +32,8 @@
 #                              and 31 would be 20.1 % of them)
 #   gaus-slam-stretch4/, novelty-lookahead-stretch4/  both with the mapper's new surfels stretched along the surface's
 #                              tilt (init_max_stretch=4; twentieth session; with SEEDS=3 in the twenty-second)
+#   unseen-novelty-lookahead-stretch4/  unseen-novelty-lookahead on that mapper (thirty-first session: the fused
+#                              ROI-GSurFisher score with both beyond-paper terms, SEEDS=3)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-pixels-stretch4/  the two together (twenty-fifth session: the suite's best, checked here)
@@ -110,6 +112,8 @@ if [ "${ISSUE10:-1}" != 0 ]; then
     row novelty-lookahead-w14-it40 "novelty:window=14:lookahead=14" --set iters_per_keyframe=40
     row gaus-slam-stretch4 "gaus-slam" --set init_max_stretch=4
     row novelty-lookahead-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10" --set init_max_stretch=4
+    row unseen-novelty-lookahead-stretch4 "$R:unseen_weight=1:novelty_weight=1:lookahead=$WINDOW10" \
+        --set init_max_stretch=4
     row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
     row novelty-lookahead-pixels-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels" \
         --set init_max_stretch=4

@@ -135,6 +135,11 @@ K=${S}_kinect
 U=runs/bench_stream_suite
 verdict stream_office0_stretch4 "$S/novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_stretch4_vs_default "$S/novelty-lookahead-stretch4" "$S/gaus-slam" -- --allow-config-difference
+# Thirty-first session: the fused ROI-GSurFisher score with the unseen and novelty terms and lookahead, on the mapper
+# that stretches new surfels (SEEDS=3 ROWS="gaus-slam gaus-slam-stretch4 unseen-novelty-lookahead-stretch4").
+verdict stream_office0_fused_stretch4 "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
+verdict stream_office0_fused_stretch4_vs_default "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam" \
+    -- --allow-config-difference
 verdict stream_office0_pixels "$S/novelty-lookahead-pixels" "$S/gaus-slam"
 verdict stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_pixels_stretch4_vs_default "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam" \
