@@ -136,7 +136,8 @@ U=runs/bench_stream_suite
 verdict stream_office0_stretch4 "$S/novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_stretch4_vs_default "$S/novelty-lookahead-stretch4" "$S/gaus-slam" -- --allow-config-difference
 # Thirty-first session: the fused ROI-GSurFisher score with the unseen and novelty terms and lookahead, on the mapper
-# that stretches new surfels (SEEDS=3 ROWS="gaus-slam gaus-slam-stretch4 unseen-novelty-lookahead-stretch4").
+# that stretches new surfels (SEEDS=3 ROWS="gaus-slam gaus-slam-stretch4 unseen-novelty-lookahead-stretch4", and the
+# same with SENSOR=kinect for the stream_kinect_fused_* rows below).
 verdict stream_office0_fused_stretch4 "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_fused_stretch4_vs_default "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam" \
     -- --allow-config-difference
@@ -150,6 +151,9 @@ done
 verdict stream_kinect_lookahead "$K/novelty-lookahead" "$K/gaus-slam"
 verdict stream_kinect_stretch4 "$K/novelty-lookahead-stretch4" "$K/gaus-slam-stretch4"
 verdict stream_kinect_stretch4_vs_default "$K/novelty-lookahead-stretch4" "$K/gaus-slam" -- --allow-config-difference
+verdict stream_kinect_fused_stretch4 "$K/unseen-novelty-lookahead-stretch4" "$K/gaus-slam-stretch4"
+verdict stream_kinect_fused_stretch4_vs_default "$K/unseen-novelty-lookahead-stretch4" "$K/gaus-slam" \
+    -- --allow-config-difference
 verdict stream_kinect_pixels "$K/novelty-lookahead-pixels" "$K/gaus-slam"
 verdict stream_kinect_pixels_stretch4 "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam-stretch4"
 verdict stream_kinect_pixels_stretch4_vs_default "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam" \
