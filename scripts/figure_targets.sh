@@ -122,10 +122,9 @@ done
 # reported first, the paper's score and the baselines:
 #   TAG=held31 SCALE=2 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved,roi-gsurfisher,fisherrf,random \
 #       SCENES=<room6|room7|room8> bash scripts/figure_nbv_pool.sh   (and SCENES=office0 OFFSET=10)
-C="roi-gsurfisher:unseen_weight=1:unseen_source=carved"
 for s in room6_240 room7_240 room8_240 office0_240_o10; do
-    for p in "$C" roi-gsurfisher; do
-        verdict "pool_${s}_held31_$([ "$p" = "$C" ] && echo carved || echo paper)" "runs/bench_pool_${s}_held31#$p" \
+    for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
+        verdict "pool_${s}_held31_${pair%%:*}" "runs/bench_pool_${s}_held31#${pair#*:}" \
             "runs/bench_pool_${s}_held31#fisherrf" "runs/bench_pool_${s}_held31#random"
     done
 done
