@@ -140,6 +140,16 @@ verdict stream_office0_stretch4_vs_default "$S/novelty-lookahead-stretch4" "$S/g
 verdict stream_office0_fused_stretch4 "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_fused_stretch4_vs_default "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam" \
     -- --allow-config-difference
+# Thirty-second session: the same with novelty_weight 2 and 4 (rows unseen-novelty{2,4}-lookahead-stretch4; the weight
+# chosen on the suite's fused-stretch group below, only the chosen one run here).
+for k in 2 4; do
+    verdict "stream_office0_fused${k}_stretch4" "$S/unseen-novelty$k-lookahead-stretch4" "$S/gaus-slam-stretch4"
+    verdict "stream_office0_fused${k}_stretch4_vs_default" "$S/unseen-novelty$k-lookahead-stretch4" "$S/gaus-slam" \
+        -- --allow-config-difference
+    verdict "stream_kinect_fused${k}_stretch4" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam-stretch4"
+    verdict "stream_kinect_fused${k}_stretch4_vs_default" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam" \
+        -- --allow-config-difference
+done
 verdict stream_office0_pixels "$S/novelty-lookahead-pixels" "$S/gaus-slam"
 verdict stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4"
 verdict stream_office0_pixels_stretch4_vs_default "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam" \
@@ -162,6 +172,13 @@ verdict stream_suite_stretch4 "$U/stretch#novelty:window=12:lookahead=12" "$U/st
 verdict stream_suite_pixels "$U/pixels" "$U/gaus-slam"
 verdict stream_suite_pixels_stretch4 "$U/pixels-stretch" "$U/stretch#gaus-slam"
 verdict stream_suite_pixels_stretch4_vs_default "$U/pixels-stretch" "$U/gaus-slam" -- --allow-config-difference
+# Thirty-second session: KIND=suite SEEDS=3 BENCHES="gaus-slam stretch fused-stretch" scripts/figure_nbv_stream_synth.sh
+F="roi-gsurfisher:window=12:unseen_weight=1:lookahead=12"
+for k in 1 2 4; do
+    verdict "stream_suite_fused${k}_stretch4" "$U/fused-stretch#$F:novelty_weight=$k" "$U/stretch#gaus-slam"
+    verdict "stream_suite_fused${k}_stretch4_vs_default" "$U/fused-stretch#$F:novelty_weight=$k" "$U/gaus-slam" \
+        -- --allow-config-difference
+done
 mv "$MD" "$OUT/targets.md"
 trap - EXIT
 grep -E '^(###|skipped|roigsf targets: error|.*target for)' "$OUT/targets.md"
