@@ -117,6 +117,10 @@ done
 for s in office0_240 synth_240 clutter_240 room4_240 bins_240 room3_240 room1_240 room2_240 office0_240_kinect; do
     pool_tag cell025 "$s" "$s"
 done
+# Thirty-second session: the carved area count with 2.5 cm cells (TAG=cell025a, POLICIES=roi-gsurfisher:unseen_weight=1:
+# unseen_source=carved:unseen_measure=area) on the two tuning scenes only (it lost there to TAG=cell025).
+pool_tag cell025a shelf_120 shelf
+pool_tag cell025a room5_240 room5_240
 # Thirty-first session: scenes nothing was chosen or looked at on, run once with every setting fixed beforehand (the
 # seventh, eighth and ninth rooms, and office0's pool from pose 10 instead of 0), one bench each holding the variant
 # reported first, the paper's score and the baselines:
