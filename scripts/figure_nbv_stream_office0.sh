@@ -36,7 +36,6 @@
 #                              ROI-GSurFisher score with both beyond-paper terms, SEEDS=3)
 #   unseen-novelty2-lookahead-stretch4/, unseen-novelty4-lookahead-stretch4/  the same with novelty_weight=2 and 4
 #                              (thirty-second session: the weight chosen on the suite, scripts/figure_nbv_stream_synth.sh)
-#   unseen-novelty4-lookahead-pixels-stretch4/  the weight 4 with novelty_measure=pixels (thirty-second session)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-pixels-stretch4/  the two together (twenty-fifth session: the suite's best, checked here)
@@ -121,8 +120,6 @@ if [ "${ISSUE10:-1}" != 0 ]; then
         --set init_max_stretch=4
     row unseen-novelty4-lookahead-stretch4 "$R:unseen_weight=1:novelty_weight=4:lookahead=$WINDOW10" \
         --set init_max_stretch=4
-    row unseen-novelty4-lookahead-pixels-stretch4 \
-        "$R:unseen_weight=1:novelty_weight=4:lookahead=$WINDOW10:novelty_measure=pixels" --set init_max_stretch=4
     row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
     row novelty-lookahead-pixels-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels" \
         --set init_max_stretch=4

@@ -19,7 +19,8 @@
 #   fused-stretch/   the fused score with both beyond-paper terms and lookahead,
 #                    roi-gsurfisher:window=12:unseen_weight=1:novelty_weight=K:lookahead=12 for K = 1, 2, 4, with
 #                    init_max_stretch=4 (thirty-second session: the novelty weight chosen here, then run on office0)
-#   fused-pixels-stretch/  the same with K = 4 and novelty_measure=pixels (thirty-second session, after K was chosen)
+#   fused-pixels-stretch/  the same with K = 4 and novelty_measure=pixels (thirty-second session, after K was chosen;
+#                    less recall than the area count here, so not run on office0)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
