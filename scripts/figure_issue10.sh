@@ -6,7 +6,8 @@
 # TAG=carved) and with 2.5 cm cells (thirtieth session, TAG=cell025: unseen_voxel_m=0.025, the default since), then
 # fisherrf and random beside them, 3 seeds each), the
 # office0 stream rows of issue 10's 20 % budget, 3 seeds (gaus-slam on the default mapper and with init_max_stretch=4;
-# N with lookahead, area and pixels measure, with it), then scripts/figure_targets.sh on whatever benches are there.
+# N with lookahead, area and pixels measure, with it; the fused ROI-GSurFisher score with the unseen term and N weighted
+# 4, thirty-second session), then scripts/figure_targets.sh on whatever benches are there.
 # The same commands as the README's tables (scripts/figure_nbv_pool.sh with TAG=unconfirmed / TAG=base25,
 # scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
 # into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
@@ -45,7 +46,8 @@ for scene in office0 synth clutter; do
         bash scripts/figure_nbv_pool.sh
 done
 step "stream office0, 3 seeds" env SEEDS=3 \
-    ROWS="gaus-slam gaus-slam-stretch4 novelty-lookahead-stretch4 novelty-lookahead-pixels-stretch4" \
+    ROWS="gaus-slam gaus-slam-stretch4 novelty-lookahead-stretch4 novelty-lookahead-pixels-stretch4 \
+unseen-novelty4-lookahead-stretch4" \
     bash scripts/figure_nbv_stream_office0.sh
 step "verdicts" bash scripts/figure_targets.sh
 step "pool bound: office0, synth, clutter" env SCENES="office0 synth clutter" bash scripts/figure_pool_bound.sh
