@@ -21,6 +21,8 @@
 #                    init_max_stretch=4 (thirty-second session: the novelty weight chosen here, then run on office0)
 #   fused-pixels-stretch/  the same with K = 4 and novelty_measure=pixels (thirty-second session, after K was chosen;
 #                    less recall than the area count here, so not run on office0)
+#   fused4-stretch/  the fused-stretch group's K = 4 alone (the weight chosen above; for other layouts; only when
+#                    BENCHES names it)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
@@ -28,21 +30,26 @@
 # a walk through the doorway, a loop in the other; nineteenth session, made after the lookahead was fixed), 400
 # frames at 160x120, into runs/bench_stream_suite/; gaus-slam takes 182 keyframes there, so WINDOW stays 12 (34
 # keyframes, 18.7 %).
+# LAYOUT=N (default 7): the scene's layout seed instead of 7, into runs/synth_sN_400/ or runs/suite_sN_400/ and
+# runs/bench_stream_{synth,suite}_sN/ (thirty-second session: a suite nothing was chosen on, LAYOUT=10).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 KIND="${KIND:-room}"
 WINDOW="${WINDOW:-12}"
+LAYOUT="${LAYOUT:-7}"
+[[ "$LAYOUT" =~ ^[0-9]+$ ]] || { echo "LAYOUT must be a layout seed (a whole number), got $LAYOUT" >&2; exit 2; }
+LS=""; [ "$LAYOUT" = 7 ] || LS="_s$LAYOUT"
 case "$KIND" in
-    room) SCENE=runs/synth_s7_400 OUT=runs/bench_stream_synth ;;
-    suite) SCENE=runs/suite_s7_400 OUT=runs/bench_stream_suite ;;
+    room) SCENE=runs/synth_s${LAYOUT}_400 OUT=runs/bench_stream_synth$LS ;;
+    suite) SCENE=runs/suite_s${LAYOUT}_400 OUT=runs/bench_stream_suite$LS ;;
     *) echo "KIND must be room or suite, got $KIND" >&2; exit 2 ;;
 esac
 NICE="${NICE:-5}"
 SEEDS="${SEEDS:-1}"
 cd "$REPO"
-[ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed 7 --frames 400 --width 160 \
+[ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed "$LAYOUT" --frames 400 --width 160 \
     --height 120 --overwrite
 stream_bench() {  # stream_bench OUT POLICIES [bench options]
     local out=$1 policies=$2
@@ -71,4 +78,7 @@ bench_group pixels-stretch "novelty:window=$WINDOW:lookahead=$WINDOW:novelty_mea
 FUSED="$R:window=$WINDOW:unseen_weight=1:lookahead=$WINDOW"
 bench_group fused-stretch "$FUSED:novelty_weight=1,$FUSED:novelty_weight=2,$FUSED:novelty_weight=4" \
     --set init_max_stretch=4
+case " ${BENCHES:-} " in  # only when BENCHES names it: the default run has K = 4 in fused-stretch already
+    *" fused4-stretch "*) stream_bench "$OUT/fused4-stretch" "$FUSED:novelty_weight=4" --set init_max_stretch=4 ;;
+esac
 bench_group fused-pixels-stretch "$FUSED:novelty_weight=4:novelty_measure=pixels" --set init_max_stretch=4

@@ -185,6 +185,14 @@ for k in 1 2 4; do
 done
 verdict stream_suite_fused4_pixels_stretch4 "$U/fused-pixels-stretch" "$U/stretch#gaus-slam"
 verdict stream_suite_fused4_pixels_stretch4_vs_default "$U/fused-pixels-stretch" "$U/gaus-slam" -- --allow-config-difference
+# Thirty-second session, a suite nothing was chosen on (layout seed 10): LAYOUT=10 KIND=suite SEEDS=3
+# BENCHES="gaus-slam stretch fused4-stretch" scripts/figure_nbv_stream_synth.sh
+U10=runs/bench_stream_suite_s10
+verdict stream_suite_s10_fused4_stretch4 "$U10/fused4-stretch" "$U10/stretch#gaus-slam"
+verdict stream_suite_s10_fused4_stretch4_vs_default "$U10/fused4-stretch" "$U10/gaus-slam" -- --allow-config-difference
+verdict stream_suite_s10_stretch4 "$U10/stretch#novelty:window=12:lookahead=12" "$U10/stretch#gaus-slam"
+verdict stream_suite_s10_stretch4_vs_default "$U10/stretch#novelty:window=12:lookahead=12" "$U10/gaus-slam" \
+    -- --allow-config-difference
 mv "$MD" "$OUT/targets.md"
 trap - EXIT
 grep -E '^(###|skipped|roigsf targets: error|.*target for)' "$OUT/targets.md"
