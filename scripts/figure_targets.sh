@@ -136,63 +136,51 @@ done
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
 U=runs/bench_stream_suite
-verdict stream_office0_stretch4 "$S/novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
-verdict stream_office0_stretch4_vs_default "$S/novelty-lookahead-stretch4" "$S/gaus-slam" -- --allow-config-difference
+both_mappers() {  # both_mappers NAME CANDIDATE SAME_MAPPER_REF DEFAULT_REF: a candidate on the stretching mapper
+    verdict "$1" "$2" "$3"
+    verdict "$1_vs_default" "$2" "$4" -- --allow-config-difference
+}
+both_mappers stream_office0_stretch4 "$S/novelty-lookahead-stretch4" "$S/gaus-slam-stretch4" "$S/gaus-slam"
 # Thirty-first session: the fused ROI-GSurFisher score with the unseen and novelty terms and lookahead, on the mapper
 # that stretches new surfels (SEEDS=3 ROWS="gaus-slam gaus-slam-stretch4 unseen-novelty-lookahead-stretch4", and the
 # same with SENSOR=kinect for the stream_kinect_fused_* rows below).
-verdict stream_office0_fused_stretch4 "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam-stretch4"
-verdict stream_office0_fused_stretch4_vs_default "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam" \
-    -- --allow-config-difference
+both_mappers stream_office0_fused_stretch4 "$S/unseen-novelty-lookahead-stretch4" "$S/gaus-slam-stretch4" "$S/gaus-slam"
 # Thirty-second session: the same with novelty_weight 2 and 4 (rows unseen-novelty{2,4}-lookahead-stretch4; the weight
 # chosen on the suite's fused-stretch group below, only the chosen one run here).
 for k in 2 4; do
-    verdict "stream_office0_fused${k}_stretch4" "$S/unseen-novelty$k-lookahead-stretch4" "$S/gaus-slam-stretch4"
-    verdict "stream_office0_fused${k}_stretch4_vs_default" "$S/unseen-novelty$k-lookahead-stretch4" "$S/gaus-slam" \
-        -- --allow-config-difference
-    verdict "stream_kinect_fused${k}_stretch4" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam-stretch4"
-    verdict "stream_kinect_fused${k}_stretch4_vs_default" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam" \
-        -- --allow-config-difference
+    both_mappers "stream_office0_fused${k}_stretch4" "$S/unseen-novelty$k-lookahead-stretch4" "$S/gaus-slam-stretch4" \
+        "$S/gaus-slam"
+    both_mappers "stream_kinect_fused${k}_stretch4" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam-stretch4" \
+        "$K/gaus-slam"
 done
 verdict stream_office0_pixels "$S/novelty-lookahead-pixels" "$S/gaus-slam"
-verdict stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4"
-verdict stream_office0_pixels_stretch4_vs_default "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam" \
-    -- --allow-config-difference
+both_mappers stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4" \
+    "$S/gaus-slam"
 for w in w10 w11 w12; do
     verdict "stream_office0_lookahead_$w" "$S/novelty-lookahead-$w" "$S/gaus-slam"
 done
 verdict stream_kinect_lookahead "$K/novelty-lookahead" "$K/gaus-slam"
-verdict stream_kinect_stretch4 "$K/novelty-lookahead-stretch4" "$K/gaus-slam-stretch4"
-verdict stream_kinect_stretch4_vs_default "$K/novelty-lookahead-stretch4" "$K/gaus-slam" -- --allow-config-difference
-verdict stream_kinect_fused_stretch4 "$K/unseen-novelty-lookahead-stretch4" "$K/gaus-slam-stretch4"
-verdict stream_kinect_fused_stretch4_vs_default "$K/unseen-novelty-lookahead-stretch4" "$K/gaus-slam" \
-    -- --allow-config-difference
+both_mappers stream_kinect_stretch4 "$K/novelty-lookahead-stretch4" "$K/gaus-slam-stretch4" "$K/gaus-slam"
+both_mappers stream_kinect_fused_stretch4 "$K/unseen-novelty-lookahead-stretch4" "$K/gaus-slam-stretch4" "$K/gaus-slam"
 verdict stream_kinect_pixels "$K/novelty-lookahead-pixels" "$K/gaus-slam"
-verdict stream_kinect_pixels_stretch4 "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam-stretch4"
-verdict stream_kinect_pixels_stretch4_vs_default "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam" \
-    -- --allow-config-difference
+both_mappers stream_kinect_pixels_stretch4 "$K/novelty-lookahead-pixels-stretch4" "$K/gaus-slam-stretch4" "$K/gaus-slam"
 verdict stream_suite_lookahead "$U/lookahead#novelty:window=12:lookahead=12" "$U/gaus-slam"
 verdict stream_suite_stretch4 "$U/stretch#novelty:window=12:lookahead=12" "$U/stretch#gaus-slam"
 verdict stream_suite_pixels "$U/pixels" "$U/gaus-slam"
-verdict stream_suite_pixels_stretch4 "$U/pixels-stretch" "$U/stretch#gaus-slam"
-verdict stream_suite_pixels_stretch4_vs_default "$U/pixels-stretch" "$U/gaus-slam" -- --allow-config-difference
+both_mappers stream_suite_pixels_stretch4 "$U/pixels-stretch" "$U/stretch#gaus-slam" "$U/gaus-slam"
 # Thirty-second session: KIND=suite SEEDS=3 BENCHES="gaus-slam stretch fused-stretch" scripts/figure_nbv_stream_synth.sh
 F="roi-gsurfisher:window=12:unseen_weight=1:lookahead=12"
 for k in 1 2 4; do
-    verdict "stream_suite_fused${k}_stretch4" "$U/fused-stretch#$F:novelty_weight=$k" "$U/stretch#gaus-slam"
-    verdict "stream_suite_fused${k}_stretch4_vs_default" "$U/fused-stretch#$F:novelty_weight=$k" "$U/gaus-slam" \
-        -- --allow-config-difference
+    both_mappers "stream_suite_fused${k}_stretch4" "$U/fused-stretch#$F:novelty_weight=$k" "$U/stretch#gaus-slam" \
+        "$U/gaus-slam"
 done
-verdict stream_suite_fused4_pixels_stretch4 "$U/fused-pixels-stretch" "$U/stretch#gaus-slam"
-verdict stream_suite_fused4_pixels_stretch4_vs_default "$U/fused-pixels-stretch" "$U/gaus-slam" -- --allow-config-difference
+both_mappers stream_suite_fused4_pixels_stretch4 "$U/fused-pixels-stretch" "$U/stretch#gaus-slam" "$U/gaus-slam"
 # Thirty-second session, a suite nothing was chosen on (layout seed 10): LAYOUT=10 KIND=suite SEEDS=3
 # BENCHES="gaus-slam stretch fused4-stretch" scripts/figure_nbv_stream_synth.sh
 U10=runs/bench_stream_suite_s10
-verdict stream_suite_s10_fused4_stretch4 "$U10/fused4-stretch" "$U10/stretch#gaus-slam"
-verdict stream_suite_s10_fused4_stretch4_vs_default "$U10/fused4-stretch" "$U10/gaus-slam" -- --allow-config-difference
-verdict stream_suite_s10_stretch4 "$U10/stretch#novelty:window=12:lookahead=12" "$U10/stretch#gaus-slam"
-verdict stream_suite_s10_stretch4_vs_default "$U10/stretch#novelty:window=12:lookahead=12" "$U10/gaus-slam" \
-    -- --allow-config-difference
+both_mappers stream_suite_s10_fused4_stretch4 "$U10/fused4-stretch" "$U10/stretch#gaus-slam" "$U10/gaus-slam"
+both_mappers stream_suite_s10_stretch4 "$U10/stretch#novelty:window=12:lookahead=12" "$U10/stretch#gaus-slam" \
+    "$U10/gaus-slam"
 mv "$MD" "$OUT/targets.md"
 trap - EXIT
 grep -E '^(###|skipped|roigsf targets: error|.*target for)' "$OUT/targets.md"
