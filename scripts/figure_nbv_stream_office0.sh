@@ -35,7 +35,8 @@
 #   unseen-novelty-lookahead-stretch4/  unseen-novelty-lookahead on that mapper (thirty-first session: the fused
 #                              ROI-GSurFisher score with both beyond-paper terms, SEEDS=3)
 #   unseen-novelty2-lookahead-stretch4/, unseen-novelty4-lookahead-stretch4/  the same with novelty_weight=2 and 4
-#                              (thirty-second session: the weight chosen on the suite, scripts/figure_nbv_stream_synth.sh)
+#                              (thirty-second session: only 4, the weight chosen on the suite by
+#                              scripts/figure_nbv_stream_synth.sh, was run here)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-pixels-stretch4/  the two together (twenty-fifth session: the suite's best, checked here)
