@@ -59,6 +59,8 @@
 # OFFSET=10 (8-10 min each, 40 min in all with the clone's set-up from nothing).
 # Thirty-second session: TAG=cell025a POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=area
 # with SCENES=shelf and SCALE=2 SCENES=room5 (the tuning scenes; 1.4 and 3.6 min).
+# Then TAG=held32 with the held31 policies on two more scenes nothing was chosen on: SCALE=2 SCENES=room9 and
+# SCENES=office0 OFFSET=5.
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -133,6 +133,14 @@ for s in room6_240 room7_240 room8_240 office0_240_o10; do
     done
 done
 
+# Thirty-second session: two more, the same way (TAG=held32; SCENES=room9, and SCENES=office0 OFFSET=5).
+for s in room9_240 office0_240_o5; do
+    for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
+        verdict "pool_${s}_held32_${pair%%:*}" "runs/bench_pool_${s}_held32#${pair#*:}" \
+            "runs/bench_pool_${s}_held32#fisherrf" "runs/bench_pool_${s}_held32#random"
+    done
+done
+
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
 U=runs/bench_stream_suite
