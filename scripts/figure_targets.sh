@@ -126,18 +126,12 @@ pool_tag cell025a room5_240 room5_240
 # reported first, the paper's score and the baselines:
 #   TAG=held31 SCALE=2 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved,roi-gsurfisher,fisherrf,random \
 #       SCENES=<room6|room7|room8> bash scripts/figure_nbv_pool.sh   (and SCENES=office0 OFFSET=10)
-for s in room6_240 room7_240 room8_240 office0_240_o10; do
+# and, thirty-second session, two more the same way: TAG=held32 with SCENES=room9, and SCENES=office0 OFFSET=5.
+for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240_o10 held32:room9_240 \
+    held32:office0_240_o5; do
+    b="runs/bench_pool_${run#*:}_${run%%:*}"
     for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
-        verdict "pool_${s}_held31_${pair%%:*}" "runs/bench_pool_${s}_held31#${pair#*:}" \
-            "runs/bench_pool_${s}_held31#fisherrf" "runs/bench_pool_${s}_held31#random"
-    done
-done
-
-# Thirty-second session: two more, the same way (TAG=held32; SCENES=room9, and SCENES=office0 OFFSET=5).
-for s in room9_240 office0_240_o5; do
-    for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
-        verdict "pool_${s}_held32_${pair%%:*}" "runs/bench_pool_${s}_held32#${pair#*:}" \
-            "runs/bench_pool_${s}_held32#fisherrf" "runs/bench_pool_${s}_held32#random"
+        verdict "pool_${run#*:}_${run%%:*}_${pair%%:*}" "$b#${pair#*:}" "$b#fisherrf" "$b#random"
     done
 done
 
