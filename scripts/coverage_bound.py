@@ -41,17 +41,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from roigsf_ros.cli.bench import parse_overrides
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path, read_json, write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import camera_rays
@@ -410,11 +413,13 @@ class TimedPicks(KeyframePolicy):
         return {"insert_at": {str(k): v for k, v in sorted(self.insert_at.items())}}
 
 
-def map_picks(scene_path: Path, policy: KeyframePolicy, out_dir: Path) -> dict[str, Any]:
-    """Map the scene with exactly these keyframes (bench defaults: MapperConfig, EvalConfig); its metrics."""
+def map_picks(
+    scene_path: Path, policy: KeyframePolicy, out_dir: Path, mapper: MapperConfig | None = None
+) -> dict[str, Any]:
+    """Map the scene with exactly these keyframes (bench defaults unless ``mapper`` is given); its metrics."""
     source = open_frames(scene_path)
     return run_offline(
-        source, policy, MapperConfig(), out_dir, gt_mesh=source.gt_mesh_path, eval_config=EvalConfig(),
+        source, policy, mapper or MapperConfig(), out_dir, gt_mesh=source.gt_mesh_path, eval_config=EvalConfig(),
         progress=False, overwrite=True,
     )  # fmt: skip
 
@@ -464,6 +469,9 @@ def markdown(report: dict[str, Any]) -> str:
         "| set | keyframes | coverage | measured R@5cm | coverage - R@5cm | F@5cm | PSNR (dB) |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
+    if over := report.get("mapper_overrides"):
+        note = ", ".join(f"{k}={v}" for k, v in over.items())
+        lines[4:4] = [f"Sets marked 'mapped' were mapped with these MapperConfig overrides: {note}", ""]
 
     def fmt(v: float | None, spec: str) -> str:
         return "" if v is None else format(v, spec)
@@ -514,8 +522,8 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    """Parse the arguments, measure, write ``coverage.json`` and ``coverage.md``, print the table."""
+def main(argv: list[str] | None = None) -> int:
+    """Parse the arguments, measure, write ``coverage.json`` and ``coverage.md``, print the table; 2 on bad input."""
     ev, mc = EvalConfig(), MapperConfig()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", type=Path, default=Path("runs/office0_240_s5"), help="scene folder")
@@ -548,7 +556,22 @@ def main() -> None:
         help="also map this set (bench defaults, picks inserted when the policy would insert them) and report its "
         "measured recall, F@5cm and PSNR (under a minute each; repeatable)",
     )
-    args = ap.parse_args()
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a MapperConfig field for the --map runs, as `roigsf bench --set` (e.g. init_max_stretch=4 to map as "
+        "the stretching benches did; repeatable)",
+    )
+    args = ap.parse_args(argv)
+    mdefaults = {f.name: getattr(mc, f.name) for f in fields(MapperConfig)}
+    try:
+        overrides = parse_overrides(args.set, mdefaults, "--set", skip=("seed",))
+        mapper = replace(mc, **overrides)
+    except InputError as e:
+        print(f"coverage_bound: {e}", file=sys.stderr)
+        return 2
 
     wall: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -641,7 +664,7 @@ def main() -> None:
             policy = TimedPicks(timed[name])
         else:
             policy = ScheduledPicks(ids, args.window, int(name == "delayed"), len(win) - 1)
-        m = map_picks(args.scene, policy, args.out / "maps" / name)
+        m = map_picks(args.scene, policy, args.out / "maps" / name, mapper)
         wall[f"map_{name}"] = time.perf_counter() - t0
         if sorted(m["keyframe_ids"]) != sorted(ids):
             print(f"warning: mapping {name}: keyframes {m['keyframe_ids']} differ from the picks {ids}")
@@ -671,6 +694,7 @@ def main() -> None:
         "depth_range_m": [lo, mc.max_depth_m],
         "window": args.window,
         "ref_window": args.ref_window,
+        "mapper_overrides": overrides,
         "rows": rows,
         "greedy_order": greedy,
         "greedy_curve": curve,
@@ -688,7 +712,8 @@ def main() -> None:
     with atomic_path(args.out / "coverage.md") as tmp:
         tmp.write_text(text)
     print(text)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

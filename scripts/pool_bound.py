@@ -11,14 +11,18 @@ measures, per seed, on the GT samples the bench's recall counts (same seed, coun
 - the coverage of a **greedy max-coverage pick** of ``n_views`` (the bench's initial views forced, then each
   time the candidate observing the most samples not yet observed): the oracle a perfect scorer would
   approach, given the true depth of every candidate;
+- the coverage of that pick **refined by swaps** (:func:`swap_refine`: each chosen view after the initial ones
+  re-chosen given all the others until none changes), since greedy max coverage is not the best pick of
+  ``n_views``: hindsight, which no sequential scorer has;
 - the coverage of each bench run's chosen views, beside its measured R@5cm.
 
 A sample is observed by a view when it lies within ``--tau`` of a back-projected valid pixel of the view's input
-depth (``coverage_bound.observed_sets``). With ``--map`` the greedy pick and all pool views are also mapped by
-``run_pool`` under the bench's own pool and mapper configuration and seeds (the greedy pick replayed in its order,
-one view per training phase; all pool views as that order continued over the remaining candidates, so their
-run trains ``iters_per_view`` more steps per added view), and their measured R@5cm, F@5cm and test PSNR are
-reported. Writes ``bound.json`` and ``bound.md`` under ``--out`` (atomically) and prints the table.
+depth (``coverage_bound.observed_sets``). With ``--map`` the greedy pick, its refinement and all pool views (or
+those of ``--map-rows``) are also mapped by ``run_pool`` under the bench's own pool and mapper configuration and
+seeds (the two picks replayed in their order, one view per training phase; all pool views as that order continued
+over the remaining candidates, so their run trains ``iters_per_view`` more steps per added view), and their measured
+R@5cm, F@5cm and test PSNR are reported. Writes ``bound.json`` and ``bound.md`` under ``--out`` (atomically) and
+prints the table.
 
     .venv/bin/python scripts/pool_bound.py runs/bench_pool_synth_240_unconfirmed runs/bench_pool_synth_240_base25 \
         --out runs/s27/bound_synth_240 --map
@@ -72,6 +76,28 @@ def greedy_pick(obs: np.ndarray, forced: list[int], k: int) -> list[int]:
     taken = set(picks)
     rest = [i for i in range(len(obs)) if i not in taken]
     return picks + rest[: max(0, k - len(picks))]
+
+
+def swap_refine(obs: np.ndarray, picks: list[int], n_forced: int, max_rounds: int = 50) -> list[int]:
+    """Local search from ``picks`` (rows of ``obs``): each slot after the first ``n_forced`` is replaced by the row
+    not taken that adds the most given all the other picks, while that adds more than the slot's own row, until no
+    slot changes (or ``max_rounds``). Hindsight: it re-chooses views a sequential scorer had to choose early.
+    Coverage never drops; the order of the slots is kept (a replay adds the views in it).
+    """
+    picks = list(picks)
+    for _ in range(max_rounds):
+        changed = False
+        for i in range(n_forced, len(picks)):
+            others = picks[:i] + picks[i + 1 :]
+            gains = np.count_nonzero(obs & ~obs[others].any(axis=0), axis=1)
+            gains[others] = -1
+            best = int(np.argmax(gains))  # ties to the lowest row
+            if gains[best] > gains[picks[i]]:
+                picks[i] = best
+                changed = True
+        if not changed:
+            break
+    return picks
 
 
 def same_setup(a: dict[str, Any], b: dict[str, Any], path: Path) -> None:
@@ -130,8 +156,14 @@ def observed(setup: PoolSetup, seed: int, tau_m: float) -> tuple[np.ndarray, np.
     return gt, cb.observed_sets(setup.pool_scene, gt, tau_m, lo, setup.mcfg.max_depth_m), n_drawn
 
 
-def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None) -> dict[str, Any]:
-    """Coverage rows (and with ``do_map`` measured rows) per seed of the benches' shared scene and pool."""
+MAP_ROWS = ("greedy", "swaps", "all")
+"""The oracle rows ``--map`` can map: the greedy pick, the same refined by swaps, all pool views."""
+
+
+def bound(
+    benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None, map_rows: tuple[str, ...] = MAP_ROWS
+) -> dict[str, Any]:
+    """Coverage rows (with ``do_map`` also measured, for ``map_rows``) per seed of the benches' shared pool."""
     results = [read_results(b, "pool", ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"),
                             ("label", "seed", "chosen_positions", "metrics")) for b in benches]  # fmt: skip
     for b, r in zip(benches[1:], results[1:], strict=True):
@@ -147,7 +179,9 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
     for seed in seeds:
         t0 = time.perf_counter()
         gt, obs, n_drawn = observed(setup, seed, tau_m)
-        greedy = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in split.initial], k)]
+        greedy_rows = greedy_pick(obs, [row_of[p] for p in split.initial], k)
+        greedy = [pool[j] for j in greedy_rows]
+        swapped = [pool[j] for j in swap_refine(obs, greedy_rows, len(split.initial))]
         order = [pool[j] for j in greedy_pick(obs, [row_of[p] for p in greedy], len(pool))]
 
         def cov(positions: list[int]) -> float:
@@ -157,6 +191,8 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
             {"name": f"all {len(pool)} pool views", "n": len(pool), "coverage": cov(pool), "positions": sorted(pool)},
             {"name": f"greedy max-coverage, {k} views (initial views forced)", "n": k, "coverage": cov(greedy),
              "positions": greedy},
+            {"name": "the greedy pick refined by swaps (hindsight)", "n": k, "coverage": cov(swapped),
+             "positions": swapped},
         ]  # fmt: skip
         for bench, res in zip(benches, results, strict=True):
             for run in res["runs"]:
@@ -171,8 +207,10 @@ def bound(benches: list[Path], tau_m: float, do_map: bool, map_dir: Path | None)
                              "positions": [int(p) for p in run["chosen_positions"]],
                              **{key: m.get(key) for key in METRICS}})  # fmt: skip
         if do_map:
-            for row, picks in ((rows[1], greedy), (rows[0], order)):
-                run_dir = None if map_dir is None else map_dir / f"{'greedy' if picks is greedy else 'all'}_seed{seed}"
+            for row, picks, tag in ((rows[1], greedy, "greedy"), (rows[2], swapped, "swaps"), (rows[0], order, "all")):
+                if tag not in map_rows:
+                    continue
+                run_dir = None if map_dir is None else map_dir / f"{tag}_seed{seed}"
                 mapped = run_pool(src, replace(pcfg, n_views=len(picks), seed=seed), mcfg, run_dir,
                                   gt_mesh=first["gt_mesh"], overwrite=True,
                                   policy=ReplayPicks([scene.ids[p] for p in picks])).metrics  # fmt: skip
@@ -239,10 +277,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("benches", type=Path, nargs="+", help="roigsf bench --setting pool folders of one scene and pool")
     ap.add_argument("--out", type=Path, required=True, help="output folder (bound.json, bound.md, maps/ with --map)")
     ap.add_argument("--tau", type=float, default=0.05, help="distance threshold (m), as in R@5cm")
-    ap.add_argument("--map", action="store_true", help="also map the greedy pick and all pool views (each seed)")
+    ap.add_argument("--map", action="store_true", help="also map the oracle rows (each seed; see --map-rows)")
+    ap.add_argument(
+        "--map-rows",
+        default=",".join(MAP_ROWS),
+        help=f"which oracle rows --map maps, comma-separated among {', '.join(MAP_ROWS)} (default: all three)",
+    )
     args = ap.parse_args(argv)
+    map_rows = tuple(r.strip() for r in args.map_rows.split(",") if r.strip())
+    if not map_rows or any(r not in MAP_ROWS for r in map_rows):
+        print(f"pool_bound: --map-rows {args.map_rows!r}: expected names among {', '.join(MAP_ROWS)}", file=sys.stderr)
+        return 2
     try:
-        report = bound(args.benches, args.tau, args.map, args.out / "maps")
+        report = bound(args.benches, args.tau, args.map, args.out / "maps", map_rows)
     except InputError as e:
         print(f"pool_bound: {e}", file=sys.stderr)
         return 2

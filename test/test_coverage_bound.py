@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 from conftest import load_script
 
 cb = load_script("coverage_bound")
@@ -42,3 +45,14 @@ def test_threshold_and_budget_oracles_keep_their_budgets() -> None:
     picks, when, left = cb.budget_oracle(obs, window=6, trigger_every=2, budget_every=6.0)
     assert len(picks) <= 1 + 59 // 6 and 0 <= left <= 3.0
     assert all(when[p] >= p for p in picks)  # a pick is inserted at or after its arrival
+
+
+def test_mapper_overrides_are_checked_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--set` takes MapperConfig fields as `roigsf bench --set` does: an unknown field, the seed and an out-of-range
+    value exit 2 with the flag or field named, before the scene is read (the scene here does not exist) and nothing
+    is written."""
+    for item, word in (("nope=1", "--set nope=1"), ("seed=3", "--set seed=3"), ("init_max_stretch=-1", "stretch")):
+        rc = cb.main(["--scene", str(tmp_path / "no_scene"), "--out", str(tmp_path / "out"), "--set", item])
+        assert rc == 2
+        assert word in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

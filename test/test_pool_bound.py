@@ -32,6 +32,21 @@ def test_greedy_pick_forces_the_initial_views_then_adds_the_most_unseen_then_fil
     assert pb.greedy_pick(obs, [2, 0, 2], 2) == [2, 0]
 
 
+def test_swaps_find_the_pair_greedy_misses_and_keep_the_forced_rows() -> None:
+    """Rows 1 = {0..3}, 2 = {0, 1, 4}, 3 = {2, 3, 5}, row 0 forced (sample 6): greedy takes row 1 then row 2 (ties to
+    the lowest), 6 of 7; swapping row 1 for row 3 covers all 7. The forced row stays, whatever it adds; a pick no swap
+    improves is returned as it was."""
+    obs = np.zeros((4, 7), dtype=bool)
+    for r, cols in {0: [6], 1: [0, 1, 2, 3], 2: [0, 1, 4], 3: [2, 3, 5]}.items():
+        obs[r, cols] = True
+    greedy = pb.greedy_pick(obs, [0], 3)
+    assert greedy == [0, 1, 2] and pb.cb.coverage(obs, greedy) == 6 / 7
+    swapped = pb.swap_refine(obs, greedy, 1)
+    assert swapped == [0, 3, 2] and pb.cb.coverage(obs, swapped) == 1.0
+    assert pb.swap_refine(obs, [1, 2, 3], 1) == [1, 2, 3]  # row 1 forced: nothing better for the others
+    assert pb.swap_refine(obs, swapped, 1) == swapped
+
+
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The synthetic room (24 frames at 48x36) and a two-seed `random` pool bench of 6 views on it."""
@@ -58,23 +73,26 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_all_pool_views_bound_every_choice_and_the_oracle_is_replayed(bench: Path, tmp_path: Path) -> None:
     """Per seed: all pool views cover at least what any chosen set covers; the greedy pick starts with the bench's
-    initial views and covers at least the random run's views; both are mapped (the replay adds exactly the picks, or
-    the script raises) and measured; the bench run's own metrics are carried over; the GT sample counts are the
+    initial views and covers at least the random run's views, and its refinement by swaps keeps them and covers at
+    least the greedy pick; the rows --map-rows names are mapped (the replay adds exactly the picks, or the script
+    raises) and measured, the other not; the bench run's own metrics are carried over; the GT sample counts are the
     bench's (the script raises otherwise)."""
-    assert pb.main([str(bench), "--out", str(tmp_path / "b"), "--map"]) == 0
+    assert pb.main([str(bench), "--out", str(tmp_path / "b"), "--map", "--map-rows", "all,greedy"]) == 0
     report = json.loads((tmp_path / "b" / "bound.json").read_text())
     results = json.loads((bench / "results.json").read_text())
     assert [s["seed"] for s in report["seeds"]] == [0, 1]
     for s, run in zip(report["seeds"], results["runs"], strict=True):
-        every, greedy, mine = s["rows"]
-        assert every["n"] == report["n_pool"] and greedy["n"] == 6 == mine["n"]
+        every, greedy, swaps, mine = s["rows"]
+        assert every["n"] == report["n_pool"] and greedy["n"] == 6 == mine["n"] == swaps["n"]
         assert greedy["positions"][:4] == report["initial_positions"] == run["metrics"]["initial_positions"]
-        assert every["coverage"] >= greedy["coverage"] >= mine["coverage"] > 0.3
+        assert swaps["positions"][:4] == greedy["positions"][:4]
+        assert every["coverage"] >= swaps["coverage"] >= greedy["coverage"] >= mine["coverage"] > 0.3
+        assert "recall@5cm" not in swaps  # not among --map-rows
         assert mine["recall@5cm"] == run["metrics"]["recall@5cm"] and mine["positions"] == run["chosen_positions"]
         assert s["n_gt"] == run["metrics"]["n_gt_samples"]
         for row in (every, greedy):
             assert 0 < row["recall@5cm"] <= 1 and np.isfinite(row["psnr"])
-    assert (tmp_path / "b" / "bound.md").read_text().count("\n| ") == 4  # the header and three rows
+    assert (tmp_path / "b" / "bound.md").read_text().count("\n| ") == 5  # the header and four rows
     assert (tmp_path / "b" / "maps" / "greedy_seed1" / "mesh.ply").is_file()
 
 
@@ -92,6 +110,8 @@ def test_bad_benches_are_named(bench: Path, tmp_path: Path, capsys: pytest.Captu
         assert pb.main([*map(str, args), "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert all(w in err for w in words), err
+    assert pb.main([str(bench), "--out", str(tmp_path / "x"), "--map", "--map-rows", "greedy,best"]) == 2
+    assert "--map-rows" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 

@@ -75,7 +75,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _overrides(items: list[str], defaults: dict[str, Any], flag: str, skip: tuple[str, ...] = ()) -> dict[str, Any]:
+def parse_overrides(
+    items: list[str], defaults: dict[str, Any], flag: str, skip: tuple[str, ...] = ()
+) -> dict[str, Any]:
     """{name: value} from NAME=VALUE items, typed like ``defaults``; unknown names are an InputError."""
     out: dict[str, Any] = {}
     for item in items:
@@ -98,9 +100,9 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
     """The :class:`BenchConfig` of the command line (validated)."""
     policies = parse_policies(args.policies, args.setting)
     mdefaults = {f.name: getattr(MapperConfig(), f.name) for f in fields(MapperConfig)}
-    mapper = replace(MapperConfig(), **_overrides(args.set, mdefaults, "--set", skip=("seed",)))
+    mapper = replace(MapperConfig(), **parse_overrides(args.set, mdefaults, "--set", skip=("seed",)))
     pdefaults = {f.name: getattr(PoolConfig(), f.name) for f in fields(PoolConfig)}
-    pool = replace(PoolConfig(), **_overrides(args.pool_set, pdefaults, "--pool-set",
+    pool = replace(PoolConfig(), **parse_overrides(args.pool_set, pdefaults, "--pool-set",
                                               skip=("seed", "policy", "policy_params")))  # fmt: skip
     return BenchConfig(
         scene=args.scene,
