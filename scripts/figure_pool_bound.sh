@@ -39,7 +39,7 @@ for scene in $SCENES; do
     python scripts/pool_bound.py "runs/bench_pool_${scene}_240_unconfirmed" "runs/bench_pool_${scene}_240_area" \
         "runs/bench_pool_${scene}_240_carved" "runs/bench_pool_${scene}_240_cell025" \
         "runs/bench_pool_${scene}_240_base25" \
-        --out "runs/pool_bound/${scene}_240" ${MAP---map}
+        --out "runs/pool_bound/${scene}_240" ${MAP---map --map-rows greedy,all}
     echo "[pool_bound] $scene: $(($(date +%s) - t0)) s"
     cat "runs/pool_bound/${scene}_240/bound.md" >> "$MD"
     echo >> "$MD"
