@@ -11,25 +11,26 @@ script measures that directly:
   (``MapperConfig`` min/near/max depth; scipy ``cKDTree``).
 - Coverage of a set of frames: the fraction of GT samples in the union of their observed sets.
 
-Reported (table ``coverage.md`` and ``coverage.json``, written atomically under ``--out``): all frames;
-every ``window``-th frame; an offline greedy max-coverage pick of the same count (frame 0 forced); the
-stream oracle (frame 0, then from each trigger window of ``window`` frames the frame adding the most new
-coverage given the earlier picks, the windows of ``StreamNBVPolicy``: frames 1..W, W+1..2W, ..., full
-windows only); the same deciding one window late (:func:`delayed_oracle`); the same refined by coordinate
-ascent (each window's pick re-chosen given all the other picks, until nothing changes: hindsight, not
-causal); the stream oracle with ``--ref-window``; two causal adaptive oracles, not one pick per window: the
-threshold oracle (:func:`threshold_picks`: frame 0, then every frame whose new coverage reaches a threshold, a
-keyframe as it arrives; the smallest threshold for each ``--threshold-budgets`` count found by bisection) and
-the budget-trigger oracle (:func:`budget_oracle`: ``StreamNBVPolicy``'s ``trigger="budget"`` with the GT new
-coverage as score and gain, one per ``--budget-ratios`` value); the offline greedy coverage curve (frames
-needed for each ``--targets`` coverage); and, for every ``--bench`` folder of ``roigsf bench --setting
-stream``, each run's keyframes with their coverage next to the run's measured recall, F@5cm and PSNR, and for
-window policies the per-window coverage lost against a perfect window scorer. With ``--map NAME`` (oracle,
-delayed, ascent, cadence, threshold, budget) that set is also mapped (``run_offline`` with the bench's
-defaults, each pick inserted when its policy would insert it: at its window's trigger, on arrival for the
-threshold oracle at the ``--window`` budget, at its trigger for every budget oracle) and its measured recall,
-F@5cm and PSNR reported beside its coverage (under a minute each here; the coverage part alone takes about
-30 s).
+Reported (table ``coverage.md`` and ``coverage.json``, written atomically under ``--out``): all frames; every
+``window``-th frame; an offline greedy max-coverage pick of the same count (frame 0 forced); the stream oracle
+(frame 0, then from each trigger window of ``window`` frames the frame adding the most new coverage given the
+earlier picks, the windows of ``StreamNBVPolicy``: frames 1..W, W+1..2W, ..., full windows only); the same
+deciding one window late (:func:`delayed_oracle`); the stream policies' own ``lookahead`` rule with the true
+coverage (:func:`lookahead_oracle`, ``--lookahead`` frames); the stream oracle refined by coordinate ascent (each
+window's pick re-chosen given all the other picks, until nothing changes: hindsight, not causal); the stream
+oracle with ``--ref-window``; two causal adaptive oracles, not one pick per window: the threshold oracle
+(:func:`threshold_picks`: frame 0, then every frame whose new coverage reaches a threshold, a keyframe as it
+arrives; the smallest threshold for each ``--threshold-budgets`` count found by bisection) and the
+budget-trigger oracle (:func:`budget_oracle`: ``StreamNBVPolicy``'s ``trigger="budget"`` with the GT new
+coverage as score and gain, one per ``--budget-ratios`` value); the offline greedy coverage curve (frames needed
+for each ``--targets`` coverage); and, for every ``--bench`` folder of ``roigsf bench --setting stream``, each
+run's keyframes with their coverage next to the run's measured recall, F@5cm and PSNR, and for window policies
+the per-window coverage lost against a perfect window scorer. With ``--map NAME`` (oracle, delayed, lookahead,
+ascent, cadence, threshold, budget) that set is also mapped (``run_offline`` with the bench's defaults or
+``--set``, each pick inserted when its policy would insert it: at its window's trigger (a window late for
+``delayed``, as many as the lookahead spans for ``lookahead``), on arrival for the threshold oracle at the
+``--window`` budget, at its trigger for every budget oracle) and its measured recall, F@5cm and PSNR reported
+beside its coverage (under a minute each here; the coverage part alone takes about 30 s).
 
     nice -n 19 .venv/bin/python scripts/coverage_bound.py --scene runs/office0_240_s5 --out runs/coverage_office0 \
         --bench runs/cov_bench/gaus-slam --bench runs/cov_bench/unseen --bench runs/cov_bench/gaus-slam_tau0.1 \
@@ -70,7 +71,7 @@ from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy
 
-MAPPABLE = ("oracle", "delayed", "ascent", "cadence", "threshold", "budget")
+MAPPABLE = ("oracle", "delayed", "lookahead", "ascent", "cadence", "threshold", "budget")
 """Sets ``--map`` can map: the window-feasible stream oracle, one-window-late oracle, coordinate ascent and every
 window-th frame (inserted at their triggers), and the causal threshold oracle (at the threshold for the window
 budget; each pick inserted as it arrives) and budget-trigger oracle (each pick inserted at its trigger)."""
@@ -196,6 +197,30 @@ def delayed_oracle(obs: np.ndarray, windows: list[list[int]], first: int = 0) ->
         else:
             score = plain
         best = win[int(np.argmax(score))]
+        picks.append(best)
+        covered |= obs[best]
+    return picks
+
+
+def lookahead_oracle(obs: np.ndarray, windows: list[list[int]], lookahead: int, first: int = 0) -> list[int]:
+    """The stream policies' ``lookahead`` rule with the true coverage: window t's pick is the frame f of the window
+    with the most new coverage plus the most that one of the ``lookahead`` frames after the window would still add
+    after f (both given the earlier picks), decided once those frames are in (``lookahead_new_voxels``' rule, with
+    ground truth instead of the frames' voxels). Ties to the earliest frame.
+    """
+    n = obs.shape[0]
+    picks = [first]
+    covered = obs[first].copy()
+    for win in windows:
+        later = obs[win[-1] + 1 : min(n, win[-1] + 1 + lookahead)]
+        best, best_score = win[0], -1
+        for f in win:
+            after = covered | obs[f]
+            score = np.count_nonzero(obs[f] & ~covered)
+            if len(later):
+                score += int(np.count_nonzero(later & ~after, axis=1).max())
+            if score > best_score:
+                best, best_score = f, score
         picks.append(best)
         covered |= obs[best]
     return picks
@@ -532,6 +557,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tau", type=float, default=0.05, help="distance threshold (m), as in R@5cm")
     ap.add_argument("--window", type=int, default=13, help="trigger window (frames) of the budget")
     ap.add_argument("--ref-window", type=int, default=9, help="a second window for reference")
+    ap.add_argument(
+        "--lookahead", type=int, default=None, help="frames the lookahead oracle looks past a window (default: window)"
+    )
     ap.add_argument("--targets", default="0.981,0.985,0.991", help="coverages for the greedy curve")
     ap.add_argument(
         "--threshold-budgets",
@@ -599,6 +627,8 @@ def main(argv: list[str] | None = None) -> int:
     oracle = stream_oracle(obs, win)
     oracle_refined = refine_windows(obs, oracle, win)
     oracle_delayed = delayed_oracle(obs, win)
+    lookahead = args.window if args.lookahead is None else args.lookahead
+    oracle_lookahead = lookahead_oracle(obs, win, lookahead)
     oracle_tail = stream_oracle(obs, win_tail)
     oracle_ref = stream_oracle(obs, ref_win)
     oracle_ref_refined = refine_windows(obs, oracle_ref, ref_win)
@@ -638,6 +668,7 @@ def main(argv: list[str] | None = None) -> int:
         row(f"offline greedy, {k} frames (0 forced)", greedy[:k]),
         row(f"stream oracle, windows of {args.window} (full windows only)", oracle),
         row(f"stream oracle W={args.window} deciding one window late", oracle_delayed),
+        row(f"stream oracle W={args.window}, the policies' lookahead rule (L={lookahead})", oracle_lookahead),
         row(f"stream oracle W={args.window} + coordinate ascent in windows", oracle_refined),
         *([row(f"every {args.window}th + coordinate ascent in windows", cadence_refined)] if cadence_refined else []),
         row(f"stream oracle W={args.window} incl. partial last window", oracle_tail),
@@ -649,8 +680,8 @@ def main(argv: list[str] | None = None) -> int:
         ],
         *[row(f"{budget_name}, adaptive_ratio {b['params']['adaptive_ratio']:g})", b["picks"]) for b in budgets_b],
     ]
-    named = {"oracle": oracle, "delayed": oracle_delayed, "ascent": oracle_refined, "cadence": cadence,
-             "threshold": threshold} | {b["name"]: b["picks"] for b in budgets_b}  # fmt: skip
+    named = {"oracle": oracle, "delayed": oracle_delayed, "lookahead": oracle_lookahead, "ascent": oracle_refined,
+             "cadence": cadence, "threshold": threshold} | {b["name"]: b["picks"] for b in budgets_b}  # fmt: skip
     timed = {b["name"]: {scene.ids[q]: scene.ids[at] for q, at in zip(b["picks"], b["insert_at"].values(), strict=True)}
              for b in budgets_b}  # fmt: skip
     to_map = [m for name in args.map for m in ([b["name"] for b in budgets_b] if name == "budget" else [name])]
@@ -663,7 +694,8 @@ def main(argv: list[str] | None = None) -> int:
         elif name in timed:
             policy = TimedPicks(timed[name])
         else:
-            policy = ScheduledPicks(ids, args.window, int(name == "delayed"), len(win) - 1)
+            delay = {"delayed": 1, "lookahead": -(-lookahead // args.window)}.get(name, 0)  # windows, rounded up
+            policy = ScheduledPicks(ids, args.window, delay, len(win) - 1)
         m = map_picks(args.scene, policy, args.out / "maps" / name, mapper)
         wall[f"map_{name}"] = time.perf_counter() - t0
         if sorted(m["keyframe_ids"]) != sorted(ids):

@@ -15,8 +15,8 @@
 # novelty_weight 4 on the stretching one), made only where missing; then scripts/coverage_bound.py at their budget
 # (windows of 12, 34 keyframes) with the perfect window scorers mapped on the stretching mapper (init_max_stretch=4)
 # as the policies' benches were: `oracle` (each window's frame adding the most true coverage when it closes),
-# `delayed` (the same one window late), `ascent` (each window's pick re-chosen with hindsight). Writes
-# runs/hindsight/suite_sN/coverage.{md,json}.
+# `delayed` (the same one window late), `lookahead` (the policies' own lookahead rule, one window, with the true
+# coverage), `ascent` (each window's pick re-chosen with hindsight). Writes runs/hindsight/suite_sN/coverage.{md,json}.
 #
 # PARTS (default "pool suite"), NICE (default 19). Measured 2026-11-28 with the benches present: the pool part
 # 5-6 min a scene, the stream part 2 min a layout.
@@ -55,7 +55,7 @@ if [[ " $PARTS " == *" suite "* ]]; then
         fi
         nice -n "$NICE" python scripts/coverage_bound.py --scene "runs/suite_s${layout}_400" \
             --out "runs/hindsight/suite_s$layout" --window 12 --ref-window 9 --bench "$benches/gaus-slam" \
-            --bench "$benches/stretch" --bench "$benches/fused4-stretch" --map oracle --map delayed --map ascent \
-            --set init_max_stretch=4
+            --bench "$benches/stretch" --bench "$benches/fused4-stretch" --map oracle --map delayed --map lookahead \
+            --map ascent --set init_max_stretch=4
     done
 fi

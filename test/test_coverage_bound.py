@@ -30,6 +30,10 @@ def test_a_perfect_window_scorer_is_myopic_and_hindsight_is_not() -> None:
     ascent = cb.refine_windows(obs, oracle, windows)
     assert ascent == [0, 1, 3] and cb.coverage(obs, ascent) == 7 / 8
     assert cb.delayed_oracle(obs, windows) == [0, 1, 3]
+    # the policies' lookahead rule: frame 1 (2 new) plus the 4 that frame 3 still adds after it beats frame 2 (3 new)
+    # plus 1; without a frame to look at (lookahead 0) it is the plain window oracle
+    assert cb.lookahead_oracle(obs, windows, 2) == [0, 1, 3]
+    assert cb.lookahead_oracle(obs, windows, 0) == oracle
     greedy, curve = cb.offline_greedy(obs, 4)
     assert greedy == [0, 3, 1, 4] and curve == [1 / 8, 5 / 8, 7 / 8, 8 / 8]
 
