@@ -54,9 +54,10 @@ if [[ " $PARTS " == *" suite "* ]]; then
             KIND=suite SEEDS=3 LAYOUT=$layout NICE=$NICE BENCHES="${missing# }" bash scripts/figure_nbv_stream_synth.sh
         fi
         # the scene as figure_nbv_stream_synth.sh renders it (its benches may have been made elsewhere)
-        [ -f "runs/suite_s${layout}_400/mesh.ply" ] || roigsf scene synth --kind suite --out "runs/suite_s${layout}_400" \
-            --seed "$layout" --frames 400 --width 160 --height 120 --overwrite
-        nice -n "$NICE" python scripts/coverage_bound.py --scene "runs/suite_s${layout}_400" \
+        scene="runs/suite_s${layout}_400"
+        [ -f "$scene/mesh.ply" ] || roigsf scene synth --kind suite --out "$scene" --seed "$layout" --frames 400 \
+            --width 160 --height 120 --overwrite
+        nice -n "$NICE" python scripts/coverage_bound.py --scene "$scene" \
             --out "runs/hindsight/suite_s$layout" --window 12 --ref-window 9 --bench "$benches/gaus-slam" \
             --bench "$benches/stretch" --bench "$benches/fused4-stretch" --map oracle --map delayed --map lookahead \
             --map ascent --set init_max_stretch=4
