@@ -13,13 +13,14 @@
 # nothing was chosen on), the benches the verdicts use (KIND=suite SEEDS=3 scripts/figure_nbv_stream_synth.sh with
 # BENCHES="gaus-slam stretch fused4-stretch": gaus-slam on both mappers, N alone and the fused score with
 # novelty_weight 4 on the stretching one), made only where missing; then scripts/coverage_bound.py at their budget
-# (windows of 12, 34 keyframes) with the perfect window scorers mapped on the stretching mapper (init_max_stretch=4)
-# as the policies' benches were: `oracle` (each window's frame adding the most true coverage when it closes),
+# (windows of 12, 34 keyframes) with the window oracles (the true coverage in place of the frames' own depth) mapped
+# on the stretching mapper (init_max_stretch=4) as the policies' benches were: `oracle` (each window's frame adding
+# the most true coverage when it closes),
 # `delayed` (the same one window late), `lookahead` (the policies' own lookahead rule, one window, with the true
 # coverage), `ascent` (each window's pick re-chosen with hindsight). Writes runs/hindsight/suite_sN/coverage.{md,json}.
 #
-# PARTS (default "pool suite"), NICE (default 19). Measured 2026-11-28 with the benches present: the pool part
-# 5-6 min a scene, the stream part 2 min a layout.
+# PARTS (default "pool suite"), NICE (default 19). Measured 2026-11-28 with the benches present: the pool part about
+# 3 min a scene, the stream part 2 min a layout; 25 min in all in a fresh clone that made two of the benches.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
