@@ -597,6 +597,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         overrides = parse_overrides(args.set, mdefaults, "--set", skip=("seed",))
         mapper = replace(mc, **overrides)
+        if args.lookahead is not None and args.lookahead < 0:
+            raise InputError("--lookahead", f"must be 0 or more frames, got {args.lookahead}")
     except InputError as e:
         print(f"coverage_bound: {e}", file=sys.stderr)
         return 2

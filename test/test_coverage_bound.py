@@ -53,10 +53,16 @@ def test_threshold_and_budget_oracles_keep_their_budgets() -> None:
 
 def test_mapper_overrides_are_checked_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`--set` takes MapperConfig fields as `roigsf bench --set` does: an unknown field, the seed and an out-of-range
-    value exit 2 with the flag or field named, before the scene is read (the scene here does not exist) and nothing
-    is written."""
-    for item, word in (("nope=1", "--set nope=1"), ("seed=3", "--set seed=3"), ("init_max_stretch=-1", "stretch")):
-        rc = cb.main(["--scene", str(tmp_path / "no_scene"), "--out", str(tmp_path / "out"), "--set", item])
-        assert rc == 2
+    value exit 2 with the flag or field named, as does a negative `--lookahead`, before the scene is read (the scene
+    here does not exist) and nothing is written."""
+    base = ["--scene", str(tmp_path / "no_scene"), "--out", str(tmp_path / "out")]
+    cases = [
+        (["--set", "nope=1"], "--set nope=1"),
+        (["--set", "seed=3"], "--set seed=3"),
+        (["--set", "init_max_stretch=-1"], "stretch"),
+        (["--lookahead", "-1"], "--lookahead"),
+    ]
+    for args, word in cases:
+        assert cb.main([*base, *args]) == 2
         assert word in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
