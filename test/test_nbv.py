@@ -587,6 +587,45 @@ def test_unseen_min_std_floors_only_the_unseen_terms_divisor(world: World) -> No
         NBVConfig(unseen_min_std=-0.01)
 
 
+def test_a_zero_weight_drops_its_term_and_epsilon_0_renders_no_fisher(world: World, monkeypatch) -> None:
+    """Issue 10's ablations of the fused score: ``epsilon=0`` drops z(F) and skips H_train and every Fisher render,
+    ``delta=0`` drops z(I_vis); the other terms keep their weights. All three weights 0 leave no score: refused."""
+    import roigsf_ros.nbv.scorer as scorer_mod
+
+    cands = np.stack(
+        [
+            world.view_a,
+            world.view_b,
+            look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP),
+            look_at(np.array([0.8, 0.1, 1.0]), np.array([2.0, -0.4, 1.1]), UP),
+        ]
+    )
+    full = NBVConfig(unseen_weight=1.0, unseen_source="carved")
+    ref = NBVScorer(full).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    ok = ~ref.flagged
+    assert ok.sum() >= 3 and ref.fisher[ok].std() > 0 and ref.close_front[ok].std() > 0 and ref.unseen[ok].std() > 0
+    z_f, z_c, z_u = zscore(ref.fisher[ok]), zscore(ref.close_front[ok]), zscore(ref.unseen[ok])
+    calls = []
+    monkeypatch.setattr(scorer_mod, "fisher_weighted_sum", lambda *a, **k: calls.append(1) or 0.0)
+    monkeypatch.setattr(NBVScorer, "train_fisher", lambda *a, **k: calls.append(2) or {})
+    no_f = NBVScorer(replace(full, epsilon=0.0)).score(world.map, None, world.tsdf, world.train, cands, INTR)
+    assert calls == [] and not no_f.fisher.any()
+    assert full.uses_fisher() and not replace(full, epsilon=0.0).uses_fisher() and not full.uses_fisher("close-front")
+    np.testing.assert_array_equal(no_f.flagged, ref.flagged)
+    np.testing.assert_allclose(no_f.fused[ok], 0.6 * z_c + z_u, atol=1e-9)
+    monkeypatch.undo()
+    no_c = NBVScorer(replace(full, delta=0.0)).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    np.testing.assert_allclose(no_c.fused[ok], 0.4 * z_f + z_u, atol=1e-9)
+    u_only = NBVScorer(replace(full, epsilon=0.0, delta=0.0)).score(world.map, None, world.tsdf, world.train, cands,
+                                                                      INTR)  # fmt: skip
+    np.testing.assert_allclose(u_only.fused[ok], z_u, atol=1e-9)
+    assert u_only.best_index == int(np.flatnonzero(ok)[np.argmax(ref.unseen[ok])])
+    with pytest.raises(InputError, match="no term"):
+        NBVConfig(epsilon=0.0, delta=0.0)
+    with pytest.raises(InputError, match="epsilon"):
+        NBVConfig(epsilon=-0.1)
+
+
 def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:
     """``unseen_backfaces="tsdf"``'s test: a pixel is back-facing where its point lies in a surface voxel's cell and
     that voxel's outward normal points away from the camera; a point in no surface voxel's cell is not."""

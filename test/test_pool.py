@@ -156,6 +156,34 @@ def test_carved_unseen_term_reaches_the_scorer_with_the_keyframes(source: Memory
     assert all(s > 0.05 for s in spreads)  # U tells the candidates apart
 
 
+def test_the_ablation_without_fisher_scores_as_the_scorer_and_recomputes_no_h_train(
+    source: MemoryFrameSource, monkeypatch
+) -> None:
+    """``epsilon=0`` (issue 10's ablation of the fused score without z(F)): each pick is the scorer's argmax, and the
+    pool spends nothing on the training Fisher the score no longer reads (the full score recomputes it each pick)."""
+    from roigsf_ros.mapping.mapper import Mapper
+
+    params = {"close_front_exact": True, "unseen_weight": 1.0, "unseen_source": "carved", "epsilon": 0.0}
+    real = Mapper.recompute_h_train
+    calls: list[int] = []
+    monkeypatch.setattr(Mapper, "recompute_h_train", lambda self: calls.append(1) or real(self))
+    expected: list[int] = []
+
+    def hook(mapper, policy, cand_positions, cand_poses) -> None:
+        policy.sync_tsdf(mapper)
+        res = NBVScorer(NBVConfig(mode="roi-gsurfisher", **params)).score(
+            mapper.map, None, policy.tsdf, mapper.keyframe_poses, cand_poses, mapper.intr
+        )
+        assert not res.fisher.any()
+        expected.append(cand_positions[res.best_index])
+
+    m = run_pool(source, pool_config(policy="roi-gsurfisher", policy_params=params), mapper_config(), on_select=hook)
+    assert m.metrics["chosen_positions"][4:] == expected and calls == []
+    full = pool_config(policy="roi-gsurfisher", policy_params=params | {"epsilon": 0.4})
+    run_pool(source, full, mapper_config())
+    assert len(calls) == 2  # one per pick of the full score
+
+
 def test_seeds_reproduce_and_random_differs(source: MemoryFrameSource, tmp_path) -> None:
     cfg = pool_config(policy="random", n_views=8, seed=3)
     gt = tmp_path / "gt.ply"

@@ -40,6 +40,7 @@ from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.policies.base import make_policy
 from roigsf_ros.policies.stream import StreamNBVPolicy
 
@@ -355,7 +356,10 @@ def run_pool(
     record(0.0, dt)
 
     remaining = [p for p in split.pool if p not in chosen and p not in skipped]
-    uses_h_train = policy.mode in ("roi-gsurfisher", "roi-fisher")
+    nbv_config = getattr(policy, "config", None)
+    uses_h_train = policy.mode in ("roi-gsurfisher", "roi-fisher") and (
+        not isinstance(nbv_config, NBVConfig) or nbv_config.uses_fisher(policy.mode)
+    )
     while len(mapper.keyframes) < config.n_views and remaining:
         t0 = time.perf_counter()
         if config.recompute_h_train and uses_h_train and mcfg.track_h_train:

@@ -32,9 +32,9 @@ class NBVConfig(Config):
     mode: str = "roi-gsurfisher"
     """Score mode, one of :data:`MODES`."""
     epsilon: float = 0.4
-    """Eq. 15 weight of z(F) (paper: 0.4)."""
+    """Eq. 15 weight of z(F) (paper: 0.4); 0 drops the Fisher term (and skips its renders): an ablation."""
     delta: float = 0.6
-    """Eq. 15 weight of z(I_vis) (paper: 0.6)."""
+    """Eq. 15 weight of z(I_vis) (paper: 0.6); 0 drops the close-front term: an ablation."""
     top_k: int = 5
     """Length of the ``top_k`` list of the result (the full ranking is always returned)."""
 
@@ -162,11 +162,18 @@ class NBVConfig(Config):
     z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
     counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
 
+    def uses_fisher(self, mode: str | None = None) -> bool:
+        """Whether scoring in ``mode`` (None: this config's) needs the Fisher terms, hence H_train: not for
+        close-front, nor for roi-gsurfisher with ``epsilon`` 0 (F weighs nothing in Eq. 15).
+        """
+        mode = mode or self.mode
+        return mode != "close-front" and not (mode == "roi-gsurfisher" and self.epsilon == 0)
+
     def validate(self) -> NBVConfig:
         """Self, or InputError naming the first field out of range."""
         if self.mode not in MODES:
             raise InputError("mode", f"unknown score mode '{self.mode}' (choose from {', '.join(MODES)})")
-        positive = ("epsilon", "delta", "beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
+        positive = ("beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
         positive += ("texture_radius_voxels", "roi_max_abs_tsdf_voxels", "near_m", "sigma_p", "phi", "fisherrf_lambda")
         positive += ("unseen_confirm_margin_m", "unseen_voxel_m")
         for name in positive:
@@ -174,6 +181,8 @@ class NBVConfig(Config):
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
                 raise InputError(name, f"must be a finite number > 0, got {v!r}")
         for name in (
+            "epsilon",
+            "delta",
             "mu",
             "texture_std_threshold",
             "roi_min_weight",
@@ -185,6 +194,8 @@ class NBVConfig(Config):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise InputError(name, f"must be a finite number >= 0, got {v!r}")
+        if self.mode == "roi-gsurfisher" and self.epsilon == 0 and self.delta == 0 and self.unseen_weight == 0:
+            raise InputError("epsilon", "epsilon, delta and unseen_weight are all 0: the fused score has no term")
         for name in ("angle_pref_texture_poor_deg", "angle_pref_texture_rich_deg"):
             if not 0.0 <= getattr(self, name) < 90.0:
                 raise InputError(name, f"must be in [0, 90) degrees, got {getattr(self, name)}")

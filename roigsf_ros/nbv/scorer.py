@@ -428,7 +428,7 @@ class NBVScorer:
         reasons: list[str] = []
         t0 = _clock()
         surfel_map = surfel_map if surfel_map is not None else SurfelMap.empty()
-        need_fisher = mode != "close-front"
+        need_fisher = cfg.uses_fisher(mode)  # epsilon 0 (an ablation) skips H_train and every Fisher render
         need_voxels = mode != "fisherrf"
         empty_map = len(surfel_map) == 0
         if need_fisher and empty_map:
