@@ -61,6 +61,11 @@
 # with SCENES=shelf and SCALE=2 SCENES=room5 (the tuning scenes; 1.4 and 3.6 min).
 # Then TAG=held32 with the held31 policies on two more scenes nothing was chosen on: SCALE=2 SCENES=room9 and
 # SCENES=office0 OFFSET=5.
+# Thirty-fourth session, the variant's score without one term (C=roi-gsurfisher:unseen_weight=1:unseen_source=carved):
+# TAG=abl34 POLICIES="$C,$C:epsilon=0,$C:delta=0,$C:epsilon=0:delta=0" SCENES=shelf, then without "$C," SCALE=2 with
+# SCENES=room5, office0, synth, clutter, room7, SCENES=office0 OFFSET=5, room6, room8, room9, SCENES=office0 OFFSET=10
+# (6-10 min each), then POLICIES="$C:epsilon=0,$C:epsilon=0:delta=0" with SCENES=room1, room2, room3, room4, bins and
+# SENSOR=kinect SCENES=office0.
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

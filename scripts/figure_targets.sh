@@ -135,6 +135,32 @@ for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240
     done
 done
 
+# Thirty-fourth session: the variant's fused score without one of its terms, the other weights kept (TAG=abl34;
+# POLICIES="$C:epsilon=0,$C:delta=0,$C:epsilon=0:delta=0", $C the variant; SCENES=shelf also runs $C itself, the check
+# that it reproduces the TAG=cell025 bench), against the same baselines as the variant's rows above; on the second to
+# fifth rooms, the bins and office0 through the Kinect model only the two cheap ones (POLICIES="$C:epsilon=0,
+# $C:epsilon=0:delta=0").
+C="roi-gsurfisher:unseen_weight=1:unseen_source=carved"
+abl() {  # abl NAME BENCH FISHERRF_RANDOM_BENCH ABLATION...: ABLATION is row:policy-options
+    local name=$1 bench=$2 base=$3 pair
+    shift 3
+    for pair in "$@"; do
+        verdict "pool_${name}_abl34_${pair%%:*}" "$bench#$C:${pair#*:}" "$base#fisherrf" "$base#random"
+    done
+}
+ALL=("nofisher:epsilon=0" "nocf:delta=0" "uonly:epsilon=0:delta=0")
+abl shelf_120 runs/bench_pool_shelf_abl34 runs/bench_pool_shelf_base25 "${ALL[@]}"
+for s in room5_240 office0_240 synth_240 clutter_240; do
+    abl "$s" "runs/bench_pool_${s}_abl34" "runs/bench_pool_${s}_base25" "${ALL[@]}"
+done
+for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240_o10 held32:room9_240 \
+    held32:office0_240_o5; do
+    abl "${run#*:}" "runs/bench_pool_${run#*:}_abl34" "runs/bench_pool_${run#*:}_${run%%:*}" "${ALL[@]}"
+done
+for s in room1_240 room2_240 room3_240 room4_240 bins_240 office0_240_kinect; do
+    abl "$s" "runs/bench_pool_${s}_abl34" "runs/bench_pool_${s}_base25" "${ALL[0]}" "${ALL[2]}"
+done
+
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
 U=runs/bench_stream_suite
