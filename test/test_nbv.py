@@ -36,6 +36,7 @@ from roigsf_ros.nbv.scorer import (
     surfels_facing,
     zscore,
 )
+from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS
 from roigsf_ros.render.numba_setup import numba_available
 from roigsf_ros.render.rasterize import camera_tensors, render_map
@@ -610,6 +611,10 @@ def test_a_zero_weight_drops_its_term_and_epsilon_0_renders_no_fisher(world: Wor
     monkeypatch.setattr(NBVScorer, "train_fisher", lambda *a, **k: calls.append(2) or {})
     no_f = NBVScorer(replace(full, epsilon=0.0)).score(world.map, None, world.tsdf, world.train, cands, INTR)
     assert calls == [] and not no_f.fisher.any()
+    state = ScoringState(replace(full, epsilon=0.0), 0.04, 0.12, 10.0, cache_h_train=True)  # as the planner node
+    _, _, h = state.update(world.map, None, ("color", "depth"), np.stack(world.train), INTR,
+                           lambda T: world.renderer.render(T, INTR)[::-1])  # fmt: skip
+    assert h is None and calls == []  # no H_train for a score without F
     assert full.uses_fisher() and not replace(full, epsilon=0.0).uses_fisher() and not full.uses_fisher("close-front")
     np.testing.assert_array_equal(no_f.flagged, ref.flagged)
     np.testing.assert_allclose(no_f.fused[ok], 0.6 * z_c + z_u, atol=1e-9)

@@ -300,7 +300,7 @@ class ScoringState:
         if mode != "fisherrf" and len(surfel_map) > 0:
             self.sync(render_rgbd, poses, intr)
             voxels, close_front = self.products(poses, intr, close_front=mode in CLOSE_FRONT_MODES)
-        if mode != "close-front":
+        if self.config.uses_fisher(mode):
             h = self.h_train(surfel_map, running, map_fisher_outputs, poses, intr, mode)
         return voxels, close_front, h
 
