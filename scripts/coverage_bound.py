@@ -72,9 +72,10 @@ from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy
 
 MAPPABLE = ("oracle", "delayed", "lookahead", "ascent", "cadence", "threshold", "budget")
-"""Sets ``--map`` can map: the window-feasible stream oracle, one-window-late oracle, coordinate ascent and every
-window-th frame (inserted at their triggers), and the causal threshold oracle (at the threshold for the window
-budget; each pick inserted as it arrives) and budget-trigger oracle (each pick inserted at its trigger)."""
+"""Sets ``--map`` can map: the window-feasible stream oracle, one-window-late oracle, lookahead-rule oracle,
+coordinate ascent and every window-th frame (inserted at their triggers), and the causal threshold oracle (at the
+threshold for the window budget; each pick inserted as it arrives) and budget-trigger oracle (each pick inserted at
+its trigger)."""
 
 
 METRICS = ("recall@5cm", "recall@1cm", "fscore@5cm", "psnr")

@@ -15,9 +15,9 @@
 # novelty_weight 4 on the stretching one), made only where missing; then scripts/coverage_bound.py at their budget
 # (windows of 12, 34 keyframes) with the window oracles (the true coverage in place of the frames' own depth) mapped
 # on the stretching mapper (init_max_stretch=4) as the policies' benches were: `oracle` (each window's frame adding
-# the most true coverage when it closes),
-# `delayed` (the same one window late), `lookahead` (the policies' own lookahead rule, one window, with the true
-# coverage), `ascent` (each window's pick re-chosen with hindsight). Writes runs/hindsight/suite_sN/coverage.{md,json}.
+# the most true coverage when it closes), `delayed` (the same one window late), `lookahead` (the policies' own
+# lookahead rule, one window, with the true coverage), `ascent` (each window's pick re-chosen with hindsight). Writes
+# runs/hindsight/suite_sN/coverage.{md,json}.
 #
 # PARTS (default "pool suite"), NICE (default 19). Measured 2026-11-28 with the benches present: the pool part about
 # 3 min a scene, the stream part 2 min a layout; 25 min in all in a fresh clone that made two of the benches.
