@@ -522,7 +522,8 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     """``unseen_source="carved"``: the keyframes' rendered depth carves the box. A repeated training view of panel
     A sees nothing unseen; the view of A's back does (no keyframe looked at it: the space behind A is unknown) with no
     back-face test; once a keyframe behind A looked at it, the space in front of its back is carved and U falls.
-    The scorer's U is the carved grid's own count, and the area measure puts the surface where the unknown ends."""
+    The scorer's U is the carved grid's own count, the area measure puts the surface where the unknown ends, and the
+    cell measure counts the grid's frontier cells the view looks into."""
     from roigsf_ros.nbv import carved_space, rays_meet_box
 
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
@@ -544,6 +545,9 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     assert leave[c] == pytest.approx(1.0, abs=0.1)  # A's back lies 1 m from the camera
     area = unseen(replace(cfg, unseen_measure="area"), world.train)
     assert area[1] == pytest.approx((leave[enter > 0] ** 2).sum() / (INTR.fx * INTR.fy))
+    cells = unseen(replace(cfg, unseen_measure="cells"), world.train)
+    _, frontier = space.unseen_frontier(behind, INTR, cfg.near_m, cfg.far_m)
+    assert cells[1] == pytest.approx(len(frontier) * cfg.unseen_voxel_m**2) and cells[1] > 0 and cells[0] < cells[1]
     saw = look_at(np.array([3.5, 0.2, 1.1]), np.array([2.0, 0.0, 1.0]), UP)  # behind A, looking at its back
     assert unseen(cfg, [*world.train, saw])[1] < 0.2
     with pytest.raises(InputError, match="unseen_source"):
@@ -552,6 +556,8 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_source="carved", unseen_bbox_margin_m=float("inf"))
     with pytest.raises(InputError, match="unseen_voxel_m"):
         NBVConfig(unseen_voxel_m=0.0)
+    with pytest.raises(InputError, match="unseen_measure"):
+        NBVConfig(unseen_measure="cells")  # the map source has no cells
 
 
 def test_unseen_min_std_floors_only_the_unseen_terms_divisor(world: World) -> None:

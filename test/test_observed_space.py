@@ -78,6 +78,25 @@ def test_rays_that_met_nothing_carve_free_space_up_to_far() -> None:
     assert nothing.counts()["unknown"] == nothing.state.size
 
 
+def test_the_frontier_count_is_the_boundary_a_view_looks_at_each_cell_once() -> None:
+    """A keyframe whose rays met nothing carves free space up to 2 m; beyond lies unknown space. From the keyframe's
+    pose and from 1 m nearer, every pixel is unseen (the pixel fractions tie), but the nearer view looks at a quarter
+    of the frontier: the cell count (``NBVConfig.unseen_measure="cells"``) is the frontier's area over the cell's
+    (a staircase of cells, a little more than the plane's), and with 4x the pixels it grows by under 10 %."""
+    miss = np.full((1, INTR.height, INTR.width), np.inf)
+    space = ObservedSpace.carve(LO, HI, 0.05, [pose()], miss, INTR, far_m=2.0)
+    enter_far, far = space.unseen_frontier(pose(), INTR, 0.1, 10.0)
+    enter_near, near = space.unseen_frontier(pose(z=1.0), INTR, 0.1, 10.0)
+    assert (enter_far > 0).all() and (enter_near > 0).all()
+    width, height = 2.0 * INTR.width / INTR.fx, 2.0 * INTR.height / INTR.fy  # the frustum at the frontier, 2 m
+    assert len(far) == pytest.approx(width * height / 0.05**2, rel=0.15)
+    assert 3.0 < len(far) / len(near) < 5.0
+    fine = Intrinsics(width=160, height=120, fx=120.0, fy=120.0, cx=79.5, cy=59.5)
+    _, far_fine = space.unseen_frontier(pose(), fine, 0.1, 10.0)
+    assert len(far) <= len(far_fine) < 1.1 * len(far)
+    assert np.isin(far, far_fine).mean() > 0.95
+
+
 def test_numba_kernels_match_the_plain_python_ones() -> None:
     """The compiled carve and query give exactly what the same loops give interpreted, on two keyframes with holes
     and a tilted wall, so the numba path is checked against a plain reference (as every fast path here)."""
@@ -95,10 +114,14 @@ def test_numba_kernels_match_the_plain_python_ones() -> None:
     assert len(np.unique(ref)) == 3
     enter, leave = fast.unseen_depths(pose(x=-0.7), small, 0.1, 10.0)
     e_ref, l_ref = np.zeros_like(enter), np.zeros_like(leave)
-    osp._k_unseen(ref, pose(x=-0.7), LO, 0.1, small.fx, small.fy, small.cx, small.cy, 0.1, 10.0, e_ref, l_ref)
+    c_ref = np.zeros(enter.shape, dtype=np.int64)
+    osp._k_unseen(ref, pose(x=-0.7), LO, 0.1, small.fx, small.fy, small.cx, small.cy, 0.1, 10.0, e_ref, l_ref, c_ref)
     np.testing.assert_array_equal(enter, e_ref)
     np.testing.assert_array_equal(leave, l_ref)
     assert 0 < (enter > 0).mean() < 1
+    _, cells = fast.unseen_frontier(pose(x=-0.7), small, 0.1, 10.0)
+    np.testing.assert_array_equal(cells, np.unique(c_ref[c_ref >= 0]))
+    assert ((c_ref >= 0) == (enter > 0)).all() and 0 < len(cells) < (enter > 0).sum()
 
 
 def test_bad_grids_are_refused_naming_the_field() -> None:

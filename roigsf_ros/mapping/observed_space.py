@@ -103,11 +103,13 @@ def _k_carve(grid: np.ndarray, poses: np.ndarray, depth: np.ndarray, lo: np.ndar
 
 
 def _k_unseen(grid: np.ndarray, T: np.ndarray, lo: np.ndarray, voxel: float, fx: float, fy: float, cx: float,
-              cy: float, near: float, far: float, enter: np.ndarray, leave: np.ndarray) -> None:  # fmt: skip
+              cy: float, near: float, far: float, enter: np.ndarray, leave: np.ndarray,
+              cell: np.ndarray) -> None:  # fmt: skip
     """Per pixel of ``enter`` [H, W]: the camera-z depth where the last stretch of the ray, before its first OCCUPIED
-    cell (or where it leaves the grid or passes ``far``), begins when that stretch is UNKNOWN (0 when it is FREE), and
-    in ``leave`` where it ends. Unknown cells the ray crosses before observed free space do not count: the space near
-    a camera no keyframe looked through says nothing about the surface the ray ends on.
+    cell (or where it leaves the grid or passes ``far``), begins when that stretch is UNKNOWN (0 when it is FREE), in
+    ``leave`` where it ends, and in ``cell`` the flat index of the stretch's first cell (-1 when FREE). Unknown cells
+    the ray crosses before observed free space do not count: the space near a camera no keyframe looked through says
+    nothing about the surface the ray ends on.
     """
     nx, ny, nz = grid.shape
     hi = np.array([nx, ny, nz], dtype=np.float64)
@@ -116,6 +118,7 @@ def _k_unseen(grid: np.ndarray, T: np.ndarray, lo: np.ndarray, voxel: float, fx:
         for u in range(w):
             enter[r, u] = 0.0
             leave[r, u] = 0.0
+            cell[r, u] = -1
             ox, oy, oz, dx, dy, dz = _ray(T, fx, fy, cx, cy, float(u), float(r))
             norm = np.sqrt(dx * dx + dy * dy + dz * dz)
             gx, gy, gz = (ox - lo[0]) / voxel, (oy - lo[1]) / voxel, (oz - lo[2]) / voxel
@@ -140,11 +143,13 @@ def _k_unseen(grid: np.ndarray, T: np.ndarray, lo: np.ndarray, voxel: float, fx:
                         found = False
                     elif not found:
                         enter[r, u] = t
+                        cell[r, u] = (i * ny + j) * nz + q
                         found = True
             if found:
                 leave[r, u] = t
             else:
                 enter[r, u] = 0.0
+                cell[r, u] = -1
 
 
 _KERNELS = Kernels(helpers=(_ray, _slab), carve=_k_carve, unseen=_k_unseen)
@@ -206,12 +211,31 @@ class ObservedSpace:
         reaches observed surface or the box's side through observed free space); only the part of the ray between
         ``near_m`` and ``far_m`` counts.
         """
+        enter, leave, _ = self._unseen_rays(T_wc, intr, near_m, far_m)
+        return enter, leave
+
+    def unseen_frontier(
+        self, T_wc: np.ndarray, intr: Intrinsics, near_m: float = 0.0, far_m: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`unseen_depths`, but where the second array is [F] int64: the distinct flat indices (into
+        :attr:`state`) of the unknown cells where the pixels' unseen stretches begin, each once: the part of the
+        boundary between observed free space and unseen space that the view looks at, whatever its distance
+        (``NBVConfig.unseen_measure="cells"``).
+        """
+        enter, _, cell = self._unseen_rays(T_wc, intr, near_m, far_m)
+        return enter, np.unique(cell[cell >= 0])
+
+    def _unseen_rays(
+        self, T_wc: np.ndarray, intr: Intrinsics, near_m: float, far_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """([H, W] enter depth, [H, W] leave depth, [H, W] int64 first cell or -1) of each pixel's unseen stretch."""
         enter = np.zeros((intr.height, intr.width))
         leave = np.zeros((intr.height, intr.width))
+        cell = np.full((intr.height, intr.width), -1, dtype=np.int64)
         T = np.ascontiguousarray(np.asarray(T_wc, dtype=np.float64))
         self._launch("unseen", self.state, T, self.lo_m, self.voxel_m, intr.fx, intr.fy, intr.cx, intr.cy,
-                     float(near_m), float(far_m), enter, leave)  # fmt: skip
-        return enter, leave
+                     float(near_m), float(far_m), enter, leave, cell)  # fmt: skip
+        return enter, leave, cell
 
     def counts(self) -> dict[str, int]:
         """Cells per state, for logs and tests."""

@@ -14,7 +14,7 @@ MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
 BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
-UNSEEN_MEASURES = ("pixels", "area")
+UNSEEN_MEASURES = ("pixels", "area", "cells")
 """Values of ``NBVConfig.unseen_measure``: what U(x) counts of the unseen pixels."""
 UNSEEN_SOURCES = ("map", "carved")
 """Values of ``NBVConfig.unseen_source``: what tells an unseen pixel."""
@@ -143,7 +143,11 @@ class NBVConfig(Config):
     camera at depth z, with z the farthest the unseen surface can lie: where the ray leaves the box of
     ``unseen_bbox_margin_m`` (``far_m`` without surface voxels), or the rendered depth of a back face, in front of
     which the unseen surface lies. The mesh recall counts surface by area, so a far view of an unseen wall shows
-    more of it than a near one, which the pixel fraction scores the same. Needs a finite ``unseen_bbox_margin_m``."""
+    more of it than a near one, which the pixel fraction scores the same. Needs a finite ``unseen_bbox_margin_m``.
+    ``"cells"`` (``unseen_source="carved"`` only): the distinct carved cells where the unseen pixels' rays enter their
+    unknown stretch, times ``unseen_voxel_m``^2 (m^2): the boundary of unobserved space the view looks at, each part
+    once whatever its distance, where the pixel fraction counts a near pocket by the pixels it fills and the area
+    count weighs a ray by where its stretch ends."""
     unseen_source: str = "map"
     """What tells an unseen pixel. ``"map"``: the map's render (alpha below ``unseen_alpha``, and the back faces of
     ``unseen_backfaces``). ``"carved"``: the pixel's ray reaches observed surface (or the box's side) through space
@@ -157,7 +161,8 @@ class NBVConfig(Config):
     """``unseen_source="carved"``: the cell size of the carved grid (metres); 2.5 cm was chosen over 5 cm on the two
     tuning scenes (a gap between objects a cell or two wide is carved only where the cells happen to fall)."""
     unseen_min_std: float = 0.0
-    """Floor of the divisor of z(U), in U's units (a fraction of the pixels, or m^2 with ``unseen_measure="area"``):
+    """Floor of the divisor of z(U), in U's units (a fraction of the pixels, or m^2 with ``unseen_measure`` area or
+    cells):
     ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a few pixels, and a plain
     z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
     counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
@@ -225,6 +230,8 @@ class NBVConfig(Config):
             raise InputError("unseen_measure", "area needs a finite unseen_bbox_margin_m (where an unseen ray ends)")
         if self.unseen_source not in UNSEEN_SOURCES:
             raise InputError("unseen_source", f"must be one of {', '.join(UNSEEN_SOURCES)}, got {self.unseen_source!r}")
+        if self.unseen_measure == "cells" and self.unseen_source != "carved":
+            raise InputError("unseen_measure", "cells counts carved cells: it needs unseen_source=carved")
         if self.unseen_source == "carved" and not np.isfinite(self.unseen_bbox_margin_m):
             raise InputError("unseen_source", "carved needs a finite unseen_bbox_margin_m (the box of the carved grid)")
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):

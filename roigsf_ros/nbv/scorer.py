@@ -251,7 +251,7 @@ class NBVResult:
     reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
     unseen: np.ndarray | None = None
-    """[M] U(x), the unseen pixels' fraction or their surface in m^2 (``NBVConfig.unseen_measure``), when
+    """[M] U(x), the unseen pixels' fraction, their surface or their frontier cells in m^2 (``unseen_measure``), when
     ``NBVConfig.unseen_weight`` > 0 in the ROI modes; else None."""
     n_skipped: int = 0
 
@@ -625,7 +625,10 @@ class NBVScorer:
                 fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs,
                                                 params=params, pixel_weights=w, near=cfg.near_m,
                                                 far=cfg.far_m)  # fmt: skip
-        if unseen is not None and space is not None:
+        if unseen is not None and space is not None and cfg.unseen_measure == "cells":  # m^2 of frontier, once each
+            _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
+            unseen[i] = len(cells) * space.voxel_m**2
+        elif unseen is not None and space is not None:
             enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
             hole = enter > 0
             if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
