@@ -37,6 +37,9 @@
 #   unseen-novelty2-lookahead-stretch4/, unseen-novelty4-lookahead-stretch4/  the same with novelty_weight=2 and 4
 #                              (thirty-second session: only 4, the weight chosen on the suite by
 #                              scripts/figure_nbv_stream_synth.sh, was run here)
+#   unseen-novelty4-lookahead-stretch4-nofisher/, -nocf/, novelty4-lookahead-stretch4/  that row without one term
+#                              each: epsilon=0 (no Fisher), delta=0 (no close-front), unseen_weight=0 (no unseen term)
+#                              (thirty-fifth session, SEEDS=3: what each term of the stream variant's score buys)
 #   novelty-lookahead-pixels/  novelty-lookahead with novelty_measure=pixels (a candidate's novelty counted in the
 #                              held frames' pixels it brings within reach, not its own new area; twenty-first session)
 #   novelty-lookahead-pixels-stretch4/  the two together (twenty-fifth session: the suite's best, checked here)
@@ -121,6 +124,10 @@ if [ "${ISSUE10:-1}" != 0 ]; then
         --set init_max_stretch=4
     row unseen-novelty4-lookahead-stretch4 "$R:unseen_weight=1:novelty_weight=4:lookahead=$WINDOW10" \
         --set init_max_stretch=4
+    S4="$R:unseen_weight=1:novelty_weight=4:lookahead=$WINDOW10"
+    row unseen-novelty4-lookahead-stretch4-nofisher "$S4:epsilon=0" --set init_max_stretch=4
+    row unseen-novelty4-lookahead-stretch4-nocf "$S4:delta=0" --set init_max_stretch=4
+    row novelty4-lookahead-stretch4 "$R:novelty_weight=4:lookahead=$WINDOW10" --set init_max_stretch=4
     row novelty-lookahead-pixels "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels"
     row novelty-lookahead-pixels-stretch4 "novelty:window=$WINDOW10:lookahead=$WINDOW10:novelty_measure=pixels" \
         --set init_max_stretch=4
