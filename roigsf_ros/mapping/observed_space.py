@@ -2,11 +2,12 @@
 
 The NBV's unseen term with ``NBVConfig.unseen_source="carved"`` asks, for each pixel of a candidate view, whether its
 ray reaches observed surface (or the box's side) through space no keyframe has observed: there a new view may show new
-surface. The TSDF cannot answer it: open3d's voxel-block grid allocates blocks only within the truncation band of
-observed surfaces, so free space far from a surface and space never seen look the same (unallocated). OctoMap is the
-field's library for such a grid, but it is not among this project's dependencies, and the grid needed here is small:
-one box, three states, rebuilt from the keyframes' depth at each scoring call, carved by straight ray marching in two
-numba kernels.
+surface; with ``unseen_measure="cells"`` it counts the distinct cells where those unknown stretches begin (the
+frontier the view looks at). The TSDF cannot answer it: open3d's voxel-block grid allocates blocks only within the
+truncation band of observed surfaces, so free space far from a surface and space never seen look the same
+(unallocated). OctoMap is the field's library for such a grid, but it is not among this project's dependencies, and
+the grid needed here is small: one box, three states, rebuilt from the keyframes' depth at each scoring call, carved by
+straight ray marching in two numba kernels.
 
 Carving is deterministic whatever the thread schedule: every keyframe's rays first mark the cells in front of their
 depth FREE (only cells still UNKNOWN), then every keyframe's rays mark the cells from their depth to one voxel behind

@@ -147,7 +147,8 @@ class NBVConfig(Config):
     ``"cells"`` (``unseen_source="carved"`` only): the distinct carved cells where the unseen pixels' rays enter their
     unknown stretch, times ``unseen_voxel_m``^2 (m^2): the boundary of unobserved space the view looks at, each part
     once whatever its distance, where the pixel fraction counts a near pocket by the pixels it fills and the area
-    count weighs a ray by where its stretch ends."""
+    count weighs a ray by where its stretch ends. A camera standing in space no keyframe observed counts only the
+    few cells its rays start in, so the count favours views from observed space, as frontier exploration does."""
     unseen_source: str = "map"
     """What tells an unseen pixel. ``"map"``: the map's render (alpha below ``unseen_alpha``, and the back faces of
     ``unseen_backfaces``). ``"carved"``: the pixel's ray reaches observed surface (or the box's side) through space
