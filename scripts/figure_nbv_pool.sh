@@ -66,6 +66,10 @@
 # SCENES=room5, office0, synth, clutter, room7, SCENES=office0 OFFSET=5, room6, room8, room9, SCENES=office0 OFFSET=10
 # (6-10 min each), then POLICIES="$C:epsilon=0,$C:epsilon=0:delta=0" with SCENES=room1, room2, room3, room4, bins and
 # SENSOR=kinect SCENES=office0.
+# Thirty-fifth session, the unseen term counted in frontier cells: TAG=cells35
+# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=cells SCENES=shelf, then SCALE=2 with
+# SCENES=room5, synth, room7, SCENES=office0 OFFSET=5, bins, office0, clutter, room6, room8, room4, room3, room9,
+# SCENES=office0 OFFSET=10, room1, room2 and SENSOR=kinect SCENES=office0 (3-4 min each, 55 min in all).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -160,6 +160,18 @@ done
 for s in room1_240 room2_240 room3_240 room4_240 bins_240 office0_240_kinect; do
     abl "$s" "runs/bench_pool_${s}_abl34" "runs/bench_pool_${s}_base25" "${ALL[0]}" "${ALL[2]}"
 done
+# Thirty-fifth session: the variant counting the carved frontier cells (TAG=cells35
+# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=cells; SCENES=shelf, then SCALE=2), rows
+# pool_*_cells35, against the same baselines as the variant's rows.
+for s in shelf_120:shelf room5_240 office0_240 synth_240 clutter_240 room1_240 room2_240 room3_240 room4_240 bins_240 \
+    office0_240_kinect; do
+    pool_tag cells35 "${s%%:*}" "${s#*:}"
+done
+for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240_o10 held32:room9_240 \
+    held32:office0_240_o5; do
+    b="runs/bench_pool_${run#*:}_${run%%:*}"
+    verdict "pool_${run#*:}_cells35" "runs/bench_pool_${run#*:}_cells35" "$b#fisherrf" "$b#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
@@ -180,6 +192,13 @@ for k in 2 4; do
         "$S/gaus-slam"
     both_mappers "stream_kinect_fused${k}_stretch4" "$K/unseen-novelty$k-lookahead-stretch4" "$K/gaus-slam-stretch4" \
         "$K/gaus-slam"
+done
+# Thirty-fifth session: the kappa_n 4 row without one term each (ROWS="unseen-novelty4-lookahead-stretch4-nofisher
+# unseen-novelty4-lookahead-stretch4-nocf novelty4-lookahead-stretch4", SEEDS=3, and the same with SENSOR=kinect).
+for row in nofisher:unseen-novelty4-lookahead-stretch4-nofisher nocf:unseen-novelty4-lookahead-stretch4-nocf \
+    nounseen:novelty4-lookahead-stretch4; do
+    both_mappers "stream_office0_fused4_${row%%:*}_stretch4" "$S/${row#*:}" "$S/gaus-slam-stretch4" "$S/gaus-slam"
+    both_mappers "stream_kinect_fused4_${row%%:*}_stretch4" "$K/${row#*:}" "$K/gaus-slam-stretch4" "$K/gaus-slam"
 done
 verdict stream_office0_pixels "$S/novelty-lookahead-pixels" "$S/gaus-slam"
 both_mappers stream_office0_pixels_stretch4 "$S/novelty-lookahead-pixels-stretch4" "$S/gaus-slam-stretch4" \

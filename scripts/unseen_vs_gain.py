@@ -1,18 +1,18 @@
 #!/usr/bin/env python3
 """Does the unseen term follow the surface a candidate would add? Measured at a pool bench's first pick (issue 10).
 
-At the first pick every policy of a pool bench stands on the same map (the same initial views and training, same
-seed). This maps a bench's scene up to that pick five times with the `unconfirmed` variant
+At the first pick every policy of a pool bench stands on the same map (the same initial views and training, same seed).
+This maps a bench's scene up to that pick seven times with the `unconfirmed` variant
 (``roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed``), counting U as the pixel fraction, as the area
 (``unseen_measure=area``), as the area of the alpha holes alone (``unseen_backfaces=none``, so the difference is the
 back faces' area), and, in place of the map's render, from the space the keyframes carved (``unseen_source=carved``,
-which has no back-face test) as the pixel fraction and as the area, and compares each candidate's U with its true
-gain: the fraction of the GT samples (those the bench's recall counts) its true depth observes within ``--tau`` that
-no initial view observes (``pool_bound.observed``). Reported per seed: Spearman's rho of U and of the fused score
-with the gain over the candidates that are not flagged, the true gain of each count's pick (its argmax of U and of
-the fused score) against the best gain, and the share of the area count that comes from back faces, over all
-candidates and at the argmax of U. Writes ``unseen_vs_gain.json`` and ``.md`` under ``--out`` (atomically) and prints
-the table.
+which has no back-face test) as the pixel fraction and as the area (5 cm cells), and as the pixel fraction and the
+frontier cells (``unseen_measure=cells``) at 2.5 cm, and compares each candidate's U with its true gain: the fraction of
+the GT samples (those the bench's recall counts) its true depth observes within ``--tau`` that no initial view observes
+(``pool_bound.observed``). Reported per seed: Spearman's rho of U and of the fused score with the gain over the
+candidates that are not flagged, the true gain of each count's pick (its argmax of U and of the fused score) against the
+best gain, and the share of the area count that comes from back faces, over all candidates and at the argmax of U.
+Writes ``unseen_vs_gain.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
 
     .venv/bin/python scripts/unseen_vs_gain.py runs/bench_pool_clutter_240_area --out runs/s28/gain_clutter --seeds 0
 """
@@ -42,10 +42,13 @@ COUNTS = {
     "area_holes": VARIANT | {"unseen_measure": "area", "unseen_backfaces": "none"},
     "carved": VARIANT | {"unseen_measure": "pixels", "unseen_source": "carved", "unseen_voxel_m": 0.05},
     "carved_area": VARIANT | {"unseen_measure": "area", "unseen_source": "carved", "unseen_voxel_m": 0.05},
+    "carved25": VARIANT | {"unseen_measure": "pixels", "unseen_source": "carved", "unseen_voxel_m": 0.025},
+    "carved25_cells": VARIANT | {"unseen_measure": "cells", "unseen_source": "carved", "unseen_voxel_m": 0.025},
 }
-"""The ways U is counted here: policy parameters of ``roi-gsurfisher``. The carved counts keep the 5 cm cells the
-twenty-ninth session chose the carved rule with (the README's table), not the 2.5 cm default chosen after it."""
-RHO_COUNTS = ("pixels", "area", "carved", "carved_area")
+"""The ways U is counted here: policy parameters of ``roi-gsurfisher``. ``carved`` and ``carved_area`` keep the 5 cm
+cells the twenty-ninth session chose the carved rule with (the README's table); ``carved25`` and ``carved25_cells``
+(the pixel fraction and the frontier cells, thirty-fifth session) the 2.5 cm default chosen after it."""
+RHO_COUNTS = ("pixels", "area", "carved", "carved_area", "carved25", "carved25_cells")
 """The counts whose rho with the gain is reported (``area_holes`` only gives the back faces' share)."""
 
 
