@@ -135,7 +135,7 @@ def test_unseen_vs_gain_compares_each_count_with_the_true_gain_of_the_first_pick
         assert 0 <= r["gain_of_pick"] <= s["best_gain"] and 0 <= r["gain_of_max_u"] <= s["best_gain"]
         assert all(np.isnan(v) or -1 <= v <= 1 for v in (r["rho_u"], r["rho_fused"]))
     assert 0 <= s["back_share_at_max_area"] <= 1 and 0 <= s["back_share_all"] <= 1
-    assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == len(uv.RHO_COUNTS) == 4
+    assert (tmp_path / "g" / "unseen_vs_gain.md").read_text().count("\n| 1 | ") == len(uv.RHO_COUNTS) == 6
 
 
 def test_unseen_spread_records_each_scoring_call_and_restores_the_scorer(bench: Path, tmp_path: Path) -> None:
