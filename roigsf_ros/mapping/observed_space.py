@@ -221,7 +221,7 @@ class ObservedSpace:
         """As :meth:`unseen_depths`, but where the second array is [F] int64: the distinct flat indices (into
         :attr:`state`) of the unknown cells where the pixels' unseen stretches begin, each once: the part of the
         boundary between observed free space and unseen space that the view looks at, whatever its distance
-        (``NBVConfig.unseen_measure="cells"``).
+        (``NBVConfig.unseen_measure="cells"``); from a camera inside unknown space, the few cells its rays start in.
         """
         enter, _, cell = self._unseen_rays(T_wc, intr, near_m, far_m)
         return enter, np.unique(cell[cell >= 0])

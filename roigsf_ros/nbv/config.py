@@ -163,9 +163,8 @@ class NBVConfig(Config):
     tuning scenes (a gap between objects a cell or two wide is carved only where the cells happen to fall)."""
     unseen_min_std: float = 0.0
     """Floor of the divisor of z(U), in U's units (a fraction of the pixels, or m^2 with ``unseen_measure`` area or
-    cells):
-    ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a few pixels, and a plain
-    z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
+    cells): ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a few pixels, and a
+    plain z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
     counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
 
     def uses_fisher(self, mode: str | None = None) -> bool:
