@@ -625,17 +625,18 @@ class NBVScorer:
                 fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs,
                                                 params=params, pixel_weights=w, near=cfg.near_m,
                                                 far=cfg.far_m)  # fmt: skip
-        if unseen is not None and space is not None and cfg.unseen_measure == "cells":  # m^2 of frontier, once each
-            _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
-            unseen[i] = len(cells) * space.voxel_m**2
-        elif unseen is not None and space is not None:
-            enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
-            hole = enter > 0
-            if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
-                unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
+        if unseen is not None and space is not None:
+            if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
+                _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
+                unseen[i] = len(cells) * space.voxel_m**2
             else:
-                meets = rays_meet_box(T, intr_f, *unseen_box)
-                unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
+                enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
+                hole = enter > 0
+                if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
+                    unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
+                else:
+                    meets = rays_meet_box(T, intr_f, *unseen_box)
+                    unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
         elif unseen is not None and cfg.unseen_source == "map" and len(surfel_map) > 0:
             m = surfel_map.detach()
             # With the surfel back-face test the render composites which surfels face this camera; else colours.
