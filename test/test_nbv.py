@@ -560,6 +560,39 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_measure="cells")  # the map source has no cells
 
 
+def test_unseen_plan_views_scores_a_candidate_with_the_views_that_would_complete_it(world: World) -> None:
+    """``unseen_plan_views``: with 1 the scorer's U is each candidate's carved pixel fraction; with 2 it is what the
+    candidate and its best partner show together, built from the carved grid's entry cells of each view (the
+    library's plan over them), never less than the candidate's own, and the same cell seen by both counted once."""
+    from roigsf_ros.nbv import UnseenCells, carved_space, planned_unseen, rays_meet_box
+
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    beside = look_at(np.array([3.0, 0.4, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([world.view_a, behind, beside])
+    cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved")
+
+    def scored(config: NBVConfig) -> np.ndarray:
+        return NBVScorer(config).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR).unseen
+
+    own = scored(cfg)
+    assert scored(replace(cfg, unseen_plan_views=1)) == pytest.approx(own, abs=0)
+    planned = scored(replace(cfg, unseen_plan_views=2))
+    vox = NBVScorer().surface(world.tsdf)
+    lo, hi = vox.centres_m.min(0) - 0.1, vox.centres_m.max(0) + 0.1
+    space = carved_space(world.map, world.train, INTR, lo, hi, cfg)
+    views = [
+        UnseenCells.from_pixels(space.unseen_cells(T, INTR, cfg.near_m, cfg.far_m), rays_meet_box(T, INTR, lo, hi))
+        for T in cands
+    ]
+    assert [v.fraction for v in views] == pytest.approx(own)
+    assert planned == pytest.approx(planned_unseen(views, 2))
+    assert np.all(planned >= own - 1e-12) and planned[0] > own[0]  # the front view's partner sees A's back
+    # behind and beside look at the same back of A: together they add less than their two fractions
+    assert planned[1] < own[1] + own[2]
+    _, frontier = space.unseen_frontier(behind, INTR, cfg.near_m, cfg.far_m)
+    assert set(views[1].cells.tolist()) <= set(frontier.tolist())
+
+
 def test_unseen_min_std_floors_only_the_unseen_terms_divisor(world: World) -> None:
     """``unseen_min_std``: the unseen term is ``kappa (U - mean U) / max(std U, floor)`` over the scored candidates,
     beside the paper's unchanged Eq. 15. Floor 0 is the plain z-score; a floor far above U's spread leaves the paper's

@@ -226,6 +226,14 @@ class ObservedSpace:
         enter, _, cell = self._unseen_rays(T_wc, intr, near_m, far_m)
         return enter, np.unique(cell[cell >= 0])
 
+    def unseen_cells(
+        self, T_wc: np.ndarray, intr: Intrinsics, near_m: float = 0.0, far_m: float = np.inf
+    ) -> np.ndarray:
+        """[H, W] int64: the flat index (into :attr:`state`) of the unknown cell where each pixel's last unknown
+        stretch begins, as in :meth:`unseen_depths`, or -1 where the ray crosses none (``unseen_plan_views``).
+        """
+        return self._unseen_rays(T_wc, intr, near_m, far_m)[2]
+
     def _unseen_rays(
         self, T_wc: np.ndarray, intr: Intrinsics, near_m: float, far_m: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -167,6 +167,13 @@ class NBVConfig(Config):
     plain z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
     counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
 
+    unseen_plan_views: int = 1
+    """Views the unseen term plans over (``unseen_source="carved"``, ``unseen_measure="pixels"``): with k > 1, U(x)
+    is the unseen pixel fraction that x and the k - 1 other candidates a greedy completion adds after it would show
+    together, each carved cell where unseen rays enter counted once per plan (:mod:`roigsf_ros.nbv.plan`), so a
+    candidate whose unseen space others also see weighs less than one that sees what no other candidate does. 1: the
+    candidate's own fraction (myopic, as every session before the thirty-sixth)."""
+
     def uses_fisher(self, mode: str | None = None) -> bool:
         """Whether scoring in ``mode`` (None: this config's) needs the Fisher terms, hence H_train: not for
         close-front, nor for roi-gsurfisher with ``epsilon`` 0 (F weighs nothing in Eq. 15).
@@ -234,9 +241,14 @@ class NBVConfig(Config):
             raise InputError("unseen_measure", "cells counts carved cells: it needs unseen_source=carved")
         if self.unseen_source == "carved" and not np.isfinite(self.unseen_bbox_margin_m):
             raise InputError("unseen_source", "carved needs a finite unseen_bbox_margin_m (the box of the carved grid)")
-        for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample"):
+        for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample",
+                     "unseen_plan_views"):  # fmt: skip
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise InputError(name, f"must be a positive integer, got {getattr(self, name)!r}")
+        if self.unseen_plan_views != 1 and (self.unseen_source != "carved" or self.unseen_measure != "pixels"):
+            raise InputError(
+                "unseen_plan_views", "plans over carved cells: it needs unseen_source=carved and unseen_measure=pixels"
+            )
         for name in ("fisher_outputs", "fisherrf_outputs"):
             bad = [o for o in getattr(self, name) if o not in OUTPUTS]
             if bad or not getattr(self, name):

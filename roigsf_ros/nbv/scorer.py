@@ -45,6 +45,7 @@ from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory, voxel_keys
 from roigsf_ros.nbv.config import MODES, NBVConfig
+from roigsf_ros.nbv.plan import UnseenCells, planned_unseen
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.render.fisher import fisher_diag, fisher_weighted_sum
 from roigsf_ros.render.rasterize import camera_tensors, render_map
@@ -488,6 +489,8 @@ class NBVScorer:
         space = None  # unseen_source="carved": the space the keyframes' rendered depth observed, carved once per call
         if carved and unseen_box is not None and not empty_map:
             space = carved_space(surfel_map, poses, intr_f, *unseen_box, cfg, should_stop)
+        # unseen_plan_views > 1: each candidate's unseen pixels by entry cell, planned over once all are in
+        plan: dict[int, UnseenCells] | None = {} if space is not None and cfg.unseen_plan_views > 1 else None
         seen_by = None  # unseen_backfaces="unconfirmed": the map as each keyframe sees it, rendered once per call
         if use_unseen and not carved and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
             seen_by = KeyframeDepths.render(
@@ -528,7 +531,11 @@ class NBVScorer:
             for j, i in enumerate(chunk):
                 self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
                                         rois.weights[j] if rois is not None else None, mass[i], unseen_box, fisher,
-                                        flagged, unseen, facing, seen_by, space, should_stop, acc)  # fmt: skip
+                                        flagged, unseen, facing, seen_by, space, plan, should_stop,
+                                        acc)  # fmt: skip
+        if plan:
+            order = sorted(plan)
+            unseen[order] = planned_unseen([plan[i] for i in order], cfg.unseen_plan_views)
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
@@ -598,13 +605,15 @@ class NBVScorer:
         facing: SurfaceFacing | None,
         seen_by: KeyframeDepths | None,
         space: ObservedSpace | None,
+        plan: dict[int, UnseenCells] | None,
         should_stop: ShouldStop,
         acc: dict[str, np.ndarray],
     ) -> None:
         """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
         ``facing`` (``unseen_backfaces="tsdf"``) and ``unseen_backfaces="surfels"`` also count the pixels that render
         the back of the surface as unseen; ``seen_by`` (``"unconfirmed"``) spares the back pixels a keyframe saw from
-        this side; ``space`` (``unseen_source="carved"``) replaces the map's render by the carved grid.
+        this side; ``space`` (``unseen_source="carved"``) replaces the map's render by the carved grid; ``plan``
+        (``unseen_plan_views`` > 1) receives the candidate's unseen pixels by entry cell.
         """
         cfg = self.config
         ds = cfg.fisher_downsample
@@ -629,6 +638,11 @@ class NBVScorer:
             if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
                 _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
                 unseen[i] = len(cells) * space.voxel_m**2
+            elif plan is not None:  # the pixel fraction, and its pixels by entry cell for the plan
+                meets = rays_meet_box(T, intr_f, *unseen_box)
+                view = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
+                unseen[i] = view.fraction
+                plan[i] = view
             else:
                 enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
                 hole = enter > 0

@@ -1,0 +1,95 @@
+"""The unseen term planned over a few views (``NBVConfig.unseen_plan_views``, :mod:`roigsf_ros.nbv.plan`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.nbv import NBVConfig, UnseenCells, planned_unseen
+
+
+def view(cells: list[int], share: float = 0.1) -> UnseenCells:
+    """A view entering unknown space at ``cells``, each with ``share`` of its counted pixels."""
+    return UnseenCells(np.array(cells, dtype=np.int64), np.full(len(cells), share))
+
+
+def reference(views: list[UnseenCells], k: int) -> np.ndarray:
+    """The same greedy completion with Python sets and loops: the plain reference the sparse sums are checked on."""
+    shares = [dict(zip(v.cells.tolist(), v.share.tolist(), strict=True)) for v in views]
+    out = []
+    for x in range(len(views)):
+        entered, used, total = set(shares[x]), {x}, sum(shares[x].values())
+        for _ in range(k - 1):
+            best, best_gain = -1, 0.0
+            for y in range(len(views)):
+                gain = sum(s for c, s in shares[y].items() if c not in entered)
+                if y not in used and gain > best_gain:
+                    best, best_gain = y, gain
+            if best < 0:
+                break
+            total += best_gain
+            used.add(best)
+            entered |= set(shares[best])
+        out.append(total)
+    return np.array(out)
+
+
+def test_a_plan_of_two_prefers_the_view_whose_partner_sees_the_rest() -> None:
+    """X sees the most on its own, but Y and Z together see all of X's cells and two more: with a plan of two views
+    Y (and Z) score above X, where the myopic fraction ranks X first."""
+    views = [view([1, 2, 3, 4]), view([1, 2, 5]), view([3, 4, 6])]
+    assert planned_unseen(views, 1) == pytest.approx([0.4, 0.3, 0.3])
+    planned = planned_unseen(views, 2)
+    assert planned == pytest.approx([0.5, 0.6, 0.6])
+    assert int(np.argmax(planned)) == 1
+    assert planned_unseen(views, 3) == pytest.approx([0.6, 0.6, 0.6])  # every cell, whoever starts
+
+
+def test_a_cell_counts_once_per_plan_and_the_completion_stops_when_nothing_is_added() -> None:
+    """A view whose cells the plan already enters adds nothing, even with a larger share of its own pixels there;
+    with nothing left to add, a longer plan is worth no more than the view alone."""
+    views = [view([1, 2], 0.2), view([1, 2], 0.45), view([7], 0.05)]
+    assert planned_unseen(views, 2) == pytest.approx([0.45, 0.95, 0.95])
+    alone = [view([1, 2], 0.2), view([1], 0.3)]
+    assert planned_unseen(alone, 4) == pytest.approx([0.4, 0.5])
+    assert planned_unseen([view([1, 2]), view([])], 3) == pytest.approx([0.2, 0.2])
+
+
+def test_planned_unseen_matches_the_plain_reference_on_random_views() -> None:
+    """Random views over shared cells, plans of 1-5 views: the sparse sums equal the set-and-loop reference."""
+    rng = np.random.default_rng(36)
+    for trial in range(20):
+        m = int(rng.integers(2, 12))
+        views = []
+        for _ in range(m):
+            cells = np.unique(rng.integers(0, 60, size=int(rng.integers(0, 25))))
+            share = rng.random(len(cells)) / max(len(cells), 1)
+            views.append(UnseenCells(cells.astype(np.int64), share))
+        for k in (1, 2, 3, 5):
+            assert planned_unseen(views, k) == pytest.approx(reference(views, k), rel=1e-12, abs=1e-12), (trial, k)
+
+
+def test_unseen_cells_from_pixels_counts_only_the_counted_pixels() -> None:
+    """Shares are over the pixels whose ray meets the box: -1 pixels and pixels outside the box add nothing."""
+    cell = np.array([[5, 5, -1], [7, 5, 9]])
+    counted = np.array([[True, True, True], [True, True, False]])
+    v = UnseenCells.from_pixels(cell, counted)
+    assert v.cells.tolist() == [5, 7]
+    assert v.share == pytest.approx([3 / 5, 1 / 5])
+    assert v.fraction == pytest.approx(4 / 5)
+    assert UnseenCells.from_pixels(cell, np.zeros_like(counted)).fraction == 0.0
+    with pytest.raises(InputError, match="cell"):
+        UnseenCells.from_pixels(cell, counted[:1])
+
+
+def test_bad_plan_settings_name_the_field() -> None:
+    with pytest.raises(InputError, match="unseen_plan_views"):
+        planned_unseen([view([1])], 0)
+    with pytest.raises(InputError, match="unseen_plan_views"):
+        NBVConfig(unseen_plan_views=0, unseen_source="carved")
+    with pytest.raises(InputError, match="unseen_plan_views"):
+        NBVConfig(unseen_plan_views=2)  # the map source has no cells
+    with pytest.raises(InputError, match="unseen_plan_views"):
+        NBVConfig(unseen_plan_views=2, unseen_source="carved", unseen_measure="area")
+    assert NBVConfig(unseen_plan_views=3, unseen_source="carved").unseen_plan_views == 3
