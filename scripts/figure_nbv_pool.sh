@@ -70,6 +70,11 @@
 # POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=cells SCENES=shelf, then SCALE=2 with
 # SCENES=room5, synth, room7, SCENES=office0 OFFSET=5, bins, office0, clutter, room6, room8, room4, room3, room9,
 # SCENES=office0 OFFSET=10, room1, room2 and SENSOR=kinect SCENES=office0 (3-4 min each, 55 min in all).
+# Thirty-sixth session, on a fresh machine with another CPU: TAG=base36 POLICIES="$C,fisherrf,random" (C as above)
+# with SCENES=shelf, then SCALE=2 with SCENES=room5, synth, room8, SCENES=office0 OFFSET=5 and room7 (the variant and
+# both baselines again in one bench per scene; 12-45 min each beside another bench); and TAG=plan36
+# POLICIES="$C:unseen_plan_views=2,$C:unseen_plan_views=4" with SCENES=shelf, then SCALE=2 SCENES=room5 (the tuning
+# scenes; it lost there, so nothing else).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -172,6 +172,21 @@ for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240
     b="runs/bench_pool_${run#*:}_${run%%:*}"
     verdict "pool_${run#*:}_cells35" "runs/bench_pool_${run#*:}_cells35" "$b#fisherrf" "$b#random"
 done
+# Thirty-sixth session, on a fresh machine with another CPU (AMD EPYC, AVX2): the variant and both baselines re-run in
+# one bench per scene (TAG=base36 POLICIES="$C,fisherrf,random"; SCENES=shelf, then SCALE=2 with SCENES=room5, synth,
+# room8, SCENES=office0 OFFSET=5 and room7), rows pool_*_base36; and the unseen term planned over 2 and 4 views on the
+# tuning scenes (TAG=plan36 POLICIES="$C:unseen_plan_views=2,$C:unseen_plan_views=4"), rows pool_*_plan36_k2 / _k4,
+# against the base36 baselines.
+for s in shelf_120:shelf room5_240 synth_240 room7_240 room8_240 office0_240_o5; do
+    b="runs/bench_pool_${s#*:}_base36"
+    verdict "pool_${s%%:*}_base36" "$b#$C" "$b#fisherrf" "$b#random"
+done
+for s in shelf_120:shelf room5_240; do
+    for k in 2 4; do
+        verdict "pool_${s%%:*}_plan36_k$k" "runs/bench_pool_${s#*:}_plan36#$C:unseen_plan_views=$k" \
+            "runs/bench_pool_${s#*:}_base36#fisherrf" "runs/bench_pool_${s#*:}_base36#random"
+    done
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
