@@ -83,6 +83,24 @@ def test_unseen_cells_from_pixels_counts_only_the_counted_pixels() -> None:
         UnseenCells.from_pixels(cell, counted[:1])
 
 
+def test_a_stop_check_runs_before_each_views_completion() -> None:
+    """The plan's work grows as M^2: a scorer shutting down stops it between views (its check raises)."""
+    calls: list[int] = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("stop")
+
+    views = [view([1, 2]), view([2, 3]), view([3, 4])]
+    with pytest.raises(RuntimeError, match="stop"):
+        planned_unseen(views, 2, check)
+    assert len(calls) == 2
+    calls.clear()
+    planned_unseen(views[:1] + views[:1], 2, lambda: calls.append(1))
+    assert len(calls) == 2
+
+
 def test_bad_plan_settings_name_the_field() -> None:
     with pytest.raises(InputError, match="unseen_plan_views"):
         planned_unseen([view([1])], 0)

@@ -12,7 +12,7 @@ fraction. A greedy max-coverage over a handful of views needs no library; scipy'
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,10 +48,11 @@ class UnseenCells:
         return float(self.share.sum())
 
 
-def planned_unseen(views: Sequence[UnseenCells], k: int) -> np.ndarray:
+def planned_unseen(views: Sequence[UnseenCells], k: int, between_views: Callable[[], None] | None = None) -> np.ndarray:
     """[M] for each view x: the summed share of the cells that x and the ``k - 1`` views a greedy completion adds
     after it enter (each step the view adding the most share through cells not yet entered; ties to the lower index;
-    the completion stops early when no view adds any). ``k = 1``: each view's own fraction.
+    the completion stops early when no view adds any). ``k = 1``: each view's own fraction. The work grows as
+    M^2 (k - 1); ``between_views`` is called before each view's completion (a scorer's stop check raises there).
     """
     if int(k) != k or k < 1:
         raise InputError("unseen_plan_views", f"must be a positive integer, got {k!r}")
@@ -67,6 +68,8 @@ def planned_unseen(views: Sequence[UnseenCells], k: int) -> np.ndarray:
     )
     out = own.copy()
     for x in range(m):
+        if between_views is not None:
+            between_views()
         open_cells = np.ones(len(keys))
         open_cells[share.indices[share.indptr[x] : share.indptr[x + 1]]] = 0.0
         used = np.zeros(m, dtype=bool)

@@ -535,7 +535,8 @@ class NBVScorer:
                                         acc)  # fmt: skip
         if plan:
             order = sorted(plan)
-            unseen[order] = planned_unseen([plan[i] for i in order], cfg.unseen_plan_views)
+            unseen[order] = planned_unseen([plan[i] for i in order], cfg.unseen_plan_views,
+                                           lambda: check_stop(should_stop))  # fmt: skip
         if unseen is not None:
             unseen[~sees] = 0.0
         for i in range(m):
