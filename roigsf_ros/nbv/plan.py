@@ -60,7 +60,7 @@ def planned_unseen(views: Sequence[UnseenCells], k: int, between_views: Callable
     own = np.array([v.fraction for v in views], dtype=np.float64)
     if k == 1 or m < 2:
         return own
-    all_cells = np.concatenate([v.cells for v in views]) if m else np.zeros(0, dtype=np.int64)
+    all_cells = np.concatenate([v.cells for v in views])
     keys, col = np.unique(all_cells, return_inverse=True)
     row = np.repeat(np.arange(m), [len(v.cells) for v in views])
     share = sparse.csr_matrix(
