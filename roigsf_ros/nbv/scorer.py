@@ -639,11 +639,9 @@ class NBVScorer:
             if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
                 _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
                 unseen[i] = len(cells) * space.voxel_m**2
-            elif plan is not None:  # the pixel fraction, and its pixels by entry cell for the plan
+            elif plan is not None:  # its pixels by entry cell; U is the plan's, written once every candidate is in
                 meets = rays_meet_box(T, intr_f, *unseen_box)
-                view = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
-                unseen[i] = view.fraction
-                plan[i] = view
+                plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
             else:
                 enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
                 hole = enter > 0
