@@ -37,6 +37,14 @@ def load_script(name: str) -> ModuleType:
     return module
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``slow`` first (a stable sort): with ``scripts/test.sh``'s two xdist workers, which take whole
+    files in collection order, the two longest files (the cold-cache demo, the system tests) start at once instead
+    of one of them running alone at the end.
+    """
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     """After a run that included the bad-input corpus (test_bad_input_corpus.py): cases tried and survived."""
     reports = [
