@@ -25,11 +25,11 @@ setup(
     entry_points={
         "console_scripts": [
             "roigsf = roigsf_ros.cli:main",
-            "bag_player = roigsf_ros.nodes.bag_player:main",
-            "mapper = roigsf_ros.nodes.mapper:main",
-            "nbv_planner = roigsf_ros.nodes.nbv_planner:main",
-            "keyframe_selector = roigsf_ros.nodes.keyframe_selector:main",
-            "active_mapping = roigsf_ros.nodes.active_mapping:main",
+            "bag_player = roigsf_ros.nodes.console:bag_player",
+            "mapper = roigsf_ros.nodes.console:mapper",
+            "nbv_planner = roigsf_ros.nodes.console:nbv_planner",
+            "keyframe_selector = roigsf_ros.nodes.console:keyframe_selector",
+            "active_mapping = roigsf_ros.nodes.console:active_mapping",
         ],
     },
 )

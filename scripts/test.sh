@@ -11,6 +11,8 @@ export ROIGSF_WARM_CHECKOUT=1
 source "$REPO/scripts/setup.sh"
 cd "$REPO"
 # Two pytest-xdist workers, whole files each (a module's fixtures are built once): most system and node tests wait
-# on wall-clock time (playback rates, timeouts) with a core idle. `-n 0` (or any -n) among the extra args wins.
+# on wall-clock time (playback rates, timeouts) with a core idle. Files in collection order, which puts the files
+# with `slow` tests first (test/conftest.py; xdist's default reorder by test count left the system tests to run
+# alone at the end). `-n 0` (or any -n) among the extra args wins.
 WORKERS="${ROIGSF_TEST_WORKERS:-$(( $(nproc) < 2 ? 1 : 2 ))}"
-exec python -m pytest -n "$WORKERS" --dist loadfile "$@"
+exec python -m pytest -n "$WORKERS" --dist loadfile --no-loadscope-reorder "$@"

@@ -39,8 +39,8 @@ def load_script(name: str) -> ModuleType:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests marked ``slow`` first (a stable sort): with ``scripts/test.sh``'s two xdist workers, which take whole
-    files in collection order, the two longest files (the cold-cache demo, the system tests) start at once instead
-    of one of them running alone at the end.
+    files in collection order (``--no-loadscope-reorder``), the two longest files (the cold-cache demo, the system
+    tests) start at once instead of one of them running alone at the end.
     """
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 

@@ -217,15 +217,56 @@ def test_main_takes_the_bag_as_a_positional_argument(bag: Path) -> None:
     assert "finished: published 20 messages on 4 topics" in output
 
 
-@pytest.mark.parametrize("module", ["bag_player", "mapper", "nbv_planner", "keyframe_selector", "active_mapping"])
-def test_help_prints_help_and_exits_0_without_starting_a_node(module: str) -> None:
-    """``--help`` on every console script (before: the nodes started and ran until killed)."""
-    proc = _run_main(plain=("--help",), module=module)
+_CONSOLE = (
+    "import atexit, sys\n"
+    "heavy = ('torch', 'open3d', 'rosbags', 'numba')\n"
+    "atexit.register(lambda: print('heavy modules loaded:', [m for m in heavy if m in sys.modules], file=sys.stderr))\n"
+    "from roigsf_ros.nodes.console import main\n"
+    "sys.exit(main(sys.argv))\n"
+)
+"""What an installed console script runs (``roigsf_ros.nodes.console``); at exit it says which heavy modules loaded."""
+
+
+def _run_console(program: str, *args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    cmd = [sys.executable, "-c", _CONSOLE, program, *args]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, cwd=REPO)
+
+
+@pytest.mark.parametrize("program", ["bag_player", "mapper", "nbv_planner", "keyframe_selector", "active_mapping"])
+def test_help_prints_help_and_exits_0_without_starting_a_node(program: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--help`` on every console script (before: the nodes started and ran until killed), answered before the
+    node's module loads (before: 4-5 s of importing torch, open3d and rosbags first), as the node's ``main`` answers.
+    """
+    import importlib
+
+    from roigsf_ros.nodes.console import PROGRAMS
+
+    proc = _run_console(program, "--help")
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.startswith(f"usage: {module}") and "-p NAME:=VALUE" in proc.stdout
+    assert proc.stdout.startswith(f"usage: {program}") and "-p NAME:=VALUE" in proc.stdout
     assert "[INFO]" not in proc.stdout + proc.stderr  # no node was made
-    bad = _run_main(plain=("--no-such-option",), module=module)
+    assert "heavy modules loaded: []" in proc.stderr, proc.stderr
+    with pytest.raises(SystemExit) as done:
+        importlib.import_module(PROGRAMS[program]).main([program, "--help"])
+    assert done.value.code == 0 and capsys.readouterr().out == proc.stdout
+    bad = _run_console(program, "--no-such-option")
     assert bad.returncode == 2 and "unrecognized arguments: --no-such-option" in bad.stderr
+    assert "heavy modules loaded: []" in bad.stderr, bad.stderr
+
+
+def test_every_console_script_of_setup_py_is_a_console_entry() -> None:
+    """setup.py's node scripts all go through ``roigsf_ros.nodes.console``, one function per program."""
+    import re
+
+    from roigsf_ros.nodes import console
+
+    scripts = dict(re.findall(r'"(\w+) = ([\w.:]+)"', (REPO / "setup.py").read_text()))
+    nodes = {name: target for name, target in scripts.items() if name != "roigsf"}
+    assert nodes == {name: f"roigsf_ros.nodes.console:{name}" for name in console.PROGRAMS}
+    assert all(callable(getattr(console, name)) for name in console.PROGRAMS)
 
 
 def test_main_plays_and_exits_0(bag: Path) -> None:
