@@ -42,29 +42,19 @@ if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$REQ_HASH" ]; then
     echo "$REQ_HASH" > "$STAMP"
 fi
 
-# 4. The interface packages (ament_cmake: roigsf_interfaces, and tf2_msgs if missing), rebuilt when its sources or the pinned packages change.
-IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
-    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO"/vendor/tf2_msgs/{CMakeLists.txt,package.xml,msg/TFMessage.msg} \
-    "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
-IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
-if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
-    log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
-    bash "$REPO/scripts/build_interfaces.sh" "$VENV"
-    echo "$IFACE_HASH" > "$IFACE_STAMP"
-fi
-
-# 5. This package (not editable: pip -e drops the ament marker and config data_files).
+# 4. This package (not editable: pip -e drops the ament marker and config data_files).
 log "installing roigsf_ros into $VENV"
 "$VENV/bin/python" -m pip install -q --no-deps --no-build-isolation --force-reinstall "$REPO" 2>&1 \
     | grep -v -e 'DEPRECATION' -e '^$' >&2 || true
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
-# 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
-#    modules: cold, they take 15-60 s, which the planner's first requests on a fresh machine used to pay (the
+# 5. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
+#    modules: cold, they take 15-160 s, which the planner's first requests on a fresh machine used to pay (the
 #    selector's fallback decided those windows). Redone when the package's sources or the pinned packages
 #    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled.
 #    With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy, which the tests import, is compiled at
-#    the same time (each compile keeps one core busy: on 2 cores the two took 2x as long one after the other).
+#    the same time (each compile keeps one core busy: on 2 cores the two took 2x as long one after the other). Both
+#    run in the background while step 6 builds the interfaces; set-up waits for them at its end.
 KERNEL_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_ros/*/*.py | sha256sum | cut -d' ' -f1)"
 KERNEL_STAMP="$VENV/.roigsf-kernels.sha256"
 WARM_PIDS=()
@@ -80,7 +70,20 @@ if [ "${ROIGSF_WARM_CHECKOUT:-0}" = 1 ]; then
     (cd "$REPO" && "$VENV/bin/python" -m roigsf_ros.nbv.warmup | sed 's/^/[test] /' >&2) &
     WARM_PIDS+=("$!")
 fi
-WARM_RC=0
+
+# 6. The interface packages (ament_cmake: roigsf_interfaces, and tf2_msgs if missing), rebuilt when its sources or the
+#    pinned packages change; built while the kernels of step 5 compile (they need neither the other).
+IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
+    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO"/vendor/tf2_msgs/{CMakeLists.txt,package.xml,msg/TFMessage.msg} \
+    "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
+IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
+if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
+    log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
+    bash "$REPO/scripts/build_interfaces.sh" "$VENV"
+    echo "$IFACE_HASH" > "$IFACE_STAMP"
+fi
+
+WARM_RC=0  # the compiles of step 5
 for pid in "${WARM_PIDS[@]}"; do wait "$pid" || WARM_RC=$?; done
 [ "$WARM_RC" -eq 0 ] || { log "error: compiling the numba kernels failed (exit $WARM_RC)"; exit "$WARM_RC"; }
 [ "$WARM_INSTALLED" -eq 0 ] || echo "$KERNEL_HASH" > "$KERNEL_STAMP"
