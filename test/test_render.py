@@ -645,3 +645,33 @@ def test_pixel_mask_empties_exactly_the_tiles_without_a_masked_pixel() -> None:
         assert max(sums) - min(sums) <= 2 * int(bn.count.max() + 1)
     with pytest.raises(ValueError, match="pixel_mask"):
         render.numba_bins(*args, width, height, pixel_mask=mask.reshape(-1)[:-1])
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_kernel_compile_times_script_sums_each_kernels_compile_events(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """scripts/kernel_compile_times.py (the README's per-kernel compile times): a kernel compiled for two signatures
+    during the warm-up is one row with two compiles, its time taken from numba's compile events."""
+    import numba
+    from conftest import load_script
+
+    from roigsf_ros.nbv import warmup
+
+    def _k_twice(x: np.ndarray) -> float:
+        return float(x.sum() * 2.0)
+
+    def fake_warm_up() -> dict[str, float]:
+        kernel = numba.njit(cache=False)(_k_twice)
+        kernel(np.ones(3))
+        kernel(np.ones(3, np.float32))
+        return {"mapping_s": 0.1, "scoring_s": 0.2, "total_s": 0.3}
+
+    monkeypatch.setattr(warmup, "warm_up_kernels", fake_warm_up)
+    out = tmp_path / "compile.json"
+    assert load_script("kernel_compile_times").main(["--warm", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    row = next(r for r in data["kernels"] if r["kernel"].endswith("_k_twice"))
+    assert row["compiles"] == 2 and row["seconds"] > 0
+    assert data["cache"] == "warm" and data["warm_up_s"]["total_s"] == 0.3
+    assert "_k_twice" in capsys.readouterr().out
