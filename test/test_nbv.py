@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -18,6 +19,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.scene import MeshRenderer, look_at
 from roigsf_ros.evaluation.metrics import raycast_depth, raycasting_scene
 from roigsf_ros.mapping.tsdf import TSDFVolume
+from roigsf_ros.nbv import warmup
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import (
@@ -796,11 +798,13 @@ def test_compare_candidate_cost_script_alternates_the_two_checkouts(tmp_path: Pa
 
 
 _WARM_CHILD = r"""
+import json
+import os
 import sys
 sys.path.insert(0, sys.argv[1])
 import roigsf_ros  # first: it sets OMP_WAIT_POLICY before torch loads
-from roigsf_ros.nbv.warmup import warm_up_kernels
-from roigsf_ros.render.numba_setup import Kernels, set_numba_threads
+from roigsf_ros.nbv.warmup import compiled_signatures, warm_up_kernels
+from roigsf_ros.render.numba_setup import set_numba_threads
 
 set_numba_threads(2)
 warm_up_kernels()
@@ -808,35 +812,148 @@ from roigsf_ros.nbv import roi
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.perf import nbv
 
-
-def signatures():
-    groups = [(m, n, v) for m, mod in list(sys.modules.items()) if m.startswith("roigsf_ros")
-              for n, v in vars(mod).items() if isinstance(v, Kernels)]
-    return {(m, n, k): set(d.signatures) for m, n, g in groups for k, d in g._compiled.items()}
-
-
-before = signatures()
+before = compiled_signatures()
+print("LISTED", json.dumps(before))
 scorer = NBVScorer()
 st = nbv.build_state(2000, 80, 60, 4, 0.04, scorer)
 for mode in ("roi-gsurfisher", "fisherrf"):
     for cands in (st.candidates[:1], st.candidates):
         scorer.score(st.surfel_map, st.h_train[mode], st.tsdf, st.train_poses, cands, st.intr, mode=mode)
-after = signatures()
-new = {k: sorted(map(str, v - before.get(k, set()))) for k, v in after.items() if v - before.get(k, set())}
-print("LONE", len(roi._BATCH_KERNELS._compiled["lone"].signatures))
+after = compiled_signatures()
+new = {k: sorted(set(v) - set(before.get(k, []))) for k, v in after.items() if set(v) - set(before.get(k, []))}
+print("LONE", len(roi._BATCH_KERNELS.dispatchers()["lone"].signatures))
 print("NEW", new)
 """
 
 
-@pytest.mark.skipif(not numba_available(), reason="no numba")
-def test_warm_up_compiles_every_kernel_a_planner_request_uses(tmp_path: Path) -> None:
-    """After ``warm_up_kernels`` (what set-up and the planner run first), scoring one candidate alone and a window of
-    them in both Fisher modes adds no kernel signature: on a fresh machine nothing compiles during a request. A
-    fresh interpreter, two numba threads (the lone candidate's ROI kernel needs more threads than candidates)."""
+@pytest.fixture(scope="module")
+def warm_child() -> dict[str, str]:
+    """What a fresh interpreter with two numba threads compiled in ``warm_up_kernels`` and after it (``_WARM_CHILD``).
+
+    One run shared by the tests below (a warm cache: about 10 s; cold, the compile itself)."""
+    if not numba_available():
+        pytest.skip("no numba")
     res = subprocess.run([sys.executable, "-c", _WARM_CHILD, str(Path(__file__).resolve().parents[1])],
                          capture_output=True, text=True, timeout=900)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     lines = {ln.split(" ", 1)[0]: ln.split(" ", 1)[1] for ln in res.stdout.splitlines() if " " in ln}
     if int(lines["LONE"]) == 0:
         pytest.skip("numba runs one thread here: the lone-candidate ROI kernel is never used")
-    assert lines["NEW"] == "{}", lines["NEW"]
+    return lines
+
+
+def test_warm_up_compiles_every_kernel_a_planner_request_uses(warm_child: dict[str, str]) -> None:
+    """After ``warm_up_kernels`` (what set-up and the planner run first), scoring one candidate alone and a window of
+    them in both Fisher modes adds no kernel signature: on a fresh machine nothing compiles during a request. A
+    fresh interpreter, two numba threads (the lone candidate's ROI kernel needs more threads than candidates)."""
+    assert warm_child["NEW"] == "{}", warm_child["NEW"]
+
+
+def test_kernel_signature_list_is_what_the_warm_up_compiles(warm_child: dict[str, str]) -> None:
+    """The package's kernel signature list (what ``warmup --jobs N`` compiles on N processes before the warm-up) names
+    exactly the kernels and argument types the real warm-up compiles: a list that drifted from the code would leave
+    kernels to the one-core warm-up (a slower set-up) or compile signatures nothing calls."""
+    got = json.loads(warm_child["LISTED"])
+    listed = {row["kernel"]: sorted(row["signatures"]) for row in warmup.load_signature_list()}
+    diff = {k: (listed.get(k), got.get(k)) for k in sorted(set(got) | set(listed)) if listed.get(k) != got.get(k)}
+    assert not diff, (
+        f"{warmup.SIGNATURES_PATH.name} differs from what the warm-up compiles (listed, compiled): {diff}; rewrite it "
+        "with `.venv/bin/python scripts/kernel_compile_times.py --write-signatures` (a cold compile, about 150 s)"
+    )
+    assert all(float(row["compile_s"]) > 0 for row in warmup.load_signature_list())  # the split's weights
+
+
+def test_split_by_cost_deals_every_row_once_into_balanced_shares() -> None:
+    """``warmup --jobs N`` splits the cold compile by the listed compile times: the longest first, each to the lightest
+    share so far; every kernel in exactly one share, no empty share, one share when asked for one."""
+    rows = [{"kernel": f"m:G.k{i}", "compile_s": s, "signatures": []} for i, s in enumerate([16, 46, 5, 20, 19, 16, 3])]
+    shares = warmup.split_by_cost(rows, 2)
+    assert sorted(r["kernel"] for share in shares for r in share) == sorted(r["kernel"] for r in rows)
+    assert [[r["compile_s"] for r in share] for share in shares] == [[46, 16], [20, 19, 16, 5, 3]]  # 62 s and 63 s
+    assert len(warmup.split_by_cost(rows, 12)) == len(rows) and len(warmup.split_by_cost(rows, 1)) == 1
+
+
+def test_kernel_signatures_read_back_as_numba_types() -> None:
+    """Each listed signature (numba's repr of the argument types) reads back as the same types, and nothing but a
+    tuple of numba types is accepted."""
+    from numba.core import types
+
+    rows = warmup.load_signature_list()
+    assert rows and all(row["signatures"] for row in rows)
+    for row in rows:
+        for text in row["signatures"]:
+            sig = warmup.parse_signature(text)
+            assert repr(sig) == text and all(isinstance(t, types.Type) for t in sig)
+    assert warmup.parse_signature("(Array(float32, 2, 'C', False, aligned=True), int64)") == (
+        types.Array(types.float32, 2, "C"),
+        types.int64,
+    )
+    for not_a_signature in ("int64", "(int64, 3)"):
+        with pytest.raises(ValueError, match="not a signature tuple"):
+            warmup.parse_signature(not_a_signature)
+    with pytest.raises(NameError):
+        warmup.parse_signature("(open('x'),)")  # no builtins
+
+
+def test_parallel_compile_reports_a_bad_list_and_compiles_nothing(tmp_path: Path) -> None:
+    """A missing, malformed or stale signature list is no error for set-up: the parallel compile reports it (naming
+    the file or the kernel) and the warm-up after it compiles everything on one core."""
+    missing = warmup.compile_in_parallel(2, tmp_path / "absent.json")
+    assert missing["jobs"] == 0 and "absent.json" in missing["error"]
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"kernels": [{"kernel": "no-colon"}]}')
+    assert "bad.json: not a kernel signature list" in warmup.compile_in_parallel(2, bad)["error"]
+    stale = tmp_path / "stale.json"
+    stale.write_text(json.dumps({"kernels": [{"kernel": "roigsf_ros.render.fisher:_FISHER_KERNELS.gone",
+                                              "compile_s": 1.0, "signatures": ["(int64,)"]}]}))  # fmt: skip
+    res = warmup.compile_in_parallel(2, stale)
+    assert res["jobs"] == 0 and "_FISHER_KERNELS.gone" in res["error"] and "stale" in res["error"]
+
+
+_PARALLEL_CHILD = r"""
+import json, sys
+sys.path.insert(0, sys.argv[1])
+from numba.core import event
+from roigsf_ros.nbv import warmup
+
+path = sys.argv[3]
+if sys.argv[2] == "compile":
+    print(json.dumps(warmup.compile_in_parallel(2, warmup.Path(path))))
+else:
+    with event.install_recorder("numba:compile") as rec:
+        n = warmup.compile_listed(warmup.load_signature_list(warmup.Path(path)))
+    print(json.dumps({"signatures": n, "compiles": sum(1 for _, ev in rec.buffer if ev.is_start)}))
+"""
+
+
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_parallel_compile_fills_the_cache_another_process_only_loads(tmp_path: Path) -> None:
+    """``compile_in_parallel`` on 2 processes, into an empty numba cache, compiles each listed signature in one of
+    them (the parent and a child of the same roigsf_ros copy); a later process then loads every one from the disk
+    cache and compiles nothing. The list's three quickest kernels, to keep it short."""
+    rows = sorted(warmup.load_signature_list(), key=lambda r: float(r["compile_s"]))[:3]
+    listed = tmp_path / "quick.json"
+    listed.write_text(json.dumps({"kernels": rows}))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba_cache"))
+    root = str(Path(__file__).resolve().parents[1])
+    runs = []
+    for step in ("compile", "load"):
+        res = subprocess.run([sys.executable, "-c", _PARALLEL_CHILD, root, step, str(listed)], env=env,
+                             capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert res.returncode == 0, res.stderr[-3000:]
+        runs.append(json.loads(res.stdout.splitlines()[-1]))
+    n = sum(len(r["signatures"]) for r in rows)
+    assert runs[0] == {"jobs": 2, "seconds": runs[0]["seconds"], "signatures": n, "error": ""}
+    assert runs[1] == {"signatures": n, "compiles": 0}
+
+
+def test_installed_package_carries_the_kernel_signature_list() -> None:
+    """Set-up compiles the *installed* copy (``python -m roigsf_ros.nbv.warmup --jobs N`` run outside the checkout),
+    so the list must be package data of the installed copy, not only a file of the checkout."""
+    probe = "import pathlib, roigsf_ros; print(pathlib.Path(roigsf_ros.__file__).parent)"
+    res = subprocess.run([sys.executable, "-c", probe], cwd="/", capture_output=True, text=True, timeout=60)
+    root = Path(__file__).resolve().parents[1]
+    if res.returncode != 0 or Path(res.stdout.strip()) == root / "roigsf_ros":
+        pytest.skip("roigsf_ros is not installed in this interpreter (run scripts/setup.sh)")
+    installed = Path(res.stdout.strip()) / "nbv" / "kernel_signatures.json"
+    assert installed.is_file(), f"{installed} missing: setup.py's package_data must carry it"

@@ -275,6 +275,16 @@ class Kernels:
                 pin_workers()
         return self._compiled[name]
 
+    def names(self) -> tuple[str, ...]:
+        """The kernels' names (the keyword names given to the constructor)."""
+        return tuple(self._source)
+
+    def dispatchers(self) -> dict[str, Any]:
+        """The numba dispatchers made so far, by kernel name (empty before the first lookup); each dispatcher's
+        ``signatures`` are the argument types it has compiled or loaded from the disk cache in this process.
+        """
+        return dict(self._compiled)
+
 
 __all__ = [
     "KERNEL_LOCK",
