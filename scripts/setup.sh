@@ -32,32 +32,53 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
 
-# 3. Pinned packages, reinstalled only when requirements.txt changes.
+# 3. Pinned packages, reinstalled only when requirements.txt changes: first all but the heavy wheels (torch, open3d,
+#    ...), which the interface build of step 4 does not need; then, while the interfaces build, the heavy ones. (The
+#    build used to wait for every wheel and then compete with the kernel compile of step 6 for the 2 cores.)
+HEAVY='torch|open3d|opencv-python-headless|scikit-image|matplotlib|scipy|numba|llvmlite'
 REQ_HASH="$(sha256sum "$REPO/requirements.txt" | cut -d' ' -f1)"
 STAMP="$VENV/.roigsf-requirements.sha256"
+REQ_HEAVY=0
 if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$REQ_HASH" ]; then
-    log "installing pinned packages (requirements.txt)"
+    log "installing pinned packages (requirements.txt; the heavy wheels while the interfaces build)"
     "$VENV/bin/python" -m pip install -q --upgrade pip
+    grep -v -E "^($HEAVY)==" "$REPO/requirements.txt" > "$VENV/.roigsf-requirements-light.txt"
+    "$VENV/bin/python" -m pip install -q -r "$VENV/.roigsf-requirements-light.txt"
+    REQ_HEAVY=1
+fi
+
+# 4. The interface packages (ament_cmake: roigsf_interfaces, and tf2_msgs if missing), rebuilt when its sources or the
+#    pinned packages change; in the background, while pip installs the heavy wheels (step 3) and the kernels compile
+#    (step 6): it needs none of them. Set-up waits for it at its end.
+IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
+    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO"/vendor/tf2_msgs/{CMakeLists.txt,package.xml,msg/TFMessage.msg} \
+    "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
+IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
+IFACE_PID=""
+if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
+    log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
+    bash "$REPO/scripts/build_interfaces.sh" "$VENV" &
+    IFACE_PID="$!"
+fi
+if [ "$REQ_HEAVY" = 1 ]; then
     "$VENV/bin/python" -m pip install -q -r "$REPO/requirements.txt"
     echo "$REQ_HASH" > "$STAMP"
 fi
 
-# 4. This package (not editable: pip -e drops the ament marker and config data_files).
+# 5. This package (not editable: pip -e drops the ament marker and config data_files).
 log "installing roigsf_ros into $VENV"
 "$VENV/bin/python" -m pip install -q --no-deps --no-build-isolation --force-reinstall "$REPO" 2>&1 \
     | grep -v -e 'DEPRECATION' -e '^$' >&2 || true
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
-# 5. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
-#    modules: cold, they take 15-160 s, which the planner's first requests on a fresh machine used to pay (the
+# 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
+#    modules: cold, they take 80-170 s, which the planner's first requests on a fresh machine used to pay (the
 #    selector's fallback decided those windows). Redone when the package's sources or the pinned packages
 #    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled.
-#    With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy, which the tests import, is compiled at
-#    the same time (each compile keeps one core busy: on 2 cores the two took 2x as long one after the other). Both
-#    run in the background while step 6 builds the interfaces; set-up waits for them at its end. The installed
-#    copy's compile, when alone, splits the kernels over every CPU (--jobs: from the package's kernel signature list;
-#    166 s -> 98 s on 2 cores); the checkout's, mostly a cache load (1 s, where a second process would add 5 s), and
-#    two compiles at once take one process each.
+#    Alone, the compile splits the kernels over every CPU (--jobs, by the package's kernel signature list: 147-166 s
+#    on one process, 80-98 s on two, 2 cores). With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy,
+#    which the tests import, is warmed up at the same time, in one process: mostly a cache load (1 s, where a second
+#    process would add 5 s); when both compile, each takes one process. In the background; set-up waits at its end.
 KERNEL_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_ros/*/*.py "$REPO/roigsf_ros/nbv/kernel_signatures.json" \
     | sha256sum | cut -d" " -f1)"
 KERNEL_STAMP="$VENV/.roigsf-kernels.sha256"
@@ -80,23 +101,16 @@ if [ "$WARM_CHECKOUT" = 1 ]; then
     WARM_PIDS+=("$!")
 fi
 
-# 6. The interface packages (ament_cmake: roigsf_interfaces, and tf2_msgs if missing), rebuilt when its sources or the
-#    pinned packages change; built while the kernels of step 5 compile (they need neither the other).
-IFACE_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_interfaces/{CMakeLists.txt,package.xml} \
-    "$REPO"/roigsf_interfaces/srv/*.srv "$REPO"/vendor/tf2_msgs/{CMakeLists.txt,package.xml,msg/TFMessage.msg} \
-    "$REPO/scripts/build_interfaces.sh" | sha256sum | cut -d' ' -f1)"
-IFACE_STAMP="$VENV/.roigsf-interfaces.sha256"
-if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
-    log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
-    bash "$REPO/scripts/build_interfaces.sh" "$VENV"
-    echo "$IFACE_HASH" > "$IFACE_STAMP"
-fi
-
-WARM_RC=0  # the compiles of step 5
+# The background work of steps 4 and 6.
+IFACE_RC=0
+[ -z "$IFACE_PID" ] || wait "$IFACE_PID" || IFACE_RC=$?
+WARM_RC=0
 for pid in "${WARM_PIDS[@]}"; do wait "$pid" || WARM_RC=$?; done
+[ "$IFACE_RC" -eq 0 ] || { log "error: building the interfaces failed (exit $IFACE_RC)"; exit "$IFACE_RC"; }
+[ -z "$IFACE_PID" ] || echo "$IFACE_HASH" > "$IFACE_STAMP"
 [ "$WARM_RC" -eq 0 ] || { log "error: compiling the numba kernels failed (exit $WARM_RC)"; exit "$WARM_RC"; }
 [ "$WARM_INSTALLED" -eq 0 ] || echo "$KERNEL_HASH" > "$KERNEL_STAMP"
-unset WARM_PIDS WARM_INSTALLED WARM_CHECKOUT WARM_JOBS WARM_RC
+unset HEAVY REQ_HEAVY IFACE_PID IFACE_RC WARM_PIDS WARM_INSTALLED WARM_CHECKOUT WARM_JOBS WARM_RC
 
 # 7. Environment for ROS: ament index in the venv, loopback-only discovery.
 export VIRTUAL_ENV="$VENV"
