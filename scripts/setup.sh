@@ -92,7 +92,7 @@ fi
 WARM_JOBS="$(nproc)"
 [ "$WARM_INSTALLED$WARM_CHECKOUT" != 11 ] || WARM_JOBS=1
 if [ "$WARM_INSTALLED" = 1 ]; then
-    log "compiling the numba kernels (once; cached on disk; $WARM_JOBS processes)"
+    log "compiling the numba kernels (once; cached on disk; processes: $WARM_JOBS)"
     (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs "$WARM_JOBS" | sed 's/^/[setup] /' >&2) &
     WARM_PIDS+=("$!")
 fi

@@ -910,18 +910,32 @@ def test_parallel_compile_reports_a_bad_list_and_compiles_nothing(tmp_path: Path
     assert res["jobs"] == 0 and "_FISHER_KERNELS.gone" in res["error"] and "stale" in res["error"]
 
 
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_parallel_compile_reports_a_failed_child(tmp_path: Path) -> None:
+    """A compiling child that fails (here: a signature that is not one) is reported by what it was compiling and its
+    exit status, while this process's own share still compiles (the warm-up after it redoes the rest)."""
+    rows = sorted(warmup.load_signature_list(), key=lambda r: float(r["compile_s"]))[:2]
+    bad = {**rows[0], "compile_s": 0.0, "signatures": ["(int64, 3)"]}  # the lighter share: the child's
+    listed = tmp_path / "one_bad.json"
+    listed.write_text(json.dumps({"kernels": [{**rows[1], "compile_s": 1.0}, bad]}))
+    res = warmup.compile_in_parallel(2, listed)
+    assert res["jobs"] == 2 and res["signatures"] == len(rows[1]["signatures"])
+    assert f"compiling ['{bad['kernel']}'] exited 1" in res["error"]
+
+
 _PARALLEL_CHILD = r"""
 import json, sys
+from pathlib import Path
 sys.path.insert(0, sys.argv[1])
 from numba.core import event
 from roigsf_ros.nbv import warmup
 
-path = sys.argv[3]
+path = Path(sys.argv[3])
 if sys.argv[2] == "compile":
-    print(json.dumps(warmup.compile_in_parallel(2, warmup.Path(path))))
+    print(json.dumps(warmup.compile_in_parallel(2, path)))
 else:
     with event.install_recorder("numba:compile") as rec:
-        n = warmup.compile_listed(warmup.load_signature_list(warmup.Path(path)))
+        n = warmup.compile_listed(warmup.load_signature_list(path))
     print(json.dumps({"signatures": n, "compiles": sum(1 for _, ev in rec.buffer if ev.is_start)}))
 """
 

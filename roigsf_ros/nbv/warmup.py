@@ -105,11 +105,13 @@ SIGNATURES_PATH = Path(__file__).with_name("kernel_signatures.json")
 def kernel_groups() -> dict[str, Kernels]:
     """Every :class:`Kernels` group of the roigsf_ros modules imported so far, by ``"module:ATTRIBUTE"``."""
     groups: dict[str, Kernels] = {}
+    seen: set[int] = set()  # a group imported into another module is listed once, under its first name
     for mod_name, module in sorted(sys.modules.items()):
         if not mod_name.startswith("roigsf_ros.") or module is None:
             continue
         for attr, value in sorted(vars(module).items()):
-            if isinstance(value, Kernels) and all(id(value) != id(g) for g in groups.values()):
+            if isinstance(value, Kernels) and id(value) not in seen:
+                seen.add(id(value))
                 groups[f"{mod_name}:{attr}"] = value
     return groups
 
@@ -161,7 +163,9 @@ def _dispatcher(kernel: str) -> Any:
     attr, _, name = rest.partition(".")
     group = getattr(importlib.import_module(module), attr, None)
     if not isinstance(group, Kernels) or name not in group.names():
-        raise ValueError(f"no kernel {kernel!r}: the signature list is stale (rewrite it, see {SIGNATURES_PATH.name})")
+        raise ValueError(
+            f"no kernel {kernel!r}: the signature list is stale (scripts/kernel_compile_times.py --write-signatures)"
+        )
     return group[name]
 
 
@@ -226,14 +230,20 @@ def compile_in_parallel(jobs: int, path: Path = SIGNATURES_PATH) -> dict[str, An
     ]
     error = ""
     try:
-        n = compile_listed(shares[0]) if shares else 0
-    except Exception as exc:  # any compile failure: the warm-up that follows compiles (and reports) it again
-        n, error = 0, f"compiling {[r['kernel'] for r in shares[0]]}: {exc}"
-    for child, share in zip(children, shares[1:], strict=True):
-        if child.wait() != 0:
-            error = error or f"the process compiling {[r['kernel'] for r in share]} exited {child.returncode}"
-        else:
-            n += sum(len(r["signatures"]) for r in share)
+        try:
+            n = compile_listed(shares[0]) if shares else 0
+        except Exception as exc:  # any compile failure: the warm-up that follows compiles (and reports) it again
+            n, error = 0, f"compiling {[r['kernel'] for r in shares[0]]}: {exc}"
+        for child, share in zip(children, shares[1:], strict=True):
+            if child.wait() != 0:
+                error = error or f"the process compiling {[r['kernel'] for r in share]} exited {child.returncode}"
+            else:
+                n += sum(len(r["signatures"]) for r in share)
+    finally:  # interrupted (Ctrl-C): no compiling child outlives this process
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
     return {"jobs": len(shares), "seconds": time.perf_counter() - t0, "signatures": n, "error": error}
 
 
