@@ -799,7 +799,6 @@ def test_compare_candidate_cost_script_alternates_the_two_checkouts(tmp_path: Pa
 
 _WARM_CHILD = r"""
 import json
-import os
 import sys
 sys.path.insert(0, sys.argv[1])
 import roigsf_ros  # first: it sets OMP_WAIT_POLICY before torch loads
