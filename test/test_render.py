@@ -675,3 +675,32 @@ def test_kernel_compile_times_script_sums_each_kernels_compile_events(
     assert row["compiles"] == 2 and row["seconds"] > 0
     assert data["cache"] == "warm" and data["warm_up_s"]["total_s"] == 0.3
     assert "_k_twice" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_kernel_compile_times_script_writes_a_signature_list_the_warm_up_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--write-signatures`` writes each compiled kernel's signatures as a list ``warmup --jobs N`` reads back (the
+    real list, from a cold compile, is checked against the warm-up in test_nbv.py); with ``--warm`` it refuses, the
+    compile times it would write being cache loads."""
+    from conftest import load_script
+
+    from roigsf_ros.nbv import warmup
+
+    monkeypatch.setattr(warmup, "warm_up_kernels", lambda: {"mapping_s": 0.1, "scoring_s": 0.2, "total_s": 0.3})
+    monkeypatch.setattr(warmup, "SIGNATURES_PATH", tmp_path / "kernel_signatures.json")
+    # The script points NUMBA_CACHE_DIR at its temporary folder: monkeypatch puts the variable back as it was.
+    if "NUMBA_CACHE_DIR" in os.environ:
+        monkeypatch.setenv("NUMBA_CACHE_DIR", os.environ["NUMBA_CACHE_DIR"])
+    else:
+        monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    warmup.compile_listed(sorted(warmup.load_signature_list(), key=lambda r: float(r["compile_s"]))[:1])
+    script = load_script("kernel_compile_times")
+    assert script.main(["--write-signatures"]) == 0
+    written = {
+        row["kernel"]: row["signatures"] for row in warmup.load_signature_list(tmp_path / "kernel_signatures.json")
+    }
+    assert written and written == warmup.compiled_signatures()
+    with pytest.raises(SystemExit):
+        script.main(["--warm", "--write-signatures"])
