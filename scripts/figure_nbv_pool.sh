@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The pool NBV figure of the README (issues 4 and 10): FisherRF's "v20seq1" active reconstruction, 20 views
+# The pool NBV figures of docs/measured-figures.md (issues 4 and 10): FisherRF's "v20seq1" active reconstruction, 20 views
 # (4 initial: first + farthest camera centres, then one greedy pick per training phase), 3 seeds,
 # policies roi-gsurfisher (the paper), roi-gsurfisher with the unseen-space term (unseen_weight=1, issue 10),
 # fisherrf, random (POLICIES=... adds e.g. roi-fisher, close-front), on
@@ -30,7 +30,7 @@
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
 # thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
-# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; the README lists
+# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; docs/measured-figures.md lists
 # the others); twenty-third session: TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed
 # with SCALE=2 and SCENES=clutter, room1, synth, room2, bins, office0 (and SENSOR=kinect), then without SCALE with
 # SCENES=shelf, clutter, synth, room1, office0 (2.5-8 min each); TAG=base23 SCALE=2 SCENES="room1 clutter"
@@ -94,7 +94,7 @@ SEEDS="${SEEDS:-3}"
 SCENES="${SCENES:-office0 synth object}"
 SCALE="${SCALE:-1}"  # office0 at (120 SCALE) x (68 SCALE), the synthetic scenes at (120 SCALE) x (90 SCALE)
 W=$((120 * SCALE)); H=$((68 * SCALE)); HS=$((90 * SCALE))
-SUF=""; [ "$SCALE" = 1 ] || SUF="_$W"  # SCALE=1 keeps the synthetic scenes' folder names of the README
+SUF=""; [ "$SCALE" = 1 ] || SUF="_$W"  # SCALE=1 keeps the synthetic scenes' folder names of the figures
 [ -z "${TAG:-}" ] || SUF="${SUF}_$TAG"  # TAG=name: runs/bench_pool_<scene>[_<W>]_<name>, beside a bench kept as it is
 COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2

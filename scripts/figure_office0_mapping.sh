@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The mapping figure of the README: office0 re-rendered at 240x136 along every 10th pose (200 frames),
+# The mapping figure of docs/measured-figures.md: office0 re-rendered at 240x136 along every 10th pose (200 frames),
 # mapped with the gaus-slam keyframe rule. Needs the Replica sample in ../shared/data (not redistributable).
 # Writes runs/office0_240/ (the scene) and runs/office0_gaus_slam/ (metrics.json, mesh.ply, map.ply, strip.png).
 set -euo pipefail

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 10's pool rows at 240 wide against what a choice of 20 views can reach (twenty-seventh session; the README's
+# Issue 10's pool rows at 240 wide against what a choice of 20 views can reach (twenty-seventh session; docs/measured-figures.md,
 # "What a choice of 20 views can reach"). For each scene of SCENES (default: office0 synth room3 room4 clutter bins,
-# the README table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench (TAG=unconfirmed
+# that section's table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench (TAG=unconfirmed
 # POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2), the same with unseen_measure=area
 # (TAG=area, twenty-eighth session), the unseen term from carved space (TAG=carved POLICIES=roi-gsurfisher:
 # unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05, twenty-ninth session; TAG=cell025 the same with

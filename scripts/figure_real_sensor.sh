@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The simulated real-sensor figure of the README (#11). No real Kinect/RealSense sequence is available to
+# The simulated real-sensor figure of docs/measured-figures.md (#11). No real Kinect/RealSense sequence is available to
 # this project, so Replica office0's mesh is re-rendered along its real trajectory (every 20th pose, 100 frames)
 # with a Kinect v1 camera at 640x480 (fx = fy = 525), once ideal and once through the simulated Kinect v1
 # sensor of roigsf_ros/data/sensor.py (noisy, quantised depth with holes; noisy JPEG colour; traj.txt off

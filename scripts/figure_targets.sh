@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Issue 10's targets, checked by `roigsf targets` on the benches the figure scripts write (twenty-fifth session):
-# every verdict of the README's "Where each variant stands" tables, from a command instead of by hand.
+# every verdict of the issue-10 tables in docs/measured-figures.md, from a command instead of by hand.
 #
 # Pool: the `unconfirmed` variant (TAG=unconfirmed benches of scripts/figure_nbv_pool.sh) against `fisherrf` and
 # `random` re-run beside it (TAG=base25), or, on the fourth and fifth rooms, the one bench that holds all of them:

@@ -1,4 +1,4 @@
-"""Re-measure the three stalls the README's "NBV scoring speed" section names (issue 12), as medians.
+"""Re-measure the three stalls the "NBV scoring speed" section of docs/measured-figures.md names (issue 12), as medians.
 
 1. The TSDF's block-map growth: open3d rehashes the map when an ``integrate`` needs more blocks than it holds (or
    at ``reserve``); the time of the integrate that grew it against the median integrate, and how long another

@@ -46,8 +46,9 @@ COUNTS = {
     "carved25_cells": VARIANT | {"unseen_measure": "cells", "unseen_source": "carved", "unseen_voxel_m": 0.025},
 }
 """The ways U is counted here: policy parameters of ``roi-gsurfisher``. ``carved`` and ``carved_area`` keep the 5 cm
-cells the twenty-ninth session chose the carved rule with (the README's table); ``carved25`` and ``carved25_cells``
-(the pixel fraction and the frontier cells, thirty-fifth session) the 2.5 cm default chosen after it."""
+cells the twenty-ninth session chose the carved rule with (a table of docs/measured-figures.md); ``carved25`` and
+``carved25_cells`` (the pixel fraction and the frontier cells, thirty-fifth session) the 2.5 cm default chosen after
+it."""
 RHO_COUNTS = ("pixels", "area", "carved", "carved_area", "carved25", "carved25_cells")
 """The counts whose rho with the gain is reported (``area_holes`` only gives the back faces' share)."""
 

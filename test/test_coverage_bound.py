@@ -1,4 +1,4 @@
-"""scripts/coverage_bound.py: the coverage oracles behind the README's stream-feasibility table (issue 10)."""
+"""scripts/coverage_bound.py: the oracles behind the stream-feasibility table (issue 10; docs/measured-figures.md)."""
 
 from __future__ import annotations
 

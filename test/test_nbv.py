@@ -778,7 +778,7 @@ def test_information_gain_is_eq10_summed_over_the_parameters() -> None:
 
 @pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 def test_compare_candidate_cost_script_alternates_the_two_checkouts(tmp_path: Path) -> None:
-    """scripts/compare_candidate_cost.py (the README's before/after ratio): base and new children, alternately."""
+    """scripts/compare_candidate_cost.py (a ratio in docs/measured-figures.md): base and new children, alternately."""
     root = Path(__file__).resolve().parents[1]
     script = root / "scripts" / "compare_candidate_cost.py"
     out = tmp_path / "cmp.json"

@@ -527,7 +527,7 @@ def test_numba_workers_pinned_one_per_cpu_when_asked(setting: str | None) -> Non
 
 @pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 def test_measure_numba_threads_script_writes_both_settings(tmp_path: Path) -> None:
-    """scripts/measure_numba_threads.py (the README's pinning table): one unpinned and one pinned interpreter."""
+    """scripts/measure_numba_threads.py (the pinning table, docs/measured-figures.md): unpinned and pinned children."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "measure_numba_threads.py"
     out = tmp_path / "pin.json"
     res = subprocess.run([sys.executable, str(script), "--runs", "1", "--calls", "5", "--out", str(out)],

@@ -44,8 +44,8 @@ DEFAULT_RATE = 1.0
 """Playback rate of the demo: real time, a window of 8 frames every 0.8 s. A planner call (ROI, Fisher of 8
 candidates, the chosen view's uncertainty) takes 0.3-0.7 s at 160x120 on 2 cores beside the mapper; a window
 that comes while the previous one is still being answered waits for that answer, and only a second one behind
-it is decided by the fallback policy (counted; README, "Issue 12 in the SLAM loop"). ``--rate 0.25`` gives the
-mapper four times the optimisation per frame."""
+it is decided by the fallback policy (counted; docs/measured-figures.md, "Issue 12 in the SLAM loop").
+``--rate 0.25`` gives the mapper four times the optimisation per frame."""
 DEFAULT_FINAL_ITERS = 150
 """Refinement steps over all keyframes after the stream (the mapper's ``final_iters`` for offline runs)."""
 DEFAULT_POLICY = "roi-gsurfisher"

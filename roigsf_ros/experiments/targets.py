@@ -1,6 +1,6 @@
 """Issue 10's targets, checked from ``roigsf bench`` results: is a policy measurably ahead of its baselines?
 
-The verdicts the README quotes ("met", "short by 0.0001") were worked out by hand from ``results.json`` files; this
+The verdicts the measured figures quote ("met", "short by 0.0001") were worked out by hand from ``results.json``; this
 module computes them, so each one comes from a command anyone can re-run (``roigsf targets``):
 
 - **pool**: the candidate beats every baseline on each of ``metrics`` (R@5cm and F@5cm) by at least one std of the

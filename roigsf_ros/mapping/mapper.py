@@ -134,7 +134,8 @@ class MapperConfig(Config):
     """Seed of the keyframe sampling."""
     device: str = "cpu"
     """Torch device of the map and the optimisation: "cpu" (numba kernels) or "cuda[:N]" (the plain-torch renderer;
-    tested on an H100, but 1.6-2.9x slower per training step than the numba kernels on 2 CPU cores: README, CUDA)."""
+    tested on an H100, but 1.6-2.9x slower per training step than the numba kernels on 2 CPU cores;
+    docs/measured-figures.md, CUDA)."""
 
     def validate(self) -> MapperConfig:
         """Return self if every field is in range, else raise InputError naming the field."""

@@ -1,13 +1,13 @@
 """The unseen term planned over a few views (``NBVConfig.unseen_plan_views``): what a candidate and the best others
 would show together, not the candidate alone.
 
-The pool's greedy pick takes each view for what it adds on its own; the hindsight study (README, "Where the remaining
-misses stand against views chosen with hindsight") found that on the first synthetic room even a greedy pick that
-knows the true coverage misses the target, and the same pick with a few views swapped meets it. Here the carved grid
-stands in for the truth: a candidate's unseen pixels are grouped by the frontier cell where their ray enters unknown
-space, and U(x) becomes the share of pixels x and the ``k - 1`` views a greedy completion adds after it would show,
-each cell counted once (by the first view of the plan that enters it). With ``k = 1`` it is x's own unseen pixel
-fraction. A greedy max-coverage over a handful of views needs no library; scipy's sparse product does the sums.
+The pool's greedy pick takes each view for what it adds on its own; the hindsight study ("Where the remaining misses
+stand against views chosen with hindsight" in docs/measured-figures.md) found that on the first synthetic room even a
+greedy pick that knows the true coverage misses the target, and the same pick with a few views swapped meets it. Here
+the carved grid stands in for the truth: a candidate's unseen pixels are grouped by the frontier cell where their ray
+enters unknown space, and U(x) becomes the share of pixels x and the ``k - 1`` views a greedy completion adds after it
+would show, each cell counted once (by the first view of the plan that enters it). With ``k = 1`` it is x's own unseen
+pixel fraction. A greedy max-coverage over a handful of views needs no library; scipy's sparse product does the sums.
 """
 
 from __future__ import annotations

@@ -1,0 +1,115 @@
+"""The documents a user reads: links that lead somewhere, scripts that exist, and the README's two commands.
+
+The README links into ``docs/measured-figures.md`` by heading; a renamed heading or a moved script would otherwise
+leave a link that silently lands at the top of a 2500-line page, or a command that fails on a fresh clone.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCUMENTS = [ROOT / "README.md", ROOT / "bags" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"\[([^\]]+)\]\(([^)\s]+)\)")
+SCRIPT = re.compile(r"\bscripts/[\w.-]+\.(?:sh|py)\b")
+
+
+def without_code_blocks(text: str) -> str:
+    """The text with its fenced code blocks blanked out (a ``[x](y)`` inside code is not a link)."""
+    return re.sub(r"^```.*?^```", "", text, flags=re.MULTILINE | re.DOTALL)
+
+
+def github_slug(title: str) -> str:
+    """The anchor GitHub gives a heading: lower case, punctuation but ``-`` and ``_`` dropped, spaces to ``-``."""
+    text = LINK.sub(r"\1", title).replace("`", "").strip().lower()
+    return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    """Every heading anchor of a Markdown file, repeated titles numbered as GitHub numbers them (``-1``, ``-2``)."""
+    seen: dict[str, int] = {}
+    out: set[str] = set()
+    for line in without_code_blocks(path.read_text()).splitlines():
+        match = re.match(r"#{1,6} (.+)$", line)
+        if match:
+            slug = github_slug(match.group(1))
+            count = seen.get(slug, 0)
+            seen[slug] = count + 1
+            out.add(slug if count == 0 else f"{slug}-{count}")
+    return out
+
+
+def broken_links(path: Path) -> list[str]:
+    """The relative links of ``path`` whose file or heading does not exist, each with the reason."""
+    problems = []
+    for text, target in LINK.findall(without_code_blocks(path.read_text())):
+        if re.match(r"[a-z]+://|mailto:", target):
+            continue
+        file_part, _, anchor = target.partition("#")
+        linked = (path.parent / file_part).resolve() if file_part else path
+        label = " ".join(text.split())
+        if not linked.exists():
+            problems.append(f"[{label}]({target}): no file {linked}")
+        elif anchor and linked.suffix == ".md" and anchor not in anchors(linked):
+            problems.append(f"[{label}]({target}): no heading #{anchor} in {linked.name}")
+    return problems
+
+
+def test_github_slug_follows_githubs_rules() -> None:
+    """The slugs the link check compares against, for headings with code, punctuation and a percent sign."""
+    cases = {
+        "Comparing policies: `roigsf bench`": "comparing-policies-roigsf-bench",
+        "Finer carved cells: `unseen_voxel_m=0.025`; a floor": "finer-carved-cells-unseen_voxel_m0025-a-floor",
+        "Stretched new surfels under the 20 % keyframe set": "stretched-new-surfels-under-the-20--keyframe-set",
+    }
+    for title, slug in cases.items():
+        assert github_slug(title) == slug
+    assert github_slug("Issue 10's verdicts") == "issue-10s-verdicts"
+
+
+def test_the_link_check_finds_a_missing_file_and_a_missing_heading(tmp_path: Path) -> None:
+    """Links to a missing file and to missing headings are reported; good ones and links in code are not."""
+    (tmp_path / "other.md").write_text("# Other\n\n## A section: `x`\n\n## A section: `x`\n")
+    doc = tmp_path / "doc.md"
+    doc.write_text(
+        "# Doc\n\nSee [a](other.md#a-section-x), [b](other.md#a-section-x-1), [c](#doc), [web](https://example.org).\n"
+        "Broken: [gone](missing.md), [no such\nheading](other.md#a-section), [here](#nowhere).\n"
+        "```\n[in code](missing-too.md)\n```\n"
+    )
+    problems = broken_links(doc)
+    assert len(problems) == 3, problems
+    assert "no file" in problems[0] and "missing.md" in problems[0]
+    assert problems[1] == "[no such heading](other.md#a-section): no heading #a-section in other.md"
+    assert "#nowhere" in problems[2]
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_leads_to_a_file_and_heading_that_exist(path: Path) -> None:
+    """README.md, bags/README.md and docs/*.md: each relative link names an existing file and, with ``#``, a heading."""
+    assert broken_links(path) == []
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_script_a_document_names_exists(path: Path) -> None:
+    """A ``scripts/...`` command in the documents is one a user can run on a clone of the repository."""
+    missing = sorted({name for name in SCRIPT.findall(path.read_text()) if not (ROOT / name).is_file()})
+    assert missing == []
+
+
+def test_readme_first_screen_gives_the_two_commands_and_ci_runs_the_test_one() -> None:
+    """The README's first code block is exactly the main job and the tests; .ci/run calls the test command only."""
+    readme = (ROOT / "README.md").read_text()
+    first_block = re.search(r"^```bash\n(.*?)^```", readme, flags=re.MULTILINE | re.DOTALL)
+    assert first_block is not None
+    assert readme.index(first_block.group(0)) < len("\n".join(readme.splitlines()[:30]))
+    commands = [line.split("#")[0].strip() for line in first_block.group(1).splitlines() if line.strip()]
+    assert commands == ["bash scripts/demo.sh", "bash scripts/test.sh"]
+    ci_commands = [
+        line.strip()
+        for line in (ROOT / ".ci" / "run").read_text().splitlines()
+        if line.strip() and not line.startswith(("#", "set ", "cd "))
+    ]
+    assert ci_commands == ["bash scripts/test.sh"]
