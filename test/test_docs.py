@@ -7,6 +7,7 @@ leave a link that silently lands at the top of a 2500-line page, or a command th
 from __future__ import annotations
 
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -113,3 +114,51 @@ def test_readme_first_screen_gives_the_two_commands_and_ci_runs_the_test_one() -
         if line.strip() and not line.startswith(("#", "set ", "cd "))
     ]
     assert ci_commands == ["bash scripts/test.sh"]
+
+
+def documented_roigsf_commands(path: Path) -> list[str]:
+    """Every ``roigsf ...`` line of the file's code blocks, continuations joined, usage syntax made concrete.
+
+    ``[--opt X]`` keeps what the brackets hold, ``a|b`` keeps ``a``, ``...`` is dropped and a one-letter placeholder
+    becomes 1, so a usage line parses as the command it describes with every option given.
+    """
+    commands = []
+    for block in re.findall(r"^```(?:bash)?\n(.*?)^```", path.read_text(), flags=re.MULTILINE | re.DOTALL):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.split(" #")[0].strip()
+            if not line.startswith("roigsf "):
+                continue
+            line = line.replace("[", "").replace("]", "").replace("...", "")
+            line = re.sub(r"(\S+)\|\S+", r"\1", line)
+            line = re.sub(r"(?<= )[A-Z](?= |$)", "1", line)  # one-letter placeholders (N, W, H) stand for numbers
+            commands.append(" ".join(line.split()))
+    return commands
+
+
+def test_usage_syntax_is_made_concrete(tmp_path: Path) -> None:
+    """Optional groups, alternatives and ellipses of a usage line turn into one command that argparse can read."""
+    doc = tmp_path / "doc.md"
+    doc.write_text(
+        "```bash\nroigsf bench --setting stream|pool --seeds N \\\n    [--set NAME=VALUE ...]   # comment\nls\n```\n"
+    )
+    assert documented_roigsf_commands(doc) == ["roigsf bench --setting stream --seeds 1 --set NAME=VALUE"]
+
+
+@pytest.mark.parametrize("path", [ROOT / "README.md", ROOT / "docs" / "measured-figures.md"], ids=lambda p: p.name)
+def test_every_documented_roigsf_command_parses(path: Path) -> None:
+    """Each ``roigsf`` command in the documents' code blocks names a real subcommand and real options.
+
+    Parsed only (nothing runs): a renamed option or subcommand would otherwise leave a README command that fails.
+    """
+    from roigsf_ros.cli import build_parser
+
+    parser = build_parser()
+    commands = documented_roigsf_commands(path)
+    assert commands, f"no roigsf command found in {path.name}"
+    refused = []
+    for command in commands:
+        try:
+            parser.parse_args(shlex.split(command)[1:])
+        except SystemExit:
+            refused.append(command)
+    assert refused == []
