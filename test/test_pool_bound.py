@@ -161,3 +161,58 @@ def test_unseen_spread_records_each_scoring_call_and_restores_the_scorer(bench: 
     assert us.main(["--out", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"), "--setting",
                     "pool", "--policies", "random", "--out", str(tmp_path / "c")]) != 0  # fmt: skip
     assert NBVScorer.score is original and not (tmp_path / "bad.json").exists()
+
+
+def test_carve_from_captured_carves_the_frames_depth_and_restores_the_scorer(
+    bench: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """scripts/carve_from_captured.py: its carve is ObservedSpace.carve of the matched frames' depth (no return: free
+    up to far_m), it runs at each pick of a carved variant's pool run with every keyframe matched exactly, a pose no
+    frame has is refused naming the scene, and the scorer's carve is restored, even when the bench fails."""
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.mapping.observed_space import ObservedSpace
+    from roigsf_ros.nbv import NBVConfig
+    from roigsf_ros.nbv import scorer as scorer_module
+
+    cc = load_script("carve_from_captured")
+    scene = bench.parent / "scene"
+    frame = ReplicaSequence.frame
+
+    def with_a_hole(self: ReplicaSequence, k: int) -> object:  # the room has a wall behind every pixel: add no-returns
+        f = frame(self, k)
+        f.depth_m[:12, :16] = 0.0
+        return f
+
+    monkeypatch.setattr(ReplicaSequence, "frame", with_a_hole)
+    seq = ReplicaSequence(scene)
+    cfg = NBVConfig(unseen_voxel_m=0.1)
+    lo, hi = np.array([-3.0, -3.0, -1.0]), np.array([3.0, 3.0, 3.0])
+    log = {"calls": 0, "max_pose_error": 0.0}
+    poses = seq.poses[[0, 7]]
+    got = cc.captured_carver(scene, log)(None, poses, seq.intrinsics, lo, hi, cfg)
+    depth = np.stack([seq.frame(k).depth_m.astype(np.float64) for k in (0, 7)])
+    want = ObservedSpace.carve(lo, hi, 0.1, poses, np.where(depth > 0, depth, np.inf), seq.intrinsics, cfg.far_m)
+    assert np.array_equal(got.state, want.state) and log == {"calls": 1, "max_pose_error": 0.0}
+    holes_unknown = ObservedSpace.carve(lo, hi, 0.1, poses, depth, seq.intrinsics, cfg.far_m)
+    assert not np.array_equal(got.state, holes_unknown.state)  # the no-returns carve free space
+    monkeypatch.undo()
+    moved = poses.copy()
+    moved[0, 0, 3] += 0.01
+    with pytest.raises(InputError, match="no frame has the keyframe pose"):
+        cc.captured_carver(scene, log)(None, moved, seq.intrinsics, lo, hi, cfg)
+
+    original = scorer_module.carved_space
+    args = ["--scene", str(scene), "--setting", "pool", "--seeds", "1", "--overwrite", "--set", "densify_stride=2",
+            "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15", "--pool-set", "n_views=6",
+            "--pool-set", "initial_iters=6", "--pool-set", "iters_per_view=2", "--pool-set", "mesh_samples=3000",
+            "--policies", "roi-gsurfisher:unseen_weight=1:unseen_source=carved",
+            "--out", str(tmp_path / "b")]  # fmt: skip
+    assert cc.main(["--out", str(tmp_path / "calls.json"), "--", *args]) == 0
+    assert scorer_module.carved_space is original
+    report = json.loads((tmp_path / "calls.json").read_text())
+    assert report["calls"] == 2 and report["max_pose_error"] == 0.0  # 6 views, 4 of them initial
+    assert (tmp_path / "b" / "results.json").is_file()
+    assert cc.main(["--out", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"), "--setting",
+                    "pool", "--policies", "random", "--out", str(tmp_path / "c")]) != 0  # fmt: skip
+    assert scorer_module.carved_space is original and not (tmp_path / "bad.json").exists()
