@@ -8,10 +8,10 @@
 # office0 stream rows of issue 10's 20 % budget, 3 seeds (gaus-slam on the default mapper and with init_max_stretch=4;
 # N with lookahead, area and pixels measure, with it; the fused ROI-GSurFisher score with the unseen term and N weighted
 # 4, thirty-second session), then scripts/figure_targets.sh on whatever benches are there.
-# The same commands as the tables of docs/measured-figures.md (scripts/figure_nbv_pool.sh with TAG=unconfirmed / TAG=base25,
-# scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene once
-# into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA).
-# Writes runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,area,carved,cell025,base25}/,
+# The same commands as the tables of docs/measured-figures.md (scripts/figure_nbv_pool.sh with TAG=unconfirmed /
+# TAG=base25, scripts/figure_nbv_stream_office0.sh with SEEDS=3); each figure script runs the set-up, renders its scene
+# once into runs/ and overwrites its bench. Needs the Replica sample in ../shared/data (or $ROIGSF_SHARED_DATA). Writes
+# runs/bench_pool_{office0,synth,clutter}_240_{unconfirmed,area,carved,cell025,base25}/,
 # runs/bench_stream_office0_w13/<row>/, runs/targets/ (targets.md: every verdict), then scripts/figure_pool_bound.sh
 # on the three pool scenes' benches (what a greedy coverage oracle's 20 views and all pool views reach;
 # runs/pool_bound/), and prints each step's wall time.

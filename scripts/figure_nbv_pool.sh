@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The pool NBV figures of docs/measured-figures.md (issues 4 and 10): FisherRF's "v20seq1" active reconstruction, 20 views
-# (4 initial: first + farthest camera centres, then one greedy pick per training phase), 3 seeds,
+# The pool NBV figures of docs/measured-figures.md (issues 4 and 10): FisherRF's "v20seq1" active reconstruction, 20
+# views (4 initial: first + farthest camera centres, then one greedy pick per training phase), 3 seeds,
 # policies roi-gsurfisher (the paper), roi-gsurfisher with the unseen-space term (unseen_weight=1, issue 10),
 # fisherrf, random (POLICIES=... adds e.g. roi-fisher, close-front), on
 #   1. office0 re-rendered at 120x68 along every 20th pose (100 frames; 13 held-out test views,
@@ -30,15 +30,16 @@
 # Measured wall time (2026-11-21, 2 cores shared with other jobs): 1112 s (office0) + 1264 s (synth).
 # TAG=name writes runs/bench_pool_<scene>[_<W>]_<name> instead, e.g. one more policy beside a finished bench (issue 10,
 # thirteenth session: TAG=surfels POLICIES="roi-gsurfisher:unseen_weight=1:unseen_backfaces=surfels" with
-# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution; docs/measured-figures.md lists
-# the others); twenty-third session: TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed
-# with SCALE=2 and SCENES=clutter, room1, synth, room2, bins, office0 (and SENSOR=kinect), then without SCALE with
-# SCENES=shelf, clutter, synth, room1, office0 (2.5-8 min each); TAG=base23 SCALE=2 SCENES="room1 clutter"
-# POLICIES=fisherrf,random re-ran two scenes' baselines. Twenty-fourth session, without TAG: SCALE=2 SCENES=room3 and
-# SCENES=room4 with POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed,roi-gsurfisher:unseen_weight=1,
-# fisherrf,random (one comma-separated list; room3 also ,roi-gsurfisher): 23 and 16 min. Twenty-fifth session:
-# TAG=base25 POLICIES=fisherrf,random beside every unconfirmed bench (SCALE=2 with SCENES=office0, synth, room1, room2,
-# clutter, bins and SENSOR=kinect SCENES=office0; without SCALE office0, synth, room1, clutter, shelf; 58 min), for
+# SCENES="shelf clutter synth", SCALE=2 SCENES="clutter office0", 2-6 min a scene and resolution;
+# docs/measured-figures.md lists the others); twenty-third session: TAG=unconfirmed
+# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed with SCALE=2 and SCENES=clutter, room1, synth,
+# room2, bins, office0 (and SENSOR=kinect), then without SCALE with SCENES=shelf, clutter, synth, room1, office0 (2.5-8
+# min each); TAG=base23 SCALE=2 SCENES="room1 clutter" POLICIES=fisherrf,random re-ran two scenes' baselines.
+# Twenty-fourth session, without TAG: SCALE=2 SCENES=room3 and SCENES=room4 with
+# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed,roi-gsurfisher:unseen_weight=1,fisherrf,random
+# (one comma-separated list; room3 also ,roi-gsurfisher): 23 and 16 min. Twenty-fifth session: TAG=base25
+# POLICIES=fisherrf,random beside every unconfirmed bench (SCALE=2 with SCENES=office0, synth, room1, room2, clutter,
+# bins and SENSOR=kinect SCENES=office0; without SCALE office0, synth, room1, clutter, shelf; 58 min), for
 # scripts/figure_targets.sh. Twenty-eighth session: TAG=area
 # POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed:unseen_measure=area (SCENES=shelf first, the
 # tuning scene; then SCALE=2 with SCENES=clutter, room4, bins, office0, synth, room3; 3-5 min each); SCALE=2

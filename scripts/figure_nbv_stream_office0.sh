@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# The stream NBV figures of docs/measured-figures.md on office0 re-rendered at 240x136 along every 5th pose (400 frames),
-# mapped in trajectory order with GauS-SLAM's keyframe rule and with the NBV policies choosing one keyframe
-# per window of frames. Needs the Replica sample in ../shared/data or $ROIGSF_SHARED_DATA (not
+# The stream NBV figures of docs/measured-figures.md on office0 re-rendered at 240x136 along every 5th pose (400
+# frames), mapped in trajectory order with GauS-SLAM's keyframe rule and with the NBV policies choosing one keyframe per
+# window of frames. Needs the Replica sample in ../shared/data or $ROIGSF_SHARED_DATA (not
 # redistributable). Writes runs/office0_240_s5/ (the scene, reused when present).
 #
 # Issue 10 (default, ISSUE10=1): the 20 % keyframe budget. WINDOW10 = 13 (1 + 399 / 13 = 31 keyframes,
@@ -137,7 +137,7 @@ if [ "${ISSUE10:-1}" != 0 ]; then
 fi
 if [ "${ISSUE4:-0}" != 0 ]; then
     stream_bench runs/bench_stream_office0 "gaus-slam,roi-gsurfisher:window=$WINDOW,random:window=$WINDOW"
-    # The ablations of the stream table (docs/measured-figures.md) (the method's two terms alone), unless ABLATION=0.
+    # The ablations of the stream table in docs/measured-figures.md (the method's two terms alone), unless ABLATION=0.
     if [ "${ABLATION:-1}" != 0 ]; then
         stream_bench runs/bench_stream_office0_ablation "roi-fisher:window=$WINDOW,close-front:window=$WINDOW"
     fi

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# Issue 10's pool rows at 240 wide against what a choice of 20 views can reach (twenty-seventh session; docs/measured-figures.md,
-# "What a choice of 20 views can reach"). For each scene of SCENES (default: office0 synth room3 room4 clutter bins,
-# that section's table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench (TAG=unconfirmed
-# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2), the same with unseen_measure=area
-# (TAG=area, twenty-eighth session), the unseen term from carved space (TAG=carved POLICIES=roi-gsurfisher:
-# unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05, twenty-ninth session; TAG=cell025 the same with
-# unseen_voxel_m=0.025, thirtieth session) and the baselines' (TAG=base25
+# Issue 10's pool rows at 240 wide against what a choice of 20 views can reach (twenty-seventh session;
+# docs/measured-figures.md, "What a choice of 20 views can reach"). For each scene of SCENES (default: office0 synth
+# room3 room4 clutter bins, that section's table's six; any scene of scripts/figure_nbv_pool.sh): the variant's bench
+# (TAG=unconfirmed POLICIES=roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed SCALE=2), the same with
+# unseen_measure=area (TAG=area, twenty-eighth session), the unseen term from carved space (TAG=carved
+# POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_voxel_m=0.05, twenty-ninth session; TAG=cell025
+# the same with unseen_voxel_m=0.025, thirtieth session) and the baselines' (TAG=base25
 # POLICIES=fisherrf,random SCALE=2), each run by scripts/figure_nbv_pool.sh unless its results.json is there (FORCE=1
 # re-runs them), then scripts/pool_bound.py --map on the five: the coverage of all pool views, of a greedy
 # max-coverage pick of 20 (the initial views forced: an oracle that knows what every candidate sees) and of each run's
