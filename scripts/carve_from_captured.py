@@ -21,8 +21,6 @@ Writes ``--out`` (JSON: the calls and how far the closest frame's pose was from 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -33,6 +31,7 @@ import numpy as np
 from roigsf_ros.cli import main as roigsf_main
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.nbv import scorer as scorer_module
@@ -112,10 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         scorer_module.carved_space = original
     if rc:
         return int(rc)  # the bench failed (it said why): no log that looks complete
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps({"bench_args": bench_args, **log}, indent=1))
-    tmp.replace(args.out)
+    write_json(args.out, {"bench_args": bench_args, **log})
     print(f"captured carve: {log['calls']} calls, largest pose mismatch {log['max_pose_error']:.2g}")
     return 0
 

@@ -18,8 +18,6 @@ each pool run; policies without an unseen term (``fisherrf``, ``random``) add no
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -27,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.cli import main as roigsf_main
+from roigsf_ros.core.fileio import write_json
 from roigsf_ros.nbv import scorer as scorer_module
 
 
@@ -76,10 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         scorer_module.NBVScorer.score = original  # type: ignore[method-assign]
     if rc:
         return int(rc)  # the bench failed (it said why): no records that look complete
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps({"bench_args": argv[split + 1 :], "calls": log}, indent=1))
-    tmp.replace(args.out)
+    write_json(args.out, {"bench_args": argv[split + 1 :], "calls": log})
     print("| call | candidates | U mean | U std | U min | U max | U of the pick | the pick has the largest U |")
     print("|---|---|---|---|---|---|---|---|")
     for i, c in enumerate(log):
