@@ -101,6 +101,7 @@ COMMON=(--setting pool --seeds "$SEEDS" --overwrite
         --set densify_stride=2
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20
         --pool-set mesh_samples=50000 --uncertainty-views 6 --uncertainty-maps 3)
+for item in ${POOL_SET:-}; do COMMON+=(--pool-set "$item"); done  # POOL_SET="NAME=VALUE ...": more PoolConfig fields
 # A synthetic scene (--kind KIND, FRAMES frames, rendered once into runs/NAME_<W>) and its bench under nice LEVEL,
 # into runs/bench_pool_OUT (_<W> when SCALE > 1).
 # SEED (optional 6th argument, default 0): the scene's layout seed.
