@@ -1,12 +1,66 @@
 #!/usr/bin/env bash
 # Idempotent set-up of a fresh machine: Debian packages, .venv with pinned packages, this package.
-# Sourced by scripts/demo.sh and scripts/test.sh; safe to run again (skips what is already done).
-# After it: $VENV is the virtualenv and ROS variables are exported for this shell.
-set -euo pipefail
+# Sourced by scripts/demo.sh and scripts/test.sh (and by a user's shell: `source scripts/setup.sh`), or run; safe to
+# run again (skips what is already done). After it: $VENV is the virtualenv and ROS variables are exported for the
+# shell that sourced it. The installing steps run in a child bash with `set -euo pipefail`, so their options, traps
+# and exits stay there: sourced into an interactive shell, `set -e` used to stay on and close the terminal at the
+# first failing command. A failed set-up returns 1 to the shell that sourced it and exports nothing.
 
+if [ "${ROIGSF_SETUP_CHILD:-}" != 1 ]; then
+    ROIGSF_SETUP_CHILD=1 bash "${BASH_SOURCE[0]}" && _roigsf_setup_rc=0 || _roigsf_setup_rc=$?
+    if [ "$_roigsf_setup_rc" -eq 0 ]; then
+        unset _roigsf_setup_rc
+        VENV="${ROIGSF_VENV:-$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)/.venv}"
+        # The environment for ROS: ament index in the venv, loopback-only discovery.
+        export VIRTUAL_ENV="$VENV"
+        export PATH="$VENV/bin:$PATH"
+        export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+        export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
+        # glibc allocator settings that made torch on this CPU 1.3-2x faster and less noisy (page faults).
+        export MALLOC_MMAP_MAX_="${MALLOC_MMAP_MAX_:-0}"
+        export MALLOC_TRIM_THRESHOLD_="${MALLOC_TRIM_THRESHOLD_:-100000000000}"
+        # torch's spinning OpenMP workers starve the renderer's numba threads on 2 cores.
+        export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
+        return 0 2>/dev/null || exit 0
+    fi
+    printf '[setup] error: set-up did not finish (exit %s; the lines above say why); nothing was exported\n' \
+        "$_roigsf_setup_rc" >&2
+    return "$_roigsf_setup_rc" 2>/dev/null || exit "$_roigsf_setup_rc"
+fi
+
+# The installing steps (the child bash).
+set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${ROIGSF_VENV:-$REPO/.venv}"
 log() { printf '[setup] %s\n' "$*" >&2; }
+
+# Background steps (the interface build, the kernels' compile) and how set-up stops them. A background job of a
+# non-interactive shell ignores Ctrl-C, and set-up exiting on a failed step does not stop it: without this, a failed
+# pip step or a Ctrl-C left cmake and the compilers (or numba) running. While background steps run, INT and TERM stop
+# every process they started and end set-up, as does any step that fails.
+SETUP_BG_PIDS=()
+setup_tree() {  # a process and all its descendants, parents first
+    local child
+    echo "$1"
+    for child in $(pgrep -P "$1" 2>/dev/null || true); do setup_tree "$child"; done
+}
+setup_stop_background() {  # freeze the trees (no new children), then end them
+    local pid tree=()
+    for pid in "${SETUP_BG_PIDS[@]}"; do mapfile -t -O "${#tree[@]}" tree < <(setup_tree "$pid"); done
+    [ "${#tree[@]}" -gt 0 ] || return 0
+    kill -STOP "${tree[@]}" 2>/dev/null || true
+    kill -TERM "${tree[@]}" 2>/dev/null || true
+    kill -CONT "${tree[@]}" 2>/dev/null || true
+    for pid in "${SETUP_BG_PIDS[@]}"; do wait "$pid" 2>/dev/null || true; done
+    SETUP_BG_PIDS=()
+}
+setup_fail() {  # stop the background steps, say why, exit
+    setup_stop_background
+    log "error: $1"
+    exit "${2:-1}"
+}
+trap 'setup_fail "interrupted" 130' INT
+trap 'setup_fail "terminated" 143' TERM
 
 # 1. Debian packages: open3d needs libusb-1.0 at import time.
 if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then  # no -q: an early exit SIGPIPEs ldconfig under pipefail
@@ -59,16 +113,18 @@ if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
     log "building roigsf_interfaces (and tf2_msgs if missing) into $VENV"
     bash "$REPO/scripts/build_interfaces.sh" "$VENV" &
     IFACE_PID="$!"
+    SETUP_BG_PIDS+=("$IFACE_PID")
 fi
 if [ "$REQ_HEAVY" = 1 ]; then
-    "$VENV/bin/python" -m pip install -q -r "$REPO/requirements.txt"
+    "$VENV/bin/python" -m pip install -q -r "$REPO/requirements.txt" \
+        || setup_fail "pip could not install $REPO/requirements.txt (exit $?)"
     echo "$REQ_HASH" > "$STAMP"
 fi
 
 # 5. This package (not editable: pip -e drops the ament marker and config data_files).
 log "installing roigsf_ros into $VENV"
 "$VENV/bin/python" -m pip install -q --no-deps --no-build-isolation --force-reinstall "$REPO" 2>&1 \
-    | grep -v -e 'DEPRECATION' -e '^$' >&2 || true
+    | { grep -v -e 'DEPRECATION' -e '^$' >&2 || true; } || setup_fail "pip could not install roigsf_ros from $REPO"
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
 # 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
@@ -95,30 +151,21 @@ if [ "$WARM_INSTALLED" = 1 ]; then
     log "compiling the numba kernels (once; cached on disk; processes: $WARM_JOBS)"
     (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs "$WARM_JOBS" | sed 's/^/[setup] /' >&2) &
     WARM_PIDS+=("$!")
+    SETUP_BG_PIDS+=("$!")
 fi
 if [ "$WARM_CHECKOUT" = 1 ]; then
     (cd "$REPO" && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs 1 | sed 's/^/[test] /' >&2) &
     WARM_PIDS+=("$!")
+    SETUP_BG_PIDS+=("$!")
 fi
 
 # The background work of steps 4 and 6.
 IFACE_RC=0
 [ -z "$IFACE_PID" ] || wait "$IFACE_PID" || IFACE_RC=$?
+[ "$IFACE_RC" -eq 0 ] || setup_fail "building the interfaces failed (exit $IFACE_RC)" "$IFACE_RC"
 WARM_RC=0
 for pid in "${WARM_PIDS[@]}"; do wait "$pid" || WARM_RC=$?; done
-[ "$IFACE_RC" -eq 0 ] || { log "error: building the interfaces failed (exit $IFACE_RC)"; exit "$IFACE_RC"; }
+SETUP_BG_PIDS=()
 [ -z "$IFACE_PID" ] || echo "$IFACE_HASH" > "$IFACE_STAMP"
 [ "$WARM_RC" -eq 0 ] || { log "error: compiling the numba kernels failed (exit $WARM_RC)"; exit "$WARM_RC"; }
 [ "$WARM_INSTALLED" -eq 0 ] || echo "$KERNEL_HASH" > "$KERNEL_STAMP"
-unset HEAVY REQ_HEAVY IFACE_PID IFACE_RC WARM_PIDS WARM_INSTALLED WARM_CHECKOUT WARM_JOBS WARM_RC
-
-# 7. Environment for ROS: ament index in the venv, loopback-only discovery.
-export VIRTUAL_ENV="$VENV"
-export PATH="$VENV/bin:$PATH"
-export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
-export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
-# glibc allocator settings that made torch on this CPU 1.3-2x faster and less noisy (page faults).
-export MALLOC_MMAP_MAX_="${MALLOC_MMAP_MAX_:-0}"
-export MALLOC_TRIM_THRESHOLD_="${MALLOC_TRIM_THRESHOLD_:-100000000000}"
-# torch's spinning OpenMP workers starve the renderer's numba threads on 2 cores.
-export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
