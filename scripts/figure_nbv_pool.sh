@@ -76,6 +76,10 @@
 # both baselines again in one bench per scene; 12-45 min each beside another bench); and TAG=plan36
 # POLICIES="$C:unseen_plan_views=2,$C:unseen_plan_views=4" with SCENES=shelf, then SCALE=2 SCENES=room5 (the tuning
 # scenes; it lost there, so nothing else).
+# Fortieth session: TAG=fine40 POLICIES="$C" POOL_SET="mesh_checkpoints=4,8,12,13,14,15,16,17,18,19,20" SCALE=2 with
+# SCENES=synth, SCENES=office0 OFFSET=5 and SCENES=room8: the variant's mesh measured after every view from 12 on, for
+# the views it needs to reach the baselines (`roigsf targets`; 10-16 min a scene).
+# POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
 # bench into runs/bench_pool_office0_<W>_kinect[_<TAG>]; recall and precision are still against the true mesh.

@@ -187,6 +187,14 @@ for s in shelf_120:shelf room5_240; do
             "runs/bench_pool_${s#*:}_base36#fisherrf" "runs/bench_pool_${s#*:}_base36#random"
     done
 done
+# Fortieth session: the variant alone with its mesh measured after every view from 12 on (TAG=fine40 POLICIES="$C"
+# POOL_SET="mesh_checkpoints=4,8,12,13,14,15,16,17,18,19,20" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5 and
+# SCENES=room8; the same picks and final figures as its base36 runs), rows pool_*_fine40 against the base36
+# baselines: the views it needs to reach them, one view at a time.
+for s in synth_240 office0_240_o5 room8_240; do
+    verdict "pool_${s}_fine40" "runs/bench_pool_${s}_fine40#$C" "runs/bench_pool_${s}_base36#fisherrf" \
+        "runs/bench_pool_${s}_base36#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect

@@ -203,6 +203,26 @@ def test_seeds_reproduce_and_random_differs(source: MemoryFrameSource, tmp_path)
         run_pool(source, cfg, mapper_config(), tmp_path / "a")
 
 
+def test_mesh_checkpoints_change_no_choice_and_no_final_figure(source: MemoryFrameSource, tmp_path) -> None:
+    """Measuring the mesh at more view counts along a run (``mesh_checkpoints``) changes no pick and no final figure,
+    with a policy that reads the map: so ``roigsf targets`` compares benches that differ only in it, and reads their
+    curves for the views a candidate needs (``experiments.targets.views_to_match``)."""
+    import open3d as o3d
+
+    gt = tmp_path / "gt.ply"
+    o3d.io.write_triangle_mesh(str(gt), synth_room(0))
+    params = {"unseen_weight": 1.0, "unseen_source": "carved"}
+    cfg = pool_config(policy="roi-gsurfisher", policy_params=params, n_views=7, mesh_samples=2000)
+    a = run_pool(source, cfg, mapper_config(), gt_mesh=gt).metrics
+    b = run_pool(source, replace(cfg, mesh_checkpoints=(4, 5, 6, 7)), mapper_config(), gt_mesh=gt).metrics
+    assert [p["n_views"] for p in a["curve"] if "mesh" in p] == [4, 7]  # the checkpoints, and always the last view
+    assert [p["n_views"] for p in b["curve"] if "mesh" in p] == [4, 5, 6, 7]
+    assert a["chosen_positions"] == b["chosen_positions"]
+    for key in ("psnr", "ssim", "depth_l1_m", "recall@5cm", "fscore@5cm", "precision@1cm"):
+        assert a[key] == b[key], key
+    assert [p["test_psnr"] for p in a["curve"]] == [p["test_psnr"] for p in b["curve"]]
+
+
 def test_a_policy_object_replaces_the_named_policy(source: MemoryFrameSource) -> None:
     """``policy=`` (e.g. scripts/pool_bound.py's oracle replay) picks instead of ``config.policy``, in its order,
     and the metrics name it; the initial views stay the split's."""

@@ -10,7 +10,15 @@ import pytest
 
 from roigsf_ros.cli import main
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.experiments.targets import load_policy, pool_target, seed_margins, stream_target
+from roigsf_ros.experiments.targets import (
+    check_comparable,
+    config_differences,
+    load_policy,
+    pool_target,
+    seed_margins,
+    stream_target,
+    views_to_match,
+)
 
 MAPPER = {"iters_per_keyframe": 10, "init_max_stretch": 1.0, "seed": 0}
 POOL = {"n_views": 20, "policy": "random", "policy_params": {}, "seed": 0}
@@ -199,3 +207,99 @@ def test_seed_by_seed_margins_pair_the_seeds_both_ran(tmp_path: Path) -> None:
     res["runs"] += ["junk", {"label": "random", "seed": "1", "metrics": {"recall@5cm": 0.5}}, {"label": "random"}]
     (folder / "results.json").write_text(json.dumps(res))  # malformed runs are not paired, and do not crash
     assert seed_margins(cand, load_policy(f"{folder}#random"), "recall@5cm") == pytest.approx((0.17, 0.02))
+
+
+def _curve_runs(values: dict[str, dict[int, dict[int, float]]], psnr: dict[str, float]) -> list[dict[str, Any]]:
+    """Pool runs as `roigsf bench` keeps them: each seed's curve with R@5cm at the given view counts and its test
+    PSNR after every view (rising 0.5 dB a view to the label's final ``psnr``), its final metrics the last point's."""
+    runs = []
+    for label, seeds in values.items():
+        for seed, points in seeds.items():
+            last = max(points)
+            curve = [
+                {"n_views": n, "test_psnr": psnr[label] - 0.5 * (last - n)}
+                | ({"mesh": {"recall@5cm": points[n]}} if n in points else {})
+                for n in range(min(points), last + 1)
+            ]
+            runs.append(
+                {
+                    "label": label,
+                    "seed": seed,
+                    "metrics": {"recall@5cm": points[last], "psnr": psnr[label], "curve": curve},
+                }
+            )
+    return runs
+
+
+def test_views_to_match_reads_the_curves_where_they_were_measured(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With how many views the candidate's mean first reaches a baseline's final mean, and seed by seed against the
+    same seed's final: only at the view counts the runs measured (a count between two checkpoints is not guessed)."""
+    curves = {
+        "variant": {
+            0: {4: 0.60, 8: 0.90, 12: 0.95, 16: 0.97, 20: 0.98},
+            1: {4: 0.60, 8: 0.92, 12: 0.94, 16: 0.96, 20: 0.97},
+        },
+        "fisherrf": {0: {4: 0.60, 20: 0.955}, 1: {4: 0.60, 20: 0.935}},
+        "random": {0: {4: 0.60, 20: 0.99}, 1: {4: 0.60, 20: 0.99}},
+    }  # fmt: skip
+    summary = {
+        "variant": {"recall@5cm": (0.975, 0.005), "fscore@5cm": (0.98, 0.0), "psnr": (30.0, 0.0)},
+        "fisherrf": {"recall@5cm": (0.945, 0.01), "fscore@5cm": (0.97, 0.0), "psnr": (29.0, 0.0)},
+        "random": {"recall@5cm": (0.99, 0.0), "fscore@5cm": (0.99, 0.0), "psnr": (29.0, 0.0)},
+    }
+    psnr = {"variant": 30.0, "fisherrf": 29.0, "random": 29.0}
+    folder = bench(tmp_path / "b", "pool", summary, runs=_curve_runs(curves, psnr), seeds=[0, 1])
+    cand, fis, rnd = (load_policy(f"{folder}#{label}") for label in ("variant", "fisherrf", "random"))
+    v = views_to_match(cand, fis, "recall@5cm")
+    # the mean curve 0.60, 0.91, 0.945, 0.965, 0.975 reaches 0.945 at 12; seed 0 reaches its 0.955 only at 16 (0.95 at
+    # 12, and 14 was not measured), seed 1 its 0.935 at 12
+    assert (v.views, v.seed_views, v.checkpoints, v.other_views) == (12, (16, 12), (4, 8, 12, 16, 20), 20)
+    assert v.target == pytest.approx(0.945)
+    never = views_to_match(cand, rnd, "recall@5cm")
+    assert never.views is None and never.seed_views == (None, None)
+    # the test PSNR is on the curve after every view: 30 - 0.5 (20 - n) reaches 29.0 at 18
+    assert views_to_match(cand, fis, "psnr").views == 18 and views_to_match(cand, fis, "psnr").checkpoints == tuple(
+        range(4, 21)
+    )
+    with pytest.raises(InputError, match="policy 'variant' has no curve of 'fscore@5cm'"):
+        views_to_match(cand, fis, "fscore@5cm")
+    # in the pool verdict (R@5cm and PSNR, against each baseline; F@5cm has no curve here) and `roigsf targets`
+    verdict = pool_target(cand, [fis, rnd])
+    assert [(x.metric, x.against.split("@")[0], x.views) for x in verdict.views] == [
+        ("recall@5cm", "fisherrf", 12),
+        ("recall@5cm", "random", None),
+        ("psnr", "fisherrf", 18),
+        ("psnr", "random", 18),
+    ]
+    out = tmp_path / "verdict.json"
+    argv = ["targets", f"{folder}#variant", "--against", f"{folder}#fisherrf", "--against", f"{folder}#random"]
+    assert main([*argv, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| recall@5cm | `fisherrf` | 0.9450 at 20 | 12 of 20 | 16 / 12 | 4, 8, 12, 16, 20 |" in text, text
+    assert "| recall@5cm | `random` | 0.9900 at 20 | not within 20 | - / - | 4, 8, 12, 16, 20 |" in text, text
+    assert "| psnr | `fisherrf` | 29.00 at 20 | 18 of 20 | 18 / 18 | 4-20 |" in text, text
+    assert json.loads(out.read_text())["views_to_match"][0] == {
+        "metric": "recall@5cm",
+        "against": fis.name,
+        "target": pytest.approx(0.945),
+        "other_views": 20,
+        "views": 12,
+        "checkpoints": [4, 8, 12, 16, 20],
+        "seed_views": [16, 12],
+    }
+    stream = bench(tmp_path / "s", "stream", {"n": {"recall@5cm": (0.9, 0.0)}})
+    with pytest.raises(InputError, match="setting is 'stream', not 'pool'"):
+        views_to_match(load_policy(stream), fis, "recall@5cm")
+
+
+def test_mesh_checkpoints_are_not_a_configuration_difference(tmp_path: Path) -> None:
+    """Benches that differ only in the view counts their mesh was measured at are compared (a run with more chose
+    the same views and ended with the same figures: test_pool.py); any other pool setting still refuses."""
+    a = bench(tmp_path / "a", "pool", {"variant": FOURTH_ROOM["variant"]}, pool_config={"mesh_checkpoints": [4, 8, 20]})
+    b = bench(tmp_path / "b", "pool", {"fisherrf": FOURTH_ROOM["fisherrf"]}, pool_config={"mesh_checkpoints": [4, 20]})
+    assert config_differences(load_policy(a), load_policy(b)) == []
+    c = bench(tmp_path / "c", "pool", {"random": FOURTH_ROOM["random"]}, pool_config={"n_views": 16})
+    with pytest.raises(InputError, match=r"pool_config\.n_views: 20 != 16"):
+        check_comparable(load_policy(a), load_policy(c))

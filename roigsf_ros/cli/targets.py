@@ -2,8 +2,9 @@
 
 Pool: ``roigsf targets runs/A#CANDIDATE --against runs/A#fisherrf --against runs/B#random`` (each ``FOLDER`` written by
 ``roigsf bench --out``; ``#LABEL`` picks a policy where the folder holds several). Stream: one ``--against``, the
-reference (``gaus-slam``). Prints a table of every check with its margin, what was required and the slack, and with
-``--out`` writes the verdict as JSON. The setting is the candidate bench's.
+reference (``gaus-slam``). Prints a table of every check with its margin, what was required and the slack (pool: then
+with how many views the candidate first reaches each baseline's final mean, from the runs' curves), and with ``--out``
+writes the verdict as JSON. The setting is the candidate bench's.
 """
 
 from __future__ import annotations

@@ -9,6 +9,10 @@ module computes them, so each one comes from a command anyone can re-run (``roig
 - **stream**: the candidate keeps at most ``max_keyframe_ratio`` (20 %) of the reference's keyframes (means over the
   seeds), with R@5cm within ``recall_margin`` (0.01) and PSNR within ``psnr_margin_db`` (0.5 dB) of the reference.
 
+Beside the pool verdict, not part of any target: with how many views the candidate first reaches each baseline's
+final mean (:func:`views_to_match`, the pool's form of the paper's claim that ~200 chosen views reach what ~800 of
+GauS-SLAM's do), read from the runs' quality-versus-views curves.
+
 Policies are compared only on the same scene, setting, image size, frames and seeds; a different mapper or pool
 configuration (``init_max_stretch=4`` on one side only, say) is refused unless asked for, and then listed in the
 verdict, so a comparison across mappers is never mistaken for a like-for-like one.
@@ -42,8 +46,14 @@ MUST_MATCH = ("setting", "scene", "size", "stride", "max_frames", "n_frames", "s
 """results.json fields that must be equal for two policies to be compared at all."""
 
 _CONFIG_FIELDS = ("mapper_config", "pool_config")
-_PER_POLICY_KEYS = frozenset({"policy", "policy_params", "seed"})
-"""Config keys that differ between the policies of one bench by design; never counted as a difference."""
+_PER_POLICY_KEYS = frozenset({"policy", "policy_params", "seed", "mesh_checkpoints"})
+"""Config keys never counted as a difference: those that differ between the policies of one bench by design, and
+``mesh_checkpoints``, the view counts at which a pool run measures its mesh along the way, which changes neither the
+views chosen nor the final figures (`test_mesh_checkpoints_change_no_choice_and_no_final_figure`)."""
+
+VIEW_METRICS = ("recall@5cm", "fscore@5cm", "psnr")
+"""What :func:`views_to_match` reads from a pool run's curve: the mesh metrics where the run measured its mesh
+(``mesh_checkpoints``), and ``psnr``, the test PSNR measured after every view."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +88,93 @@ class PolicyResults:
     def name(self) -> str:
         """``label@folder``: unique even when two folders hold the same label (one mapper setting each)."""
         return f"{self.label}@{self.source}"
+
+
+def curve_by_seed(policy: PolicyResults, key: str) -> dict[int, dict[int, float]]:
+    """``{seed: {view count: value}}`` of ``key`` along each of the policy's pool runs (``"psnr"``: the test PSNR).
+
+    Only the view counts where a run measured it: the mesh metrics at its ``mesh_checkpoints``, the PSNR after every
+    view. Empty when the bench kept no runs or no curves.
+    """
+    out: dict[int, dict[int, float]] = {}
+    runs = policy.bench.get("runs")
+    for run in runs if isinstance(runs, list) else []:
+        if not isinstance(run, dict) or run.get("label") != policy.label or not isinstance(run.get("seed"), int):
+            continue
+        curve = run["metrics"].get("curve") if isinstance(run.get("metrics"), dict) else None
+        points: dict[int, float] = {}
+        for point in curve if isinstance(curve, list) else []:
+            if not isinstance(point, dict) or not isinstance(point.get("n_views"), int):
+                continue
+            value = point.get("test_psnr") if key == "psnr" else (point.get("mesh") or {}).get(key)
+            if isinstance(value, (int, float)):
+                points[point["n_views"]] = float(value)
+        if points:
+            out[run["seed"]] = points
+    return out
+
+
+@dataclass(frozen=True)
+class ViewsToMatch:
+    """With how many views the candidate first reaches ``against``'s mean ``metric`` at its last view count.
+
+    ``views``: the first view count at which the candidate's mean over its seeds is at least ``target`` (None: not
+    within its run); ``checkpoints``: the counts where every seed measured it; ``seed_views``: the same seed by seed,
+    each against the other's value for that seed (None: not reached), in seed order.
+    """
+
+    metric: str
+    against: str
+    target: float
+    other_views: int
+    views: int | None
+    checkpoints: tuple[int, ...]
+    seed_views: tuple[int | None, ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "metric": self.metric,
+            "against": self.against,
+            "target": self.target,
+            "other_views": self.other_views,
+            "views": self.views,
+            "checkpoints": list(self.checkpoints),
+            "seed_views": list(self.seed_views),
+        }
+
+
+def _first_reaching(points: dict[int, float], target: float) -> int | None:
+    """The smallest view count whose value is at least ``target`` (to 1e-12, for rounding); None if none is."""
+    return next((n for n in sorted(points) if points[n] >= target - 1e-12), None)
+
+
+def views_to_match(
+    candidate: PolicyResults, other: PolicyResults, metric: str, allow_config_difference: bool = False
+) -> ViewsToMatch:
+    """With how many views ``candidate`` first reaches ``other``'s final mean ``metric`` (pool benches; the mesh
+    metrics only at the view counts its runs measured them: 4, 8, 12, 16, 20 unless ``mesh_checkpoints`` said more).
+
+    InputError naming the file when either is not a pool bench, they are not comparable, or the candidate's runs hold
+    no curve of ``metric`` on every seed.
+    """
+    for policy in (candidate, other):
+        _require_setting(policy, "pool")
+    check_comparable(candidate, other, allow_config_difference)
+    curves = curve_by_seed(candidate, metric)
+    seeds = sorted(curves)
+    common = sorted(set.intersection(*(set(c) for c in curves.values()))) if curves else []
+    if not common:
+        raise InputError(candidate.source / "results.json", f"policy {candidate.label!r} has no curve of {metric!r}")
+    target = other.stat(metric)[0]
+    mean_curve = {n: sum(curves[s][n] for s in seeds) / len(seeds) for n in common}
+    finals = other.per_seed(metric)
+    seed_views = tuple(_first_reaching(curves[s], finals[s]) if s in finals else None for s in seeds)
+    n_views = (other.bench.get("pool_config") or {}).get("n_views")
+    return ViewsToMatch(
+        metric, other.name, target, int(n_views) if isinstance(n_views, int) else max(common),
+        _first_reaching(mean_curve, target), tuple(common), seed_views,
+    )  # fmt: skip
 
 
 def seed_margins(candidate: PolicyResults, other: PolicyResults, key: str) -> tuple[float, ...]:
@@ -202,6 +299,8 @@ class Verdict:
     candidate: str
     checks: list[Check]
     differences: dict[str, list[str]]
+    views: list[ViewsToMatch] = field(default_factory=list)
+    """Pool: with how many views the candidate reaches each baseline (not part of the target)."""
 
     @property
     def met(self) -> bool:
@@ -226,6 +325,7 @@ class Verdict:
             "met": self.met,
             "checks": [c.as_dict() for c in self.checks],
             "config_differences": self.differences,
+            "views_to_match": [v.as_dict() for v in self.views],
         }
 
     def markdown(self) -> str:
@@ -252,7 +352,35 @@ class Verdict:
             )
         for other, diffs in self.differences.items():
             lines.append(f"\nConfigured differently from `{other}`: {'; '.join(diffs)}")
+        if self.views:
+            lines += [
+                "",
+                "Views the candidate needs to reach each baseline's final mean (not part of the target; each metric "
+                "read where the runs measured it):",
+                "",
+                "| metric | against | its mean | candidate, mean of seeds | seed by seed | measured at views |",
+                "|---|---|---|---|---|---|",
+            ]
+            for v in self.views:
+                reach = f"{v.views} of {v.other_views}" if v.views is not None else f"not within {max(v.checkpoints)}"
+                seeds = " / ".join(str(n) if n is not None else "-" for n in v.seed_views)
+                target = _pm((v.target, 0.0)).split(" ")[0]
+                lines.append(
+                    f"| {v.metric} | `{v.against.split('@')[0]}` | {target} at {v.other_views} | {reach} | {seeds} | "
+                    f"{_count_ranges(v.checkpoints)} |"
+                )
         return "\n".join(lines) + "\n"
+
+
+def _count_ranges(counts: tuple[int, ...]) -> str:
+    """``4, 8, 12-20``: sorted view counts with runs of consecutive ones as ranges."""
+    runs: list[list[int]] = []
+    for n in sorted(counts):
+        if runs and runs[-1][1] == n - 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _pm(stat: tuple[float, float]) -> str:
@@ -293,7 +421,13 @@ def pool_target(
     b_psnr = best.stat("psnr")
     margins = seed_margins(candidate, best, "psnr")
     checks.append(Check("psnr (dB)", best.name, psnr, b_psnr, psnr[0] - b_psnr[0], -psnr_margin_db, margins))
-    return Verdict("pool", candidate.name, checks, diffs)
+    views = [
+        views_to_match(candidate, b, key, allow_config_difference=True)  # comparability checked above
+        for key in VIEW_METRICS
+        if curve_by_seed(candidate, key)
+        for b in baselines
+    ]
+    return Verdict("pool", candidate.name, checks, diffs, views)
 
 
 def stream_target(
@@ -332,13 +466,17 @@ __all__ = [
     "STREAM_MAX_KEYFRAME_RATIO",
     "STREAM_PSNR_MARGIN_DB",
     "STREAM_RECALL_MARGIN",
+    "VIEW_METRICS",
     "Check",
     "PolicyResults",
     "Verdict",
+    "ViewsToMatch",
     "check_comparable",
     "config_differences",
+    "curve_by_seed",
     "load_policy",
     "pool_target",
     "seed_margins",
     "stream_target",
+    "views_to_match",
 ]
