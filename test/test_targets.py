@@ -289,6 +289,13 @@ def test_views_to_match_reads_the_curves_where_they_were_measured(
         "checkpoints": [4, 8, 12, 16, 20],
         "seed_views": [16, 12],
     }
+    res = json.loads((folder / "results.json").read_text())
+    del next(r for r in res["runs"] if r["label"] == "variant" and r["seed"] == 1)["metrics"]["curve"]
+    (folder / "results.json").write_text(json.dumps(res))  # seed 1 kept no curve: no mean over seed 0 alone
+    cand = load_policy(f"{folder}#variant")
+    with pytest.raises(InputError, match=r"no curve of 'recall@5cm' on seeds \[1\]"):
+        views_to_match(cand, fis, "recall@5cm")
+    assert pool_target(cand, [fis, rnd]).views == []
     stream = bench(tmp_path / "s", "stream", {"n": {"recall@5cm": (0.9, 0.0)}})
     with pytest.raises(InputError, match="setting is 'stream', not 'pool'"):
         views_to_match(load_policy(stream), fis, "recall@5cm")

@@ -46,7 +46,7 @@ MUST_MATCH = ("setting", "scene", "size", "stride", "max_frames", "n_frames", "s
 """results.json fields that must be equal for two policies to be compared at all."""
 
 _CONFIG_FIELDS = ("mapper_config", "pool_config")
-_PER_POLICY_KEYS = frozenset({"policy", "policy_params", "seed", "mesh_checkpoints"})
+_UNCOMPARED_KEYS = frozenset({"policy", "policy_params", "seed", "mesh_checkpoints"})
 """Config keys never counted as a difference: those that differ between the policies of one bench by design, and
 ``mesh_checkpoints``, the view counts at which a pool run measures its mesh along the way, which changes neither the
 views chosen nor the final figures (`test_mesh_checkpoints_change_no_choice_and_no_final_figure`)."""
@@ -164,8 +164,12 @@ def views_to_match(
     curves = curve_by_seed(candidate, metric)
     seeds = sorted(curves)
     common = sorted(set.intersection(*(set(c) for c in curves.values()))) if curves else []
-    if not common:
-        raise InputError(candidate.source / "results.json", f"policy {candidate.label!r} has no curve of {metric!r}")
+    missing = sorted(set(candidate.per_seed(metric)) - set(curves))
+    if not common or missing:
+        raise InputError(
+            candidate.source / "results.json",
+            f"policy {candidate.label!r} has no curve of {metric!r}" + (f" on seeds {missing}" if curves else ""),
+        )
     target = other.stat(metric)[0]
     mean_curve = {n: sum(curves[s][n] for s in seeds) / len(seeds) for n in common}
     finals = other.per_seed(metric)
@@ -222,7 +226,7 @@ def config_differences(a: PolicyResults, b: PolicyResults) -> list[str]:
     out = []
     for name in _CONFIG_FIELDS:
         ca, cb = a.bench.get(name) or {}, b.bench.get(name) or {}
-        for key in sorted((set(ca) | set(cb)) - _PER_POLICY_KEYS):
+        for key in sorted((set(ca) | set(cb)) - _UNCOMPARED_KEYS):
             if ca.get(key) != cb.get(key):
                 out.append(f"{name}.{key}: {ca.get(key)!r} != {cb.get(key)!r}")
     return out
@@ -424,9 +428,9 @@ def pool_target(
     views = [
         views_to_match(candidate, b, key, allow_config_difference=True)  # comparability checked above
         for key in VIEW_METRICS
-        if curve_by_seed(candidate, key)
+        if (curves := curve_by_seed(candidate, key)) and set(curves) >= set(candidate.per_seed(key))
         for b in baselines
-    ]
+    ]  # a metric without a curve on every seed (an older bench) is left out
     return Verdict("pool", candidate.name, checks, diffs, views)
 
 
