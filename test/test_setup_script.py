@@ -13,6 +13,7 @@ import shutil
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -59,8 +60,9 @@ def _write(path: Path, text: str, mode: int = 0o644) -> None:
 
 
 @pytest.fixture
-def scratch(tmp_path: Path) -> dict[str, str]:
-    """A repository with set-up's real script and the files its hashes read, a fake venv; returns the environment."""
+def scratch(tmp_path: Path) -> Iterator[dict[str, str]]:
+    """A repository with set-up's real script and the files its hashes read, a fake venv; yields the environment, and
+    afterwards kills whatever of the fake build is still running (on a failed test, nothing is left behind)."""
     repo, mark, venv = tmp_path / "repo", tmp_path / "mark", tmp_path / "repo" / ".venv"
     shutil.copy(REPO / "scripts" / "setup.sh", _mkdir(repo / "scripts") / "setup.sh")
     _write(repo / "scripts" / "build_interfaces.sh", FAKE_BUILD, 0o755)
@@ -73,7 +75,14 @@ def scratch(tmp_path: Path) -> dict[str, str]:
     mark.mkdir()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("ROIGSF_", "FAKE_", "VIRTUAL_ENV"))}
     env.update(FAKE_REPO=str(repo), FAKE_MARK=str(mark), ROIGSF_PYTHON="/bin/true", ROIGSF_WARM_CHECKOUT="0")
-    return env
+    yield env
+    for name in ("build.pid", "build_child.pid"):
+        try:
+            pid = int((mark / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
 
 
 def _mkdir(path: Path) -> Path:
@@ -101,8 +110,6 @@ def _assert_build_stopped(env: dict[str, str]) -> None:
     while any(_alive(p) for p in pids) and time.monotonic() < deadline:
         time.sleep(0.05)
     left = [p for p in pids if _alive(p)]
-    for p in left:  # do not leave them behind on a failure
-        os.kill(p, signal.SIGKILL)
     assert not left, f"set-up exited and left its interface build running: {left}"
 
 
