@@ -162,3 +162,16 @@ def test_every_documented_roigsf_command_parses(path: Path) -> None:
         except SystemExit:
             refused.append(command)
     assert refused == []
+
+
+def test_the_readme_module_table_lists_each_layers_modules() -> None:
+    """The README's "What is here" table names, per layer, modules that exist, and every one of them unless the row
+    ends its list with "..." (the nodes' helpers): a module added or renamed without the table fails here."""
+    rows = re.findall(r"^\| `(\w+)/` \| ([^|]+) \|", (ROOT / "README.md").read_text(), flags=re.M)
+    assert len(rows) >= 10, rows
+    for layer, cell in rows:
+        listed = re.findall(r"`(\w+)`", cell)
+        present = {p.stem for p in (ROOT / "roigsf_ros" / layer).glob("*.py")} - {"__init__", "__main__"}
+        assert set(listed) <= present, f"{layer}/: the README names {sorted(set(listed) - present)}, not modules"
+        if "..." not in cell:
+            assert set(listed) == present, f"{layer}/: the README's table leaves out {sorted(present - set(listed))}"
