@@ -12,6 +12,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -131,8 +132,13 @@ def test_ctrl_c_during_set_up_stops_the_interface_build(scratch: dict[str, str])
     nothing of the build left (a background job of a script ignores SIGINT, so it used to go on).
     """
     env = {**scratch, "FAKE_HEAVY": "hang"}
+    # bash cannot trap a signal ignored when it starts, and a test run started in the background (a job of a script,
+    # nohup ...) inherits SIGINT ignored: start set-up with SIGINT at its default, as a terminal's foreground job has it
+    reset_sigint = (
+        "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execvp('bash', sys.argv[1:])"
+    )
     proc = subprocess.Popen(
-        ["bash", str(Path(env["FAKE_REPO"]) / "scripts" / "setup.sh")],
+        [sys.executable, "-c", reset_sigint, "bash", str(Path(env["FAKE_REPO"]) / "scripts" / "setup.sh")],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )  # fmt: skip
     try:
