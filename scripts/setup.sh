@@ -4,7 +4,7 @@
 # run again (skips what is already done). After it: $VENV is the virtualenv and ROS variables are exported for the
 # shell that sourced it. The installing steps run in a child bash with `set -euo pipefail`, so their options, traps
 # and exits stay there: sourced into an interactive shell, `set -e` used to stay on and close the terminal at the
-# first failing command. A failed set-up returns 1 to the shell that sourced it and exports nothing.
+# first failing command. A failed set-up returns its exit status to the shell that sourced it and exports nothing.
 
 if [ "${ROIGSF_SETUP_CHILD:-}" != 1 ]; then
     ROIGSF_SETUP_CHILD=1 bash "${BASH_SOURCE[0]}" && _roigsf_setup_rc=0 || _roigsf_setup_rc=$?
