@@ -672,6 +672,42 @@ def test_a_zero_weight_drops_its_term_and_epsilon_0_renders_no_fisher(world: Wor
         NBVConfig(epsilon=-0.1)
 
 
+def test_fisherrf_weight_adds_the_z_scored_fisherrf_score_and_0_is_the_method_as_before(world: World) -> None:
+    """``fisherrf_weight`` kappa_r (beyond the paper) adds kappa_r z(R), R the scores mode ``fisherrf`` gives the same
+    candidates, over the candidates the other terms are z-scored on; 0 leaves every score as it was, to the bit."""
+    cands = np.stack(
+        [
+            world.view_a,
+            world.view_b,
+            look_at(np.array([0.8, 0.1, 1.0]), np.array([2.0, -0.4, 1.1]), UP),
+            world.view_up,
+        ]
+    )
+    base_cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved")
+    ref = NBVScorer(base_cfg).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    same = NBVScorer(replace(base_cfg, fisherrf_weight=0.0)).score(world.map, world.h_train, world.tsdf, world.train,
+                                                                     cands, INTR)  # fmt: skip
+    np.testing.assert_array_equal(same.fused, ref.fused)
+    assert "fisherrf_term" not in same.timings_s
+    rf = NBVScorer(base_cfg).score(world.map, None, None, world.train, cands, INTR, mode="fisherrf")
+    ok = ~ref.flagged
+    assert ok.sum() >= 3 and rf.fisher[ok].std() > 0
+    for kappa in (0.5, 2.0):
+        out = NBVScorer(replace(base_cfg, fisherrf_weight=kappa)).score(world.map, world.h_train, world.tsdf,
+                                                                        world.train, cands, INTR)  # fmt: skip
+        np.testing.assert_array_equal(out.flagged, ref.flagged)
+        np.testing.assert_allclose(out.fused[ok], ref.fused[ok] + kappa * zscore(rf.fisher[ok]), rtol=1e-12, atol=1e-12)
+        assert (out.fused[~ok] == 0.0).all() and out.timings_s["fisherrf_term"] > 0
+    # The term alone decides when the others are off: the pick is FisherRF's among the candidates that see surface.
+    rf_only = NBVScorer(NBVConfig(epsilon=0.0, delta=0.0, fisherrf_weight=1.0))
+    alone = rf_only.score(world.map, None, world.tsdf, world.train, cands, INTR)
+    assert alone.best_index == int(np.flatnonzero(ok)[np.argmax(rf.fisher[ok])])
+    with pytest.raises(InputError, match="fisherrf_weight"):
+        NBVConfig(fisherrf_weight=-1.0)
+    with pytest.raises(InputError, match="no term"):
+        NBVConfig(epsilon=0.0, delta=0.0, fisherrf_weight=0.0)
+
+
 def test_surface_facing_marks_points_on_the_back_of_the_tsdf_surface(world: World) -> None:
     """``unseen_backfaces="tsdf"``'s test: a pixel is back-facing where its point lies in a surface voxel's cell and
     that voxel's outward normal points away from the camera; a point in no surface voxel's cell is not."""

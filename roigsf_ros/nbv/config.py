@@ -173,6 +173,12 @@ class NBVConfig(Config):
     together, each carved cell where unseen rays enter counted once per plan (:mod:`roigsf_ros.nbv.plan`), so a
     candidate whose unseen space others also see weighs less than one that sees what no other candidate does. 1: the
     candidate's own fraction (myopic, as every session before the thirty-sixth)."""
+    fisherrf_weight: float = 0.0
+    """Weight kappa_r of one more fused term of the ROI modes, ``kappa_r z(R(x))``, R(x) the candidate's FisherRF score
+    exactly as mode ``fisherrf`` computes it (its own H_train over ``fisherrf_params`` and ``fisherrf_outputs``,
+    ``fisherrf_lambda``), z over the same candidates as the other terms. Not in the paper: once the unseen term has
+    little left to find, the paper's two terms rule the pick, and FisherRF's score (every parameter, whole image)
+    added more late in a pool run (the forty-first session's question). 0: no such term, nothing extra computed."""
 
     def uses_fisher(self, mode: str | None = None) -> bool:
         """Whether scoring in ``mode`` (None: this config's) needs the Fisher terms, hence H_train: not for
@@ -202,12 +208,21 @@ class NBVConfig(Config):
             "unseen_weight",
             "unseen_min_std",
             "frontier_weight",
+            "fisherrf_weight",
         ):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise InputError(name, f"must be a finite number >= 0, got {v!r}")
-        if self.mode == "roi-gsurfisher" and self.epsilon == 0 and self.delta == 0 and self.unseen_weight == 0:
-            raise InputError("epsilon", "epsilon, delta and unseen_weight are all 0: the fused score has no term")
+        if (
+            self.mode == "roi-gsurfisher"
+            and self.epsilon == 0
+            and self.delta == 0
+            and self.unseen_weight == 0
+            and self.fisherrf_weight == 0
+        ):
+            raise InputError(
+                "epsilon", "epsilon, delta, unseen_weight and fisherrf_weight are all 0: the fused score has no term"
+            )
         for name in ("angle_pref_texture_poor_deg", "angle_pref_texture_rich_deg"):
             if not 0.0 <= getattr(self, name) < 90.0:
                 raise InputError(name, f"must be in [0, 90) degrees, got {getattr(self, name)}")

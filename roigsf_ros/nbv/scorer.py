@@ -565,6 +565,11 @@ class NBVScorer:
             fused[ok] = zscore(fisher[ok])
         if unseen is not None:
             fused[ok] = fused[ok] + cfg.unseen_weight * zscore(unseen[ok], cfg.unseen_min_std)
+        if cfg.fisherrf_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher"):
+            t0 = _clock()
+            rf = self.score(surfel_map, None, None, poses, cands, intr, "fisherrf", should_stop=should_stop)
+            fused[ok] = fused[ok] + cfg.fisherrf_weight * zscore(rf.fisher[ok])
+            timings["fisherrf_term"] = float(_since(t0)[0])
         if not np.all(np.isfinite(fused)):  # defensive: scores are built finite
             raise InputError("scores", "non-finite fused score")
         if flagged.all() and not reasons:
