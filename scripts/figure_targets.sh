@@ -195,6 +195,13 @@ for s in synth_240 office0_240_o5 room8_240; do
     verdict "pool_${s}_fine40" "runs/bench_pool_${s}_fine40#$C" "runs/bench_pool_${s}_base36#fisherrf" \
         "runs/bench_pool_${s}_base36#random"
 done
+# Forty-first session: the variant with FisherRF's score as one more fused term (TAG=rf41
+# POLICIES="$C:fisherrf_weight=1"; SCENES=shelf and SCALE=2 SCENES=room5, the tuning scenes, on which it lost, so no
+# reported scene ran), rows pool_*_rf41 against the base36 baselines.
+for s in shelf_120:shelf room5_240; do
+    verdict "pool_${s%%:*}_rf41" "runs/bench_pool_${s#*:}_rf41#$C:fisherrf_weight=1" \
+        "runs/bench_pool_${s#*:}_base36#fisherrf" "runs/bench_pool_${s#*:}_base36#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect

@@ -216,3 +216,42 @@ def test_carve_from_captured_carves_the_frames_depth_and_restores_the_scorer(
     assert cc.main(["--out", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"), "--setting",
                     "pool", "--policies", "random", "--out", str(tmp_path / "c")]) != 0  # fmt: skip
     assert scorer_module.carved_space is original and not (tmp_path / "bad.json").exists()
+
+
+def test_late_handover_picks_as_fisherrf_from_the_given_view_and_restores_the_policy(
+    bench: Path, tmp_path: Path
+) -> None:
+    """scripts/late_handover.py: handing over from the first pick, the variant's bench chooses exactly the views a
+    `fisherrf` bench of the same seed chooses; handing over at view 5 of 6 leaves the first pick to the variant and
+    the second to FisherRF; the policy's ``choose`` is restored, even when the bench fails."""
+    from roigsf_ros.policies.stream import StreamNBVPolicy
+
+    lh = load_script("late_handover")
+    original = StreamNBVPolicy.choose
+    scene = bench.parent / "scene"
+    args = ["--scene", str(scene), "--setting", "pool", "--seeds", "1", "--overwrite", "--set", "densify_stride=2",
+            "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15", "--pool-set", "n_views=6",
+            "--pool-set", "initial_iters=6", "--pool-set", "iters_per_view=2",
+            "--pool-set", "mesh_samples=3000"]  # fmt: skip
+    variant = "roi-gsurfisher:unseen_weight=1:unseen_source=carved"
+
+    def chosen(out: Path, policy: str) -> list[int]:
+        runs = json.loads((out / "results.json").read_text())["runs"]
+        return next(r["chosen_positions"] for r in runs if r["label"] == policy)
+
+    assert lh.main(["--after", "4", "--log", str(tmp_path / "all.json"), "--", *args, "--policies", variant,
+                    "--out", str(tmp_path / "all")]) == 0  # fmt: skip
+    assert StreamNBVPolicy.choose is original
+    assert json.loads((tmp_path / "all.json").read_text())["picks"] == {"fisherrf": 2}
+    from roigsf_ros.cli import main as roigsf_main
+
+    assert roigsf_main(["bench", *args, "--policies", f"fisherrf,{variant}", "--out", str(tmp_path / "ref")]) == 0
+    assert chosen(tmp_path / "all", variant) == chosen(tmp_path / "ref", "fisherrf")
+    assert chosen(tmp_path / "ref", variant) != chosen(tmp_path / "ref", "fisherrf")  # else the check shows nothing
+    assert lh.main(["--after", "5", "--log", str(tmp_path / "late.json"), "--", *args, "--policies", variant,
+                    "--out", str(tmp_path / "late")]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "late.json").read_text())["picks"] == {"roi-gsurfisher": 1, "fisherrf": 1}
+    assert chosen(tmp_path / "late", variant)[:5] == chosen(tmp_path / "ref", variant)[:5]
+    assert lh.main(["--after", "4", "--log", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"),
+                    "--setting", "pool", "--policies", variant, "--out", str(tmp_path / "c")]) != 0  # fmt: skip
+    assert StreamNBVPolicy.choose is original and not (tmp_path / "bad.json").exists()
