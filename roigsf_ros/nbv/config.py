@@ -178,7 +178,8 @@ class NBVConfig(Config):
     exactly as mode ``fisherrf`` computes it (its own H_train over ``fisherrf_params`` and ``fisherrf_outputs``,
     ``fisherrf_lambda``), z over the same candidates as the other terms. Not in the paper: once the unseen term has
     little left to find, the paper's two terms rule the pick, and FisherRF's score (every parameter, whole image)
-    added more late in a pool run (the forty-first session's question). 0: no such term, nothing extra computed."""
+    added more late in a pool run (the forty-first session's question; it lost on the tuning scenes). Each call then
+    also sums FisherRF's H_train over every keyframe pose, uncached. 0: no such term, nothing extra computed."""
 
     def uses_fisher(self, mode: str | None = None) -> bool:
         """Whether scoring in ``mode`` (None: this config's) needs the Fisher terms, hence H_train: not for
