@@ -79,6 +79,9 @@
 # Fortieth session: TAG=fine40 POLICIES="$C" POOL_SET="mesh_checkpoints=4,8,12,13,14,15,16,17,18,19,20" SCALE=2 with
 # SCENES=synth, SCENES=office0 OFFSET=5 and SCENES=room8: the variant's mesh measured after every view from 12 on, for
 # the views it needs to reach the baselines (`roigsf targets`; 10-16 min a scene).
+# Forty-first session: TAG=rf41 POLICIES="$C:fisherrf_weight=1" with SCENES=shelf, then SCALE=2 SCENES=room5 (the
+# tuning scenes; it lost there, so nothing else); and TAG=held41 with the held31 policies, SCALE=2 SCENES=office0
+# OFFSET=15 (one more pool nothing was chosen on; 19 min).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

@@ -126,9 +126,10 @@ pool_tag cell025a room5_240 room5_240
 # reported first, the paper's score and the baselines:
 #   TAG=held31 SCALE=2 POLICIES=roi-gsurfisher:unseen_weight=1:unseen_source=carved,roi-gsurfisher,fisherrf,random \
 #       SCENES=<room6|room7|room8> bash scripts/figure_nbv_pool.sh   (and SCENES=office0 OFFSET=10)
-# and, thirty-second session, two more the same way: TAG=held32 with SCENES=room9, and SCENES=office0 OFFSET=5.
+# and, thirty-second session, two more the same way: TAG=held32 with SCENES=room9, and SCENES=office0 OFFSET=5; and,
+# forty-first session, on the AMD EPYC machine, TAG=held41 with SCENES=office0 OFFSET=15 (no ablation or cells35 run).
 for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240_o10 held32:room9_240 \
-    held32:office0_240_o5; do
+    held32:office0_240_o5 held41:office0_240_o15; do
     b="runs/bench_pool_${run#*:}_${run%%:*}"
     for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
         verdict "pool_${run#*:}_${run%%:*}_${pair%%:*}" "$b#${pair#*:}" "$b#fisherrf" "$b#random"
