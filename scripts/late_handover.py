@@ -15,6 +15,10 @@ its own ``--out``: the results keep V's policy name. Writes ``--log`` (JSON: how
         --pool-set n_views=20 --pool-set pool_stride=2 --pool-set initial_iters=60 --pool-set iters_per_view=20 \
         --pool-set mesh_samples=50000 --uncertainty-views 6 --uncertainty-maps 3 \
         --policies roi-gsurfisher:unseen_weight=1:unseen_source=carved --out runs/s41/bench_pool_shelf_handover16
+
+The sixth room's run is the same with ``--scene runs/synth_room5_240`` (as ``SCALE=2 SCENES=room5 bash
+scripts/figure_nbv_pool.sh`` renders it), ``--log runs/s41/handover_room5.json`` and ``--out
+runs/s41/bench_pool_room5_240_handover16``.
 """
 
 from __future__ import annotations
