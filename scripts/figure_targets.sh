@@ -203,6 +203,13 @@ for s in shelf_120:shelf room5_240; do
     verdict "pool_${s%%:*}_rf41" "runs/bench_pool_${s#*:}_rf41#$C:fisherrf_weight=1" \
         "runs/bench_pool_${s#*:}_base36#fisherrf" "runs/bench_pool_${s#*:}_base36#random"
 done
+# Forty-second session: the variant counting only unknown stretches of 0.2 m or more, or from the box's side (TAG=st42
+# POLICIES="$C:unseen_min_stretch_m=0.2"; SCENES=shelf and SCALE=2 SCENES=room5, the tuning scenes, then SCALE=2 with
+# SCENES=room7, SCENES=office0 OFFSET=5, SCENES=synth and SCENES=room8), rows pool_*_st42 against the base36 baselines.
+for s in shelf_120:shelf room5_240 room7_240 office0_240_o5 synth_240 room8_240; do
+    verdict "pool_${s%%:*}_st42" "runs/bench_pool_${s#*:}_st42#$C:unseen_min_stretch_m=0.2" \
+        "runs/bench_pool_${s#*:}_base36#fisherrf" "runs/bench_pool_${s#*:}_base36#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect

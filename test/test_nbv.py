@@ -562,6 +562,44 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_measure="cells")  # the map source has no cells
 
 
+def test_unseen_min_stretch_counts_long_unknown_stretches_and_those_from_the_box_side(world: World) -> None:
+    """``unseen_min_stretch_m``: 0 is the carved count to the bit; above 0 a pixel stays unseen only where the unknown
+    stretch it looks through last is at least that long, or begins where its ray enters the box (the grid cannot say
+    how long it is). Panel B, seen once far and obliquely, looks unseen from close in front through short uncarved
+    stretches, which a minimum drops; A's back, seen from outside the box through 7 cm of it, stays unseen."""
+    from roigsf_ros.nbv import box_depths, carved_space, carved_unseen, rays_meet_box
+
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)  # outside the box, at A's back
+    cands = np.stack([world.view_a, behind, world.view_b])
+    cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved")
+
+    def unseen(config: NBVConfig) -> np.ndarray:
+        return NBVScorer(config).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR).unseen
+
+    base = unseen(cfg)
+    assert unseen(replace(cfg, unseen_min_stretch_m=0.0)) == pytest.approx(base, abs=0)
+    vox = NBVScorer().surface(world.tsdf)
+    lo, hi = vox.centres_m.min(0) - 0.1, vox.centres_m.max(0) + 0.1
+    space = carved_space(world.map, world.train, INTR, lo, hi, cfg)
+    for s in (0.05, 0.2, 10.0):
+        u = unseen(replace(cfg, unseen_min_stretch_m=s))
+        for i, T in enumerate(cands):
+            enter, leave = space.unseen_depths(T, INTR, cfg.near_m, cfg.far_m)
+            meets = rays_meet_box(T, INTR, lo, hi)
+            from_side = enter <= box_depths(T, INTR, lo, hi)[0] + cfg.unseen_voxel_m
+            kept = (enter > 0) & meets & ((leave - enter >= s) | from_side)
+            assert u[i] == pytest.approx(kept.sum() / meets.sum(), abs=1e-12)
+            hole, _leave = carved_unseen(space, T, INTR, (lo, hi), replace(cfg, unseen_min_stretch_m=s))
+            np.testing.assert_array_equal(hole & meets, kept)
+        assert u[1] > 0.99 and u[0] == base[0] == 0.0
+        assert u[2] < base[2] - 0.05
+    assert unseen(replace(cfg, unseen_min_stretch_m=10.0))[2] == 0.0
+    for bad in ({"unseen_min_stretch_m": 0.2}, {"unseen_min_stretch_m": 0.2, "unseen_source": "carved",
+                "unseen_measure": "cells"}, {"unseen_min_stretch_m": -0.1, "unseen_source": "carved"}):  # fmt: skip
+        with pytest.raises(InputError, match="unseen_min_stretch_m"):
+            NBVConfig(**bad)
+
+
 def test_unseen_plan_views_scores_a_candidate_with_the_views_that_would_complete_it(world: World) -> None:
     """``unseen_plan_views``: with 1 the scorer's U is each candidate's carved pixel fraction; with 2 it is what the
     candidate and its best partner show together, built from the carved grid's entry cells of each view (the

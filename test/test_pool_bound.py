@@ -255,3 +255,36 @@ def test_late_handover_picks_as_fisherrf_from_the_given_view_and_restores_the_po
     assert lh.main(["--after", "4", "--log", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"),
                     "--setting", "pool", "--policies", variant, "--out", str(tmp_path / "c")]) != 0  # fmt: skip
     assert StreamNBVPolicy.choose is original and not (tmp_path / "bad.json").exists()
+
+
+def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path: Path) -> None:
+    """scripts/pick_regret.py: each pick's gain is the true coverage step the run's next view adds (their sum plus the
+    initial views' coverage is the run's coverage), no pick gains more than the best candidate, the first pick's
+    candidates are the pool less the initial views; with --pixels U's unseen pixels are split into new and not new,
+    each by its stretch; a bench whose run of the label chose other views is refused."""
+    pr = load_script("pick_regret")
+    label = "roi-gsurfisher:unseen_weight=1:unseen_source=carved"
+    assert pr.main([str(bench), "--out", str(tmp_path / "r"), "--label", label, "--seeds", "1", "--pixels"]) == 0
+    (s,) = json.loads((tmp_path / "r" / "pick_regret.json").read_text())["seeds"]
+    setup = pb.load_pool(json.loads((bench / "results.json").read_text()), bench)
+    _gt, obs, _n = pb.observed(setup, 1, 0.05)
+    initial = [setup.row_of[p] for p in setup.split.initial]
+    chosen = [setup.row_of[p] for p in s["chosen"]]
+    assert chosen[:4] == initial and len(chosen) == 6 and len(s["picks"]) == 2
+    assert s["picks"][0]["candidates"] == len(setup.split.pool) - 4 == s["picks"][1]["candidates"] + 1
+    steps = [pb.cb.coverage(obs, chosen[: 4 + k]) - pb.cb.coverage(obs, chosen[: 3 + k]) for k in (1, 2)]
+    assert [p["gain_of_pick"] for p in s["picks"]] == pytest.approx(steps, abs=1e-12)
+    assert s["coverage"] == pytest.approx(pb.cb.coverage(obs, chosen), abs=1e-12)
+    for p in s["picks"]:
+        assert 0 <= p["gain_of_pick"] <= p["best_gain"] and 0 <= p["gain_of_max_u"] <= p["best_gain"]
+        px = p["pixels"]  # --pixels: U recomputed from the carved grid matched the scorer's (the script raises if not)
+        in_bins = sum(px["stretch_true_unseen"]) + sum(px["stretch_false_unseen"])
+        assert px["true_unseen"] + px["false_unseen"] == in_bins
+        assert px["true_unseen"] + px["missed_new"] > 0 and 0 <= p["gain_of_max_u_star"] <= p["best_gain"]
+    results = json.loads((bench / "results.json").read_text())
+    wrong = {"label": label, "seed": 1, "chosen_positions": s["chosen"][:4] + s["chosen"][:3:-1], "metrics": {}}
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "results.json").write_text(json.dumps(results | {"runs": [*results["runs"], wrong]}))
+    with pytest.raises(RuntimeError, match="the replay chose"):
+        pr.measure(other, label, [1], 0.05)

@@ -648,8 +648,7 @@ class NBVScorer:
                 meets = rays_meet_box(T, intr_f, *unseen_box)
                 plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
             else:
-                enter, leave = space.unseen_depths(T, intr_f, cfg.near_m, cfg.far_m)
-                hole = enter > 0
+                hole, leave = carved_unseen(space, T, intr_f, unseen_box, cfg)
                 if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
                     unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
                 else:
@@ -834,6 +833,22 @@ def carved_space(
     return ObservedSpace.carve(lo_m, hi_m, cfg.unseen_voxel_m, pose_arr, depth, intr, cfg.far_m)
 
 
+def carved_unseen(
+    space: ObservedSpace, T_wc: np.ndarray, intr: Intrinsics, box: tuple[np.ndarray, np.ndarray], cfg: NBVConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W] bool, [H, W]) the pixels the carved grid calls unseen from ``T_wc`` and where their last unknown stretch
+    ends (camera z, m). With ``cfg.unseen_min_stretch_m`` > 0 a stretch counts only when at least that long or when it
+    begins where the ray enters ``box`` (it goes on outside the box, so its length is unknown): observed surface seen
+    from a new angle often lies behind a cell or a few of uncarved space, new surface behind long stretches.
+    """
+    enter, leave = space.unseen_depths(T_wc, intr, cfg.near_m, cfg.far_m)
+    hole = enter > 0
+    if cfg.unseen_min_stretch_m > 0:
+        from_side = enter <= box_depths(T_wc, intr, *box)[0] + space.voxel_m
+        hole &= (leave - enter >= cfg.unseen_min_stretch_m) | from_side
+    return hole, leave
+
+
 def _keyframe_renders(
     surfel_map: SurfelMap,
     poses: np.ndarray,
@@ -867,6 +882,13 @@ def box_exit_depth(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.nd
     """[H, W] depth (m, along the camera's z) at which each pixel's forward ray leaves the box [lo, hi] (slab test);
     0 where the ray never meets it. Inside a room's box, where the ray meets its walls.
     """
+    return box_depths(T_wc, intr, lo, hi)[1]
+
+
+def box_depths(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W], [H, W]) depths (m, along the camera's z) at which each pixel's forward ray enters and leaves the box
+    [lo, hi] (slab test; entry 0 for a camera inside it); both 0 where the ray never meets it.
+    """
     u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
     d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)  # z = 1: t is depth
     d = d_cam @ np.asarray(T_wc)[:3, :3].T
@@ -874,9 +896,10 @@ def box_exit_depth(T_wc: np.ndarray, intr: Intrinsics, lo: np.ndarray, hi: np.nd
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (np.asarray(lo) - o) / d, (np.asarray(hi) - o) / d
     t1, t2 = np.nan_to_num(t1, nan=-np.inf), np.nan_to_num(t2, nan=np.inf)
-    t_near = np.minimum(t1, t2).max(-1)
+    t_near = np.maximum(np.minimum(t1, t2).max(-1), 0.0)
     t_far = np.maximum(t1, t2).min(-1)
-    return np.where(t_far >= np.maximum(t_near, 0.0), np.maximum(t_far, 0.0), 0.0)
+    meets = t_far >= t_near
+    return np.where(meets, t_near, 0.0), np.where(meets, np.maximum(t_far, 0.0), 0.0)
 
 
 def frustum_meets_box(
@@ -967,8 +990,10 @@ __all__ = [
     "SurfaceFacing",
     "UncertaintyMaps",
     "block_mean",
+    "box_depths",
     "box_exit_depth",
     "carved_space",
+    "carved_unseen",
     "check_stop",
     "depth_error_ause",
     "downsampled",

@@ -1,0 +1,281 @@
+#!/usr/bin/env python3
+"""Which of a pool policy's picks lose coverage, and why: its own run replayed, every pick against the true gain (#10).
+
+``unseen_vs_gain.py`` compares the unseen term U with the surface a candidate would add at the first pick only, where
+every policy stands on the same map. This re-runs one ``roi-gsurfisher`` policy of a pool bench (``--label``; the
+bench's settings and seeds) and, at each of its picks, takes the candidates' U and fused score from that pick's scoring
+and their true gain given the views so far: the fraction of the GT samples (those the bench's recall counts) a
+candidate's true depth observes within ``--tau`` that neither the initial views nor the policy's earlier picks observe
+(``pool_bound.observed``). The replay's chosen positions are checked against the bench's own run of the label where it
+has one. Reported per seed and pick: the gain of the pick, of argmax U (U alone) and the best gain, and Spearman's rho
+of U and of the fused score with the gain over the candidates not flagged; summed over picks, per seed and over the
+seeds.
+
+With ``--pixels`` (a carved-space policy) it also asks whether U's pixels are the new ones: for each candidate, U* is
+the fraction of the pixels U counts (at the scorer's resolution, rays meeting the unseen term's box) whose true-depth
+point lies farther than ``--tau`` from every point the views so far observe by their true depth, with U's own unseen
+pixels against those as a confusion (true / false unseen, missed new) and by the length of the unknown stretch they look
+through, summed over each pick's candidates; U is recomputed from the scorer's carved grid and checked against the
+scorer's value. Writes ``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
+
+    .venv/bin/python scripts/pick_regret.py runs/bench_pool_room5_240_base36 --out runs/s42/px_room5 --pixels
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import roigsf_ros.nbv.scorer as scorer_module
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.data.scene import camera_rays
+from roigsf_ros.experiments.bench import parse_policies, read_results
+from roigsf_ros.experiments.pool import make_pool_policy, run_pool
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # scripts/ is no package
+import pool_bound as pb
+import unseen_vs_gain as uvg
+
+VARIANT = "roi-gsurfisher:unseen_weight=1:unseen_source=carved"
+"""The label replayed by default: the variant the README recommends for the pool setting."""
+
+
+STRETCH_BINS = (0.0, 1.0, 2.0, 4.0, 8.0, np.inf)
+"""Bins (in cells of the carved grid, along the camera's z) of the unknown stretch U's unseen pixels look through."""
+
+
+def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] of a scene frame's valid true depth and their pixel mask [H, W]."""
+    depth = setup.scene.depths[position]
+    valid = np.isfinite(depth) & (depth > lo_m) & (depth <= hi_m)
+    rays = camera_rays(setup.scene.poses[position], setup.scene.intr)[valid].astype(np.float64)
+    return rays[:, :3] + depth[valid, None].astype(np.float64) * rays[:, 3:], valid
+
+
+def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, box: Any, cfg: Any,
+                u: np.ndarray, flagged: np.ndarray, tau_m: float) -> dict[str, Any]:  # fmt: skip
+    """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), and U's pixel confusion."""
+    lo, hi = max(setup.mcfg.min_depth_m, setup.mcfg.near_m), setup.mcfg.max_depth_m
+    tree = cKDTree(np.concatenate([true_points(setup, p, lo, hi)[0] for p in seen]))
+    intr = setup.scene.intr
+    u_star = np.zeros(len(positions))
+    counts = {"true_unseen": 0, "false_unseen": 0, "missed_new": 0, "seen_seen": 0, "no_depth": 0}
+    stretch = {
+        "true_unseen": np.zeros(len(STRETCH_BINS) - 1, dtype=np.int64),
+        "false_unseen": np.zeros(len(STRETCH_BINS) - 1, dtype=np.int64),
+    }
+    for i, p in enumerate(positions):
+        T = setup.scene.poses[p]
+        enter, leave = space.unseen_depths(T, intr, cfg.near_m, cfg.far_m)
+        meets = scorer_module.rays_meet_box(T, intr, *box)
+        hole = scorer_module.carved_unseen(space, T, intr, box, cfg)[0] & meets
+        if not flagged[i] and not np.isclose(hole.sum() / max(int(meets.sum()), 1), u[i], rtol=0, atol=1e-12):
+            raise RuntimeError(f"candidate {p}: U recomputed from the carved grid differs from the scorer's")
+        pts, valid = true_points(setup, p, lo, hi)
+        new = np.zeros_like(valid)
+        if len(pts):
+            dist, _ = tree.query(pts, k=1, distance_upper_bound=tau_m)
+            new[valid] = dist >= tau_m
+        u_star[i] = (new & meets).sum() / max(int(meets.sum()), 1)
+        known = meets & valid
+        counts["true_unseen"] += int((hole & new & known).sum())
+        counts["false_unseen"] += int((hole & ~new & known).sum())
+        counts["missed_new"] += int((~hole & new & known).sum())
+        counts["seen_seen"] += int((~hole & ~new & known).sum())
+        counts["no_depth"] += int((meets & ~valid).sum())
+        cells = (leave - enter) / space.voxel_m  # the unknown stretch's length along z, in cells
+        for key, mask in (("true_unseen", hole & new & known), ("false_unseen", hole & ~new & known)):
+            stretch[key] += np.histogram(cells[mask], bins=STRETCH_BINS)[0]
+    return {"u_star": u_star, "counts": counts | {f"stretch_{k}": v.tolist() for k, v in stretch.items()}}
+
+
+def replay(
+    setup: Any, seed: int, label: str, pixels: bool = False, tau_m: float = 0.05
+) -> tuple[list[int], list[dict[str, Any]]]:
+    """Run ``label``'s policy on ``setup`` with ``seed``; its chosen positions and, per pick, the candidates'
+    positions, U, fused score, flags and the index chosen (with ``pixels``, U* and U's pixel confusion).
+    """
+    spec = parse_policies(label, "pool")[0]
+    cfg = replace(setup.pcfg, policy=spec.name, policy_params=dict(spec.params), seed=seed)
+    policy = make_pool_policy(cfg)
+    scored: list[dict[str, Any]] = []
+    choose = policy.choose
+    carved: dict[str, Any] = {}
+    carve = scorer_module.carved_space
+
+    def capturing_carve(surfel_map: Any, poses: Any, intr: Any, lo_m: Any, hi_m: Any, ncfg: Any, *rest: Any) -> Any:
+        carved.update(space=carve(surfel_map, poses, intr, lo_m, hi_m, ncfg, *rest), box=(lo_m, hi_m), cfg=ncfg)
+        return carved["space"]
+
+    def recording_choose(poses: Any, mapper: Any) -> int:
+        carved.clear()
+        pick = choose(poses, mapper)
+        res = policy.last_result
+        if res is None or res.unseen is None:
+            raise RuntimeError(f"seed {seed}: pick {len(scored) + 1} was not scored with the unseen term")
+        scored[-1] |= {"u": res.unseen.copy(), "fused": res.fused.copy(), "flagged": res.flagged.copy(), "pick": pick}
+        if pixels:
+            if "space" not in carved:
+                raise RuntimeError(
+                    f"seed {seed}: pick {len(scored)}: no carved space (--pixels needs unseen_source=carved)"
+                )
+            seen = list(setup.split.initial) + [s["positions"][s["pick"]] for s in scored[:-1]]
+            scored[-1] |= pixel_truth(setup, scored[-1]["positions"], seen, carved["space"], carved["box"],
+                                      carved["cfg"], res.unseen, res.flagged, tau_m)  # fmt: skip
+        return pick
+
+    policy.choose = recording_choose  # type: ignore[method-assign]
+    scorer_module.carved_space = capturing_carve
+
+    def record_candidates(_mapper: Any, _policy: Any, positions: list[int], _poses: Any) -> None:
+        scored.append({"positions": list(positions)})
+
+    try:
+        result = run_pool(setup.src, cfg, setup.mcfg, None, policy=policy, on_select=record_candidates)
+    finally:
+        scorer_module.carved_space = carve
+    chosen = [int(p) for p in result.metrics["chosen_positions"]]
+    return chosen, scored
+
+
+def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixels: bool = False) -> dict[str, Any]:
+    """Per seed and pick: gains of the pick, of argmax U and the best; rho of U and of the fused score with the gain."""
+    results = read_results(bench, "pool", ("scene", "gt_mesh", "runs", "pool_config", "mapper_config"),
+                           ("label", "seed", "chosen_positions", "metrics"))  # fmt: skip
+    setup = pb.load_pool(results, bench)
+    bench_runs = {
+        int(r["seed"]): [int(p) for p in r["chosen_positions"]] for r in results["runs"] if r["label"] == label
+    }
+    if not bench_runs and seeds is None:
+        raise InputError(bench / "results.json", f"no run labelled {label!r} (give --seeds to replay it anyway)")
+    run_seeds = sorted(bench_runs) if seeds is None else seeds
+    out: dict[str, Any] = {"bench": str(bench), "label": label, "scene": results["scene"], "tau_m": tau_m, "seeds": []}
+    for seed in run_seeds:
+        _gt, obs, _n = pb.observed(setup, seed, tau_m)
+        chosen, scored = replay(setup, seed, label, pixels, tau_m)
+        if seed in bench_runs and chosen != bench_runs[seed]:
+            raise RuntimeError(f"seed {seed}: the replay chose {chosen}, the bench's run {bench_runs[seed]}")
+        seen = obs[[setup.row_of[p] for p in setup.split.initial]].any(axis=0)
+        picks: list[dict[str, Any]] = []
+        for k, s in enumerate(scored, start=1):
+            rows = [setup.row_of[p] for p in s["positions"]]
+            gain = np.count_nonzero(obs[rows] & ~seen, axis=1) / obs.shape[1]
+            ok = ~s["flagged"]
+            max_u = int(np.argmax(np.where(ok, s["u"], -np.inf)))
+            extra: dict[str, Any] = {}
+            if pixels:
+                u_star = s["u_star"]
+                extra = {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
+                         "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
+                         "pixels": s["counts"]}  # fmt: skip
+            picks.append(extra | {
+                "pick": k,
+                "candidates": len(rows),
+                "gain_of_pick": float(gain[s["pick"]]),
+                "gain_of_max_u": float(gain[max_u]),
+                "best_gain": float(gain.max()),
+                "rho_u": uvg.rho(s["u"][ok], gain[ok]),
+                "rho_fused": uvg.rho(s["fused"][ok], gain[ok]),
+            })  # fmt: skip
+            seen = seen | obs[rows[s["pick"]]]
+        out["seeds"].append({"seed": seed, "chosen": chosen, "coverage": float(seen.mean()), "picks": picks})
+    return out
+
+
+def sums(picks: list[dict[str, Any]], lo: int, hi: int) -> dict[str, float]:
+    """Summed gains of picks ``lo``..``hi`` (1-based, inclusive)."""
+    sel = [p for p in picks if lo <= p["pick"] <= hi]
+    return {key: float(sum(p[key] for p in sel)) for key in ("gain_of_pick", "gain_of_max_u", "best_gain")}
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """Per pick: gains and rhos as means over the seeds; then sums over pick ranges."""
+    seeds = report["seeds"]
+    n = min(len(s["picks"]) for s in seeds)
+    lines = [
+        f"# Each pick against the true gain: {report['label']} on {report['bench']}",
+        "",
+        f"gain = fraction of the GT samples a candidate observes within {report['tau_m'] * 100:g} cm that the initial "
+        f"views and the earlier picks do not; means over seeds {', '.join(str(s['seed']) for s in seeds)}; coverage of "
+        f"the run's views (sum of the picks' gains plus the initial views'): "
+        + ", ".join(f"{s['coverage']:.4f}" for s in seeds),
+        "",
+        "| pick | gain of the pick | gain of argmax U | best gain | rho(U, gain) | rho(fused, gain) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for k in range(n):
+        rows = [s["picks"][k] for s in seeds]
+        m = {
+            key: float(np.nanmean([r[key] for r in rows]))
+            for key in rows[0]
+            if key not in ("pick", "candidates", "pixels")
+        }
+        lines.append(f"| {k + 1} | {m['gain_of_pick']:.4f} | {m['gain_of_max_u']:.4f} | {m['best_gain']:.4f} | "
+                     f"{m['rho_u']:+.2f} | {m['rho_fused']:+.2f} |")  # fmt: skip
+    lines += ["", "| picks | seed | summed gain of the picks | of argmax U | of the best |", "|---|---|---|---|---|"]
+    half = n // 2
+    for lo, hi in ((1, half), (half + 1, n), (1, n)):
+        for s in seeds:
+            t = sums(s["picks"], lo, hi)
+            lines.append(f"| {lo}-{hi} | {s['seed']} | {t['gain_of_pick']:.4f} | {t['gain_of_max_u']:.4f} | "
+                         f"{t['best_gain']:.4f} |")  # fmt: skip
+    if "rho_u_star" in seeds[0]["picks"][0]:
+        lines += ["", "U* = the fraction of the pixels U counts whose true-depth point is new (farther than the "
+                  "threshold from every point the views so far observe); U's unseen pixels against those, summed over "
+                  "the candidates of the picks and the seeds:", "",
+                  "| picks | rho(U, gain) | rho(U*, gain) | rho(U, U*) | gain of the pick / argmax U / argmax U* / "
+                  "best (summed) | U's unseen pixels that are new (precision) | new pixels U counts unseen (recall) |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n), (1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            r = {key: float(np.nanmean([p[key] for p in sel])) for key in ("rho_u", "rho_u_star", "rho_u_u_star")}
+            g = [
+                sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_max_u", "gain_of_max_u_star", "best_gain")
+            ]
+            c = {key: sum(p["pixels"][key] for p in sel) for key in sel[0]["pixels"] if not key.startswith("stretch")}
+            prec = c["true_unseen"] / max(c["true_unseen"] + c["false_unseen"], 1)
+            rec = c["true_unseen"] / max(c["true_unseen"] + c["missed_new"], 1)
+            lines.append(f"| {lo}-{hi} | {r['rho_u']:+.2f} | {r['rho_u_star']:+.2f} | {r['rho_u_u_star']:+.2f} | "
+                         f"{' / '.join(f'{x:.4f}' for x in g)} | {prec:.3f} ({c['true_unseen']} of "
+                         f"{c['true_unseen'] + c['false_unseen']}) | {rec:.3f} ({c['true_unseen']} of "
+                         f"{c['true_unseen'] + c['missed_new']}) |")  # fmt: skip
+        edges = [f"{a:g}-{b:g}" for a, b in itertools.pairwise(STRETCH_BINS)]
+        lines += ["", "Length of the unknown stretch U's unseen pixels look through, in carved cells (along z), new "
+                  "pixels / not new, summed over the candidates of the picks and the seeds:", "",
+                  f"| picks | {' | '.join(edges)} |", "|---|" + "---|" * len(edges)]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            t = np.sum([p["pixels"]["stretch_true_unseen"] for p in sel], axis=0)
+            f = np.sum([p["pixels"]["stretch_false_unseen"] for p in sel], axis=0)
+            lines.append(f"| {lo}-{hi} | " + " | ".join(f"{a} / {b}" for a, b in zip(t, f, strict=True)) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse the arguments, measure, write ``pick_regret.json`` and ``.md``, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("bench", type=Path, help="a roigsf bench --setting pool folder")
+    ap.add_argument("--out", type=Path, required=True, help="output folder")
+    ap.add_argument("--label", default=VARIANT, help=f"the bench's policy label to replay (default: {VARIANT})")
+    ap.add_argument("--seeds", type=int, nargs="*", help="seeds (default: the label's runs in the bench)")
+    ap.add_argument("--tau", type=float, default=0.05, help="distance threshold (m), as in R@5cm")
+    ap.add_argument("--pixels", action="store_true", help="also U* and U's pixel confusion (carved-space policies)")
+    args = ap.parse_args(argv)
+    try:
+        report = measure(args.bench, args.label, args.seeds, args.tau, args.pixels)
+    except InputError as e:
+        print(f"pick_regret: {e}", file=sys.stderr)
+        return 2
+    pb.write_report(args.out, "pick_regret", report, markdown(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
