@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import importlib.util
 import os
 import random
@@ -25,6 +26,7 @@ os.environ["ROS_DOMAIN_ID"] = str(int(os.environ["ROIGSF_TEST_DOMAIN_ID"]) + int
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROIGSF_SHARED_DATA", REPO.parent / "shared" / "data"))
 OFFICE0 = SHARED_DATA / "replica_office0"
+SHM = Path("/dev/shm")
 
 
 def load_script(name: str) -> ModuleType:
@@ -35,6 +37,76 @@ def load_script(name: str) -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def fastdds_files() -> set[str]:
+    """Names of the Fast DDS shared-memory files in /dev/shm (segments, their locks and port files)."""
+    return {p.name for p in SHM.glob("fastrtps_*")} if SHM.is_dir() else set()
+
+
+def _mapped_shm() -> set[str]:
+    """Names of the /dev/shm files some live process has mapped (its /proc/<pid>/maps; unreadable ones skipped)."""
+    names: set[str] = set()
+    for maps in Path("/proc").glob("[0-9]*/maps"):
+        try:
+            text = maps.read_text()
+        except OSError:
+            continue
+        names.update(line.rsplit("/", 1)[-1] for line in text.splitlines() if f" {SHM}/" in line)
+    return names
+
+
+def remove_zombie_shm(before: set[str]) -> None:
+    """Remove Fast DDS files created since ``before`` whose owners are gone.
+
+    A live participant holds an exclusive flock on its segment's ``_el`` file; only unlocked ones
+    (left by a SIGKILLed process) are removed, so other processes' segments are never touched. Port files
+    (``fastrtps_port<N>`` and their ``sem.fastrtps_port<N>_mutex``) have no such lock: they are removed when no
+    live process maps them (Fast DDS removes them itself on a clean exit; ``fastdds shm clean`` leaves them).
+    """
+    new = fastdds_files() - before
+    if any(name.startswith("fastrtps_port") for name in new):
+        mapped = _mapped_shm()
+        for name in sorted(n for n in new if n.startswith("fastrtps_port")):
+            sem = f"sem.{name}_mutex"
+            if name not in mapped and sem not in mapped:
+                (SHM / name).unlink(missing_ok=True)
+                (SHM / sem).unlink(missing_ok=True)
+    for name in sorted(new):
+        if not name.endswith("_el") or name.startswith("fastrtps_port"):
+            continue
+        lock = SHM / name
+        try:
+            fd = os.open(lock, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue  # alive
+        try:
+            (SHM / name[: -len("_el")]).unlink(missing_ok=True)
+            lock.unlink(missing_ok=True)
+        finally:
+            os.close(fd)
+
+
+_SHM_AT_START: set[str] = set()
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Note the Fast DDS files there before the run (the controller's, with xdist), for the clean-up at its end."""
+    _SHM_AT_START.update(fastdds_files())
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Once every test has run (on the controller, with xdist, after all workers): remove the Fast DDS files the run
+    left whose owners are gone. test_system.py cleans after its own module, but a port file a test on the other worker
+    made meanwhile was still mapped then.
+    """
+    if not hasattr(session.config, "workerinput"):
+        remove_zombie_shm(_SHM_AT_START)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

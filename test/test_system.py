@@ -20,7 +20,6 @@ processes are removed.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import re
@@ -40,6 +39,7 @@ pytest.importorskip("rclpy")
 pytest.importorskip("roigsf_interfaces.srv")
 
 import rclpy
+from conftest import fastdds_files, remove_zombie_shm
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -51,7 +51,6 @@ from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]
-SHM = Path("/dev/shm")
 
 N_FRAMES = 40
 WINDOW = 4
@@ -92,63 +91,11 @@ def bag_stamps(bag: Path) -> list[int]:
 
 
 # ----------------------------------------------------------------------------------- processes
-def _fastdds_files() -> set[str]:
-    return {p.name for p in SHM.glob("fastrtps_*")} if SHM.is_dir() else set()
-
-
-def _mapped_shm() -> set[str]:
-    """Names of the /dev/shm files some live process has mapped (its /proc/<pid>/maps; unreadable ones skipped)."""
-    names: set[str] = set()
-    for maps in Path("/proc").glob("[0-9]*/maps"):
-        try:
-            text = maps.read_text()
-        except OSError:
-            continue
-        names.update(line.rsplit("/", 1)[-1] for line in text.splitlines() if f" {SHM}/" in line)
-    return names
-
-
-def _remove_zombie_shm(before: set[str]) -> None:
-    """Remove Fast DDS files created since ``before`` whose owners are gone.
-
-    A live participant holds an exclusive flock on its segment's ``_el`` file; only unlocked ones
-    (left by a SIGKILLed process) are removed, so other processes' segments are never touched. Port files
-    (``fastrtps_port<N>`` and their ``sem.fastrtps_port<N>_mutex``) have no such lock: they are removed when no
-    live process maps them (Fast DDS removes them itself on a clean exit; ``fastdds shm clean`` leaves them).
-    """
-    new = _fastdds_files() - before
-    if any(name.startswith("fastrtps_port") for name in new):
-        mapped = _mapped_shm()
-        for name in sorted(n for n in new if n.startswith("fastrtps_port")):
-            sem = f"sem.{name}_mutex"
-            if name not in mapped and sem not in mapped:
-                (SHM / name).unlink(missing_ok=True)
-                (SHM / sem).unlink(missing_ok=True)
-    for name in sorted(new):
-        if not name.endswith("_el") or name.startswith("fastrtps_port"):
-            continue
-        lock = SHM / name
-        try:
-            fd = os.open(lock, os.O_RDWR)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue  # alive
-        try:
-            (SHM / name[: -len("_el")]).unlink(missing_ok=True)
-            lock.unlink(missing_ok=True)
-        finally:
-            os.close(fd)
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _clean_shm() -> Iterator[None]:
-    before = _fastdds_files()
+    before = fastdds_files()
     yield
-    _remove_zombie_shm(before)
+    remove_zombie_shm(before)
 
 
 def _ros_value(value: Any) -> str:
