@@ -114,15 +114,22 @@ def gt_samples(scene: Scene, n_samples: int, seed: int, max_depth_m: float) -> t
     return pts[keep], len(pts)
 
 
+def depth_points(
+    depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, lo_m: float, hi_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] (float64) of the pixels of a z-depth map [H, W] in (lo_m, hi_m], and that mask [H, W]."""
+    valid = np.isfinite(depth_m) & (depth_m > lo_m) & (depth_m <= hi_m)
+    rays = camera_rays(T_wc, intr)[valid].astype(np.float64)
+    return rays[:, :3] + depth_m[valid, None].astype(np.float64) * rays[:, 3:], valid
+
+
 def observed_sets(scene: Scene, gt: np.ndarray, tau_m: float, lo_m: float, hi_m: float) -> np.ndarray:
     """Bool [F, N]: GT sample n lies within ``tau_m`` of a back-projected valid depth pixel of frame f."""
     obs = np.zeros((len(scene.ids), len(gt)), dtype=bool)
     for f, (depth, T) in enumerate(zip(scene.depths, scene.poses, strict=True)):
-        valid = np.isfinite(depth) & (depth > lo_m) & (depth <= hi_m)
+        pts, valid = depth_points(depth, T, scene.intr, lo_m, hi_m)
         if not valid.any():
             continue
-        rays = camera_rays(T, scene.intr)[valid].astype(np.float64)
-        pts = rays[:, :3] + depth[valid, None].astype(np.float64) * rays[:, 3:]
         lo, hi = pts.min(axis=0) - tau_m, pts.max(axis=0) + tau_m
         cand = np.flatnonzero(np.all((gt >= lo) & (gt <= hi), axis=1))
         if cand.size == 0:

@@ -35,7 +35,6 @@ from scipy.spatial import cKDTree
 
 import roigsf_ros.nbv.scorer as scorer_module
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.scene import camera_rays
 from roigsf_ros.experiments.bench import parse_policies, read_results
 from roigsf_ros.experiments.pool import make_pool_policy, run_pool
 
@@ -53,10 +52,7 @@ STRETCH_BINS = (0.0, 1.0, 2.0, 4.0, 8.0, np.inf)
 
 def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
     """World points [N, 3] of a scene frame's valid true depth and their pixel mask [H, W]."""
-    depth = setup.scene.depths[position]
-    valid = np.isfinite(depth) & (depth > lo_m) & (depth <= hi_m)
-    rays = camera_rays(setup.scene.poses[position], setup.scene.intr)[valid].astype(np.float64)
-    return rays[:, :3] + depth[valid, None].astype(np.float64) * rays[:, 3:], valid
+    return pb.cb.depth_points(setup.scene.depths[position], setup.scene.poses[position], setup.scene.intr, lo_m, hi_m)
 
 
 def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, box: Any, cfg: Any,
@@ -73,9 +69,9 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
     }
     for i, p in enumerate(positions):
         T = setup.scene.poses[p]
-        enter, leave = space.unseen_depths(T, intr, cfg.near_m, cfg.far_m)
+        hole, enter, leave = scorer_module.carved_unseen(space, T, intr, box, cfg)
         meets = scorer_module.rays_meet_box(T, intr, *box)
-        hole = scorer_module.carved_unseen(space, T, intr, box, cfg)[0] & meets
+        hole &= meets
         if not flagged[i] and not np.isclose(hole.sum() / max(int(meets.sum()), 1), u[i], rtol=0, atol=1e-12):
             raise RuntimeError(f"candidate {p}: U recomputed from the carved grid differs from the scorer's")
         pts, valid = true_points(setup, p, lo, hi)

@@ -589,7 +589,7 @@ def test_unseen_min_stretch_counts_long_unknown_stretches_and_those_from_the_box
             from_side = enter <= box_depths(T, INTR, lo, hi)[0] + cfg.unseen_voxel_m
             kept = (enter > 0) & meets & ((leave - enter >= s) | from_side)
             assert u[i] == pytest.approx(kept.sum() / meets.sum(), abs=1e-12)
-            hole, _leave = carved_unseen(space, T, INTR, (lo, hi), replace(cfg, unseen_min_stretch_m=s))
+            hole, _enter, _leave = carved_unseen(space, T, INTR, (lo, hi), replace(cfg, unseen_min_stretch_m=s))
             np.testing.assert_array_equal(hole & meets, kept)
         assert u[1] > 0.99 and u[0] == base[0] == 0.0
         assert u[2] < base[2] - 0.05

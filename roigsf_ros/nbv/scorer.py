@@ -648,7 +648,7 @@ class NBVScorer:
                 meets = rays_meet_box(T, intr_f, *unseen_box)
                 plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
             else:
-                hole, leave = carved_unseen(space, T, intr_f, unseen_box, cfg)
+                hole, _enter, leave = carved_unseen(space, T, intr_f, unseen_box, cfg)
                 if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
                     unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
                 else:
@@ -835,18 +835,19 @@ def carved_space(
 
 def carved_unseen(
     space: ObservedSpace, T_wc: np.ndarray, intr: Intrinsics, box: tuple[np.ndarray, np.ndarray], cfg: NBVConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """([H, W] bool, [H, W]) the pixels the carved grid calls unseen from ``T_wc`` and where their last unknown stretch
-    ends (camera z, m). With ``cfg.unseen_min_stretch_m`` > 0 a stretch counts only when at least that long or when it
-    begins where the ray enters ``box`` (it goes on outside the box, so its length is unknown): observed surface seen
-    from a new angle often lies behind a cell or a few of uncarved space, new surface behind long stretches.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """([H, W] bool, [H, W], [H, W]) the pixels the carved grid calls unseen from ``T_wc``, and where each pixel's last
+    unknown stretch begins and ends (camera z, m; 0, 0: none, as ``ObservedSpace.unseen_depths``). With
+    ``cfg.unseen_min_stretch_m`` > 0 a stretch counts only when at least that long or when it begins where the ray
+    enters ``box`` (it goes on outside the box, so its length is unknown): observed surface seen from a new angle
+    often lies behind a cell or a few of uncarved space, new surface behind long stretches.
     """
     enter, leave = space.unseen_depths(T_wc, intr, cfg.near_m, cfg.far_m)
     hole = enter > 0
     if cfg.unseen_min_stretch_m > 0:
         from_side = enter <= box_depths(T_wc, intr, *box)[0] + space.voxel_m
         hole &= (leave - enter >= cfg.unseen_min_stretch_m) | from_side
-    return hole, leave
+    return hole, enter, leave
 
 
 def _keyframe_renders(
