@@ -11,7 +11,7 @@
 # which does not fit the 64 MiB a lent machine is sent, so the scorer is not run there.
 # Writes $OUT (default runs/device_check/): system.txt, cuda_tests.log, perf_render_cuda.{json,txt},
 # perf_render_cpu_torch.{json,txt}. Exit status: that of the tests.
-# Measured (sessions 12, 16 and 24: an H100, then an H200 twice, via the device tool): the "CUDA" section of
+# Measured (sessions 12, 16, 24 and 43: an H100, then an H200 three times, via the device tool): the "CUDA" section of
 # docs/measured-figures.md.
 set -uo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
