@@ -16,7 +16,9 @@ the fraction of the pixels U counts (at the scorer's resolution, rays meeting th
 point lies farther than ``--tau`` from every point the views so far observe by their true depth, with U's own unseen
 pixels against those as a confusion (true / false unseen, missed new) and by the length of the unknown stretch they look
 through, summed over each pick's candidates; U is recomputed from the scorer's carved grid and checked against the
-scorer's value. Writes ``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
+scorer's value. It also splits each pick's gain, and the best candidate's, by where the gained GT samples lie in the
+carved grid that pick was scored on (:func:`sample_classes`): on surface the grid holds, in unknown space, in carved
+free space, outside the box. Writes ``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
 
     .venv/bin/python scripts/pick_regret.py runs/bench_pool_room5_240_base36 --out runs/s42/px_room5 --pixels
 """
@@ -31,12 +33,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
 import roigsf_ros.nbv.scorer as scorer_module
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.experiments.bench import parse_policies, read_results
 from roigsf_ros.experiments.pool import make_pool_policy, run_pool
+from roigsf_ros.mapping.observed_space import FREE, OCCUPIED, UNKNOWN
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # scripts/ is no package
 import pool_bound as pb
@@ -48,6 +52,24 @@ VARIANT = "roi-gsurfisher:unseen_weight=1:unseen_source=carved"
 
 STRETCH_BINS = (0.0, 1.0, 2.0, 4.0, 8.0, np.inf)
 """Bins (in cells of the carved grid, along the camera's z) of the unknown stretch U's unseen pixels look through."""
+
+
+SAMPLE_CLASSES = ("held", "unknown", "free", "outside")
+"""Where a GT sample lies in a carved grid: within one cell of an OCCUPIED cell (surface the keyframes saw), else in
+an UNKNOWN cell (space none saw), else in a FREE cell (a hole they saw through), or outside the grid's box."""
+
+
+def sample_classes(space: Any, points_w: np.ndarray) -> np.ndarray:
+    """[N] int8 index into :data:`SAMPLE_CLASSES` of each world point [N, 3] in the carved grid ``space``."""
+    held = binary_dilation(space.state == OCCUPIED, structure=np.ones((3, 3, 3), dtype=bool))
+    ijk = np.floor((points_w - space.lo_m) / space.voxel_m).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < np.array(space.state.shape)), axis=1)
+    out = np.full(len(points_w), SAMPLE_CLASSES.index("outside"), dtype=np.int8)
+    i, j, k = ijk[inside].T
+    state = space.state[i, j, k]
+    cls = np.where(held[i, j, k], 0, np.where(state == UNKNOWN, 1, np.where(state == FREE, 2, 0)))
+    out[inside] = cls
+    return out
 
 
 def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -93,10 +115,11 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
 
 
 def replay(
-    setup: Any, seed: int, label: str, pixels: bool = False, tau_m: float = 0.05
+    setup: Any, seed: int, label: str, pixels: bool = False, tau_m: float = 0.05, gt_w: np.ndarray | None = None
 ) -> tuple[list[int], list[dict[str, Any]]]:
     """Run ``label``'s policy on ``setup`` with ``seed``; its chosen positions and, per pick, the candidates'
-    positions, U, fused score, flags and the index chosen (with ``pixels``, U* and U's pixel confusion).
+    positions, U, fused score, flags and the index chosen (with ``pixels``, U* and U's pixel confusion, and the
+    :func:`sample_classes` of the GT samples ``gt_w`` [N, 3] in the pick's carved grid).
     """
     spec = parse_policies(label, "pool")[0]
     cfg = replace(setup.pcfg, policy=spec.name, policy_params=dict(spec.params), seed=seed)
@@ -125,6 +148,8 @@ def replay(
             seen = list(setup.split.initial) + [s["positions"][s["pick"]] for s in scored[:-1]]
             scored[-1] |= pixel_truth(setup, scored[-1]["positions"], seen, carved["space"], carved["box"],
                                       carved["cfg"], res.unseen, res.flagged, tau_m)  # fmt: skip
+            if gt_w is not None:
+                scored[-1]["classes"] = sample_classes(carved["space"], gt_w)
         return pick
 
     policy.choose = recording_choose  # type: ignore[method-assign]
@@ -154,8 +179,8 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
     run_seeds = sorted(bench_runs) if seeds is None else seeds
     out: dict[str, Any] = {"bench": str(bench), "label": label, "scene": results["scene"], "tau_m": tau_m, "seeds": []}
     for seed in run_seeds:
-        _gt, obs, _n = pb.observed(setup, seed, tau_m)
-        chosen, scored = replay(setup, seed, label, pixels, tau_m)
+        gt, obs, _n = pb.observed(setup, seed, tau_m)
+        chosen, scored = replay(setup, seed, label, pixels, tau_m, gt)
         if seed in bench_runs and chosen != bench_runs[seed]:
             raise RuntimeError(f"seed {seed}: the replay chose {chosen}, the bench's run {bench_runs[seed]}")
         seen = obs[[setup.row_of[p] for p in setup.split.initial]].any(axis=0)
@@ -168,9 +193,15 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
             extra: dict[str, Any] = {}
             if pixels:
                 u_star = s["u_star"]
+                new = obs[rows] & ~seen
+                split = {c: np.count_nonzero(new & (s["classes"] == i), axis=1) / obs.shape[1]
+                         for i, c in enumerate(SAMPLE_CLASSES)}  # fmt: skip
+                best = int(np.argmax(gain))
                 extra = {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
                          "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
-                         "pixels": s["counts"]}  # fmt: skip
+                         "pixels": s["counts"],
+                         "gain_split_pick": {c: float(v[s["pick"]]) for c, v in split.items()},
+                         "gain_split_best": {c: float(v[best]) for c, v in split.items()}}  # fmt: skip
             picks.append(extra | {
                 "pick": k,
                 "candidates": len(rows),
@@ -211,7 +242,7 @@ def markdown(report: dict[str, Any]) -> str:
         m = {
             key: float(np.nanmean([r[key] for r in rows]))
             for key in rows[0]
-            if key not in ("pick", "candidates", "pixels")
+            if key not in ("pick", "candidates", "pixels", "gain_split_pick", "gain_split_best")
         }
         lines.append(f"| {k + 1} | {m['gain_of_pick']:.4f} | {m['gain_of_max_u']:.4f} | {m['best_gain']:.4f} | "
                      f"{m['rho_u']:+.2f} | {m['rho_fused']:+.2f} |")  # fmt: skip
@@ -251,6 +282,17 @@ def markdown(report: dict[str, Any]) -> str:
             t = np.sum([p["pixels"]["stretch_true_unseen"] for p in sel], axis=0)
             f = np.sum([p["pixels"]["stretch_false_unseen"] for p in sel], axis=0)
             lines.append(f"| {lo}-{hi} | " + " | ".join(f"{a} / {b}" for a, b in zip(t, f, strict=True)) + " |")
+        lines += ["", "Where the gained GT samples lie in the carved grid each pick was scored on (held: within one "
+                  "cell of an occupied cell; unknown; free; outside the box), gain of the pick / of the best "
+                  "candidate, summed over the picks and the seeds:", "",
+                  f"| picks | {' | '.join(SAMPLE_CLASSES)} | all |",
+                  "|---|" + "---|" * (len(SAMPLE_CLASSES) + 1)]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n), (1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            pk = [sum(p["gain_split_pick"][c] for p in sel) for c in SAMPLE_CLASSES]
+            bs = [sum(p["gain_split_best"][c] for p in sel) for c in SAMPLE_CLASSES]
+            cells = [f"{a:.4f} / {b:.4f}" for a, b in zip([*pk, sum(pk)], [*bs, sum(bs)], strict=True)]
+            lines.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

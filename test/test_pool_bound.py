@@ -15,6 +15,7 @@ from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.experiments.pool import PoolConfig, run_pool
 from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.mapping.observed_space import FREE, OCCUPIED, UNKNOWN, ObservedSpace
 
 pb = load_script("pool_bound")
 
@@ -260,8 +261,9 @@ def test_late_handover_picks_as_fisherrf_from_the_given_view_and_restores_the_po
 def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path: Path) -> None:
     """scripts/pick_regret.py: each pick's gain is the true coverage step the run's next view adds (their sum plus the
     initial views' coverage is the run's coverage), no pick gains more than the best candidate, the first pick's
-    candidates are the pool less the initial views; with --pixels U's unseen pixels are split into new and not new,
-    each by its stretch; a bench whose run of the label chose other views is refused."""
+    candidates are the pool less the initial views; with --pixels U's unseen pixels are split into new and not new, each
+    by its stretch, and the gain by where its samples lie in the carved grid; a bench whose run of the label chose other
+    views is refused."""
     pr = load_script("pick_regret")
     label = "roi-gsurfisher:unseen_weight=1:unseen_source=carved"
     assert pr.main([str(bench), "--out", str(tmp_path / "r"), "--label", label, "--seeds", "1", "--pixels"]) == 0
@@ -281,6 +283,9 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
         in_bins = sum(px["stretch_true_unseen"]) + sum(px["stretch_false_unseen"])
         assert px["true_unseen"] + px["false_unseen"] == in_bins
         assert px["true_unseen"] + px["missed_new"] > 0 and 0 <= p["gain_of_max_u_star"] <= p["best_gain"]
+        # every gained sample lies in one class: the split adds up to the pick's gain and the best candidate's
+        assert sum(p["gain_split_pick"].values()) == pytest.approx(p["gain_of_pick"], abs=1e-12)
+        assert sum(p["gain_split_best"].values()) == pytest.approx(p["best_gain"], abs=1e-12)
     results = json.loads((bench / "results.json").read_text())
     wrong = {"label": label, "seed": 1, "chosen_positions": s["chosen"][:4] + s["chosen"][:3:-1], "metrics": {}}
     other = tmp_path / "other"
@@ -288,3 +293,16 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
     (other / "results.json").write_text(json.dumps(results | {"runs": [*results["runs"], wrong]}))
     with pytest.raises(RuntimeError, match="the replay chose"):
         pr.measure(other, label, [1], 0.05)
+
+
+def test_sample_classes_tell_held_surface_unknown_free_and_outside() -> None:
+    """pick_regret.sample_classes: a point within one cell of an occupied cell is held surface, whatever its own
+    cell; else its own cell's state decides (unknown, free); a point outside the grid is outside."""
+    pr = load_script("pick_regret")
+    state = np.full((6, 3, 3), UNKNOWN, dtype=np.uint8)
+    state[3:, :, :] = FREE
+    state[0, 1, 1] = OCCUPIED
+    space = ObservedSpace(lo_m=np.zeros(3), voxel_m=0.1, state=state)
+    pts = np.array([[0.05, 0.15, 0.15], [0.15, 0.15, 0.15], [0.25, 0.15, 0.15], [0.45, 0.15, 0.15], [0.7, 0.1, 0.1]])
+    classes = [pr.SAMPLE_CLASSES[c] for c in pr.sample_classes(space, pts)]
+    assert classes == ["held", "held", "unknown", "free", "outside"]
