@@ -18,7 +18,9 @@ pixels against those as a confusion (true / false unseen, missed new) and by the
 through, summed over each pick's candidates; U is recomputed from the scorer's carved grid and checked against the
 scorer's value. It also splits each pick's gain, and the best candidate's, by where the gained GT samples lie in the
 carved grid that pick was scored on (:func:`sample_classes`): on surface the grid holds, in unknown space, in carved
-free space, outside the box. Writes ``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
+free space, outside the box; and screens U_sf, the unseen pixels whose unknown stretch begins next to an occupied cell
+(where observed surface ends), by the gain of the argmax of the fused score with U_sf in place of U at each pick. Writes
+``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
 
     .venv/bin/python scripts/pick_regret.py runs/bench_pool_room5_240_base36 --out runs/s42/px_room5 --pixels
 """
@@ -59,9 +61,14 @@ SAMPLE_CLASSES = ("held", "unknown", "free", "outside")
 an UNKNOWN cell (space none saw), else in a FREE cell (a hole they saw through), or outside the grid's box."""
 
 
+def near_occupied(space: Any) -> np.ndarray:
+    """[X, Y, Z] bool: the cells of the carved grid ``space`` within one cell (26 neighbours) of an occupied one."""
+    return binary_dilation(space.state == OCCUPIED, structure=np.ones((3, 3, 3), dtype=bool))
+
+
 def sample_classes(space: Any, points_w: np.ndarray) -> np.ndarray:
     """[N] int8 index into :data:`SAMPLE_CLASSES` of each world point [N, 3] in the carved grid ``space``."""
-    held = binary_dilation(space.state == OCCUPIED, structure=np.ones((3, 3, 3), dtype=bool))
+    held = near_occupied(space)
     ijk = np.floor((points_w - space.lo_m) / space.voxel_m).astype(np.int64)
     inside = np.all((ijk >= 0) & (ijk < np.array(space.state.shape)), axis=1)
     out = np.full(len(points_w), SAMPLE_CLASSES.index("outside"), dtype=np.int8)
@@ -79,11 +86,16 @@ def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np
 
 def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, box: Any, cfg: Any,
                 u: np.ndarray, flagged: np.ndarray, tau_m: float) -> dict[str, Any]:  # fmt: skip
-    """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), and U's pixel confusion."""
+    """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), U's pixel confusion, and
+    U_sf: the fraction of the counted pixels that are unseen and whose unknown stretch begins within one cell of an
+    occupied cell (where observed surface ends: surface-edge exploration).
+    """
     lo, hi = max(setup.mcfg.min_depth_m, setup.mcfg.near_m), setup.mcfg.max_depth_m
+    held = near_occupied(space).reshape(-1)
     tree = cKDTree(np.concatenate([true_points(setup, p, lo, hi)[0] for p in seen]))
     intr = setup.scene.intr
     u_star = np.zeros(len(positions))
+    u_sf = np.zeros(len(positions))
     counts = {"true_unseen": 0, "false_unseen": 0, "missed_new": 0, "seen_seen": 0, "no_depth": 0}
     stretch = {
         "true_unseen": np.zeros(len(STRETCH_BINS) - 1, dtype=np.int64),
@@ -102,6 +114,8 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
             dist, _ = tree.query(pts, k=1, distance_upper_bound=tau_m)
             new[valid] = dist >= tau_m
         u_star[i] = (new & meets).sum() / max(int(meets.sum()), 1)
+        first = space.unseen_cells(T, intr, cfg.near_m, cfg.far_m)
+        u_sf[i] = (hole & (first >= 0) & held[np.maximum(first, 0)]).sum() / max(int(meets.sum()), 1)
         known = meets & valid
         counts["true_unseen"] += int((hole & new & known).sum())
         counts["false_unseen"] += int((hole & ~new & known).sum())
@@ -111,7 +125,13 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
         cells = (leave - enter) / space.voxel_m  # the unknown stretch's length along z, in cells
         for key, mask in (("true_unseen", hole & new & known), ("false_unseen", hole & ~new & known)):
             stretch[key] += np.histogram(cells[mask], bins=STRETCH_BINS)[0]
-    return {"u_star": u_star, "counts": counts | {f"stretch_{k}": v.tolist() for k, v in stretch.items()}}
+    return {
+        "u_star": u_star,
+        "u_sf": u_sf,
+        "w": cfg.unseen_weight,
+        "min_std": cfg.unseen_min_std,
+        "counts": counts | {f"stretch_{k}": v.tolist() for k, v in stretch.items()},
+    }
 
 
 def replay(
@@ -149,7 +169,7 @@ def replay(
             scored[-1] |= pixel_truth(setup, scored[-1]["positions"], seen, carved["space"], carved["box"],
                                       carved["cfg"], res.unseen, res.flagged, tau_m)  # fmt: skip
             if gt_w is not None:
-                scored[-1]["classes"] = sample_classes(carved["space"], gt_w)
+                scored[-1]["classes"] = sample_classes(carved["space"], gt_w)  # the pick's grid, as U saw it
         return pick
 
     policy.choose = recording_choose  # type: ignore[method-assign]
@@ -197,8 +217,15 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
                 split = {c: np.count_nonzero(new & (s["classes"] == i), axis=1) / obs.shape[1]
                          for i, c in enumerate(SAMPLE_CLASSES)}  # fmt: skip
                 best = int(np.argmax(gain))
+                if int(np.argmax(np.where(ok, s["fused"], -np.inf))) != s["pick"]:
+                    raise RuntimeError(f"seed {seed}: pick {k} is not the argmax of the fused score")
+                z = scorer_module.zscore
+                edges = s["fused"].copy()  # U_sf in place of U in the variant's score (the offline screen)
+                edges[ok] += s["w"] * (z(s["u_sf"][ok], s["min_std"]) - z(s["u"][ok], s["min_std"]))
                 extra = {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
                          "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
+                         "gain_of_edges": float(gain[int(np.argmax(np.where(ok, edges, -np.inf)))]),
+                         "rho_u_sf": uvg.rho(s["u_sf"][ok], gain[ok]),
                          "pixels": s["counts"],
                          "gain_split_pick": {c: float(v[s["pick"]]) for c, v in split.items()},
                          "gain_split_best": {c: float(v[best]) for c, v in split.items()}}  # fmt: skip
@@ -282,6 +309,16 @@ def markdown(report: dict[str, Any]) -> str:
             t = np.sum([p["pixels"]["stretch_true_unseen"] for p in sel], axis=0)
             f = np.sum([p["pixels"]["stretch_false_unseen"] for p in sel], axis=0)
             lines.append(f"| {lo}-{hi} | " + " | ".join(f"{a} / {b}" for a, b in zip(t, f, strict=True)) + " |")
+        lines += ["", "U_sf = the fraction of the counted pixels that are unseen and whose unknown stretch begins "
+                  "within one cell of an occupied cell (where observed surface ends); the gain of the argmax of the "
+                  "fused score with U_sf in place of U (one step on this run's own views), summed over the picks and "
+                  "the seeds:", "", "| picks | rho(U_sf, gain) | gain of the pick / with U_sf in place of U / best |",
+                  "|---|---|---|"]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n), (1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_edges", "best_gain")]
+            rho_sf = float(np.nanmean([p["rho_u_sf"] for p in sel]))
+            lines.append(f"| {lo}-{hi} | {rho_sf:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
         lines += ["", "Where the gained GT samples lie in the carved grid each pick was scored on (held: within one "
                   "cell of an occupied cell; unknown; free; outside the box), gain of the pick / of the best "
                   "candidate, summed over the picks and the seeds:", "",

@@ -286,6 +286,7 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
         # every gained sample lies in one class: the split adds up to the pick's gain and the best candidate's
         assert sum(p["gain_split_pick"].values()) == pytest.approx(p["gain_of_pick"], abs=1e-12)
         assert sum(p["gain_split_best"].values()) == pytest.approx(p["best_gain"], abs=1e-12)
+        assert 0 <= p["gain_of_edges"] <= p["best_gain"]  # U_sf in place of U picks some candidate
     results = json.loads((bench / "results.json").read_text())
     wrong = {"label": label, "seed": 1, "chosen_positions": s["chosen"][:4] + s["chosen"][:3:-1], "metrics": {}}
     other = tmp_path / "other"
