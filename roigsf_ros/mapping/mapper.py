@@ -134,7 +134,7 @@ class MapperConfig(Config):
     """Seed of the keyframe sampling."""
     device: str = "cpu"
     """Torch device of the map and the optimisation: "cpu" (numba kernels) or "cuda[:N]" (the plain-torch renderer;
-    tested on an H100, but 1.6-2.9x slower per training step than the numba kernels on 2 CPU cores;
+    tested on an H100 and an H200, but 1.2-3.0x slower per training step than the numba kernels on 2 CPU cores;
     docs/measured-figures.md, CUDA)."""
 
     def validate(self) -> MapperConfig:
