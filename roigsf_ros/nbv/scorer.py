@@ -496,6 +496,7 @@ class NBVScorer:
             seen_by = KeyframeDepths.render(
                 surfel_map, poses, intr_f, cfg.unseen_confirm_margin_m, cfg.near_m, cfg.far_m, should_stop
             )
+        unseen_term = _UnseenTerm(cfg, unseen_box, facing, seen_by, space, plan) if use_unseen else None
         # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
         # score nothing: they are flagged without any rendering.
         box = _mapped_region(vox, voxel_size, None if empty_map or not need_fisher else surfel_map, cfg, use_unseen)
@@ -529,10 +530,20 @@ class NBVScorer:
                     cf[chunk] = rois.close_front
             acc["roi"] += _since(t0)
             for j, i in enumerate(chunk):
-                self._fisher_and_unseen(surfel_map, inv, params, cands[i], i, mode, intr_f,
-                                        rois.weights[j] if rois is not None else None, mass[i], unseen_box, fisher,
-                                        flagged, unseen, facing, seen_by, space, plan, should_stop,
-                                        acc)  # fmt: skip
+                check_stop(should_stop)
+                t0 = _clock()
+                if inv:  # a Fisher mode with a map: Eq. 10 weights made once per score() call
+                    f = self._candidate_fisher(surfel_map, inv, params, cands[i], mode, intr_f,
+                                               rois.weights[j] if rois is not None else None, mass[i])  # fmt: skip
+                    if f is not None:
+                        fisher[i] = f
+                        if mode == "fisherrf":
+                            flagged[i] = f == 0.0  # every entry of F is >= 0 and every weight > 0
+                if unseen_term is not None:
+                    u = unseen_term.measure(surfel_map, cands[i], i, intr_f)
+                    if u is not None:
+                        unseen[i] = u
+                acc["fisher"] += _since(t0)
         if plan:
             order = sorted(plan)
             unseen[order] = planned_unseen([plan[i] for i in order], cfg.unseen_plan_views,
@@ -593,97 +604,33 @@ class NBVScorer:
             n_skipped=int(m - len(live)),
         )
 
-    def _fisher_and_unseen(
+    def _candidate_fisher(
         self,
         surfel_map: SurfelMap,
         inv: dict[str, np.ndarray],
         params: list[str],
         T: np.ndarray,
-        i: int,
         mode: str,
         intr_f: Intrinsics,
         roi_weights: np.ndarray | None,
         mass: float,
-        unseen_box: tuple[np.ndarray, np.ndarray] | None,
-        fisher: np.ndarray,
-        flagged: np.ndarray,
-        unseen: np.ndarray | None,
-        facing: SurfaceFacing | None,
-        seen_by: KeyframeDepths | None,
-        space: ObservedSpace | None,
-        plan: dict[int, UnseenCells] | None,
-        should_stop: ShouldStop,
-        acc: dict[str, np.ndarray],
-    ) -> None:
-        """Candidate i's Fisher score (Eq. 9-10 or FisherRF's) and unseen fraction, written into the arrays;
-        ``facing`` (``unseen_backfaces="tsdf"``) and ``unseen_backfaces="surfels"`` also count the pixels that render
-        the back of the surface as unseen; ``seen_by`` (``"unconfirmed"``) spares the back pixels a keyframe saw from
-        this side; ``space`` (``unseen_source="carved"``) replaces the map's render by the carved grid; ``plan``
-        (``unseen_plan_views`` > 1) receives the candidate's unseen pixels by entry cell.
+    ) -> float | None:
+        """A candidate's Fisher score: FisherRF's over the whole view, or Eq. 9-10's over its ROI (``roi_weights``,
+        at the full resolution; None or zero ``mass``: no ROI in view, no score); ``inv`` holds Eq. 10's weights.
         """
         cfg = self.config
         ds = cfg.fisher_downsample
-        check_stop(should_stop)
-        t0 = _clock()
-        if inv:  # a Fisher mode with a map: Eq. 10 weights made once per score() call
-            if mode == "fisherrf":
-                w = None
-                if ds > 1:
-                    w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
-                fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisherrf_outputs,
-                                                params=params, pixel_weights=w, near=cfg.near_m,
-                                                far=cfg.far_m)  # fmt: skip
-                flagged[i] = fisher[i] == 0.0  # every entry of F is >= 0 and every weight > 0
-            elif roi_weights is not None and mass > 0:
-                w = block_mean(roi_weights, ds) * (ds * ds / cfg.sigma_p**2)
-                w = torch.as_tensor(w, dtype=surfel_map.dtype)
-                fisher[i] = fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs,
-                                                params=params, pixel_weights=w, near=cfg.near_m,
-                                                far=cfg.far_m)  # fmt: skip
-        if unseen is not None and space is not None:
-            if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
-                _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
-                unseen[i] = len(cells) * space.voxel_m**2
-            elif plan is not None:  # its pixels by entry cell; U is the plan's, written once every candidate is in
-                meets = rays_meet_box(T, intr_f, *unseen_box)
-                plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
-            else:
-                hole, _enter, leave = carved_unseen(space, T, intr_f, unseen_box, cfg)
-                if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
-                    unseen[i] = float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
-                else:
-                    meets = rays_meet_box(T, intr_f, *unseen_box)
-                    unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
-        elif unseen is not None and cfg.unseen_source == "map" and len(surfel_map) > 0:
-            m = surfel_map.detach()
-            # With the surfel back-face test the render composites which surfels face this camera; else colours.
-            by_side = cfg.unseen_backfaces in ("surfels", "unconfirmed")
-            feats = surfels_facing(m, T)[:, None].to(m.dtype) if by_side else None
-            with torch.no_grad():
-                out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m,
-                                 with_distortion=False)  # fmt: skip
-            seen = (out.alpha >= cfg.unseen_alpha).cpu().numpy()
-            hole = ~seen
-            if facing is not None:  # the back of the mapped surface: what is in front of it is unseen
-                hole |= facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
-            if feats is not None:  # most of the pixel's alpha from surfels that face away: their back
-                back = seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
-                if seen_by is not None and back.any():
-                    back &= ~seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
-                hole |= back
-            exit_m = None  # where each ray leaves the box of the mapped region (0: it never meets it)
-            if unseen_box is not None:
-                exit_m = box_exit_depth(T, intr_f, *unseen_box)
-            if cfg.unseen_measure == "area":  # m^2 the unseen pixels can show: footprints at the farthest depth
-                far = np.full(hole.shape, cfg.far_m) if exit_m is None else np.minimum(exit_m, cfg.far_m)
-                z = np.where(seen, out.median_depth.cpu().numpy(), far)  # seen holes: the back face's depth
-                unseen[i] = float((np.where(hole, z, 0.0) ** 2).sum() / (intr_f.fx * intr_f.fy))
-            elif exit_m is not None:
-                meets = exit_m > 0
-                unseen[i] = float((hole & meets).sum() / max(int(meets.sum()), 1))
-            else:
-                unseen[i] = float(hole.mean())
-        acc["fisher"] += _since(t0)
+        if mode == "fisherrf":
+            w = None
+            if ds > 1:
+                w = torch.full((intr_f.height, intr_f.width), float(ds * ds), dtype=surfel_map.dtype)
+            return fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisherrf_outputs, params=params,
+                                       pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
+        if roi_weights is None or mass <= 0:
+            return None
+        w = torch.as_tensor(block_mean(roi_weights, ds) * (ds * ds / cfg.sigma_p**2), dtype=surfel_map.dtype)
+        return fisher_weighted_sum(surfel_map, T, intr_f, inv, outputs=cfg.fisher_outputs, params=params,
+                                   pixel_weights=w, near=cfg.near_m, far=cfg.far_m)  # fmt: skip
 
 
 def surfels_facing(surfel_map: SurfelMap, T_wc: np.ndarray) -> Tensor:
@@ -805,6 +752,72 @@ class SurfaceFacing:
         away = np.einsum("ij,ij->i", self.normals[j], T[:3, 3] - p) < 0.0
         out[v, u] = found & away
         return out
+
+
+@dataclass
+class _UnseenTerm:
+    """The unseen term U of one scoring call: what it builds once (the box, the carved grid, the back-face tests) and
+    how it measures each candidate.
+    """
+
+    cfg: NBVConfig
+    box: tuple[np.ndarray, np.ndarray] | None
+    """The surface voxels' bounds grown by ``unseen_bbox_margin_m`` (None: no voxels, or an infinite margin)."""
+    facing: SurfaceFacing | None
+    """``unseen_backfaces="tsdf"``: the TSDF's normals, to count the pixels that render the back of the surface."""
+    seen_by: KeyframeDepths | None
+    """``unseen_backfaces="unconfirmed"``: spares the back pixels a keyframe saw from this side."""
+    space: ObservedSpace | None
+    """``unseen_source="carved"``: the carved grid, in place of the map's render."""
+    plan: dict[int, UnseenCells] | None
+    """``unseen_plan_views`` > 1: receives each candidate's unseen pixels by entry cell, planned over afterwards."""
+
+    def measure(self, surfel_map: SurfelMap, T: np.ndarray, i: int, intr_f: Intrinsics) -> float | None:
+        """U of candidate ``i`` at ``T`` (``unseen_measure``: a pixel fraction or m^2), or None where it is left as
+        it is: planned once every candidate is in (``plan``), or nothing to measure it on (an empty map).
+        """
+        cfg, space, box = self.cfg, self.space, self.box
+        if space is not None:
+            if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
+                _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
+                return len(cells) * space.voxel_m**2
+            if self.plan is not None:  # its pixels by entry cell; U is the plan's, written once every candidate is in
+                meets = rays_meet_box(T, intr_f, *box)
+                self.plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
+                return None
+            hole, _enter, leave = carved_unseen(space, T, intr_f, box, cfg)
+            if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
+                return float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
+            meets = rays_meet_box(T, intr_f, *box)
+            return float((hole & meets).sum() / max(int(meets.sum()), 1))
+        if cfg.unseen_source != "map" or len(surfel_map) == 0:
+            return None
+        m = surfel_map.detach()
+        # With the surfel back-face test the render composites which surfels face this camera; else colours.
+        by_side = cfg.unseen_backfaces in ("surfels", "unconfirmed")
+        feats = surfels_facing(m, T)[:, None].to(m.dtype) if by_side else None
+        with torch.no_grad():
+            out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m, with_distortion=False)
+        seen = (out.alpha >= cfg.unseen_alpha).cpu().numpy()
+        hole = ~seen
+        if self.facing is not None:  # the back of the mapped surface: what is in front of it is unseen
+            hole |= self.facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
+        if feats is not None:  # most of the pixel's alpha from surfels that face away: their back
+            back = seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
+            if self.seen_by is not None and back.any():
+                back &= ~self.seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
+            hole |= back
+        exit_m = None  # where each ray leaves the box of the mapped region (0: it never meets it)
+        if box is not None:
+            exit_m = box_exit_depth(T, intr_f, *box)
+        if cfg.unseen_measure == "area":  # m^2 the unseen pixels can show: footprints at the farthest depth
+            far = np.full(hole.shape, cfg.far_m) if exit_m is None else np.minimum(exit_m, cfg.far_m)
+            z = np.where(seen, out.median_depth.cpu().numpy(), far)  # seen holes: the back face's depth
+            return float((np.where(hole, z, 0.0) ** 2).sum() / (intr_f.fx * intr_f.fy))
+        if exit_m is not None:
+            meets = exit_m > 0
+            return float((hole & meets).sum() / max(int(meets.sum()), 1))
+        return float(hole.mean())
 
 
 def _unseen_box(vox: SurfaceVoxels, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
