@@ -774,7 +774,8 @@ class _UnseenTerm:
 
     def measure(self, surfel_map: SurfelMap, T: np.ndarray, i: int, intr_f: Intrinsics) -> float | None:
         """U of candidate ``i`` at ``T`` (``unseen_measure``: a pixel fraction or m^2), or None where it is left as
-        it is: planned once every candidate is in (``plan``), or nothing to measure it on (an empty map).
+        it is: planned once every candidate is in (``plan``), or nothing to measure it on (an empty map; no carved
+        grid).
         """
         cfg, space, box = self.cfg, self.space, self.box
         if space is not None:
