@@ -66,9 +66,10 @@ def near_occupied(space: Any) -> np.ndarray:
     return binary_dilation(space.state == OCCUPIED, structure=np.ones((3, 3, 3), dtype=bool))
 
 
-def sample_classes(space: Any, points_w: np.ndarray) -> np.ndarray:
-    """[N] int8 index into :data:`SAMPLE_CLASSES` of each world point [N, 3] in the carved grid ``space``."""
-    held = near_occupied(space)
+def sample_classes(space: Any, held: np.ndarray, points_w: np.ndarray) -> np.ndarray:
+    """[N] int8 index into :data:`SAMPLE_CLASSES` of each world point [N, 3] in the carved grid ``space``, whose
+    :func:`near_occupied` cells are ``held``.
+    """
     ijk = np.floor((points_w - space.lo_m) / space.voxel_m).astype(np.int64)
     inside = np.all((ijk >= 0) & (ijk < np.array(space.state.shape)), axis=1)
     out = np.full(len(points_w), SAMPLE_CLASSES.index("outside"), dtype=np.int8)
@@ -85,13 +86,16 @@ def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np
 
 
 def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, box: Any, cfg: Any,
-                u: np.ndarray, flagged: np.ndarray, tau_m: float) -> dict[str, Any]:  # fmt: skip
+                u: np.ndarray, flagged: np.ndarray, tau_m: float,
+                gt_w: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
     """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), U's pixel confusion, and
     U_sf: the fraction of the counted pixels that are unseen and whose unknown stretch begins within one cell of an
-    occupied cell (where observed surface ends: surface-edge exploration).
+    occupied cell (where observed surface ends: surface-edge exploration); with ``gt_w`` [N, 3], the GT samples'
+    :func:`sample_classes` in this grid.
     """
     lo, hi = max(setup.mcfg.min_depth_m, setup.mcfg.near_m), setup.mcfg.max_depth_m
-    held = near_occupied(space).reshape(-1)
+    held_grid = near_occupied(space)
+    held = held_grid.reshape(-1)
     tree = cKDTree(np.concatenate([true_points(setup, p, lo, hi)[0] for p in seen]))
     intr = setup.scene.intr
     u_star = np.zeros(len(positions))
@@ -126,6 +130,7 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
         for key, mask in (("true_unseen", hole & new & known), ("false_unseen", hole & ~new & known)):
             stretch[key] += np.histogram(cells[mask], bins=STRETCH_BINS)[0]
     return {
+        **({} if gt_w is None else {"classes": sample_classes(space, held_grid, gt_w)}),
         "u_star": u_star,
         "u_sf": u_sf,
         "w": cfg.unseen_weight,
@@ -167,9 +172,7 @@ def replay(
                 )
             seen = list(setup.split.initial) + [s["positions"][s["pick"]] for s in scored[:-1]]
             scored[-1] |= pixel_truth(setup, scored[-1]["positions"], seen, carved["space"], carved["box"],
-                                      carved["cfg"], res.unseen, res.flagged, tau_m)  # fmt: skip
-            if gt_w is not None:
-                scored[-1]["classes"] = sample_classes(carved["space"], gt_w)  # the pick's grid, as U saw it
+                                      carved["cfg"], res.unseen, res.flagged, tau_m, gt_w)  # fmt: skip
         return pick
 
     policy.choose = recording_choose  # type: ignore[method-assign]
@@ -341,7 +344,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", default=VARIANT, help=f"the bench's policy label to replay (default: {VARIANT})")
     ap.add_argument("--seeds", type=int, nargs="*", help="seeds (default: the label's runs in the bench)")
     ap.add_argument("--tau", type=float, default=0.05, help="distance threshold (m), as in R@5cm")
-    ap.add_argument("--pixels", action="store_true", help="also U* and U's pixel confusion (carved-space policies)")
+    ap.add_argument(
+        "--pixels",
+        action="store_true",
+        help="also U*, U's pixel confusion, the gain by where it lies in "
+        "the carved grid and the U_sf screen (carved-space policies)",
+    )
     args = ap.parse_args(argv)
     try:
         report = measure(args.bench, args.label, args.seeds, args.tau, args.pixels)

@@ -305,5 +305,5 @@ def test_sample_classes_tell_held_surface_unknown_free_and_outside() -> None:
     state[0, 1, 1] = OCCUPIED
     space = ObservedSpace(lo_m=np.zeros(3), voxel_m=0.1, state=state)
     pts = np.array([[0.05, 0.15, 0.15], [0.15, 0.15, 0.15], [0.25, 0.15, 0.15], [0.45, 0.15, 0.15], [0.7, 0.1, 0.1]])
-    classes = [pr.SAMPLE_CLASSES[c] for c in pr.sample_classes(space, pts)]
+    classes = [pr.SAMPLE_CLASSES[c] for c in pr.sample_classes(space, pr.near_occupied(space), pts)]
     assert classes == ["held", "held", "unknown", "free", "outside"]
