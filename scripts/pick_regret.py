@@ -9,7 +9,8 @@ candidate's true depth observes within ``--tau`` that neither the initial views 
 (``pool_bound.observed``). The replay's chosen positions are checked against the bench's own run of the label where it
 has one. Reported per seed and pick: the gain of the pick, of argmax U (U alone) and the best gain, and Spearman's rho
 of U and of the fused score with the gain over the candidates not flagged; summed over picks, per seed and over the
-seeds.
+seeds. For a plain ``roi-gsurfisher`` fusion (no FisherRF term) it also screens rank fusion: the gain of the argmax of
+the fused score with each term's z-score taken over the candidates' ranks instead of their values.
 
 With ``--pixels`` (a carved-space policy) it also asks whether U's pixels are the new ones: for each candidate, U* is
 the fraction of the pixels U counts (at the scorer's resolution, rays meeting the unseen term's box) whose true-depth
@@ -37,6 +38,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
+from scipy.stats import rankdata
 
 import roigsf_ros.nbv.scorer as scorer_module
 from roigsf_ros.core.errors import InputError
@@ -77,6 +79,23 @@ def sample_classes(space: Any, held: np.ndarray, points_w: np.ndarray) -> np.nda
     state = space.state[i, j, k]
     cls = np.where(held[i, j, k], 0, np.where(state == UNKNOWN, 1, np.where(state == FREE, 2, 0)))
     out[inside] = cls
+    return out
+
+
+def rank_fused(s: dict[str, Any], ok: np.ndarray) -> np.ndarray:
+    """The variant's fused score [M] with each term's z-score taken over its ranks (average ranks for ties) instead of
+    its values: ``epsilon r(F) + delta r(C) + w r(U)`` over the candidates ``ok``, -inf elsewhere (the rank screen).
+    Checks first that ``s``'s fused score is ``epsilon z(F) + delta z(C) + w z(U)`` (Eq. 15 plus the unseen term), so
+    that the screen changes the normalisation alone.
+    """
+    z = scorer_module.zscore
+    rebuilt = s["epsilon"] * z(s["fisher"][ok]) + s["delta"] * z(s["close_front"][ok])
+    rebuilt = rebuilt + s["w"] * z(s["u"][ok], s["min_std"])
+    if not np.allclose(rebuilt, s["fused"][ok], rtol=0, atol=1e-9):
+        raise RuntimeError("the fused score is not epsilon z(F) + delta z(C) + w z(U)")
+    out = np.full(len(s["fused"]), -np.inf)
+    out[ok] = sum(c * z(rankdata(s[key][ok])) for c, key in
+                  ((s["epsilon"], "fisher"), (s["delta"], "close_front"), (s["w"], "u")))  # fmt: skip
     return out
 
 
@@ -133,8 +152,6 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
         **({} if gt_w is None else {"classes": sample_classes(space, held_grid, gt_w)}),
         "u_star": u_star,
         "u_sf": u_sf,
-        "w": cfg.unseen_weight,
-        "min_std": cfg.unseen_min_std,
         "counts": counts | {f"stretch_{k}": v.tolist() for k, v in stretch.items()},
     }
 
@@ -164,7 +181,11 @@ def replay(
         res = policy.last_result
         if res is None or res.unseen is None:
             raise RuntimeError(f"seed {seed}: pick {len(scored) + 1} was not scored with the unseen term")
-        scored[-1] |= {"u": res.unseen.copy(), "fused": res.fused.copy(), "flagged": res.flagged.copy(), "pick": pick}
+        cfg = policy.config
+        scored[-1] |= {"u": res.unseen.copy(), "fused": res.fused.copy(), "flagged": res.flagged.copy(), "pick": pick,
+                       "fisher": res.fisher.copy(), "close_front": res.close_front.copy(), "w": cfg.unseen_weight,
+                       "min_std": cfg.unseen_min_std, "epsilon": cfg.epsilon, "delta": cfg.delta,
+                       "plain_fusion": res.mode == "roi-gsurfisher" and cfg.fisherrf_weight == 0}  # fmt: skip
         if pixels:
             if "space" not in carved:
                 raise RuntimeError(
@@ -214,6 +235,8 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
             ok = ~s["flagged"]
             max_u = int(np.argmax(np.where(ok, s["u"], -np.inf)))
             extra: dict[str, Any] = {}
+            if s["plain_fusion"]:
+                extra["gain_of_rank"] = float(gain[int(np.argmax(rank_fused(s, ok)))])
             if pixels:
                 u_star = s["u_star"]
                 new = obs[rows] & ~seen
@@ -225,7 +248,7 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
                 z = scorer_module.zscore
                 edges = s["fused"].copy()  # U_sf in place of U in the variant's score (the offline screen)
                 edges[ok] += s["w"] * (z(s["u_sf"][ok], s["min_std"]) - z(s["u"][ok], s["min_std"]))
-                extra = {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
+                extra |= {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
                          "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
                          "gain_of_edges": float(gain[int(np.argmax(np.where(ok, edges, -np.inf)))]),
                          "rho_u_sf": uvg.rho(s["u_sf"][ok], gain[ok]),
@@ -283,6 +306,15 @@ def markdown(report: dict[str, Any]) -> str:
             t = sums(s["picks"], lo, hi)
             lines.append(f"| {lo}-{hi} | {s['seed']} | {t['gain_of_pick']:.4f} | {t['gain_of_max_u']:.4f} | "
                          f"{t['best_gain']:.4f} |")  # fmt: skip
+    if "gain_of_rank" in seeds[0]["picks"][0]:
+        lines += ["", "Rank fusion: the fused score with each term's z-score taken over the candidates' ranks instead "
+                  "of their values (epsilon r(F) + delta r(C) + w r(U)); the gain of its argmax at each pick (one step "
+                  "on this run's own views), summed over the picks and the seeds:", "",
+                  "| picks | gain of the pick / of argmax of the rank fusion / best |", "|---|---|"]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n), (1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_rank", "best_gain")]
+            lines.append(f"| {lo}-{hi} | {' / '.join(f'{x:.4f}' for x in g)} |")
     if "rho_u_star" in seeds[0]["picks"][0]:
         lines += ["", "U* = the fraction of the pixels U counts whose true-depth point is new (farther than the "
                   "threshold from every point the views so far observe); U's unseen pixels against those, summed over "

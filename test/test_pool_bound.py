@@ -287,6 +287,7 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
         assert sum(p["gain_split_pick"].values()) == pytest.approx(p["gain_of_pick"], abs=1e-12)
         assert sum(p["gain_split_best"].values()) == pytest.approx(p["best_gain"], abs=1e-12)
         assert 0 <= p["gain_of_edges"] <= p["best_gain"]  # U_sf in place of U picks some candidate
+        assert 0 <= p["gain_of_rank"] <= p["best_gain"]  # the rank fusion rebuilt the scorer's fusion (else raises)
     results = json.loads((bench / "results.json").read_text())
     wrong = {"label": label, "seed": 1, "chosen_positions": s["chosen"][:4] + s["chosen"][:3:-1], "metrics": {}}
     other = tmp_path / "other"
@@ -307,3 +308,23 @@ def test_sample_classes_tell_held_surface_unknown_free_and_outside() -> None:
     pts = np.array([[0.05, 0.15, 0.15], [0.15, 0.15, 0.15], [0.25, 0.15, 0.15], [0.45, 0.15, 0.15], [0.7, 0.1, 0.1]])
     classes = [pr.SAMPLE_CLASSES[c] for c in pr.sample_classes(space, pr.near_occupied(space), pts)]
     assert classes == ["held", "held", "unknown", "free", "outside"]
+
+
+def test_rank_fusion_lets_no_one_term_outvote_the_others_and_checks_the_fusion_it_replaces() -> None:
+    """pick_regret.rank_fused: one candidate's Fisher far above the rest wins the z-score fusion although another
+    candidate is best on close-front and U; over ranks that one wins. Flagged candidates score -inf; a fused score that
+    is not epsilon z(F) + delta z(C) + w z(U) is refused."""
+    pr = load_script("pick_regret")
+    z = pr.scorer_module.zscore
+    f = np.array([50.0, 1, 2, 3, 4, 5, 6, 7, 8])
+    c = np.array([0.5, 0.6, 0.4, 0.3, 0.5, 0.2, 0.1, 0.45, 0.0])
+    u = np.array([0.3, 0.4, 0.2, 0.1, 0.25, 0.15, 0.05, 0.35, 0.0])
+    ok = np.arange(9) < 8  # the last one flagged
+    fused = np.zeros(9)
+    fused[ok] = 0.4 * z(f[ok]) + 0.6 * z(c[ok]) + z(u[ok])
+    s = {"fisher": f, "close_front": c, "u": u, "fused": fused, "epsilon": 0.4, "delta": 0.6, "w": 1.0, "min_std": 0.0}
+    assert int(np.argmax(fused)) == 0
+    ranked = pr.rank_fused(s, ok)
+    assert int(np.argmax(ranked)) == 1 and ranked[8] == -np.inf and np.isfinite(ranked[ok]).all()
+    with pytest.raises(RuntimeError, match="not epsilon"):
+        pr.rank_fused(s | {"w": 2.0}, ok)
