@@ -26,7 +26,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.mapping.mapper import Mapper
-from roigsf_ros.nbv.scorer import KeyframeDepths, surfels_facing
+from roigsf_ros.nbv.unseen import KeyframeDepths, surfels_facing
 from roigsf_ros.render.rasterize import render_map
 
 COLUMNS = ("back", "at_surface", "behind", "spared_at_surface", "spared_behind")

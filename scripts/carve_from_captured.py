@@ -5,7 +5,7 @@ r"""A bench with the carved unseen term carved from the keyframes' captured dept
 renders nothing there it carves free space up to ``far_m``: a hole in the map over surface the keyframe did see then
 carves the space behind that surface as observed. A robot has the keyframes' own depth images. This runs ``roigsf
 bench`` with the arguments given after ``--`` and, for the run's duration, replaces
-:func:`roigsf_ros.nbv.scorer.carved_space` by a carve from the depth of the scene's frame at each keyframe pose
+:func:`roigsf_ros.nbv.unseen.carved_space` by a carve from the depth of the scene's frame at each keyframe pose
 (matched exactly; a valid depth carves up to it, a pixel without one carves free space up to ``far_m``, as the map's
 empty pixels do). Only policies with ``unseen_source=carved`` are affected: run the variant alone in its bench, beside
 a bench of the plain variant. The scene must be a Replica-layout folder at the bench's image size (no ``--width``).
@@ -34,7 +34,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.mapping.observed_space import ObservedSpace
-from roigsf_ros.nbv import scorer as scorer_module
+from roigsf_ros.nbv import unseen as unseen_module
 
 POSE_MATCH_TOL = 1e-6
 """Largest distance (metres of the centre plus the rotation matrices' absolute differences) between a keyframe pose
@@ -103,12 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"carve_from_captured.py: error: {exc}", file=sys.stderr)
         return 2
-    original = scorer_module.carved_space
-    scorer_module.carved_space = carve  # type: ignore[assignment]
+    original = unseen_module.carved_space
+    unseen_module.carved_space = carve  # type: ignore[assignment]
     try:
         rc = roigsf_main(["bench", *bench_args])
     finally:
-        scorer_module.carved_space = original
+        unseen_module.carved_space = original
     if rc:
         return int(rc)  # the bench failed (it said why): no log that looks complete
     write_json(args.out, {"bench_args": bench_args, **log})

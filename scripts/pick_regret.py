@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import rankdata
 
 import roigsf_ros.nbv.scorer as scorer_module
+import roigsf_ros.nbv.unseen as unseen_module
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.experiments.bench import parse_policies, read_results
 from roigsf_ros.experiments.pool import make_pool_policy, run_pool
@@ -126,8 +127,8 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
     }
     for i, p in enumerate(positions):
         T = setup.scene.poses[p]
-        hole, enter, leave = scorer_module.carved_unseen(space, T, intr, box, cfg)
-        meets = scorer_module.rays_meet_box(T, intr, *box)
+        hole, enter, leave = unseen_module.carved_unseen(space, T, intr, box, cfg)
+        meets = unseen_module.rays_meet_box(T, intr, *box)
         hole &= meets
         if not flagged[i] and not np.isclose(hole.sum() / max(int(meets.sum()), 1), u[i], rtol=0, atol=1e-12):
             raise RuntimeError(f"candidate {p}: U recomputed from the carved grid differs from the scorer's")
@@ -169,7 +170,7 @@ def replay(
     scored: list[dict[str, Any]] = []
     choose = policy.choose
     carved: dict[str, Any] = {}
-    carve = scorer_module.carved_space
+    carve = unseen_module.carved_space
 
     def capturing_carve(surfel_map: Any, poses: Any, intr: Any, lo_m: Any, hi_m: Any, ncfg: Any, *rest: Any) -> Any:
         carved.update(space=carve(surfel_map, poses, intr, lo_m, hi_m, ncfg, *rest), box=(lo_m, hi_m), cfg=ncfg)
@@ -197,7 +198,7 @@ def replay(
         return pick
 
     policy.choose = recording_choose  # type: ignore[method-assign]
-    scorer_module.carved_space = capturing_carve
+    unseen_module.carved_space = capturing_carve
 
     def record_candidates(_mapper: Any, _policy: Any, positions: list[int], _poses: Any) -> None:
         scored.append({"positions": list(positions)})
@@ -205,7 +206,7 @@ def replay(
     try:
         result = run_pool(setup.src, cfg, setup.mcfg, None, policy=policy, on_select=record_candidates)
     finally:
-        scorer_module.carved_space = carve
+        unseen_module.carved_space = carve
     chosen = [int(p) for p in result.metrics["chosen_positions"]]
     return chosen, scored
 

@@ -25,7 +25,6 @@ from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.scorer import (
     NBVResult,
     NBVScorer,
-    SurfaceFacing,
     block_mean,
     depth_error_ause,
     downsampled,
@@ -35,10 +34,10 @@ from roigsf_ros.nbv.scorer import (
     information_gain,
     inverse_denominators,
     rank_candidates,
-    surfels_facing,
     zscore,
 )
 from roigsf_ros.nbv.state import ScoringState
+from roigsf_ros.nbv.unseen import SurfaceFacing, surfels_facing
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS
 from roigsf_ros.render.numba_setup import numba_available
 from roigsf_ros.render.rasterize import camera_tensors, render_map

@@ -174,7 +174,7 @@ def test_carve_from_captured_carves_the_frames_depth_and_restores_the_scorer(
     from roigsf_ros.data.replica import ReplicaSequence
     from roigsf_ros.mapping.observed_space import ObservedSpace
     from roigsf_ros.nbv import NBVConfig
-    from roigsf_ros.nbv import scorer as scorer_module
+    from roigsf_ros.nbv import unseen as unseen_module
 
     cc = load_script("carve_from_captured")
     scene = bench.parent / "scene"
@@ -203,20 +203,20 @@ def test_carve_from_captured_carves_the_frames_depth_and_restores_the_scorer(
     with pytest.raises(InputError, match="no frame has the keyframe pose"):
         cc.captured_carver(scene, log)(None, moved, seq.intrinsics, lo, hi, cfg)
 
-    original = scorer_module.carved_space
+    original = unseen_module.carved_space
     args = ["--scene", str(scene), "--setting", "pool", "--seeds", "1", "--overwrite", "--set", "densify_stride=2",
             "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15", "--pool-set", "n_views=6",
             "--pool-set", "initial_iters=6", "--pool-set", "iters_per_view=2", "--pool-set", "mesh_samples=3000",
             "--policies", "roi-gsurfisher:unseen_weight=1:unseen_source=carved",
             "--out", str(tmp_path / "b")]  # fmt: skip
     assert cc.main(["--out", str(tmp_path / "calls.json"), "--", *args]) == 0
-    assert scorer_module.carved_space is original
+    assert unseen_module.carved_space is original
     report = json.loads((tmp_path / "calls.json").read_text())
     assert report["calls"] == 2 and report["max_pose_error"] == 0.0  # 6 views, 4 of them initial
     assert (tmp_path / "b" / "results.json").is_file()
     assert cc.main(["--out", str(tmp_path / "bad.json"), "--", "--scene", str(tmp_path / "nope"), "--setting",
                     "pool", "--policies", "random", "--out", str(tmp_path / "c")]) != 0  # fmt: skip
-    assert scorer_module.carved_space is original and not (tmp_path / "bad.json").exists()
+    assert unseen_module.carved_space is original and not (tmp_path / "bad.json").exists()
 
 
 def test_late_handover_picks_as_fisherrf_from_the_given_view_and_restores_the_policy(

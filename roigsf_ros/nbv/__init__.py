@@ -1,5 +1,5 @@
-"""Next-best-view scoring: the config, the view ROI, close-front, the scorer, the state kept between calls, and a
-captured frame's observed novelty (stream setting).
+"""Next-best-view scoring: the config, the view ROI, close-front, the scorer, the unseen term, the state kept between
+calls, and a captured frame's observed novelty (stream setting).
 """
 
 from roigsf_ros.core.exports import lazy_exports
@@ -35,19 +35,10 @@ __all__, __getattr__ = lazy_exports(
             "voxel_weight",
         ],
         "scorer": [
-            "KeyframeDepths",
             "NBVResult",
             "NBVScorer",
-            "ScoringStoppedError",
-            "ShouldStop",
-            "SurfaceFacing",
             "UncertaintyMaps",
             "block_mean",
-            "box_depths",
-            "box_exit_depth",
-            "carved_space",
-            "carved_unseen",
-            "check_stop",
             "depth_error_ause",
             "downsampled",
             "frustum_meets_box",
@@ -56,10 +47,8 @@ __all__, __getattr__ = lazy_exports(
             "information_gain",
             "inverse_denominators",
             "rank_candidates",
-            "rays_meet_box",
             "render_surfel_scalar",
             "surfel_variance",
-            "surfels_facing",
             "train_fisher",
             "zscore",
         ],
@@ -73,6 +62,19 @@ __all__, __getattr__ = lazy_exports(
             "match_surfels",
             "pose_keys",
             "running_h_train_fits",
+        ],
+        "stop": ["ScoringStoppedError", "ShouldStop", "check_stop"],
+        "unseen": [
+            "KeyframeDepths",
+            "SurfaceFacing",
+            "UnseenTerm",
+            "box_depths",
+            "box_exit_depth",
+            "carved_space",
+            "carved_unseen",
+            "rays_meet_box",
+            "surfels_facing",
+            "unseen_box",
         ],
         "warmup": [
             "SIGNATURES_PATH",

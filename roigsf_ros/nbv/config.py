@@ -130,7 +130,7 @@ class NBVConfig(Config):
     away (a surfel's normal faces the camera that seeded it, and keeps its side through the optimisation), which
     also holds for boards thinner than the TSDF's truncation; ``"unconfirmed"``: as ``"surfels"``, but not where a
     keyframe saw the pixel's point from this side, unoccluded in the map's render at the keyframe
-    (:class:`~roigsf_ros.nbv.scorer.KeyframeDepths`): a shell thinner than the mapper's ``densify_depth_margin_m``
+    (:class:`~roigsf_ros.nbv.unseen.KeyframeDepths`): a shell thinner than the mapper's ``densify_depth_margin_m``
     (the inside of a bowl) stays mapped by its outside's surfels however often it is seen from inside, and
     ``"surfels"`` calls it unseen forever; ``"none"``: alpha only (not "off", which ROS parameters and YAML read as
     false)."""

@@ -24,7 +24,8 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, ShouldStop, check_stop
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
+from roigsf_ros.nbv.stop import ShouldStop, check_stop
 from roigsf_ros.render.surfels import SurfelMap
 
 
@@ -169,7 +170,7 @@ class ScoringState:
     H_train does not fit, keep one with :class:`TrainFisherCache` (incremental, approximate; the planner) or,
     False, let the scorer recompute it exactly from the keyframe poses at every call (the offline policies).
     ``should_stop``: checked between units of work (a fused keyframe, a training view, a candidate); when it
-    turns true the call raises :class:`~roigsf_ros.nbv.scorer.ScoringStoppedError` (what was fused so far is kept).
+    turns true the call raises :class:`~roigsf_ros.nbv.stop.ScoringStoppedError` (what was fused so far is kept).
     """
 
     def __init__(

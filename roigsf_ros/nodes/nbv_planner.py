@@ -68,8 +68,9 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import CameraTopics, camera_info_to_intrinsics, stamp_to_ns
 from roigsf_ros.mapping.mapper import DEPTH_MODES, MapperConfig
 from roigsf_ros.nbv.config import MODES, NBVConfig
-from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, ScoringStoppedError
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
 from roigsf_ros.nbv.state import ScoringState
+from roigsf_ros.nbv.stop import ScoringStoppedError
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S
