@@ -599,6 +599,41 @@ def test_unseen_min_stretch_counts_long_unknown_stretches_and_those_from_the_box
             NBVConfig(**bad)
 
 
+def test_unseen_term_builds_only_what_its_settings_use_and_measures_the_scorers_u(world: World) -> None:
+    """nbv.unseen.UnseenTerm.build, once per scoring call: the box around the surface voxels (none with an infinite
+    margin); the carved grid only for ``unseen_source="carved"`` and a map that renders; the TSDF's normals only for
+    the map's render with back-face test "tsdf", the keyframes' renders only for "unconfirmed"; a plan only with
+    ``unseen_plan_views`` > 1. Its measure of each candidate is the U the scorer reports."""
+    from roigsf_ros.nbv.unseen import UnseenTerm, unseen_box
+
+    vox = NBVScorer().surface(world.tsdf)
+    size = world.tsdf.voxel_size_m
+
+    def build(surfel_map: SurfelMap = world.map, **kw: object) -> UnseenTerm:
+        return UnseenTerm.build(NBVConfig(unseen_weight=1.0, **kw), surfel_map, vox, size, world.train, INTR)
+
+    plain = build()
+    np.testing.assert_array_equal(np.stack(plain.box), np.stack(unseen_box(vox, plain.cfg)))
+    assert np.all(plain.box[0] < vox.centres_m.min(0)) and np.all(plain.box[1] > vox.centres_m.max(0))
+    assert (plain.space, plain.facing, plain.seen_by, plain.plan) == (None, None, None, None)
+    assert build(unseen_bbox_margin_m=float("inf")).box is None
+    assert build(unseen_backfaces="tsdf").facing is not None
+    seen_by = build(unseen_backfaces="unconfirmed").seen_by
+    assert seen_by is not None and len(seen_by.poses) == len(world.train)
+    carved = build(unseen_source="carved", unseen_backfaces="unconfirmed")
+    assert carved.space is not None and carved.seen_by is None and carved.plan is None
+    assert build(unseen_source="carved", unseen_plan_views=2).plan == {}
+    empty = SurfelMap.empty(dtype=world.map.dtype)
+    assert build(empty, unseen_source="carved").space is None
+    for kw in ({}, {"unseen_source": "carved"}, {"unseen_measure": "area"}):
+        cfg = NBVConfig(unseen_weight=1.0, **kw)
+        res = NBVScorer(cfg).score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR)
+        term = build(**kw)
+        intr_f = downsampled(INTR, cfg.fisher_downsample)
+        for i in range(len(world.candidates)):
+            assert term.measure(world.map, world.candidates[i], i, intr_f) == pytest.approx(res.unseen[i], abs=1e-12)
+
+
 def test_unseen_plan_views_scores_a_candidate_with_the_views_that_would_complete_it(world: World) -> None:
     """``unseen_plan_views``: with 1 the scorer's U is each candidate's carved pixel fraction; with 2 it is what the
     candidate and its best partner show together, built from the carved grid's entry cells of each view (the
