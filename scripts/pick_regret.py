@@ -250,12 +250,12 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
                 edges = s["fused"].copy()  # U_sf in place of U in the variant's score (the offline screen)
                 edges[ok] += s["w"] * (z(s["u_sf"][ok], s["min_std"]) - z(s["u"][ok], s["min_std"]))
                 extra |= {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
-                         "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
-                         "gain_of_edges": float(gain[int(np.argmax(np.where(ok, edges, -np.inf)))]),
-                         "rho_u_sf": uvg.rho(s["u_sf"][ok], gain[ok]),
-                         "pixels": s["counts"],
-                         "gain_split_pick": {c: float(v[s["pick"]]) for c, v in split.items()},
-                         "gain_split_best": {c: float(v[best]) for c, v in split.items()}}  # fmt: skip
+                          "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
+                          "gain_of_edges": float(gain[int(np.argmax(np.where(ok, edges, -np.inf)))]),
+                          "rho_u_sf": uvg.rho(s["u_sf"][ok], gain[ok]),
+                          "pixels": s["counts"],
+                          "gain_split_pick": {c: float(v[s["pick"]]) for c, v in split.items()},
+                          "gain_split_best": {c: float(v[best]) for c, v in split.items()}}  # fmt: skip
             picks.append(extra | {
                 "pick": k,
                 "candidates": len(rows),
