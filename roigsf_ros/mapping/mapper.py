@@ -134,8 +134,9 @@ class MapperConfig(Config):
     """Seed of the keyframe sampling."""
     device: str = "cpu"
     """Torch device of the map and the optimisation: "cpu" (numba kernels) or "cuda[:N]" (the plain-torch renderer;
-    tested on an H100 and an H200, but 1.2-3.0x slower per training step than the numba kernels on 2 CPU cores;
-    docs/measured-figures.md, CUDA)."""
+    tested on an H100 and an H200, but 1.2-3.0x slower per training step than the numba kernels on 2 CPU cores; the
+    kernels use every CPU, and on the H200 machine's 16 cores they rendered as fast as its GPU at 320x240 and faster at
+    160x120; docs/measured-figures.md, CUDA)."""
 
     def validate(self) -> MapperConfig:
         """Return self if every field is in range, else raise InputError naming the field."""
