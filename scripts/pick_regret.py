@@ -10,7 +10,9 @@ candidate's true depth observes within ``--tau`` that neither the initial views 
 has one. Reported per seed and pick: the gain of the pick, of argmax U (U alone) and the best gain, and Spearman's rho
 of U and of the fused score with the gain over the candidates not flagged; summed over picks, per seed and over the
 seeds. For a plain ``roi-gsurfisher`` fusion (no FisherRF term) it also screens rank fusion: the gain of the argmax of
-the fused score with each term's z-score taken over the candidates' ranks instead of their values.
+the fused score with each term's z-score taken over the candidates' ranks instead of their values. For any label it
+also screens pose diversity (:func:`pose_diversity`): the gain of the argmax of the fused score plus z(D), and of D
+alone, D being how far a candidate stands and looks from every view taken so far.
 
 With ``--pixels`` (a carved-space policy) it also asks whether U's pixels are the new ones: for each candidate, U* is
 the fraction of the pixels U counts (at the scorer's resolution, rays meeting the unseen term's box) whose true-depth
@@ -98,6 +100,22 @@ def rank_fused(s: dict[str, Any], ok: np.ndarray) -> np.ndarray:
     out[ok] = sum(c * z(rankdata(s[key][ok])) for c, key in
                   ((s["epsilon"], "fisher"), (s["delta"], "close_front"), (s["w"], "u")))  # fmt: skip
     return out
+
+
+def pool_scale(centres_m: np.ndarray) -> float:
+    """L (m): the median over ``centres_m`` [M, 3] (the pool's camera centres) of the distance to the nearest other."""
+    d, _ = cKDTree(centres_m).query(centres_m, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def pose_diversity(T_wc: np.ndarray, seen_T_wc: np.ndarray, scale_m: float) -> np.ndarray:
+    """D [M] of candidate poses ``T_wc`` [M, 4, 4] against the views so far ``seen_T_wc`` [K, 4, 4]: the minimum over
+    the views of ``|t_c - t_v| / scale_m + (1 - a_c . a_v)``, t the camera centre, a the optical axis (the diversity
+    screen: how far a candidate stands and looks from every view taken).
+    """
+    dist = np.linalg.norm(T_wc[:, None, :3, 3] - seen_T_wc[None, :, :3, 3], axis=2) / scale_m
+    turn = 1.0 - np.einsum("mi,ki->mk", T_wc[:, :3, 2], seen_T_wc[:, :3, 2])
+    return (dist + turn).min(axis=1)
 
 
 def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -222,13 +240,23 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
     if not bench_runs and seeds is None:
         raise InputError(bench / "results.json", f"no run labelled {label!r} (give --seeds to replay it anyway)")
     run_seeds = sorted(bench_runs) if seeds is None else seeds
-    out: dict[str, Any] = {"bench": str(bench), "label": label, "scene": results["scene"], "tau_m": tau_m, "seeds": []}
+    poses = np.asarray(setup.scene.poses, dtype=np.float64)
+    scale_m = pool_scale(poses[setup.split.pool, :3, 3])
+    out: dict[str, Any] = {
+        "bench": str(bench),
+        "label": label,
+        "scene": results["scene"],
+        "tau_m": tau_m,
+        "scale_m": scale_m,
+        "seeds": [],
+    }
     for seed in run_seeds:
         gt, obs, _n = pb.observed(setup, seed, tau_m)
         chosen, scored = replay(setup, seed, label, pixels, tau_m, gt)
         if seed in bench_runs and chosen != bench_runs[seed]:
             raise RuntimeError(f"seed {seed}: the replay chose {chosen}, the bench's run {bench_runs[seed]}")
         seen = obs[[setup.row_of[p] for p in setup.split.initial]].any(axis=0)
+        views = list(setup.split.initial)
         picks: list[dict[str, Any]] = []
         for k, s in enumerate(scored, start=1):
             rows = [setup.row_of[p] for p in s["positions"]]
@@ -238,6 +266,12 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
             extra: dict[str, Any] = {}
             if s["plain_fusion"]:
                 extra["gain_of_rank"] = float(gain[int(np.argmax(rank_fused(s, ok)))])
+            div = pose_diversity(poses[s["positions"]], poses[views], scale_m)
+            with_div = np.full(len(rows), -np.inf)  # the diversity screen: fused + 1 z(D)
+            with_div[ok] = s["fused"][ok] + scorer_module.zscore(div[ok], s["min_std"])
+            extra |= {"gain_of_div": float(gain[int(np.argmax(with_div))]),
+                      "gain_of_max_div": float(gain[int(np.argmax(np.where(ok, div, -np.inf)))]),
+                      "rho_div": uvg.rho(div[ok], gain[ok])}  # fmt: skip
             if pixels:
                 u_star = s["u_star"]
                 new = obs[rows] & ~seen
@@ -266,6 +300,7 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
                 "rho_fused": uvg.rho(s["fused"][ok], gain[ok]),
             })  # fmt: skip
             seen = seen | obs[rows[s["pick"]]]
+            views.append(s["positions"][s["pick"]])
         out["seeds"].append({"seed": seed, "chosen": chosen, "coverage": float(seen.mean()), "picks": picks})
     return out
 
@@ -316,6 +351,17 @@ def markdown(report: dict[str, Any]) -> str:
             sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
             g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_rank", "best_gain")]
             lines.append(f"| {lo}-{hi} | {' / '.join(f'{x:.4f}' for x in g)} |")
+    lines += ["", "Pose diversity D: each candidate's minimum over the views so far of |t_c - t_v| / L + "
+              f"(1 - a_c . a_v) (camera centres t, optical axes a; L = {report['scale_m']:.3f} m, the median "
+              "distance from a pool position to its nearest other); the gain of the argmax of the fused score plus "
+              "z(D) and of D alone (one step on this run's own views), summed over the picks and the seeds:", "",
+              "| picks | rho(D, gain) | gain of the pick / of argmax fused + z(D) / of argmax D / best |",
+              "|---|---|---|"]  # fmt: skip
+    for lo, hi in ((1, half), (half + 1, n), (1, n)):
+        sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+        g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_div", "gain_of_max_div", "best_gain")]
+        rho_d = float(np.nanmean([p["rho_div"] for p in sel]))
+        lines.append(f"| {lo}-{hi} | {rho_d:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
     if "rho_u_star" in seeds[0]["picks"][0]:
         lines += ["", "U* = the fraction of the pixels U counts whose true-depth point is new (farther than the "
                   "threshold from every point the views so far observe); U's unseen pixels against those, summed over "

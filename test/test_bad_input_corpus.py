@@ -423,6 +423,31 @@ def convert_with_rate_zero(w: World, tmp: Path) -> Outcome:
     return out
 
 
+def _bench_refused(w: World, tmp: Path, *args: str) -> Outcome:
+    run = tmp / "bench"
+    code, err = cli("bench", "--scene", str(w.scene), "--out", str(run), "--no-progress", *args)
+    out = Outcome(message=err if code == 2 else f"exit {code}: {err}")
+    if run.exists():
+        out.lost.append("a bench folder was left")
+    return out
+
+
+def bench_policy_value_a_word(w: World, tmp: Path) -> Outcome:
+    return _bench_refused(w, tmp, "--setting", "stream", "--policies", "random,roi-gsurfisher:window=abc")
+
+
+def bench_policy_flag_a_number(w: World, tmp: Path) -> Outcome:
+    return _bench_refused(w, tmp, "--setting", "stream", "--policies", "random:seed=true")
+
+
+def pool_bench_score_option_a_word(w: World, tmp: Path) -> Outcome:
+    return _bench_refused(w, tmp, "--setting", "pool", "--policies", "roi-gsurfisher:unseen_alpha=x")
+
+
+def pool_bench_pool_set_a_word(w: World, tmp: Path) -> Outcome:
+    return _bench_refused(w, tmp, "--setting", "pool", "--policies", "random", "--pool-set", "n_views=x")
+
+
 # ----------------------------------------------------------------------------------------- library: the player
 def player_for_a_topic_not_in_the_bag(w: World, tmp: Path) -> Outcome:
     overrides = [Parameter("bag", value=str(w.bag)), Parameter("topics", value=["/camera/imu"])]
@@ -745,6 +770,11 @@ CASES = [
     Case("demo run under a regular file", demo_into_a_path_under_a_file, ("a_regular_file",)),
     Case("save_map under a regular file", save_map_under_a_file, ("a_regular_file",)),
     Case("bag from-replica --rate 0", convert_with_rate_zero, ("--rate",)),
+    # policy and config values of the wrong type on the command line
+    Case("bench policy value a word", bench_policy_value_a_word, ("--policies", "window", "whole number", "'abc'")),
+    Case("bench policy seed a bool", bench_policy_flag_a_number, ("--policies", "seed", "whole number", "True")),
+    Case("pool score option a word", pool_bench_score_option_a_word, ("--policies", "unseen_alpha", "a number")),
+    Case("bench --pool-set a word", pool_bench_pool_set_a_word, ("--pool-set n_views", "'x'")),
     # the player's parameters
     Case("player topic not in the bag", player_for_a_topic_not_in_the_bag, ("/camera/imu", "not in the bag")),
     Case("player wait_for_subscribers -1", player_with_negative_subscriber_count, ("wait_for_subscribers",)),

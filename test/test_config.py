@@ -52,3 +52,45 @@ def test_yaml_equals_node_parameter_defaults(file: str, module: str, cls_name: s
     assert set(params) == set(declared)
     for name, value in declared.items():
         assert params[name] == (list(value) if isinstance(value, tuple | list) else value), name
+
+
+def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() -> None:
+    """A word, or a bool, where a number belongs is refused on construction naming the field (it once reached
+    ``int('abc')`` or a comparison of str and float, a traceback naming nothing); numpy scalars and a whole float for
+    an int pass, as values read from arrays and JSON do.
+    """
+    import numpy as np
+
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.experiments.pool import PoolConfig
+    from roigsf_ros.policies.base import make_policy
+
+    for cls, name, bad, words in [
+        (MapperConfig, "iters_per_keyframe", "x", "a whole number"),
+        (MapperConfig, "iters_per_keyframe", True, "a whole number"),
+        (MapperConfig, "iters_per_keyframe", 2.5, "a whole number"),
+        (NBVConfig, "unseen_alpha", "x", "a number"),  # was: '<' not supported between 'float' and 'str'
+        (NBVConfig, "top_k", "x", "a whole number"),  # was: invalid literal for int()
+        (NBVConfig, "mode", 3, "a string"),
+        (PoolConfig, "n_views", "20", "a whole number"),
+    ]:
+        with pytest.raises(InputError, match=f"^{name}: must be {words}, got {bad!r}$"):
+            cls(**{name: bad})
+    assert MapperConfig(iters_per_keyframe=np.int64(3), near_m=np.float32(0.25)).iters_per_keyframe == 3
+    assert MapperConfig(iters_per_keyframe=4.0).iters_per_keyframe == 4.0
+    assert NBVConfig(unseen_bbox_margin_m=np.inf).unseen_bbox_margin_m == np.inf
+    for name, params, field in [
+        ("roi-gsurfisher", {"window": "abc"}, "window"),  # was: invalid literal for int()
+        ("roi-gsurfisher", {"adaptive_ratio": "abc"}, "adaptive_ratio"),  # was: ufunc 'isfinite' not supported
+        ("random", {"seed": True}, "seed"),  # was: silently seed 1
+        ("every-n", {"n": "x"}, "n"),
+        ("gaus-slam", {"tau_k": "x"}, "tau_k"),
+        ("roi-gsurfisher", {"voxel_size_m": "x"}, "voxel_size_m"),  # was: accepted, failing at the first window
+    ]:
+        with pytest.raises(InputError, match=f"^{field}: must be "):
+            make_policy(name, **params)
+    with pytest.raises(InputError, match=r"^voxel_size_m: must be a finite number > 0 \(m\), got -1$"):
+        make_policy("roi-gsurfisher", voxel_size_m=-1)
+    with pytest.raises(InputError, match="policy 'roi-gsurfisher' takes no parameter"):
+        make_policy("roi-gsurfisher", windw=3)
+    assert make_policy("roi-gsurfisher", window=12.0, seed=np.int64(2)).window == 12

@@ -288,6 +288,7 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
         assert sum(p["gain_split_best"].values()) == pytest.approx(p["best_gain"], abs=1e-12)
         assert 0 <= p["gain_of_edges"] <= p["best_gain"]  # U_sf in place of U picks some candidate
         assert 0 <= p["gain_of_rank"] <= p["best_gain"]  # the rank fusion rebuilt the scorer's fusion (else raises)
+        assert 0 <= p["gain_of_div"] <= p["best_gain"] and 0 <= p["gain_of_max_div"] <= p["best_gain"]
     results = json.loads((bench / "results.json").read_text())
     wrong = {"label": label, "seed": 1, "chosen_positions": s["chosen"][:4] + s["chosen"][:3:-1], "metrics": {}}
     other = tmp_path / "other"
@@ -328,3 +329,23 @@ def test_rank_fusion_lets_no_one_term_outvote_the_others_and_checks_the_fusion_i
     assert int(np.argmax(ranked)) == 1 and ranked[8] == -np.inf and np.isfinite(ranked[ok]).all()
     with pytest.raises(RuntimeError, match="not epsilon"):
         pr.rank_fused(s | {"w": 2.0}, ok)
+
+
+def test_pose_diversity_is_the_nearest_view_in_distance_over_the_pool_scale_plus_the_turn() -> None:
+    """pick_regret.pose_diversity: a candidate at a taken view scores 0; one 2 L away looking the same way scores 2;
+    one at a view turned by 90 degrees scores 1 (1 - cos); the minimum over the views decides. pool_scale is the median
+    nearest-neighbour distance of the positions."""
+    pr = load_script("pick_regret")
+
+    def pose(x: float, yaw_deg: float) -> np.ndarray:
+        t = np.deg2rad(yaw_deg)
+        T = np.eye(4)
+        T[:3, :3] = [[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]]  # optical axis (sin, 0, cos)
+        T[0, 3] = x
+        return T
+
+    seen = np.stack([pose(0.0, 0.0), pose(10.0, 0.0)])
+    cands = np.stack([pose(0.0, 0.0), pose(1.0, 0.0), pose(10.0, 90.0), pose(5.0, 180.0)])
+    d = pr.pose_diversity(cands, seen, 0.5)
+    assert d == pytest.approx([0.0, 2.0, 1.0, 10.0 + 2.0])
+    assert pr.pool_scale(np.array([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [7.0, 0, 0]])) == pytest.approx(1.5)

@@ -92,7 +92,7 @@ def parse_overrides(
             except ValueError:
                 raise InputError(f"{flag} {name}", f"cannot parse {text!r} as numbers") from None
         else:
-            out[name] = parse_set_value(name, text.strip(), default)
+            out[name] = parse_set_value(name, text.strip(), default, flag)
     return out
 
 

@@ -87,8 +87,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_set_value(name: str, text: str, default: object) -> object:
-    """A config value of ``default``'s type from the command line."""
+def parse_set_value(name: str, text: str, default: object, flag: str = "--set") -> object:
+    """A config value of ``default``'s type from the command line option ``flag``."""
     try:
         if isinstance(default, bool):
             if text.lower() not in ("1", "0", "true", "false", "yes", "no"):
@@ -98,7 +98,7 @@ def parse_set_value(name: str, text: str, default: object) -> object:
             return tuple(v.strip() for v in text.split(",") if v.strip())
         return type(default)(text)
     except ValueError:
-        raise InputError(f"--set {name}", f"cannot parse {text!r} as {type(default).__name__}") from None
+        raise InputError(f"{flag} {name}", f"cannot parse {text!r} as {type(default).__name__}") from None
 
 
 def config_from_args(args: argparse.Namespace) -> MapperConfig:

@@ -6,11 +6,51 @@ and a key of ``config/*.yaml``; ``from_dict`` takes such a mapping, ``to_dict`` 
 
 from __future__ import annotations
 
+import numbers
+import types
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Self
+from typing import Any, Self, Union, get_args, get_origin, get_type_hints
+
+import numpy as np
 
 from roigsf_ros.core.errors import InputError
+
+_WORDS = {int: "a whole number", float: "a number", str: "a string"}
+
+
+def _kinds(annotation: Any) -> tuple[Any, ...]:
+    """The types a (possibly union) ``annotation`` names."""
+    return get_args(annotation) if get_origin(annotation) in (Union, types.UnionType) else (annotation,)
+
+
+def fits_annotation(value: Any, annotation: Any) -> bool:
+    """Whether ``value`` has the type ``annotation`` names, for the kinds a text or a ROS parameter can get wrong:
+    ``int`` takes a whole number, ``float`` any number (neither takes a bool: ``true`` is no window size), ``str`` a
+    string, ``X | None`` also None. An annotation of other kinds (``bool``, ``Any``, a tuple of names) is not checked
+    here: each config or policy checks those itself.
+    """
+    kinds = _kinds(annotation)
+    if value is None:
+        return type(None) in kinds or not all(k in _WORDS or k is type(None) for k in kinds)
+    checked = [k for k in kinds if k in _WORDS]
+    if len(checked) < len([k for k in kinds if k is not type(None)]):
+        return True
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+    return any(
+        (k is str and isinstance(value, str))
+        or (k is float and number)
+        or (k is int and number and float(value).is_integer())
+        for k in checked
+    )
+
+
+def annotation_words(annotation: Any) -> str:
+    """What a field of ``annotation`` takes, in words (``a whole number``), for an error naming the field."""
+    words = [_WORDS[k] for k in _kinds(annotation) if k in _WORDS]
+    if type(None) in _kinds(annotation):
+        words.append("none")
+    return " or ".join(words)
 
 
 @dataclass(frozen=True)
@@ -18,6 +58,11 @@ class Config:
     """Base class: subclasses are ``@dataclass(frozen=True)`` and check their fields in :meth:`validate`."""
 
     def __post_init__(self) -> None:
+        hints = get_type_hints(type(self))
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not fits_annotation(value, hints[f.name]):
+                raise InputError(f.name, f"must be {annotation_words(hints[f.name])}, got {value!r}")
         self.validate()
 
     def validate(self) -> Self:
@@ -38,4 +83,4 @@ class Config:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
 
-__all__ = ["Config"]
+__all__ = ["Config", "annotation_words", "fits_annotation"]

@@ -148,7 +148,10 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
             )
         if setting == "pool":
             check_pool_params(params)
-        make_policy(name, **params)  # unknown or out-of-range parameters fail here, before any work
+        try:  # unknown, mistyped or out-of-range parameters fail here, before any work
+            make_policy(name, **params)
+        except InputError as e:
+            raise InputError("--policies", f"{item!r}: {e}") from e
         specs.append(PolicySpec(name=name, params=params, label=item))
     labels = [s.label for s in specs]
     dup = sorted({x for x in labels if labels.count(x) > 1})

@@ -65,6 +65,10 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
+_KIND_WORDS = {int: "an int", float: "a float", str: "a string", bool: "a bool", list: "a list"}
+"""How :func:`declare`'s error names a parameter's type."""
+
+
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
     """Declare one parameter with a default and a description; returns its (possibly overridden) value."""
     value = list(default) if isinstance(default, tuple) else default
@@ -72,9 +76,9 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
         return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
     except InvalidParameterTypeException as exc:  # e.g. `-p near_m:=0`: an int where the default is a float
         hint = " (write a float with a point, e.g. 0.0)" if isinstance(default, float) else ""
+        kind = _KIND_WORDS.get(type(default), f"a {type(default).__name__}")
         raise InputError(
-            f"parameter '{node.get_name()}.{name}'",
-            f"must be a {type(default).__name__} like its default {default!r}{hint}; {exc}",
+            f"parameter '{node.get_name()}.{name}'", f"must be {kind} like its default {default!r}{hint}; {exc}"
         ) from None
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from torch import Tensor
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.config import annotation_words, fits_annotation
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.mapper import MapperConfig
@@ -105,15 +106,24 @@ def policy_names() -> list[str]:
 
 
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
-    """A policy by registered name; ``None``-valued params are dropped, unknown ones are an InputError."""
+    """A policy by registered name; ``None``-valued params are dropped; an unknown one, or a value not of its
+    parameter's type (a word for a number, say), is an InputError naming the parameter, before the constructor runs.
+    """
     if name not in _REGISTRY:
         raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
     factory = _REGISTRY[name]
     given = {k: v for k, v in params.items() if v is not None}
-    sig = inspect.signature(factory).parameters
+    sig = inspect.signature(factory, eval_str=True).parameters
     extra = sorted(set(given) - set(sig))
     if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
         raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
+    for key, value in given.items():
+        if (
+            key in sig
+            and sig[key].kind is not inspect.Parameter.VAR_KEYWORD
+            and not fits_annotation(value, sig[key].annotation)
+        ):
+            raise InputError(key, f"must be {annotation_words(sig[key].annotation)}, got {value!r}")
     return factory(**given)
 
 

@@ -219,6 +219,9 @@ class StreamNBVPolicy(KeyframePolicy):
         self.novelty_measure = novelty_measure
         self.novelty_voxel_m = float(novelty_voxel_m)
         self.novelty_radius_m = float(novelty_radius_m)
+        for name, v in (("voxel_size_m", voxel_size_m), ("sdf_trunc_m", sdf_trunc_m)):
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise InputError(name, f"must be a finite number > 0 (m), got {v!r}")
         if min_alpha is not None and not 0.0 <= float(min_alpha) <= 1.0:
             raise InputError("min_alpha", f"must be in [0, 1], got {min_alpha}")
         if trigger not in TRIGGERS:
@@ -253,7 +256,7 @@ class StreamNBVPolicy(KeyframePolicy):
                "phi": phi, "near_m": near_m, "far_m": far_m}  # fmt: skip
         unknown = sorted(set(nbv_options) - {f.name for f in fields(NBVConfig)} | ({"mode"} & set(nbv_options)))
         if unknown:
-            raise InputError("--policy", f"policy takes no parameter(s) {', '.join(unknown)}")
+            raise InputError("--policy", f"policy {self.name!r} takes no parameter(s) {', '.join(unknown)}")
         nbv |= nbv_options
         self._nbv_overrides = {k: v for k, v in nbv.items() if v is not None}
         self.config = NBVConfig(mode=self.mode or "roi-gsurfisher", **self._nbv_overrides)
