@@ -71,7 +71,6 @@ def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() ->
         (MapperConfig, "iters_per_keyframe", 2.5, "a whole number"),
         (NBVConfig, "unseen_alpha", "x", "a number"),  # was: '<' not supported between 'float' and 'str'
         (NBVConfig, "top_k", "x", "a whole number"),  # was: invalid literal for int()
-        (NBVConfig, "mode", 3, "a string"),
         (PoolConfig, "n_views", "20", "a whole number"),
     ]:
         with pytest.raises(InputError, match=f"^{name}: must be {words}, got {bad!r}$"):

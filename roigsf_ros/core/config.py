@@ -6,6 +6,7 @@ and a key of ``config/*.yaml``; ``from_dict`` takes such a mapping, ``to_dict`` 
 
 from __future__ import annotations
 
+import functools
 import numbers
 import types
 from collections.abc import Mapping
@@ -16,7 +17,7 @@ import numpy as np
 
 from roigsf_ros.core.errors import InputError
 
-_WORDS = {int: "a whole number", float: "a number", str: "a string"}
+_WORDS = {int: "a whole number", float: "a number"}
 
 
 def _kinds(annotation: Any) -> tuple[Any, ...]:
@@ -25,10 +26,10 @@ def _kinds(annotation: Any) -> tuple[Any, ...]:
 
 
 def fits_annotation(value: Any, annotation: Any) -> bool:
-    """Whether ``value`` has the type ``annotation`` names, for the kinds a text or a ROS parameter can get wrong:
-    ``int`` takes a whole number, ``float`` any number (neither takes a bool: ``true`` is no window size), ``str`` a
-    string, ``X | None`` also None. An annotation of other kinds (``bool``, ``Any``, a tuple of names) is not checked
-    here: each config or policy checks those itself.
+    """Whether ``value`` has the type ``annotation`` names, for numbers, which a command line can give as words:
+    ``int`` takes a whole number, ``float`` any number (neither takes a bool: ``true`` is no window size), ``X | None``
+    also None. Other annotations (``str``, ``bool``, ``Any``, a tuple of names) are not checked here: each config or
+    policy checks those itself, where its error can list the choices.
     """
     kinds = _kinds(annotation)
     if value is None:
@@ -37,12 +38,7 @@ def fits_annotation(value: Any, annotation: Any) -> bool:
     if len(checked) < len([k for k in kinds if k is not type(None)]):
         return True
     number = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
-    return any(
-        (k is str and isinstance(value, str))
-        or (k is float and number)
-        or (k is int and number and float(value).is_integer())
-        for k in checked
-    )
+    return any((k is float and number) or (k is int and number and float(value).is_integer()) for k in checked)
 
 
 def annotation_words(annotation: Any) -> str:
@@ -53,12 +49,21 @@ def annotation_words(annotation: Any) -> str:
     return " or ".join(words)
 
 
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    """A config class's field annotations, resolved once per class."""
+    return get_type_hints(cls)
+
+
 @dataclass(frozen=True)
 class Config:
-    """Base class: subclasses are ``@dataclass(frozen=True)`` and check their fields in :meth:`validate`."""
+    """Base class: subclasses are ``@dataclass(frozen=True)`` and check their fields' ranges in :meth:`validate`; the
+    base checks every field's type against its annotation first (:func:`fits_annotation`), so a word where a number
+    belongs is an InputError naming the field, not a TypeError inside a comparison.
+    """
 
     def __post_init__(self) -> None:
-        hints = get_type_hints(type(self))
+        hints = _field_types(type(self))
         for f in fields(self):
             value = getattr(self, f.name)
             if not fits_annotation(value, hints[f.name]):
