@@ -162,6 +162,40 @@ def test_bad_bench_folders_are_refused_naming_the_file(tmp_path: Path) -> None:
     (cut / "results.json").write_text(json.dumps(res))
     with pytest.raises(InputError, match="policy 'variant' has no summary of 'recall@5cm'"):
         pool_target(load_policy(f"{cut}#variant"), [load_policy(f"{both}#fisherrf")])
+    # hand-edited or foreign results: each refused naming the file and the field, never judged on what is left
+    good = json.loads((both / "results.json").read_text())
+    good["runs"] = [{"label": "variant", "seed": s, "metrics": {"recall@5cm": 0.985}} for s in (0, 1, 2)]
+    for change, field in [
+        ({"setting": "bogus"}, r"field 'setting' is 'bogus', not one of stream, pool"),
+        ({"summary.mean": "x"}, r"field 'summary\.variant\.recall@5cm\.mean' must be a finite number, got 'x'"),
+        ({"summary.mean": float("nan")}, r"field 'summary\.variant\.recall@5cm\.mean' must be a finite number"),
+        ({"summary.std": None}, r"field 'summary\.variant\.recall@5cm\.std' must be a finite number >= 0, got None"),
+        ({"summary.std": -0.1}, r"field 'summary\.variant\.recall@5cm\.std' must be a finite number >= 0"),
+        ({"run.metrics": "x"}, r"field 'runs\[1\]\.metrics' is not an object"),
+        ({"run.value": "x"}, r"field 'runs\[1\]\.metrics\.recall@5cm' must be a finite number, got 'x'"),
+        ({"run.value": float("inf")}, r"field 'runs\[1\]\.metrics\.recall@5cm' must be a finite number, got inf"),
+    ]:
+        res = json.loads(json.dumps(good))
+        ((key, value),) = change.items()
+        if key == "setting":
+            res["setting"] = value
+        elif key.startswith("summary."):
+            res["summary"]["variant"]["recall@5cm"][key.split(".")[1]] = value
+        elif key == "run.metrics":
+            res["runs"][1]["metrics"] = value
+        else:
+            res["runs"][1]["metrics"]["recall@5cm"] = value
+        (cut / "results.json").write_text(json.dumps(res))
+        with pytest.raises(InputError, match=f"cut/results.json: {field}"):
+            variant = load_policy(f"{cut}#variant")
+            variant.stat("recall@5cm")
+            variant.per_seed("recall@5cm")
+    (cut / "results.json").write_text(json.dumps(good))
+    assert load_policy(f"{cut}#variant").per_seed("recall@5cm") == {0: 0.985, 1: 0.985, 2: 0.985}
+    from roigsf_ros.experiments.bench import SETTINGS
+    from roigsf_ros.experiments.targets import BENCH_SETTINGS
+
+    assert set(BENCH_SETTINGS) == set(SETTINGS)
 
 
 def test_cli_prints_the_table_writes_json_and_fails_only_when_asked(

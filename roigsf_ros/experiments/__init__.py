@@ -42,6 +42,7 @@ __all__, __getattr__ = lazy_exports(
         ],
         "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "write_report"],
         "targets": [
+            "BENCH_SETTINGS",
             "MUST_MATCH",
             "POOL_METRICS",
             "POOL_PSNR_MARGIN_DB",

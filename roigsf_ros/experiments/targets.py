@@ -20,6 +20,7 @@ verdict, so a comparison across mappers is never mistaken for a like-for-like on
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +42,10 @@ STREAM_RECALL_MARGIN = 0.01
 
 STREAM_MAX_KEYFRAME_RATIO = 0.2
 """Stream: the most keyframes the candidate may keep, as a share of the reference's."""
+
+BENCH_SETTINGS = ("stream", "pool")
+"""The settings a bench runs in: :data:`roigsf_ros.experiments.bench.SETTINGS`, named here without importing the bench
+(and torch) into ``roigsf targets``."""
 
 MUST_MATCH = ("setting", "scene", "size", "stride", "max_frames", "n_frames", "seeds")
 """results.json fields that must be equal for two policies to be compared at all."""
@@ -66,22 +71,48 @@ class PolicyResults:
     summary: dict[str, dict[str, float]] = field(repr=False)
 
     def stat(self, key: str) -> tuple[float, float]:
-        """(mean, population std) of ``key`` over the seeds; InputError naming the file if the bench lacks it."""
+        """(mean, population std) of ``key`` over the seeds; InputError naming the file and field if the bench lacks
+        it or holds a mean or std that is no finite number (a std left out counts as 0: a bench of one seed).
+        """
+        path = self.source / "results.json"
         row = self.summary.get(key)
-        if not isinstance(row, dict) or not isinstance(row.get("mean"), (int, float)):
-            raise InputError(self.source / "results.json", f"policy {self.label!r} has no summary of {key!r}")
-        return float(row["mean"]), float(row.get("std") or 0.0)
+        if not isinstance(row, dict) or "mean" not in row:
+            raise InputError(path, f"policy {self.label!r} has no summary of {key!r}")
+        for part in ("mean", "std"):
+            value = row.get(part, 0.0)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+                or (part == "std" and value < 0)
+            ):
+                need = "a finite number >= 0" if part == "std" else "a finite number"
+                raise InputError(path, f"field 'summary.{self.label}.{key}.{part}' must be {need}, got {value!r}")
+        return float(row["mean"]), float(row.get("std", 0.0))
 
     def per_seed(self, key: str) -> dict[int, float]:
-        """``key`` of each of this policy's runs, by seed (empty when the bench kept no runs)."""
+        """``key`` of each of this policy's runs, by seed (empty when the bench kept no runs; a run without ``key``,
+        or with None, is left out, as the bench's summary leaves it out). A run of this policy whose metrics are not an
+        object, or whose ``key`` is no finite number, is an InputError naming the file and the run: dropping it would
+        judge on fewer seeds than the bench ran.
+        """
         out = {}
         runs = self.bench.get("runs")
-        for run in runs if isinstance(runs, list) else []:
+        for i, run in enumerate(runs if isinstance(runs, list) else []):
             if not isinstance(run, dict) or run.get("label") != self.label or not isinstance(run.get("seed"), int):
                 continue
-            value = run["metrics"].get(key) if isinstance(run.get("metrics"), dict) else None
-            if isinstance(value, (int, float)):
-                out[run["seed"]] = float(value)
+            metrics = run.get("metrics")
+            if not isinstance(metrics, dict):
+                raise InputError(self.source / "results.json", f"field 'runs[{i}].metrics' is not an object")
+            if metrics.get(key) is None:  # as the bench's summary: a metric the run did not measure
+                continue
+            value = metrics[key]
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise InputError(
+                    self.source / "results.json",
+                    f"field 'runs[{i}].metrics.{key}' must be a finite number, got {value!r}",
+                )
+            out[run["seed"]] = float(value)
         return out
 
     @property
@@ -210,6 +241,8 @@ def load_policy(spec: str | Path) -> PolicyResults:
     for key in MUST_MATCH:
         if key not in bench:
             raise InputError(path, f"field {key!r} is missing")
+    if bench["setting"] not in BENCH_SETTINGS:
+        raise InputError(path, f"field 'setting' is {bench['setting']!r}, not one of {', '.join(BENCH_SETTINGS)}")
     if label is None:
         if len(summary) != 1:
             raise InputError(path, f"holds {len(summary)} policies; name one as {folder}#LABEL, one of {list(summary)}")
@@ -464,6 +497,7 @@ def stream_target(
 
 
 __all__ = [
+    "BENCH_SETTINGS",
     "MUST_MATCH",
     "POOL_METRICS",
     "POOL_PSNR_MARGIN_DB",
