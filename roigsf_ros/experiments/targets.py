@@ -61,6 +61,11 @@ VIEW_METRICS = ("recall@5cm", "fscore@5cm", "psnr")
 (``mesh_checkpoints``), and ``psnr``, the test PSNR measured after every view."""
 
 
+def _finite_number(value: Any) -> bool:
+    """Whether a value read from results.json is a finite number (not a bool, a string, None, NaN or inf)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 @dataclass(frozen=True)
 class PolicyResults:
     """One policy's summary (mean, std over seeds per metric) from one bench folder, with what it was run on."""
@@ -80,12 +85,7 @@ class PolicyResults:
             raise InputError(path, f"policy {self.label!r} has no summary of {key!r}")
         for part in ("mean", "std"):
             value = row.get(part, 0.0)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not math.isfinite(value)
-                or (part == "std" and value < 0)
-            ):
+            if not _finite_number(value) or (part == "std" and value < 0):
                 need = "a finite number >= 0" if part == "std" else "a finite number"
                 raise InputError(path, f"field 'summary.{self.label}.{key}.{part}' must be {need}, got {value!r}")
         return float(row["mean"]), float(row.get("std", 0.0))
@@ -107,7 +107,7 @@ class PolicyResults:
             if metrics.get(key) is None:  # as the bench's summary: a metric the run did not measure
                 continue
             value = metrics[key]
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            if not _finite_number(value):
                 raise InputError(
                     self.source / "results.json",
                     f"field 'runs[{i}].metrics.{key}' must be a finite number, got {value!r}",
