@@ -180,7 +180,17 @@ def test_bad_input_is_masked_skipped_or_refused(frames: list[Frame], caplog: pyt
         mapper.add_keyframe(Frame(index=16, rgb=f0.rgb[:20], depth_m=f0.depth_m[:20], T_wc=f0.T_wc))
     with pytest.raises(InputError, match="rigid"):
         mapper.render(sheared)
-    assert mapper.n_surfels == n
+    # Colour as floats is [0, 1]: a 0-255 image given as floats would be clipped to white, so it is refused, as is an
+    # integer type other than uint8 (a uint16 image); floats in [0, 1] are taken.
+    rgb_255 = f0.rgb.astype(np.float32)
+    with pytest.raises(InputError, match=r"frame 17: colour floats reach 2\d\d: floats must be in \[0, 1\]"):
+        mapper.add_keyframe(Frame(index=17, rgb=rgb_255, depth_m=f0.depth_m, T_wc=f0.T_wc))
+    with pytest.raises(InputError, match="frame 18: colour has dtype uint16"):
+        mapper.add_keyframe(Frame(index=18, rgb=f0.rgb.astype(np.uint16), depth_m=f0.depth_m, T_wc=f0.T_wc))
+    assert mapper.n_surfels == n and len(mapper.keyframes) == 1
+    fresh = Mapper(INTR, small_config(iters_per_keyframe=1))
+    assert fresh.add_keyframe(Frame(index=19, rgb=rgb_255 / 255.0, depth_m=f0.depth_m, T_wc=f0.T_wc))
+    assert torch.equal(fresh.keyframes[0].rgb_u8.cpu(), torch.from_numpy(f0.rgb))
 
     # A step whose loss is not finite is skipped and counted; no NaN reaches the map.
     before = {k: t.clone() for k, t in mapper.map.named_parameters().items()}

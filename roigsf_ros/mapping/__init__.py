@@ -17,6 +17,7 @@ __all__, __getattr__ = lazy_exports(
             "ssim_map",
         ],
         "mapper": [
+            "COLOUR_FLOAT_MAX",
             "DEPTH_MODES",
             "Keyframe",
             "MapMeta",

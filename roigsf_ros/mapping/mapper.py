@@ -39,6 +39,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DEPTH_MODES = ("expected", "median")
+
+COLOUR_FLOAT_MAX = 1.001
+"""The most a float colour value may be: floats are [0, 1] (a little over 1 is clipped, as noise may reach it); more is
+an image in 0-255 given as floats, refused rather than clipped to white."""
 """Rendered depth used for evaluation or meshing: alpha-normalised expected depth, or median depth."""
 
 
@@ -455,7 +459,12 @@ class Mapper:
         if depth.shape != (h, w):
             raise InputError(where, f"depth has shape {depth.shape}, expected ({h}, {w}) for the intrinsics")
         if rgb.dtype != np.uint8:
+            if not np.issubdtype(rgb.dtype, np.floating):
+                raise InputError(where, f"colour has dtype {rgb.dtype}: give uint8 (0-255) or floats in [0, 1]")
             rgb_f = rgb.astype(np.float64)
+            top = float(rgb_f[np.isfinite(rgb_f)].max(initial=0.0))
+            if top > COLOUR_FLOAT_MAX:  # a 0-255 image as floats would be clipped to white, silently
+                raise InputError(where, f"colour floats reach {top:g}: floats must be in [0, 1] (0-255: give uint8)")
             bad = ~np.isfinite(rgb_f).all(-1)
             if bad.any():
                 self.stats.invalid_colour_pixels += int(bad.sum())
@@ -973,6 +982,7 @@ def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
 
 
 __all__ = [
+    "COLOUR_FLOAT_MAX",
     "DEPTH_MODES",
     "Keyframe",
     "MapMeta",
