@@ -39,11 +39,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DEPTH_MODES = ("expected", "median")
+"""Rendered depth used for evaluation or meshing: alpha-normalised expected depth, or median depth."""
 
 COLOUR_FLOAT_MAX = 1.001
 """The most a float colour value may be: floats are [0, 1] (a little over 1 is clipped, as noise may reach it); more is
 an image in 0-255 given as floats, refused rather than clipped to white."""
-"""Rendered depth used for evaluation or meshing: alpha-normalised expected depth, or median depth."""
 
 
 @dataclass(frozen=True)
