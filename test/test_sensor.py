@@ -291,7 +291,9 @@ def test_cli_sensor_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert main([*base, "--out", str(tmp_path / "b"), "--sensor", "kinect", "--sensor-set", "nope=1"]) == 2
     assert main([*base, "--out", str(tmp_path / "c"), "--sensor", "kinect", "--sensor-set", "dropout_prob=2"]) == 2
     assert "dropout_prob" in capsys.readouterr().err
-    assert not any((tmp_path / n).exists() for n in "abc")
+    assert main([*base, "--out", str(tmp_path / "e"), "--sensor", "kinect", "--sensor-set", "dropout_prob=x"]) == 2
+    assert "--sensor-set dropout_prob: cannot parse 'x'" in capsys.readouterr().err  # the option given, not --set
+    assert not any((tmp_path / n).exists() for n in "abce")
     out = tmp_path / "d"
     assert main([*base, "--out", str(out), "--sensor", "kinect", "--sensor-set", "drift_trans_m_per_sqrt_m=0.02"]) == 0
     info = json.loads((out / "render.json").read_text())["sensor"]

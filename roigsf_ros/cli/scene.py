@@ -53,7 +53,7 @@ def _sensor(args: argparse.Namespace) -> SensorModel | None:
         name = name.strip()
         if not sep or name not in defaults:
             raise InputError(f"--sensor-set {item}", "expected NAME=VALUE with NAME a SensorConfig field")
-        overrides[name] = parse_set_value(name, text.strip(), defaults[name])
+        overrides[name] = parse_set_value(name, text.strip(), defaults[name], "--sensor-set")
     return SensorModel.named(args.sensor, seed=args.sensor_seed, **overrides)
 
 
