@@ -82,6 +82,10 @@
 # Forty-first session: TAG=rf41 POLICIES="$C:fisherrf_weight=1" with SCENES=shelf, then SCALE=2 SCENES=room5 (the
 # tuning scenes; it lost there, so nothing else); and TAG=held41 with the held31 policies, SCALE=2 SCENES=office0
 # OFFSET=15 (one more pool nothing was chosen on; 19 min).
+# Forty-sixth session, on a fresh machine: TAG=base46 POLICIES="$C" with SCENES=shelf, then SCALE=2 SCENES=room5 (the
+# variant again, for scripts/pick_regret.py; 2.6 and 6 min), then TAG=rays46
+# POLICIES="roi-gsurfisher:epsilon=0:delta=0:unseen_weight=1:unseen_source=carved:unseen_measure=rays" with the same two
+# (the unseen term alone, counted in unknown cells per ray; 1.5 and 3.7 min; it lost there, so nothing else).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

@@ -22,8 +22,9 @@ through, summed over each pick's candidates; U is recomputed from the scorer's c
 scorer's value. It also splits each pick's gain, and the best candidate's, by where the gained GT samples lie in the
 carved grid that pick was scored on (:func:`sample_classes`): on surface the grid holds, in unknown space, in carved
 free space, outside the box; and screens U_sf, the unseen pixels whose unknown stretch begins next to an occupied cell
-(where observed surface ends), by the gain of the argmax of the fused score with U_sf in place of U at each pick. Writes
-``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
+(where observed surface ends), and U_ray, U with each unseen pixel weighed by its unknown stretch's length in cells
+(the volumetric information gain's unknown voxels per ray), each by the gain of the argmax of the fused score with it
+in place of U at each pick. Writes ``pick_regret.json`` and ``.md`` under ``--out`` (atomically) and prints the table.
 
     .venv/bin/python scripts/pick_regret.py runs/bench_pool_room5_240_base36 --out runs/s42/px_room5 --pixels
 """
@@ -126,10 +127,11 @@ def true_points(setup: Any, position: int, lo_m: float, hi_m: float) -> tuple[np
 def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, box: Any, cfg: Any,
                 u: np.ndarray, flagged: np.ndarray, tau_m: float,
                 gt_w: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
-    """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), U's pixel confusion, and
-    U_sf: the fraction of the counted pixels that are unseen and whose unknown stretch begins within one cell of an
-    occupied cell (where observed surface ends: surface-edge exploration); with ``gt_w`` [N, 3], the GT samples'
-    :func:`sample_classes` in this grid.
+    """U* of each candidate at ``positions`` given the views ``seen`` (scene positions), U's pixel confusion, U_sf:
+    the fraction of the counted pixels that are unseen and whose unknown stretch begins within one cell of an occupied
+    cell (where observed surface ends: surface-edge exploration), and U_ray: U with each unseen pixel weighed by the
+    length of its unknown stretch in cells (the volumetric gain's unknown voxels per ray); with ``gt_w`` [N, 3], the GT
+    samples' :func:`sample_classes` in this grid.
     """
     lo, hi = max(setup.mcfg.min_depth_m, setup.mcfg.near_m), setup.mcfg.max_depth_m
     held_grid = near_occupied(space)
@@ -138,6 +140,7 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
     intr = setup.scene.intr
     u_star = np.zeros(len(positions))
     u_sf = np.zeros(len(positions))
+    u_ray = np.zeros(len(positions))
     counts = {"true_unseen": 0, "false_unseen": 0, "missed_new": 0, "seen_seen": 0, "no_depth": 0}
     stretch = {
         "true_unseen": np.zeros(len(STRETCH_BINS) - 1, dtype=np.int64),
@@ -165,12 +168,14 @@ def pixel_truth(setup: Any, positions: list[int], seen: list[int], space: Any, b
         counts["seen_seen"] += int((~hole & ~new & known).sum())
         counts["no_depth"] += int((meets & ~valid).sum())
         cells = (leave - enter) / space.voxel_m  # the unknown stretch's length along z, in cells
+        u_ray[i] = cells[hole].sum() / max(int(meets.sum()), 1)
         for key, mask in (("true_unseen", hole & new & known), ("false_unseen", hole & ~new & known)):
             stretch[key] += np.histogram(cells[mask], bins=STRETCH_BINS)[0]
     return {
         **({} if gt_w is None else {"classes": sample_classes(space, held_grid, gt_w)}),
         "u_star": u_star,
         "u_sf": u_sf,
+        "u_ray": u_ray,
         "counts": counts | {f"stretch_{k}": v.tolist() for k, v in stretch.items()},
     }
 
@@ -283,10 +288,15 @@ def measure(bench: Path, label: str, seeds: list[int] | None, tau_m: float, pixe
                 z = scorer_module.zscore
                 edges = s["fused"].copy()  # U_sf in place of U in the variant's score (the offline screen)
                 edges[ok] += s["w"] * (z(s["u_sf"][ok], s["min_std"]) - z(s["u"][ok], s["min_std"]))
+                rays = s["fused"].copy()  # U_ray in place of U (the volumetric-gain screen)
+                rays[ok] += s["w"] * (z(s["u_ray"][ok], s["min_std"]) - z(s["u"][ok], s["min_std"]))
                 extra |= {"rho_u_star": uvg.rho(u_star[ok], gain[ok]), "rho_u_u_star": uvg.rho(s["u"][ok], u_star[ok]),
                           "gain_of_max_u_star": float(gain[int(np.argmax(np.where(ok, u_star, -np.inf)))]),
                           "gain_of_edges": float(gain[int(np.argmax(np.where(ok, edges, -np.inf)))]),
                           "rho_u_sf": uvg.rho(s["u_sf"][ok], gain[ok]),
+                          "gain_of_rays": float(gain[int(np.argmax(np.where(ok, rays, -np.inf)))]),
+                          "gain_of_max_u_ray": float(gain[int(np.argmax(np.where(ok, s["u_ray"], -np.inf)))]),
+                          "rho_u_ray": uvg.rho(s["u_ray"][ok], gain[ok]),
                           "pixels": s["counts"],
                           "gain_split_pick": {c: float(v[s["pick"]]) for c, v in split.items()},
                           "gain_split_best": {c: float(v[best]) for c, v in split.items()}}  # fmt: skip
@@ -401,6 +411,17 @@ def markdown(report: dict[str, Any]) -> str:
             g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_edges", "best_gain")]
             rho_sf = float(np.nanmean([p["rho_u_sf"] for p in sel]))
             lines.append(f"| {lo}-{hi} | {rho_sf:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
+        lines += ["", "U_ray = U with each unseen pixel weighed by the length of its unknown stretch in carved cells "
+                  "(along z), over the counted pixels: the unknown voxels each ray crosses, as the volumetric "
+                  "information gain counts them; the gain of the argmax of the fused score with U_ray in place of U "
+                  "and of U_ray alone (one step on this run's own views), summed over the picks and the seeds:", "",
+                  "| picks | rho(U_ray, gain) | gain of the pick / with U_ray in place of U / of argmax U_ray / best |",
+                  "|---|---|---|"]  # fmt: skip
+        for lo, hi in ((1, half), (half + 1, n), (1, n)):
+            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+            g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_rays", "gain_of_max_u_ray", "best_gain")]
+            rho_ray = float(np.nanmean([p["rho_u_ray"] for p in sel]))
+            lines.append(f"| {lo}-{hi} | {rho_ray:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
         lines += ["", "Where the gained GT samples lie in the carved grid each pick was scored on (held: within one "
                   "cell of an occupied cell; unknown; free; outside the box), gain of the pick / of the best "
                   "candidate, summed over the picks and the seeds:", "",
@@ -427,7 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         "--pixels",
         action="store_true",
         help="also U*, U's pixel confusion, the gain by where it lies in "
-        "the carved grid and the U_sf screen (carved-space policies)",
+        "the carved grid and the U_sf and U_ray screens (carved-space policies)",
     )
     args = ap.parse_args(argv)
     try:

@@ -93,3 +93,27 @@ def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() ->
     with pytest.raises(InputError, match="policy 'roi-gsurfisher' takes no parameter"):
         make_policy("roi-gsurfisher", windw=3)
     assert make_policy("roi-gsurfisher", window=12.0, seed=np.int64(2)).window == 12
+
+
+def test_a_policy_built_directly_checks_its_arguments_as_make_policy_does() -> None:
+    """The Python API builds policies by class too: a word for a number is refused by the constructor itself, naming
+    the parameter, given by keyword or by position (it once failed inside the constructor, naming nothing, while
+    make_policy refused it); subclasses with their own ``__init__`` are checked as well.
+    """
+    import numpy as np
+
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.policies.rules import EveryN, GausSlam
+    from roigsf_ros.policies.stream import StreamNBVPolicy
+
+    for build, field in [
+        (lambda: StreamNBVPolicy(window="abc"), "window"),  # was: '<' not supported between 'str' and 'int'
+        (lambda: StreamNBVPolicy(adaptive_ratio="abc"), "adaptive_ratio"),
+        (lambda: StreamNBVPolicy(seed=True), "seed"),
+        (lambda: EveryN("5"), "n"),  # by position
+        (lambda: GausSlam(tau_k="x"), "tau_k"),
+    ]:
+        with pytest.raises(InputError, match=f"^{field}: must be "):
+            build()
+    assert StreamNBVPolicy(window=np.int64(6)).window == 6
+    assert EveryN(3).n == 3

@@ -524,7 +524,8 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     A sees nothing unseen; the view of A's back does (no keyframe looked at it: the space behind A is unknown) with no
     back-face test; once a keyframe behind A looked at it, the space in front of its back is carved and U falls.
     The scorer's U is the carved grid's own count, the area measure puts the surface where the unknown ends, and the
-    cell measure counts the grid's frontier cells the view looks into."""
+    cell measure counts the grid's frontier cells the view looks into, the ray measure the unknown cells its rays
+    cross."""
     from roigsf_ros.nbv import carved_space, rays_meet_box
 
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
@@ -549,6 +550,10 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
     cells = unseen(replace(cfg, unseen_measure="cells"), world.train)
     _, frontier = space.unseen_frontier(behind, INTR, cfg.near_m, cfg.far_m)
     assert cells[1] == pytest.approx(len(frontier) * cfg.unseen_voxel_m**2) and cells[1] > 0 and cells[0] < cells[1]
+    rays = unseen(replace(cfg, unseen_measure="rays"), world.train)  # unknown cells crossed, per counted pixel
+    hole = (enter > 0) & meets
+    expected = (leave - enter)[hole].sum() / cfg.unseen_voxel_m / rays_meet_count(behind, vox)
+    assert rays[1] == pytest.approx(expected) and rays[1] > 1 and rays[0] < rays[1]  # the box ends 0.1 m behind A
     saw = look_at(np.array([3.5, 0.2, 1.1]), np.array([2.0, 0.0, 1.0]), UP)  # behind A, looking at its back
     assert unseen(cfg, [*world.train, saw])[1] < 0.2
     with pytest.raises(InputError, match="unseen_source"):
@@ -559,6 +564,8 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_voxel_m=0.0)
     with pytest.raises(InputError, match="unseen_measure"):
         NBVConfig(unseen_measure="cells")  # the map source has no cells
+    with pytest.raises(InputError, match=r"^unseen_measure: rays counts carved cells"):
+        NBVConfig(unseen_measure="rays")
 
 
 def test_unseen_min_stretch_counts_long_unknown_stretches_and_those_from_the_box_side(world: World) -> None:

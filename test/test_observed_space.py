@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -95,6 +97,24 @@ def test_the_frontier_count_is_the_boundary_a_view_looks_at_each_cell_once() -> 
     _, far_fine = space.unseen_frontier(pose(), fine, 0.1, 10.0)
     assert len(far) <= len(far_fine) < 1.1 * len(far)
     assert np.isin(far, far_fine).mean() > 0.95
+
+
+def test_the_ray_measure_weighs_each_unseen_pixel_by_the_unknown_space_it_crosses() -> None:
+    """``NBVConfig.unseen_measure="rays"`` (the volumetric gain's unknown voxels per ray): two views of a wall's
+    back, from 0.25 m and 0.85 m behind it, are all unseen (the pixel fractions tie at 1), but the far one's rays
+    cross about 0.85 m of unknown space and the near one's 0.25 m: the ray measure is their mean length in cells."""
+    from roigsf_ros.nbv.config import NBVConfig
+    from roigsf_ros.nbv.unseen import UnseenTerm
+
+    space = ObservedSpace.carve(LO, HI, 0.05, [pose()], wall(), INTR)
+    cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved", unseen_voxel_m=0.05, near_m=0.1)
+    measured = {}
+    for kind in ("pixels", "rays"):
+        term = UnseenTerm(replace(cfg, unseen_measure=kind), (LO, HI), None, None, space, None)
+        measured[kind] = [term.measure(None, pose(z=2.05 + d, back=True), 0, INTR) for d in (0.25, 0.85)]
+    assert measured["pixels"] == pytest.approx([1.0, 1.0])
+    near, far = measured["rays"]
+    assert near == pytest.approx((0.25 - 0.1) / 0.05, abs=1.0) and far == pytest.approx((0.85 - 0.1) / 0.05, abs=1.0)
 
 
 def test_numba_kernels_match_the_plain_python_ones() -> None:

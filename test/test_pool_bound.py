@@ -287,6 +287,7 @@ def test_pick_regret_follows_the_replayed_run_pick_by_pick(bench: Path, tmp_path
         assert sum(p["gain_split_pick"].values()) == pytest.approx(p["gain_of_pick"], abs=1e-12)
         assert sum(p["gain_split_best"].values()) == pytest.approx(p["best_gain"], abs=1e-12)
         assert 0 <= p["gain_of_edges"] <= p["best_gain"]  # U_sf in place of U picks some candidate
+        assert 0 <= p["gain_of_rays"] <= p["best_gain"] and 0 <= p["gain_of_max_u_ray"] <= p["best_gain"]  # U_ray
         assert 0 <= p["gain_of_rank"] <= p["best_gain"]  # the rank fusion rebuilt the scorer's fusion (else raises)
         assert 0 <= p["gain_of_div"] <= p["best_gain"] and 0 <= p["gain_of_max_div"] <= p["best_gain"]
     results = json.loads((bench / "results.json").read_text())

@@ -14,7 +14,7 @@ MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
 BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
-UNSEEN_MEASURES = ("pixels", "area", "cells")
+UNSEEN_MEASURES = ("pixels", "area", "cells", "rays")
 """Values of ``NBVConfig.unseen_measure``: what U(x) counts of the unseen pixels."""
 UNSEEN_SOURCES = ("map", "carved")
 """Values of ``NBVConfig.unseen_source``: what tells an unseen pixel."""
@@ -148,7 +148,12 @@ class NBVConfig(Config):
     unknown stretch, times ``unseen_voxel_m``^2 (m^2): the boundary of unobserved space the view looks at, each part
     once whatever its distance, where the pixel fraction counts a near pocket by the pixels it fills and the area
     count weighs a ray by where its stretch ends. A camera standing in space no keyframe observed counts only the
-    few cells its rays start in, so the count favours views from observed space, as frontier exploration does."""
+    few cells its rays start in, so the count favours views from observed space, as frontier exploration does.
+    ``"rays"`` (``unseen_source="carved"`` only): each unseen pixel weighs the length of its unknown stretch in cells
+    of ``unseen_voxel_m`` (camera z), summed over the counted pixels and divided by their number: the unknown voxels
+    each ray crosses, the volumetric information gain of active reconstruction (Isler et al. 2016, Delmerico et al.
+    2018), where the pixel fraction counts a ray that crosses one cell of unobserved space as one that crosses a
+    room. A few uncarved cells in front of surface seen from another side then weigh little."""
     unseen_source: str = "map"
     """What tells an unseen pixel. ``"map"``: the map's render (alpha below ``unseen_alpha``, and the back faces of
     ``unseen_backfaces``). ``"carved"``: the pixel's ray reaches observed surface (or the box's side) through space
@@ -162,20 +167,20 @@ class NBVConfig(Config):
     """``unseen_source="carved"``: the cell size of the carved grid (metres); 2.5 cm was chosen over 5 cm on the two
     tuning scenes (a gap between objects a cell or two wide is carved only where the cells happen to fall)."""
     unseen_min_stretch_m: float = 0.0
-    """``unseen_source="carved"`` (pixels or area): a pixel counts as unseen only where the unknown stretch its ray
-    crosses last, before observed surface or the box's side, is at least this long (metres of camera z), or begins
-    where the ray enters the box (it goes on outside, so its length is unknown). Not in the paper. Observed surface
-    seen from another direction often has a cell or a few of uncarved space right in front of it along a new ray, so
-    it reads as unseen. Measured on the sixth room (forty-second session, ``scripts/pick_regret.py --pixels``), picks
-    9-16: half of the unseen pixels that show no new surface look through fewer than 8 cells (0.2 m at 2.5 cm), 2 % of
-    those that do; on the shelf, seen from outside its box, 43 % of those that do (hence the box-side exception). 0.2
-    passed the tuning scenes by noise and met no reported scene the variant misses (docs/measured-figures.md).
-    0: every unknown stretch counts (as before)."""
+    """``unseen_source="carved"`` (pixels, area or rays): a pixel counts as unseen only where the unknown stretch its
+    ray crosses last, before observed surface or the box's side, is at least this long (metres of camera z), or begins
+    where the ray enters the box (it goes on outside, so its length is unknown). Not in the paper. Observed surface seen
+    from another direction often has a cell or a few of uncarved space right in front of it along a new ray, so it reads
+    as unseen. Measured on the sixth room (forty-second session, ``scripts/pick_regret.py --pixels``), picks 9-16: half
+    of the unseen pixels that show no new surface look through fewer than 8 cells (0.2 m at 2.5 cm), 2 % of those that
+    do; on the shelf, seen from outside its box, 43 % of those that do (hence the box-side exception). 0.2 passed the
+    tuning scenes by noise and met no reported scene the variant misses (docs/measured-figures.md). 0: every unknown
+    stretch counts (as before)."""
     unseen_min_std: float = 0.0
-    """Floor of the divisor of z(U), in U's units (a fraction of the pixels, or m^2 with ``unseen_measure`` area or
-    cells): ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a few pixels, and a
-    plain z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a spread below it
-    counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
+    """Floor of the divisor of z(U), in U's units (a fraction of the pixels, m^2 with ``unseen_measure`` area or cells,
+    cells per pixel with rays): ``kappa (U - mean U) / max(std U, this)``. Late in a run the candidates' U differ by a
+    few pixels, and a plain z-score makes that difference as strong as the Fisher and close-front terms; with a floor, a
+    spread below it counts for less, so those terms decide once little unseen space is left. 0: the plain z-score."""
 
     unseen_plan_views: int = 1
     """Views the unseen term plans over (``unseen_source="carved"``, ``unseen_measure="pixels"``): with k > 1, U(x)
@@ -264,8 +269,10 @@ class NBVConfig(Config):
             raise InputError("unseen_measure", "area needs a finite unseen_bbox_margin_m (where an unseen ray ends)")
         if self.unseen_source not in UNSEEN_SOURCES:
             raise InputError("unseen_source", f"must be one of {', '.join(UNSEEN_SOURCES)}, got {self.unseen_source!r}")
-        if self.unseen_measure == "cells" and self.unseen_source != "carved":
-            raise InputError("unseen_measure", "cells counts carved cells: it needs unseen_source=carved")
+        if self.unseen_measure in ("cells", "rays") and self.unseen_source != "carved":
+            raise InputError(
+                "unseen_measure", f"{self.unseen_measure} counts carved cells: it needs unseen_source=carved"
+            )
         if self.unseen_source == "carved" and not np.isfinite(self.unseen_bbox_margin_m):
             raise InputError("unseen_source", "carved needs a finite unseen_bbox_margin_m (the box of the carved grid)")
         for name in ("top_k", "texture_max_neighbours", "texture_min_neighbours", "fisher_downsample",
@@ -281,8 +288,8 @@ class NBVConfig(Config):
         ):
             raise InputError(
                 "unseen_min_stretch_m",
-                "measures the carved grid's unknown stretches: it needs unseen_source=carved, unseen_measure pixels "
-                "or area and unseen_plan_views=1",
+                "measures the carved grid's unknown stretches: it needs unseen_source=carved, unseen_measure pixels, "
+                "area or rays and unseen_plan_views=1",
             )
         for name in ("fisher_outputs", "fisherrf_outputs"):
             bad = [o for o in getattr(self, name) if o not in OUTPUTS]

@@ -215,10 +215,12 @@ class UnseenTerm:
                 meets = rays_meet_box(T, intr_f, *box)
                 self.plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
                 return None
-            hole, _enter, leave = carved_unseen(space, T, intr_f, box, cfg)
+            hole, enter, leave = carved_unseen(space, T, intr_f, box, cfg)
             if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
                 return float((leave[hole] ** 2).sum() / (intr_f.fx * intr_f.fy))
             meets = rays_meet_box(T, intr_f, *box)
+            if cfg.unseen_measure == "rays":  # unknown cells each counted ray crosses, per counted pixel
+                return float((leave - enter)[hole & meets].sum() / space.voxel_m / max(int(meets.sum()), 1))
             return float((hole & meets).sum() / max(int(meets.sum()), 1))
         if cfg.unseen_source != "map" or len(surfel_map) == 0:
             return None

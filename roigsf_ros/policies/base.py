@@ -11,6 +11,7 @@ imports every module that registers one (:mod:`~roigsf_ros.policies.rules`,
 
 from __future__ import annotations
 
+import functools
 import inspect
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -63,10 +64,46 @@ class KeyframeMap(Protocol):
         ...
 
 
+def _checked_init(init: Callable[..., None]) -> Callable[..., None]:
+    """``init`` (a policy's ``__init__``) checking first that each argument given has its parameter's type, for
+    numbers (:func:`~roigsf_ros.core.config.fits_annotation`): a word or a bool for a number is an InputError naming
+    the parameter, whether the policy is built by :func:`make_policy` or directly.
+    """
+    sig: inspect.Signature | None = None
+
+    @functools.wraps(init)
+    def checked(self: KeyframePolicy, *args: Any, **kwargs: Any) -> None:
+        nonlocal sig
+        if sig is None:  # resolved on the first call: the annotations are strings until every module is in
+            sig = inspect.signature(init, eval_str=True)
+        try:
+            bound = sig.bind(self, *args, **kwargs)
+        except TypeError:  # a missing or unknown argument: the constructor's own error says which
+            bound = None
+        if bound is not None:
+            for key, value in bound.arguments.items():
+                param = sig.parameters[key]
+                if param.kind in (param.VAR_POSITIONAL, param.VAR_KEYWORD) or key == "self":
+                    continue
+                if not fits_annotation(value, param.annotation):
+                    raise InputError(key, f"must be {annotation_words(param.annotation)}, got {value!r}")
+        init(self, *args, **kwargs)
+
+    return checked
+
+
 class KeyframePolicy:
-    """Base class: decides frame by frame whether a frame becomes a keyframe."""
+    """Base class: decides frame by frame whether a frame becomes a keyframe. Each subclass's ``__init__`` checks its
+    numeric arguments' types against its annotations before it runs (:func:`_checked_init`).
+    """
 
     name = "base"
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Wrap the subclass's own ``__init__`` (if it defines one) in the argument type check."""
+        super().__init_subclass__(**kwargs)
+        if "__init__" in cls.__dict__:
+            cls.__init__ = _checked_init(cls.__dict__["__init__"])  # type: ignore[method-assign]
 
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
         """The frames to insert as keyframes now (in order), after seeing ``frame``; the caller inserts them."""
@@ -106,8 +143,9 @@ def policy_names() -> list[str]:
 
 
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
-    """A policy by registered name; ``None``-valued params are dropped; an unknown one, or a value not of its
-    parameter's type (a word for a number, say), is an InputError naming the parameter, before the constructor runs.
+    """A policy by registered name; ``None``-valued params are dropped; an unknown one is an InputError naming the
+    policy, and a value not of its parameter's type (a word for a number, say) one naming the parameter (the
+    constructor's check, :func:`_checked_init`).
     """
     if name not in _REGISTRY:
         raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
@@ -117,13 +155,6 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
     extra = sorted(set(given) - set(sig))
     if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
         raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
-    for key, value in given.items():
-        if (
-            key in sig
-            and sig[key].kind is not inspect.Parameter.VAR_KEYWORD
-            and not fits_annotation(value, sig[key].annotation)
-        ):
-            raise InputError(key, f"must be {annotation_words(sig[key].annotation)}, got {value!r}")
     return factory(**given)
 
 
