@@ -117,3 +117,11 @@ def test_a_policy_built_directly_checks_its_arguments_as_make_policy_does() -> N
             build()
     assert StreamNBVPolicy(window=np.int64(6)).window == 6
     assert EveryN(3).n == 3
+
+    class Hinted(EveryN):  # an annotation named for type checking only stays unchecked, not a NameError
+        def __init__(self, n: int = 5, clock: NotImportedHere | None = None) -> None:  # noqa: F821
+            super().__init__(n)
+
+    assert Hinted(4, clock=object()).n == 4
+    with pytest.raises(InputError, match=r"^n: must be a whole number"):
+        Hinted("4")  # the parent's check still runs

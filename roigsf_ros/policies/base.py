@@ -75,7 +75,10 @@ def _checked_init(init: Callable[..., None]) -> Callable[..., None]:
     def checked(self: KeyframePolicy, *args: Any, **kwargs: Any) -> None:
         nonlocal sig
         if sig is None:  # resolved on the first call: the annotations are strings until every module is in
-            sig = inspect.signature(init, eval_str=True)
+            try:
+                sig = inspect.signature(init, eval_str=True)
+            except NameError:  # a name imported for type checking only: its annotations stay strings, unchecked
+                sig = inspect.signature(init)
         try:
             bound = sig.bind(self, *args, **kwargs)
         except TypeError:  # a missing or unknown argument: the constructor's own error says which
