@@ -239,8 +239,7 @@ class NBVResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     unseen: np.ndarray | None = None
     """[M] U(x), the unseen pixels' fraction, their surface or frontier cells in m^2, or the unknown cells their rays
-    cross per pixel (``unseen_measure``), when
-    ``NBVConfig.unseen_weight`` > 0 in the ROI modes; else None."""
+    cross per pixel (``unseen_measure``), when ``NBVConfig.unseen_weight`` > 0 in the ROI modes; else None."""
     n_skipped: int = 0
 
 
