@@ -85,7 +85,10 @@
 # Forty-sixth session, on a fresh machine: TAG=base46 POLICIES="$C" with SCENES=shelf, then SCALE=2 SCENES=room5 (the
 # variant again, for scripts/pick_regret.py; 2.6 and 6 min), then TAG=rays46
 # POLICIES="roi-gsurfisher:epsilon=0:delta=0:unseen_weight=1:unseen_source=carved:unseen_measure=rays" with the same two
-# (the unseen term alone, counted in unknown cells per ray; 1.5 and 3.7 min; it lost there, so nothing else).
+# (the unseen term alone, counted in unknown cells per ray; 1.5 and 3.7 min; it lost there), TAG=rays46b
+# POLICIES="$C:unseen_measure=rays" with the same two (it went on), then TAG=rep46
+# POLICIES="$C,$C:unseen_measure=rays,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5, room8,
+# office0 and room7 (11-18 min each).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

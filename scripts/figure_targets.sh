@@ -215,8 +215,8 @@ done
 # per ray ("$C:unseen_measure=rays"), chosen on the tuning scenes (TAG=rays46b, against the variant's TAG=base46
 # benches; no baseline ran there), then with the variant and both baselines in one bench per reported scene
 # (TAG=rep46 POLICIES="$C,$C:unseen_measure=rays,fisherrf,random", SCALE=2 with SCENES=synth, SCENES=office0
-# OFFSET=5, SCENES=room8 and SCENES=office0), rows pool_*_rep46 (the variant) and pool_*_rep46_rays.
-for s in synth_240 office0_240_o5 room8_240 office0_240; do
+# OFFSET=5, SCENES=room8, SCENES=office0 and SCENES=room7), rows pool_*_rep46 (the variant) and pool_*_rep46_rays.
+for s in synth_240 office0_240_o5 room8_240 office0_240 room7_240; do
     b="runs/bench_pool_${s}_rep46"
     verdict "pool_${s}_rep46" "$b#$C" "$b#fisherrf" "$b#random"
     verdict "pool_${s}_rep46_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
