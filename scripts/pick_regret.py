@@ -321,6 +321,18 @@ def sums(picks: list[dict[str, Any]], lo: int, hi: int) -> dict[str, float]:
     return {key: float(sum(p[key] for p in sel)) for key in ("gain_of_pick", "gain_of_max_u", "best_gain")}
 
 
+def screen_rows(seeds: list[dict[str, Any]], n: int, keys: tuple[str, ...], rho_key: str) -> list[str]:
+    """Table rows of a screen over picks 1..n/2, the rest and all: the mean of ``rho_key`` over the picks and seeds,
+    then the gains ``keys`` summed over them.
+    """
+    rows = []
+    for lo, hi in ((1, n // 2), (n // 2 + 1, n), (1, n)):
+        sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
+        rho = float(np.nanmean([p[rho_key] for p in sel]))
+        rows.append(f"| {lo}-{hi} | {rho:+.2f} | {' / '.join(f'{sum(p[k] for p in sel):.4f}' for k in keys)} |")
+    return rows
+
+
 def markdown(report: dict[str, Any]) -> str:
     """Per pick: gains and rhos as means over the seeds; then sums over pick ranges."""
     seeds = report["seeds"]
@@ -367,11 +379,7 @@ def markdown(report: dict[str, Any]) -> str:
               "z(D) and of D alone (one step on this run's own views), summed over the picks and the seeds:", "",
               "| picks | rho(D, gain) | gain of the pick / of argmax fused + z(D) / of argmax D / best |",
               "|---|---|---|"]  # fmt: skip
-    for lo, hi in ((1, half), (half + 1, n), (1, n)):
-        sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
-        g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_div", "gain_of_max_div", "best_gain")]
-        rho_d = float(np.nanmean([p["rho_div"] for p in sel]))
-        lines.append(f"| {lo}-{hi} | {rho_d:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
+    lines += screen_rows(seeds, n, ("gain_of_pick", "gain_of_div", "gain_of_max_div", "best_gain"), "rho_div")
     if "rho_u_star" in seeds[0]["picks"][0]:
         lines += ["", "U* = the fraction of the pixels U counts whose true-depth point is new (farther than the "
                   "threshold from every point the views so far observe); U's unseen pixels against those, summed over "
@@ -406,22 +414,14 @@ def markdown(report: dict[str, Any]) -> str:
                   "fused score with U_sf in place of U (one step on this run's own views), summed over the picks and "
                   "the seeds:", "", "| picks | rho(U_sf, gain) | gain of the pick / with U_sf in place of U / best |",
                   "|---|---|---|"]  # fmt: skip
-        for lo, hi in ((1, half), (half + 1, n), (1, n)):
-            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
-            g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_edges", "best_gain")]
-            rho_sf = float(np.nanmean([p["rho_u_sf"] for p in sel]))
-            lines.append(f"| {lo}-{hi} | {rho_sf:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
+        lines += screen_rows(seeds, n, ("gain_of_pick", "gain_of_edges", "best_gain"), "rho_u_sf")
         lines += ["", "U_ray = U with each unseen pixel weighed by the length of its unknown stretch in carved cells "
                   "(along z), over the counted pixels: the unknown voxels each ray crosses, as the volumetric "
                   "information gain counts them; the gain of the argmax of the fused score with U_ray in place of U "
                   "and of U_ray alone (one step on this run's own views), summed over the picks and the seeds:", "",
                   "| picks | rho(U_ray, gain) | gain of the pick / with U_ray in place of U / of argmax U_ray / best |",
                   "|---|---|---|"]  # fmt: skip
-        for lo, hi in ((1, half), (half + 1, n), (1, n)):
-            sel = [p for s in seeds for p in s["picks"] if lo <= p["pick"] <= hi]
-            g = [sum(p[key] for p in sel) for key in ("gain_of_pick", "gain_of_rays", "gain_of_max_u_ray", "best_gain")]
-            rho_ray = float(np.nanmean([p["rho_u_ray"] for p in sel]))
-            lines.append(f"| {lo}-{hi} | {rho_ray:+.2f} | {' / '.join(f'{x:.4f}' for x in g)} |")
+        lines += screen_rows(seeds, n, ("gain_of_pick", "gain_of_rays", "gain_of_max_u_ray", "best_gain"), "rho_u_ray")
         lines += ["", "Where the gained GT samples lie in the carved grid each pick was scored on (held: within one "
                   "cell of an occupied cell; unknown; free; outside the box), gain of the pick / of the best "
                   "candidate, summed over the picks and the seeds:", "",
