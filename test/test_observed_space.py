@@ -101,8 +101,9 @@ def test_the_frontier_count_is_the_boundary_a_view_looks_at_each_cell_once() -> 
 
 def test_the_ray_measure_weighs_each_unseen_pixel_by_the_unknown_space_it_crosses() -> None:
     """``NBVConfig.unseen_measure="rays"`` (the volumetric gain's unknown voxels per ray): two views of a wall's
-    back, from 0.25 m and 0.85 m behind it, are all unseen (the pixel fractions tie at 1), but the far one's rays
-    cross about 0.85 m of unknown space and the near one's 0.25 m: the ray measure is their mean length in cells."""
+    back, from 0.25 m and 0.85 m behind it, are all unseen (the pixel fractions tie at 1), but past ``near_m`` (0.1 m)
+    the far one's rays cross about 0.75 m of unknown space and the near one's 0.15 m: the ray measure is that length
+    in cells."""
     from roigsf_ros.nbv.config import NBVConfig
     from roigsf_ros.nbv.unseen import UnseenTerm
 
