@@ -19,7 +19,7 @@ __all__, __getattr__ = lazy_exports(
             "quat_xyzw_to_matrix",
             "save_cam_params",
         ],
-        "config": ["Config", "annotation_words", "fits_annotation"],
+        "config": ["Config", "annotation_words", "check_annotation", "fits_annotation"],
         "errors": ["InputError"],
         "exports": ["lazy_exports"],
         "fileio": ["atomic_dir", "atomic_path", "read_json", "write_json"],

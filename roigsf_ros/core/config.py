@@ -49,6 +49,14 @@ def annotation_words(annotation: Any) -> str:
     return " or ".join(words)
 
 
+def check_annotation(name: str, value: Any, annotation: Any) -> None:
+    """InputError naming ``name`` unless ``value`` fits ``annotation`` (:func:`fits_annotation`): the one type check
+    of config fields and policy arguments.
+    """
+    if not fits_annotation(value, annotation):
+        raise InputError(name, f"must be {annotation_words(annotation)}, got {value!r}")
+
+
 @functools.cache
 def _field_types(cls: type) -> dict[str, Any]:
     """A config class's field annotations, resolved once per class."""
@@ -65,9 +73,7 @@ class Config:
     def __post_init__(self) -> None:
         hints = _field_types(type(self))
         for f in fields(self):
-            value = getattr(self, f.name)
-            if not fits_annotation(value, hints[f.name]):
-                raise InputError(f.name, f"must be {annotation_words(hints[f.name])}, got {value!r}")
+            check_annotation(f.name, getattr(self, f.name), hints[f.name])
         self.validate()
 
     def validate(self) -> Self:
@@ -88,4 +94,4 @@ class Config:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
 
-__all__ = ["Config", "annotation_words", "fits_annotation"]
+__all__ = ["Config", "annotation_words", "check_annotation", "fits_annotation"]

@@ -20,7 +20,7 @@ import numpy as np
 from torch import Tensor
 
 from roigsf_ros.core.camera import Intrinsics
-from roigsf_ros.core.config import annotation_words, fits_annotation
+from roigsf_ros.core.config import check_annotation
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.mapper import MapperConfig
@@ -66,7 +66,7 @@ class KeyframeMap(Protocol):
 
 def _checked_init(init: Callable[..., None]) -> Callable[..., None]:
     """``init`` (a policy's ``__init__``) checking first that each argument given has its parameter's type, for
-    numbers (:func:`~roigsf_ros.core.config.fits_annotation`): a word or a bool for a number is an InputError naming
+    numbers (:func:`~roigsf_ros.core.config.check_annotation`): a word or a bool for a number is an InputError naming
     the parameter, whether the policy is built by :func:`make_policy` or directly.
     """
     sig: inspect.Signature | None = None
@@ -80,16 +80,12 @@ def _checked_init(init: Callable[..., None]) -> Callable[..., None]:
             except NameError:  # a name imported for type checking only: its annotations stay strings, unchecked
                 sig = inspect.signature(init)
         try:
-            bound = sig.bind(self, *args, **kwargs)
+            given = sig.bind(self, *args, **kwargs).arguments
         except TypeError:  # a missing or unknown argument: the constructor's own error says which
-            bound = None
-        if bound is not None:
-            for key, value in bound.arguments.items():
-                param = sig.parameters[key]
-                if param.kind in (param.VAR_POSITIONAL, param.VAR_KEYWORD) or key == "self":
-                    continue
-                if not fits_annotation(value, param.annotation):
-                    raise InputError(key, f"must be {annotation_words(param.annotation)}, got {value!r}")
+            given = {}
+        for key, value in given.items():
+            if sig.parameters[key].kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD):
+                check_annotation(key, value, sig.parameters[key].annotation)  # self: no annotation, not checked
         init(self, *args, **kwargs)
 
     return checked
@@ -154,7 +150,7 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
         raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
     factory = _REGISTRY[name]
     given = {k: v for k, v in params.items() if v is not None}
-    sig = inspect.signature(factory, eval_str=True).parameters
+    sig = inspect.signature(factory).parameters  # names only: the constructor checks the types
     extra = sorted(set(given) - set(sig))
     if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
         raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
