@@ -89,6 +89,9 @@
 # POLICIES="$C:unseen_measure=rays" with the same two (it went on), then TAG=rep46
 # POLICIES="$C,$C:unseen_measure=rays,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5, room8,
 # office0 and room7 (11-18 min each).
+# Forty-seventh session, the same machine: TAG=rep47 POLICIES="$C:unseen_measure=rays,fisherrf,random" SCALE=2 with
+# SCENES=bins, SENSOR=kinect SCENES=office0, SCENES=clutter, room1, room2, room3, room4, room6, room9, SCENES=office0
+# OFFSET=10 and OFFSET=15 (8.4-15.7 min each, 128 min in all with the scenes rendered from nothing).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

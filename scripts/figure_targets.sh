@@ -221,6 +221,15 @@ for s in synth_240 office0_240_o5 room8_240 office0_240 room7_240; do
     verdict "pool_${s}_rep46" "$b#$C" "$b#fisherrf" "$b#random"
     verdict "pool_${s}_rep46_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
 done
+# Forty-seventh session, the same machine: the variant with unseen_measure=rays and both baselines in one bench per
+# reported scene it had not run on (TAG=rep47 POLICIES="$C:unseen_measure=rays,fisherrf,random" SCALE=2 with
+# SCENES=bins, SENSOR=kinect SCENES=office0, SCENES=clutter, room1, room2, room3, room4, room6, room9, SCENES=office0
+# OFFSET=10 and OFFSET=15; the variant itself not re-run), rows pool_*_rep47_rays.
+for s in bins_240 office0_240_kinect clutter_240 room1_240 room2_240 room3_240 room4_240 room6_240 room9_240 \
+    office0_240_o10 office0_240_o15; do
+    b="runs/bench_pool_${s}_rep47"
+    verdict "pool_${s}_rep47_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
