@@ -630,6 +630,7 @@ def test_unseen_term_builds_only_what_its_settings_use_and_measures_the_scorers_
     carved = build(unseen_source="carved", unseen_backfaces="unconfirmed")
     assert carved.space is not None and carved.seen_by is None and carved.plan is None
     assert build(unseen_source="carved", unseen_plan_views=2).plan == {}
+    assert build(unseen_source="carved", unseen_measure="rays", unseen_rarity=1.0).plan == {}
     empty = SurfelMap.empty(dtype=world.map.dtype)
     assert build(empty, unseen_source="carved").space is None
     for kw in ({}, {"unseen_source": "carved"}, {"unseen_measure": "area"}):
@@ -672,6 +673,46 @@ def test_unseen_plan_views_scores_a_candidate_with_the_views_that_would_complete
     assert planned[1] < own[1] + own[2]
     _, frontier = space.unseen_frontier(behind, INTR, cfg.near_m, cfg.far_m)
     assert set(views[1].cells.tolist()) <= set(frontier.tolist())
+
+
+def test_unseen_rarity_divides_each_unseen_pixel_by_the_candidates_looking_into_its_block(world: World) -> None:
+    """``unseen_rarity``: the scorer's U is the carved grid's entry cells of each candidate (each pixel weighed 1, or
+    its stretch in cells for rays; their sum is the direct U to rounding) with each cell's share over n^beta, n the
+    candidates entering its block. The two views behind A look into the same back of it, so with beta 1 each keeps
+    about half of its U (the front view sees no unseen space either way), and no U grows."""
+    from roigsf_ros.nbv import UnseenCells, carved_space, planned_unseen, rarity_weighted, rays_meet_box
+    from roigsf_ros.nbv.unseen import rarity_blocks
+
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    beside = look_at(np.array([3.0, 0.4, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([world.view_a, behind, beside])
+    vox = NBVScorer().surface(world.tsdf)
+    lo, hi = vox.centres_m.min(0) - 0.1, vox.centres_m.max(0) + 0.1
+
+    def scored(config: NBVConfig) -> np.ndarray:
+        return NBVScorer(config).score(world.map, world.h_train, world.tsdf, world.train, cands, INTR).unseen
+
+    for measure in ("rays", "pixels"):
+        cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved", unseen_measure=measure)
+        space = carved_space(world.map, world.train, INTR, lo, hi, cfg)
+        views = []
+        for T in cands:
+            enter, leave, cell = space.unseen_rays(T, INTR, cfg.near_m, cfg.far_m)
+            weight = (leave - enter) / space.voxel_m if measure == "rays" else None
+            views.append(UnseenCells.from_pixels(cell, rays_meet_box(T, INTR, lo, hi), weight))
+        direct = scored(cfg)
+        assert [v.fraction for v in views] == pytest.approx(direct, rel=1e-9)
+        for beta, block_m in ((1.0, 0.1), (0.5, 0.25)):
+            rare = scored(replace(cfg, unseen_rarity=beta, unseen_rarity_block_m=block_m))
+            want = planned_unseen(rarity_weighted(views, beta, rarity_blocks(space, block_m)), 1)
+            assert rare == pytest.approx(want, rel=1e-9)
+            assert np.all(rare <= direct + 1e-12)
+        rare = scored(replace(cfg, unseen_rarity=1.0))
+        assert direct[1] > 0.1 and direct[2] > 0.1
+        assert 0.3 * direct[1] < rare[1] < 0.75 * direct[1] and 0.3 * direct[2] < rare[2] < 0.75 * direct[2]
+    block_of = rarity_blocks(space, 0.1)  # 4 cells of 2.5 cm a side
+    ids = block_of(np.ravel_multi_index(([0, 3, 4, 0], [0, 3, 0, 0], [0, 0, 0, 7]), space.state.shape))
+    assert ids[0] == ids[1] and len(set(ids.tolist())) == 3
 
 
 def test_unseen_min_std_floors_only_the_unseen_terms_divisor(world: World) -> None:

@@ -212,7 +212,7 @@ class ObservedSpace:
         reaches observed surface or the box's side through observed free space); only the part of the ray between
         ``near_m`` and ``far_m`` counts.
         """
-        enter, leave, _ = self._unseen_rays(T_wc, intr, near_m, far_m)
+        enter, leave, _ = self.unseen_rays(T_wc, intr, near_m, far_m)
         return enter, leave
 
     def unseen_frontier(
@@ -223,7 +223,7 @@ class ObservedSpace:
         boundary between observed free space and unseen space that the view looks at, whatever its distance
         (``NBVConfig.unseen_measure="cells"``); from a camera inside unknown space, the few cells its rays start in.
         """
-        enter, _, cell = self._unseen_rays(T_wc, intr, near_m, far_m)
+        enter, _, cell = self.unseen_rays(T_wc, intr, near_m, far_m)
         return enter, np.unique(cell[cell >= 0])
 
     def unseen_cells(
@@ -232,12 +232,14 @@ class ObservedSpace:
         """[H, W] int64: the flat index (into :attr:`state`) of the unknown cell where each pixel's last unknown
         stretch begins, as in :meth:`unseen_depths`, or -1 where the ray crosses none (``unseen_plan_views``).
         """
-        return self._unseen_rays(T_wc, intr, near_m, far_m)[2]
+        return self.unseen_rays(T_wc, intr, near_m, far_m)[2]
 
-    def _unseen_rays(
-        self, T_wc: np.ndarray, intr: Intrinsics, near_m: float, far_m: float
+    def unseen_rays(
+        self, T_wc: np.ndarray, intr: Intrinsics, near_m: float = 0.0, far_m: float = np.inf
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """([H, W] enter depth, [H, W] leave depth, [H, W] int64 first cell or -1) of each pixel's unseen stretch."""
+        """([H, W] enter depth, [H, W] leave depth, [H, W] int64 first cell or -1) of each pixel's unseen stretch: the
+        three of :meth:`unseen_depths` and :meth:`unseen_cells` from one pass (``NBVConfig.unseen_rarity``).
+        """
         enter = np.zeros((intr.height, intr.width))
         leave = np.zeros((intr.height, intr.width))
         cell = np.full((intr.height, intr.width), -1, dtype=np.int64)

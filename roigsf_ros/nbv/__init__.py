@@ -17,7 +17,7 @@ __all__, __getattr__ = lazy_exports(
             "check_novelty_settings",
             "fuse_novelty",
         ],
-        "plan": ["UnseenCells", "planned_unseen"],
+        "plan": ["UnseenCells", "planned_unseen", "rarity_weighted"],
         "roi": [
             "LUMA_RGB",
             "BatchROI",

@@ -188,6 +188,18 @@ class NBVConfig(Config):
     together, each carved cell where unseen rays enter counted once per plan (:mod:`roigsf_ros.nbv.plan`), so a
     candidate whose unseen space others also see weighs less than one that sees what no other candidate does. 1: the
     candidate's own fraction (myopic, as every session before the thirty-sixth)."""
+    unseen_rarity: float = 0.0
+    """Exponent beta of the rarity weight of U (``unseen_source="carved"``, ``unseen_measure`` pixels or rays): each
+    unseen pixel's weight in U (1, or its stretch in cells) is divided by n^beta, n the number of this scoring call's
+    candidates whose unseen pixels enter the carved grid's unknown space in the same block of
+    ``unseen_rarity_block_m`` (:func:`~roigsf_ros.nbv.plan.rarity_weighted`). Not in the paper: the frequency weight
+    of greedy set cover. A greedy pick puts off the view that alone sees some pocket while views with bigger but
+    replaceable gains go first, and runs out of views (the hindsight study of docs/measured-figures.md: swapping a few
+    of the greedy views meets targets the greedy pick misses); unseen space every candidate looks into then weighs
+    1/M, space only one looks into its full weight. 0: each pixel its own weight (as before)."""
+    unseen_rarity_block_m: float = 0.1
+    """``unseen_rarity`` > 0: the side of the blocks (metres, rounded to whole ``unseen_voxel_m`` cells) within which
+    rays from different candidates count as looking into the same unseen space."""
     fisherrf_weight: float = 0.0
     """Weight kappa_r of one more fused term of the ROI modes, ``kappa_r z(R(x))``, R(x) the candidate's FisherRF score
     exactly as mode ``fisherrf`` computes it (its own H_train over ``fisherrf_params`` and ``fisherrf_outputs``,
@@ -209,7 +221,7 @@ class NBVConfig(Config):
             raise InputError("mode", f"unknown score mode '{self.mode}' (choose from {', '.join(MODES)})")
         positive = ("beta", "gamma", "angle_sigma_deg", "footprint_pref_px", "footprint_sigma_ln")
         positive += ("texture_radius_voxels", "roi_max_abs_tsdf_voxels", "near_m", "sigma_p", "phi", "fisherrf_lambda")
-        positive += ("unseen_confirm_margin_m", "unseen_voxel_m")
+        positive += ("unseen_confirm_margin_m", "unseen_voxel_m", "unseen_rarity_block_m")
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
@@ -224,6 +236,7 @@ class NBVConfig(Config):
             "unseen_weight",
             "unseen_min_std",
             "unseen_min_stretch_m",
+            "unseen_rarity",
             "frontier_weight",
             "fisherrf_weight",
         ):
@@ -290,6 +303,14 @@ class NBVConfig(Config):
                 "unseen_min_stretch_m",
                 "measures the carved grid's unknown stretches: it needs unseen_source=carved, unseen_measure pixels, "
                 "area or rays and unseen_plan_views=1",
+            )
+        if self.unseen_rarity > 0 and (
+            self.unseen_source != "carved" or self.unseen_measure not in ("pixels", "rays") or self.unseen_min_stretch_m
+        ):
+            raise InputError(
+                "unseen_rarity",
+                "weighs the carved grid's entry cells: it needs unseen_source=carved, unseen_measure pixels or rays "
+                "and unseen_min_stretch_m=0",
             )
         for name in ("fisher_outputs", "fisherrf_outputs"):
             bad = [o for o in getattr(self, name) if o not in OUTPUTS]

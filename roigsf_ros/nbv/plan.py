@@ -1,13 +1,17 @@
-"""The unseen term planned over a few views (``NBVConfig.unseen_plan_views``): what a candidate and the best others
-would show together, not the candidate alone.
+"""What the candidates' unseen cells say together: the unseen term planned over a few views
+(``NBVConfig.unseen_plan_views``), and weighed by how few candidates look into each part of the unseen space
+(``NBVConfig.unseen_rarity``), rather than each candidate alone.
 
 The pool's greedy pick takes each view for what it adds on its own; the hindsight study ("Where the remaining misses
 stand against views chosen with hindsight" in docs/measured-figures.md) found that on the first synthetic room even a
 greedy pick that knows the true coverage misses the target, and the same pick with a few views swapped meets it. Here
 the carved grid stands in for the truth: a candidate's unseen pixels are grouped by the frontier cell where their ray
-enters unknown space, and U(x) becomes the share of pixels x and the ``k - 1`` views a greedy completion adds after it
-would show, each cell counted once (by the first view of the plan that enters it). With ``k = 1`` it is x's own unseen
-pixel fraction. A greedy max-coverage over a handful of views needs no library; scipy's sparse product does the sums.
+enters unknown space. The plan makes U(x) the share of pixels x and the ``k - 1`` views a greedy completion adds after
+it would show, each cell counted once (by the first view of the plan that enters it); with ``k = 1`` it is x's own
+unseen pixel fraction. The rarity weight divides each cell's share by the number of candidates that enter its block,
+to a power: the frequency weighting of greedy set cover, where an element few sets cover weighs more, since one of
+those few must be taken for it. A greedy max-coverage over a handful of views needs no library; scipy's sparse
+product does the sums, numpy's unique the counts.
 """
 
 from __future__ import annotations
@@ -28,24 +32,56 @@ class UnseenCells:
     cells: np.ndarray
     """[C] int64 distinct flat cell indices (into the carved grid's state)."""
     share: np.ndarray
-    """[C] the fraction of the view's counted pixels (those whose ray meets the box) entering at each cell."""
+    """[C] the pixels entering at each cell (each weighed as ``from_pixels`` says) over the view's counted pixels
+    (those whose ray meets the box)."""
 
     @classmethod
-    def from_pixels(cls, cell: np.ndarray, counted: np.ndarray) -> UnseenCells:
+    def from_pixels(cls, cell: np.ndarray, counted: np.ndarray, weight: np.ndarray | None = None) -> UnseenCells:
         """From ``cell`` [H, W] (the entry cell of each pixel's unseen stretch, -1 where the ray meets observed surface
-        through observed space) and ``counted`` [H, W] bool (the pixels U counts: those whose ray meets the box).
+        through observed space), ``counted`` [H, W] bool (the pixels U counts: those whose ray meets the box) and
+        ``weight`` [H, W] (what each unseen pixel weighs: its stretch in cells for ``unseen_measure="rays"``; None: 1,
+        the pixel fraction).
         """
         cell = np.asarray(cell)
         counted = np.asarray(counted, dtype=bool)
         if cell.shape != counted.shape:
             raise InputError("cell", f"expected the shape of the counted mask {counted.shape}, got {cell.shape}")
-        cells, n = np.unique(cell[(cell >= 0) & counted], return_counts=True)
-        return cls(cells.astype(np.int64), n / max(int(counted.sum()), 1))
+        keep = (cell >= 0) & counted
+        if weight is None:
+            cells, n = np.unique(cell[keep], return_counts=True)
+            return cls(cells.astype(np.int64), n / max(int(counted.sum()), 1))
+        weight = np.asarray(weight, dtype=np.float64)
+        if weight.shape != cell.shape:
+            raise InputError("weight", f"expected the shape of the cell map {cell.shape}, got {weight.shape}")
+        cells, inverse = np.unique(cell[keep], return_inverse=True)
+        summed = np.bincount(inverse, weights=weight[keep], minlength=len(cells))
+        return cls(cells.astype(np.int64), summed / max(int(counted.sum()), 1))
 
     @property
     def fraction(self) -> float:
-        """The view's own unseen pixel fraction (``unseen_measure="pixels"``)."""
+        """The view's own U: its unseen pixel fraction (``unseen_measure="pixels"``), or the weighed sum over its
+        counted pixels.
+        """
         return float(self.share.sum())
+
+
+def rarity_weighted(
+    views: Sequence[UnseenCells], beta: float, block_of: Callable[[np.ndarray], np.ndarray] | None = None
+) -> list[UnseenCells]:
+    """``views`` with each cell's share divided by n^``beta``, n the number of views with a cell in the same block
+    (``block_of`` maps [C] cells to [C] block ids; None: each cell its own block); ``beta`` 0: unchanged. Unseen space
+    that every candidate looks into then weighs little, space only one looks into its full share.
+    """
+    if not (np.isfinite(beta) and beta >= 0):
+        raise InputError("unseen_rarity", f"must be a finite number >= 0, got {beta!r}")
+    if beta == 0 or not views:
+        return list(views)
+    blocks = [np.asarray(block_of(v.cells) if block_of is not None else v.cells, dtype=np.int64) for v in views]
+    keys, n = np.unique(np.concatenate([np.unique(b) for b in blocks]), return_counts=True)
+    return [
+        UnseenCells(v.cells, v.share * n[np.searchsorted(keys, b)].astype(np.float64) ** -float(beta))
+        for v, b in zip(views, blocks, strict=True)
+    ]
 
 
 def planned_unseen(views: Sequence[UnseenCells], k: int, between_views: Callable[[], None] | None = None) -> np.ndarray:
@@ -86,4 +122,4 @@ def planned_unseen(views: Sequence[UnseenCells], k: int, between_views: Callable
     return out
 
 
-__all__ = ["UnseenCells", "planned_unseen"]
+__all__ = ["UnseenCells", "planned_unseen", "rarity_weighted"]

@@ -4,15 +4,17 @@ map has not observed, which nothing in Eq. 7-16 pulls towards (the ROI and the F
 Two sources (``unseen_source``): the map rendered from the candidate ("map": pixels where its alpha stays below
 ``unseen_alpha``, optionally with the back of mapped surface, ``unseen_backfaces``), or a grid of unknown / free /
 occupied cells carved by the map's depth rendered at the keyframes ("carved": pixels whose ray enters unknown space,
-:func:`carved_space`, :func:`carved_unseen`). Counted as a fraction of the pixels, in m^2, or in frontier cells (carved
-only) (``unseen_measure``), within a box around the mapped surface (``unseen_bbox_margin_m``), and optionally planned
-over a few views (``unseen_plan_views``, :mod:`roigsf_ros.nbv.plan`). :class:`UnseenTerm` is what the scorer builds once
-per call and measures per candidate; the scorer z-scores U into the fused score with ``unseen_weight``.
+:func:`carved_space`, :func:`carved_unseen`). Counted as a fraction of the pixels, in m^2, in frontier cells or in
+unknown cells per ray (carved only) (``unseen_measure``), within a box around the mapped surface
+(``unseen_bbox_margin_m``), and optionally planned over a few views (``unseen_plan_views``) or weighed by how few
+candidates look into the same unseen space (``unseen_rarity``) (:mod:`roigsf_ros.nbv.plan`). :class:`UnseenTerm` is
+what the scorer builds once per call and measures per candidate; the scorer z-scores U into the fused score with
+``unseen_weight``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +26,7 @@ from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.mapping.tsdf import SurfaceVoxels
 from roigsf_ros.nbv.close_front import voxel_keys
 from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.nbv.plan import UnseenCells, planned_unseen
+from roigsf_ros.nbv.plan import UnseenCells, planned_unseen, rarity_weighted
 from roigsf_ros.nbv.stop import ShouldStop, check_stop
 from roigsf_ros.render.rasterize import render_map
 from roigsf_ros.render.surfels import SurfelMap, quat_to_rotmat
@@ -167,7 +169,8 @@ class UnseenTerm:
     space: ObservedSpace | None
     """``unseen_source="carved"``: the carved grid, in place of the map's render."""
     plan: dict[int, UnseenCells] | None
-    """``unseen_plan_views`` > 1: receives each candidate's unseen pixels by entry cell, planned over afterwards."""
+    """``unseen_plan_views`` > 1 or ``unseen_rarity`` > 0: receives each candidate's unseen pixels by entry cell,
+    weighed and planned over once every candidate is in (:meth:`finish`)."""
 
     @classmethod
     def build(
@@ -181,8 +184,8 @@ class UnseenTerm:
         should_stop: ShouldStop = None,
     ) -> UnseenTerm:
         """What one scoring call builds once, not per candidate: the box, the carved grid of the keyframes ``poses``
-        (``unseen_source="carved"``), the back-face tests (``unseen_backfaces``) and the plan (``unseen_plan_views``);
-        ``vox`` the TSDF's surface voxels (None: none), ``intr_f`` the scoring resolution.
+        (``unseen_source="carved"``), the back-face tests (``unseen_backfaces``) and the plan (``unseen_plan_views``,
+        ``unseen_rarity``); ``vox`` the TSDF's surface voxels (None: none), ``intr_f`` the scoring resolution.
         """
         empty_map = len(surfel_map) == 0
         use_facing = cfg.unseen_source == "map" and cfg.unseen_backfaces == "tsdf" and vox is not None
@@ -192,8 +195,9 @@ class UnseenTerm:
         space = None  # the space the keyframes' rendered depth observed
         if carved and box is not None and not empty_map:
             space = carved_space(surfel_map, poses, intr_f, *box, cfg, should_stop)
-        # unseen_plan_views > 1: each candidate's unseen pixels by entry cell, planned over once all are in
-        plan: dict[int, UnseenCells] | None = {} if space is not None and cfg.unseen_plan_views > 1 else None
+        # each candidate's unseen pixels by entry cell, weighed and planned over once all are in
+        grouped = cfg.unseen_plan_views > 1 or cfg.unseen_rarity > 0
+        plan: dict[int, UnseenCells] | None = {} if space is not None and grouped else None
         seen_by = None  # unseen_backfaces="unconfirmed": the map as each keyframe sees it
         if not carved and cfg.unseen_backfaces == "unconfirmed" and not empty_map and len(poses):
             seen_by = KeyframeDepths.render(
@@ -211,9 +215,11 @@ class UnseenTerm:
             if cfg.unseen_measure == "cells":  # m^2 of frontier, each cell once
                 _, cells = space.unseen_frontier(T, intr_f, cfg.near_m, cfg.far_m)
                 return len(cells) * space.voxel_m**2
-            if self.plan is not None:  # its pixels by entry cell; U is the plan's, written once every candidate is in
+            if self.plan is not None:  # its pixels by entry cell; U is written by finish once every candidate is in
                 meets = rays_meet_box(T, intr_f, *box)
-                self.plan[i] = UnseenCells.from_pixels(space.unseen_cells(T, intr_f, cfg.near_m, cfg.far_m), meets)
+                enter, leave, cell = space.unseen_rays(T, intr_f, cfg.near_m, cfg.far_m)
+                weight = (leave - enter) / space.voxel_m if cfg.unseen_measure == "rays" else None
+                self.plan[i] = UnseenCells.from_pixels(cell, meets, weight)
                 return None
             hole, enter, leave = carved_unseen(space, T, intr_f, box, cfg)
             if cfg.unseen_measure == "area":  # m^2: footprints where the unknown stretch ends (the farthest)
@@ -252,13 +258,31 @@ class UnseenTerm:
         return float(hole.mean())
 
     def finish(self, unseen: np.ndarray, should_stop: ShouldStop = None) -> None:
-        """With a plan (``unseen_plan_views`` > 1), write into ``unseen`` [M] the planned U of the candidates
-        :meth:`measure` left as they were; else nothing to do.
+        """With a plan (``unseen_plan_views`` > 1 or ``unseen_rarity`` > 0), write into ``unseen`` [M] the U of the
+        candidates :meth:`measure` left as they were: their cells weighed by rarity among them, then planned over;
+        else nothing to do.
         """
-        if self.plan:
+        if self.plan and self.space is not None:
             order = sorted(self.plan)
-            unseen[order] = planned_unseen([self.plan[i] for i in order], self.cfg.unseen_plan_views,
-                                           lambda: check_stop(should_stop))  # fmt: skip
+            views = rarity_weighted([self.plan[i] for i in order], self.cfg.unseen_rarity,
+                                    rarity_blocks(self.space, self.cfg.unseen_rarity_block_m))  # fmt: skip
+            unseen[order] = planned_unseen(views, self.cfg.unseen_plan_views, lambda: check_stop(should_stop))
+
+
+def rarity_blocks(space: ObservedSpace, block_m: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Maps [C] flat cell indices of ``space``'s grid to [C] ids of cubic blocks of ``block_m`` (rounded to whole
+    cells, at least one) (``unseen_rarity_block_m``): rays into the same unseen pocket from two viewpoints enter it
+    at different cells, so the rarity counts the candidates looking into each block.
+    """
+    b = max(round(block_m / space.voxel_m), 1)
+    dims = np.asarray(space.state.shape, dtype=np.int64)
+    blocks = tuple(int(d) for d in -(-dims // b))
+
+    def block_of(cells: np.ndarray) -> np.ndarray:
+        ijk = np.unravel_index(np.asarray(cells, dtype=np.int64), space.state.shape)
+        return np.ravel_multi_index(tuple(a // b for a in ijk), blocks).astype(np.int64)
+
+    return block_of
 
 
 def unseen_box(vox: SurfaceVoxels, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
