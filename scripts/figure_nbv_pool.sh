@@ -94,7 +94,9 @@
 # OFFSET=10 and OFFSET=15 (8.4-15.7 min each, 128 min in all with the scenes rendered from nothing).
 # Forty-eighth session, the same machine: TAG=rar48 POLICIES="$F2:unseen_rarity=1,$F2:unseen_rarity=1:
 # unseen_rarity_block_m=0.25,$F2:unseen_rarity=0.5" (F2=$C:unseen_measure=rays) with SCENES=shelf, then SCALE=2
-# SCENES=room5 (the tuning scenes; 6 and 16 min; none went on, so nothing else).
+# SCENES=room5 (the tuning scenes; 6 and 16 min; none went on, so nothing else); and SEEDS=5 TAG=s5_48
+# POLICIES="$F2,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5 and SCENES=room6 (seeds 0-4: how
+# much a three-seed verdict hangs on one seed; 13-17 min each).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

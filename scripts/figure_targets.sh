@@ -230,6 +230,14 @@ for s in bins_240 office0_240_kinect clutter_240 room1_240 room2_240 room3_240 r
     b="runs/bench_pool_${s}_rep47"
     verdict "pool_${s}_rep47_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
 done
+# Forty-eighth session, the same machine: how much a verdict hangs on one seed, a reading beside the three-seed
+# verdicts of record: the same three policies with seeds 0-4 (SEEDS=5 TAG=s5_48
+# POLICIES="$C:unseen_measure=rays,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5 and
+# SCENES=room6), rows pool_*_s5_48_rays.
+for s in synth_240 office0_240_o5 room6_240; do
+    b="runs/bench_pool_${s}_s5_48"
+    verdict "pool_${s}_s5_48_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect

@@ -304,9 +304,8 @@ class NBVConfig(Config):
                 "measures the carved grid's unknown stretches: it needs unseen_source=carved, unseen_measure pixels, "
                 "area or rays and unseen_plan_views=1",
             )
-        if self.unseen_rarity > 0 and (
-            self.unseen_source != "carved" or self.unseen_measure not in ("pixels", "rays") or self.unseen_min_stretch_m
-        ):
+        grouped_by_cell = self.unseen_source == "carved" and self.unseen_measure in ("pixels", "rays")
+        if self.unseen_rarity > 0 and (not grouped_by_cell or self.unseen_min_stretch_m > 0):
             raise InputError(
                 "unseen_rarity",
                 "weighs the carved grid's entry cells: it needs unseen_source=carved, unseen_measure pixels or rays "
