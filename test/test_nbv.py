@@ -680,8 +680,7 @@ def test_unseen_rarity_divides_each_unseen_pixel_by_the_candidates_looking_into_
     its stretch in cells for rays; their sum is the direct U to rounding) with each cell's share over n^beta, n the
     candidates entering its block. The two views behind A look into the same back of it, so with beta 1 each keeps
     about half of its U (the front view sees no unseen space either way), and no U grows."""
-    from roigsf_ros.nbv import UnseenCells, carved_space, planned_unseen, rarity_weighted, rays_meet_box
-    from roigsf_ros.nbv.unseen import rarity_blocks
+    from roigsf_ros.nbv import UnseenCells, carved_space, planned_unseen, rarity_blocks, rarity_weighted, rays_meet_box
 
     behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
     beside = look_at(np.array([3.0, 0.4, 1.0]), np.array([2.0, 0.0, 1.0]), UP)

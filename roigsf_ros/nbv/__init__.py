@@ -72,6 +72,7 @@ __all__, __getattr__ = lazy_exports(
             "box_exit_depth",
             "carved_space",
             "carved_unseen",
+            "rarity_blocks",
             "rays_meet_box",
             "surfels_facing",
             "unseen_box",

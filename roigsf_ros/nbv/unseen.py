@@ -389,6 +389,7 @@ __all__ = [
     "box_exit_depth",
     "carved_space",
     "carved_unseen",
+    "rarity_blocks",
     "rays_meet_box",
     "surfels_facing",
     "unseen_box",
