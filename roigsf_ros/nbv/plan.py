@@ -47,14 +47,12 @@ class UnseenCells:
         if cell.shape != counted.shape:
             raise InputError("cell", f"expected the shape of the counted mask {counted.shape}, got {cell.shape}")
         keep = (cell >= 0) & counted
-        if weight is None:
-            cells, n = np.unique(cell[keep], return_counts=True)
-            return cls(cells.astype(np.int64), n / max(int(counted.sum()), 1))
-        weight = np.asarray(weight, dtype=np.float64)
-        if weight.shape != cell.shape:
-            raise InputError("weight", f"expected the shape of the cell map {cell.shape}, got {weight.shape}")
+        if weight is not None:
+            weight = np.asarray(weight, dtype=np.float64)
+            if weight.shape != cell.shape:
+                raise InputError("weight", f"expected the shape of the cell map {cell.shape}, got {weight.shape}")
         cells, inverse = np.unique(cell[keep], return_inverse=True)
-        summed = np.bincount(inverse, weights=weight[keep], minlength=len(cells))
+        summed = np.bincount(inverse, weights=None if weight is None else weight[keep], minlength=len(cells))
         return cls(cells.astype(np.int64), summed / max(int(counted.sum()), 1))
 
     @property
