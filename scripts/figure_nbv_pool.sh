@@ -97,6 +97,8 @@
 # SCENES=room5 (the tuning scenes; 6 and 16 min; none went on, so nothing else); and SEEDS=5 TAG=s5_48
 # POLICIES="$F2,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5 and SCENES=room6 (seeds 0-4: how
 # much a three-seed verdict hangs on one seed; 13-17 min each).
+# Forty-ninth session, the same machine: TAG=once49 POLICIES="$F2:unseen_carve_rerender=false" with SCENES=shelf, then
+# SCALE=2 SCENES=room5 (the carved grid kept between scoring calls; 101 and 247 s; it went no further).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

@@ -430,7 +430,7 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
     out = tmp_path / "nbv.json"
     args = ["perf", "nbv", "--repeats", "1", "--threads", "1", "--surfels", "1500", "--width", "40", "--height", "30"]
     try:
-        assert main([*args, "--candidates", "4", "--voxel-size", "0.1", "--out", str(out)]) == 0
+        assert main([*args, "--candidates", "4", "--voxel-size", "0.1", "--keyframes", "2,5", "--out", str(out)]) == 0
     finally:  # back to numba's default thread count (the benchmark set 1)
         if numba_available():
             import numba
@@ -451,8 +451,18 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
             assert r["roi_ms"] > 0 and r["phases_s"]["roi"] > 0
         else:
             assert r["roi_ms"] < 0.05 * r["fisher_ms"]  # FisherRF has no ROI: only loop overhead
+    # planner requests by keyframe count: the kept grid renders each keyframe once and, the map being the same,
+    # scores as rendering at every request; only the unseen variants have an unseen phase
+    req = {(r["variant"], r["keyframes"]): r for r in data["requests"]}
+    assert set(req) == {(v, k) for v in ("roi-gsurfisher", "F2", "F2, kept grid") for k in (2, 5)}
+    for k in (2, 5):
+        assert req["roi-gsurfisher", k]["unseen_s"] == 0.0 and req["F2", k]["unseen_s"] > 0
+        assert req["F2, kept grid", k]["renders"] == k and req["F2", k]["renders"] is None
+        assert req["F2, kept grid", k]["best_index"] == req["F2", k]["best_index"]
+        assert all(req[v, k]["request_s"] > 0 and req[v, k]["sync_one_s"] > 0 for v in ("F2", "F2, kept grid"))
     assert "ratio" in capsys.readouterr().out
     assert main([*args, "--candidates", "0"]) == 2  # bad input: one-line error
+    assert main([*args, "--keyframes", "0,4"]) == 2
 
 
 def test_unseen_term_pulls_towards_space_the_map_has_not_seen(world: World) -> None:
@@ -566,6 +576,78 @@ def test_carved_unseen_source_counts_what_no_keyframe_observed(world: World) -> 
         NBVConfig(unseen_measure="cells")  # the map source has no cells
     with pytest.raises(InputError, match=r"^unseen_measure: rays counts carved cells"):
         NBVConfig(unseen_measure="rays")
+
+
+def _map_rgbd(m: SurfelMap):
+    """The map's median depth at a pose where its alpha reaches 0.5 (0 elsewhere), as a scoring TSDF fuses it."""
+
+    def render(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with torch.no_grad():
+            out = render_map(m, T, INTR)
+        depth = torch.where(out.alpha >= 0.5, out.median_depth, 0.0).numpy().astype(np.float32)
+        return depth, np.zeros((INTR.height, INTR.width, 3), np.uint8)
+
+    return render
+
+
+def test_a_kept_carved_grid_renders_each_keyframe_once(world: World) -> None:
+    """``unseen_carve_rerender`` false: a kept scoring state renders each keyframe for the carved grid once and
+    carves only the new ones; its first call scores as rendering at every call does (the same renders), and the
+    unseen term's build and measures are timed as their own phase. Rendering every keyframe at every call made a
+    planner request grow with the map."""
+    cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved", unseen_measure="rays")
+    behind = look_at(np.array([3.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0]), UP)
+    cands = np.stack([world.view_a, world.view_b, behind])
+    poses = np.stack(world.train)
+    outputs = ("color", "depth")
+    render = _map_rgbd(world.map)
+    every = ScoringState(cfg, 0.04, 0.16, 10.0)
+    kept = ScoringState(replace(cfg, unseen_carve_rerender=False), 0.04, 0.16, 10.0)
+    assert every.carved is None and kept.carved is not None
+    first = [s.score(world.map, world.h_train, outputs, poses[:3], cands, INTR, render) for s in (every, kept)]
+    np.testing.assert_array_equal(first[0].unseen, first[1].unseen)
+    np.testing.assert_array_equal(first[0].fused, first[1].fused)
+    assert first[1].unseen[2] > first[1].unseen[0] and first[0].timings_s["unseen"] > 0
+    assert kept.carved.renders == 3
+    kept.score(world.map, world.h_train, outputs, poses, cands, INTR, render)
+    assert kept.carved.renders == 4  # only the new keyframe rendered
+    paper = NBVScorer().score(world.map, world.h_train, world.tsdf, world.train, cands, INTR)
+    assert paper.timings_s["unseen"] == 0.0
+    with pytest.raises(InputError, match=r"^unseen_carve_rerender: false keeps the carved grid"):
+        NBVConfig(unseen_carve_rerender=False)  # the map source keeps no grid
+    with pytest.raises(InputError, match="unseen_carve_rerender"):
+        NBVConfig(unseen_source="carved", unseen_carve_rerender="no")
+
+
+def test_the_kept_carved_grid_is_the_grid_of_every_kept_depth_carved_at_once(world: World) -> None:
+    """:class:`CarvedSpaceMemory`: the grid carved keyframe by keyframe equals the one carved from all kept depths
+    at once, cell for cell; a larger box carves the kept depths again without rendering; a keyframe set that does not
+    extend the kept one starts afresh. A changed map does not change what a kept keyframe carved."""
+    from roigsf_ros.mapping.observed_space import ObservedSpace
+    from roigsf_ros.nbv.state import CarvedSpaceMemory
+    from roigsf_ros.nbv.unseen import carve_depths, carved_space
+
+    cfg = NBVConfig(unseen_weight=1.0, unseen_source="carved", unseen_carve_rerender=False)
+    poses = np.stack(world.train)
+    vox = NBVScorer().surface(world.tsdf)
+    box = (vox.centres_m.min(0) - 0.1, vox.centres_m.max(0) + 0.1)
+    mem = CarvedSpaceMemory()
+    mem.space(world.map, poses[:2], INTR, box, cfg)
+    grid = mem.space(world.map, poses, INTR, box, cfg)
+    assert (mem.renders, mem.carves) == (4, 4)
+    at_once = ObservedSpace.carve(*box, cfg.unseen_voxel_m, poses, carve_depths(world.map, poses, INTR, cfg), INTR,
+                                  cfg.far_m)  # fmt: skip
+    np.testing.assert_array_equal(grid.state, at_once.state)
+    np.testing.assert_array_equal(grid.state, carved_space(world.map, poses, INTR, *box, cfg).state)
+    wider = (box[0] - 0.2, box[1] + 0.2)
+    grid = mem.space(world.map, poses, INTR, wider, cfg)
+    assert (mem.renders, mem.carves) == (4, 8)
+    np.testing.assert_array_equal(grid.state, carved_space(world.map, poses, INTR, *wider, cfg).state)
+    only_b = world.map.select(torch.arange(world.n_a, len(world.map)))  # panel A gone from the map
+    assert mem.space(only_b, poses, INTR, wider, cfg) is grid and mem.renders == 4
+    assert not np.array_equal(carved_space(only_b, poses, INTR, *wider, cfg).state, grid.state)
+    mem.space(world.map, poses[::-1], INTR, wider, cfg)
+    assert mem.renders == 8  # not an extension of the kept keyframes
 
 
 def test_unseen_min_stretch_counts_long_unknown_stretches_and_those_from_the_box_side(world: World) -> None:

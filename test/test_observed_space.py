@@ -145,6 +145,28 @@ def test_numba_kernels_match_the_plain_python_ones() -> None:
     assert ((c_ref >= 0) == (enter > 0)).all() and 0 < len(cells) < (enter > 0).sum()
 
 
+def test_carving_in_parts_gives_the_grid_carving_at_once_gives() -> None:
+    """A cell ends occupied where any ray ended, else free where any passed, so carving keyframes one part at a time
+    (a planner adding each new keyframe) gives, cell for cell, the grid carving them all at once gives, in any order
+    of the parts: walls at several depths from several places, with holes (0), nan and misses (inf)."""
+    rng = np.random.default_rng(3)
+    poses = np.stack([pose(x=x, z=z, back=b) for x, z, b in ((0.0, 0.0, False), (0.6, 0.2, False),
+                                                             (-0.5, 2.9, True), (0.3, 0.4, False))])  # fmt: skip
+    depth = np.concatenate([wall(z) for z in (2.0, 1.2, 1.5, 2.3)]) + rng.uniform(-0.1, 0.1, (4, 60, 80))
+    depth[0, :5] = 0.0
+    depth[1, 10:20, 30:40] = np.inf
+    depth[2, :, :7] = np.nan
+    whole = ObservedSpace.carve(LO, HI, 0.05, poses, depth, INTR, far_m=2.5)
+    assert min(whole.counts().values()) > 0
+    for parts in ([0, 1], [2], [3]), ([3], [1, 2], [0]), ([2, 0, 1, 3],):
+        space = ObservedSpace.empty(LO, HI, 0.05)
+        for part in parts:
+            space.carve_more(poses[part], depth[part], INTR, far_m=2.5)
+        np.testing.assert_array_equal(space.state, whole.state)
+    with pytest.raises(InputError, match="depth_m"):
+        space.carve_more(poses[:2], depth[:1], INTR)
+
+
 def test_bad_grids_are_refused_naming_the_field() -> None:
     with pytest.raises(InputError, match="voxel_m"):
         ObservedSpace.carve(LO, HI, 0.0, [pose()], wall(), INTR)

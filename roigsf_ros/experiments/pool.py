@@ -40,7 +40,7 @@ from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
-from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.config import ROI_MODES, NBVConfig
 from roigsf_ros.policies.base import make_policy
 from roigsf_ros.policies.stream import StreamNBVPolicy
 
@@ -357,7 +357,7 @@ def run_pool(
 
     remaining = [p for p in split.pool if p not in chosen and p not in skipped]
     nbv_config = getattr(policy, "config", None)
-    uses_h_train = policy.mode in ("roi-gsurfisher", "roi-fisher") and (
+    uses_h_train = policy.mode in ROI_MODES and (
         not isinstance(nbv_config, NBVConfig) or nbv_config.uses_fisher(policy.mode)
     )
     while len(mapper.keyframes) < config.n_views and remaining:

@@ -167,6 +167,20 @@ class ObservedSpace:
     """[X, Y, Z] uint8 cell states (:data:`UNKNOWN`, :data:`FREE`, :data:`OCCUPIED`)."""
 
     @classmethod
+    def empty(cls, lo_m: np.ndarray, hi_m: np.ndarray, voxel_m: float) -> ObservedSpace:
+        """The box [lo_m, hi_m] in cells of ``voxel_m``, every cell UNKNOWN (nothing observed yet)."""
+        lo = np.asarray(lo_m, dtype=np.float64).reshape(3)
+        hi = np.asarray(hi_m, dtype=np.float64).reshape(3)
+        if not (voxel_m > 0 and np.isfinite(voxel_m)):
+            raise InputError("voxel_m", f"must be a positive size in metres, got {voxel_m}")
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
+            raise InputError("box", f"needs finite corners with hi > lo, got {lo} .. {hi}")
+        dims = np.maximum(np.ceil((hi - lo) / voxel_m).astype(np.int64), 1)
+        if int(np.prod(dims)) > 256_000_000:
+            raise InputError("voxel_m", f"{voxel_m} m cells make a {dims.tolist()} grid of the box: too many")
+        return cls(lo, float(voxel_m), np.zeros(tuple(int(d) for d in dims), dtype=np.uint8))
+
+    @classmethod
     def carve(
         cls,
         lo_m: np.ndarray,
@@ -181,28 +195,31 @@ class ObservedSpace:
         inf: the ray met nothing up to ``far_m``, so all it crossed is free) seen from ``poses`` [K, 4, 4]
         (camera-to-world) at ``intr`` observed it; depths beyond ``far_m`` carve free space up to it only.
         """
-        lo = np.asarray(lo_m, dtype=np.float64).reshape(3)
-        hi = np.asarray(hi_m, dtype=np.float64).reshape(3)
-        if not (voxel_m > 0 and np.isfinite(voxel_m)):
-            raise InputError("voxel_m", f"must be a positive size in metres, got {voxel_m}")
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
-            raise InputError("box", f"needs finite corners with hi > lo, got {lo} .. {hi}")
-        dims = np.maximum(np.ceil((hi - lo) / voxel_m).astype(np.int64), 1)
-        if int(np.prod(dims)) > 256_000_000:
-            raise InputError("voxel_m", f"{voxel_m} m cells make a {dims.tolist()} grid of the box: too many")
-        state = np.zeros(tuple(int(d) for d in dims), dtype=np.uint8)
+        space = cls.empty(lo_m, hi_m, voxel_m)
+        space.carve_more(poses, depth_m, intr, far_m)
+        return space
+
+    def carve_more(
+        self,
+        poses: Sequence[np.ndarray] | np.ndarray,
+        depth_m: np.ndarray,
+        intr: Intrinsics,
+        far_m: float = np.inf,
+    ) -> None:
+        """Carve more depth maps into this grid, in place (arguments as :meth:`carve`'s). A cell ends OCCUPIED where
+        any ray ended in it, else FREE where any ray passed, else UNKNOWN, so carving in parts gives the grid carving
+        all at once gives, cell for cell (a planner adds each new keyframe without carving the old ones again).
+        """
         pose_arr = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
         depth = np.ascontiguousarray(np.asarray(depth_m, dtype=np.float64))
         if depth.ndim != 3 or len(depth) != len(pose_arr) or depth.shape[1:] != (intr.height, intr.width):
             raise InputError(
                 "depth_m", f"expected [{len(pose_arr)}, {intr.height}, {intr.width}] (one per pose), got {depth.shape}"
             )
-        space = cls(lo, float(voxel_m), state)
         if len(pose_arr):
             for occupied in (False, True):
-                space._launch("carve", state, pose_arr, depth, lo, float(voxel_m), intr.fx, intr.fy, intr.cx,
-                              intr.cy, float(far_m), occupied)  # fmt: skip
-        return space
+                self._launch("carve", self.state, pose_arr, depth, self.lo_m, self.voxel_m, intr.fx, intr.fy,
+                             intr.cx, intr.cy, float(far_m), occupied)  # fmt: skip
 
     def unseen_depths(
         self, T_wc: np.ndarray, intr: Intrinsics, near_m: float = 0.0, far_m: float = np.inf

@@ -8,7 +8,7 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
-        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig", "UNSEEN_MEASURES", "UNSEEN_SOURCES"],
+        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig", "ROI_MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES"],
         "novelty": [
             "NOVELTY_MEASURES",
             "NOVELTY_RADIUS_M",
@@ -54,6 +54,7 @@ __all__, __getattr__ = lazy_exports(
         ],
         "state": [
             "CLOSE_FRONT_MODES",
+            "CarvedSpaceMemory",
             "PreparedScorer",
             "RenderRGBD",
             "ScoringState",
@@ -70,6 +71,7 @@ __all__, __getattr__ = lazy_exports(
             "UnseenTerm",
             "box_depths",
             "box_exit_depth",
+            "carve_depths",
             "carved_space",
             "carved_unseen",
             "rarity_blocks",

@@ -12,6 +12,8 @@ from roigsf_ros.render.fisher import ALL_PARAMS, GEOMETRIC_PARAMS, OUTPUTS
 
 MODES = ("roi-gsurfisher", "roi-fisher", "close-front", "fisherrf")
 """Score modes: the method, its two ablations and the FisherRF baseline."""
+ROI_MODES = ("roi-gsurfisher", "roi-fisher")
+"""Modes that score the ROI's Fisher: the ones the terms beyond the paper (unseen, frontier, FisherRF) add to."""
 BACKFACE_TESTS = ("none", "tsdf", "surfels", "unconfirmed")
 """Values of ``NBVConfig.unseen_backfaces``: how the unseen term tells a pixel that renders the back of a surface."""
 UNSEEN_MEASURES = ("pixels", "area", "cells", "rays")
@@ -166,6 +168,15 @@ class NBVConfig(Config):
     unseen_voxel_m: float = 0.025
     """``unseen_source="carved"``: the cell size of the carved grid (metres); 2.5 cm was chosen over 5 cm on the two
     tuning scenes (a gap between objects a cell or two wide is carved only where the cells happen to fall)."""
+    unseen_carve_rerender: bool = True
+    """``unseen_source="carved"``, in a kept scoring state (planner node, stream and pool policies): True renders the
+    map at every keyframe pose and carves the grid again at every scoring call, so a planner request grows with the map
+    (12-13 ms per keyframe at 160x120 in ``roigsf perf nbv``: 2.3-2.7x the paper's request at 64 keyframes); False
+    renders each keyframe once, when the state first sees it (as its TSDF fuses it), keeps that depth and carves only
+    new keyframes into the kept grid (:class:`~roigsf_ros.nbv.state.CarvedSpaceMemory`; the kept depths are carved
+    again, without rendering, when the box of the surface grows): 0.64-0.67x F2's request at 64 keyframes, level in
+    recall on the tuning scenes and 0.0006 lower in F@5cm (docs/measured-figures.md). Not in the paper. A call
+    without a kept state always renders."""
     unseen_min_stretch_m: float = 0.0
     """``unseen_source="carved"`` (pixels, area or rays): a pixel counts as unseen only where the unknown stretch its
     ray crosses last, before observed surface or the box's side, is at least this long (metres of camera z), or begins
@@ -268,8 +279,11 @@ class NBVConfig(Config):
             raise InputError("occlusion_min_cos", f"must be in (0, 1], got {self.occlusion_min_cos}")
         if not self.max_splat_radius_px >= 1.0:
             raise InputError("max_splat_radius_px", f"must be >= 1, got {self.max_splat_radius_px}")
-        if not isinstance(self.close_front_exact, bool | np.bool_):  # a string such as "no" would read as true
-            raise InputError("close_front_exact", f"must be true or false, got {self.close_front_exact!r}")
+        for name in ("close_front_exact", "unseen_carve_rerender"):  # a string such as "no" would read as true
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
+        if not self.unseen_carve_rerender and self.unseen_source != "carved":
+            raise InputError("unseen_carve_rerender", "false keeps the carved grid: it needs unseen_source=carved")
         if self.unseen_backfaces not in BACKFACE_TESTS:
             raise InputError(
                 "unseen_backfaces", f"must be one of {', '.join(BACKFACE_TESTS)}, got {self.unseen_backfaces!r}"
@@ -322,4 +336,4 @@ class NBVConfig(Config):
         return self
 
 
-__all__ = ["BACKFACE_TESTS", "MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES", "NBVConfig"]
+__all__ = ["BACKFACE_TESTS", "MODES", "ROI_MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES", "NBVConfig"]

@@ -41,9 +41,10 @@ from torch import Tensor
 from roigsf_ros.core.camera import Intrinsics, check_pose, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.evaluation.metrics import ause
+from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
-from roigsf_ros.nbv.config import MODES, NBVConfig
+from roigsf_ros.nbv.config import MODES, ROI_MODES, NBVConfig
 from roigsf_ros.nbv.roi import ViewROI, batch_roi, frustum_union, view_roi, voxel_texture
 from roigsf_ros.nbv.stop import ShouldStop, check_stop
 from roigsf_ros.nbv.unseen import UnseenTerm
@@ -219,8 +220,9 @@ class NBVResult:
     see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
     degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
     ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi`` (with close-front:
-    one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher`` (and the unseen render);
-    ``roi_close_front`` their ROI sum) and process CPU seconds (``<phase>_cpu``). ``n_skipped``: candidates
+    one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher``, ``unseen`` (the unseen
+    term: its once-per-call build, e.g. the carved grid, and each candidate's measure); ``roi_close_front`` their ROI
+    sum) and process CPU seconds (``<phase>_cpu``). ``n_skipped``: candidates
     whose frustum cannot meet the mapped region, flagged before any work.
     """
 
@@ -391,13 +393,17 @@ class NBVScorer:
         mode: str | None = None,
         close_front_memory: CloseFrontMemory | None = None,
         should_stop: ShouldStop = None,
+        kept_space: ObservedSpace | None = None,
     ) -> NBVResult:
         """Score candidate poses ([M, 4, 4], a list of 4x4, or [M, 7] position + xyzw quaternion rows).
 
         ``h_train``: the training Fisher matching the mode (see :meth:`train_fisher`; the Mapper's
         ``h_train`` fits the ROI modes); None computes it here from ``train_poses`` (one Fisher pass per
         pose). ``close_front_memory``: W_f kept incrementally; None computes it exactly from
-        ``train_poses``. An empty map or a TSDF without surface gives zero scores and a ``reason``.
+        ``train_poses``. ``kept_space``: the unseen term's carved grid kept by the caller
+        (:class:`~roigsf_ros.nbv.state.CarvedSpaceMemory`, for the box of this TSDF's surface); None carves it here
+        from the map rendered at every ``train_poses`` (``unseen_source="carved"``). An empty map or a TSDF without
+        surface gives zero scores and a ``reason``.
         ``should_stop`` is checked before each candidate (and training view): a node shutting down stops
         a long call within one candidate's work, raising :class:`ScoringStoppedError`.
         """
@@ -432,7 +438,7 @@ class NBVScorer:
             else:
                 voxel_size = tsdf.voxel_size_m
         frontier = None
-        if vox is not None and cfg.frontier_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher"):
+        if vox is not None and cfg.frontier_weight > 0 and mode in ROI_MODES:
             frontier = tsdf.frontier_mask(vox)
         w_f = None
         if vox is not None and mode in ("roi-gsurfisher", "close-front"):
@@ -463,12 +469,14 @@ class NBVScorer:
         mass = np.zeros(m)
         n_vox = np.zeros(m, dtype=np.int64)
         flagged = np.zeros(m, dtype=bool)
-        use_unseen = cfg.unseen_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher")
+        use_unseen = cfg.unseen_weight > 0 and mode in ROI_MODES
         unseen = np.ones(m) if use_unseen else None
         # What the unseen term needs (its box, carved grid, back-face tests), built once per call, not per candidate.
-        unseen_term = (
-            UnseenTerm.build(cfg, surfel_map, vox, voxel_size, poses, intr_f, should_stop) if use_unseen else None
-        )
+        unseen_term, unseen_build = None, np.zeros(2)
+        if use_unseen:
+            t0 = _clock()
+            unseen_term = UnseenTerm.build(cfg, surfel_map, vox, voxel_size, poses, intr_f, should_stop, kept_space)
+            unseen_build = _since(t0)
         # Candidates whose frustum cannot meet the mapped region (surface voxels, surfels, the unseen term's box)
         # score nothing: they are flagged without any rendering.
         box = _mapped_region(vox, voxel_size, None if empty_map or not need_fisher else surfel_map, cfg, use_unseen)
@@ -476,10 +484,11 @@ class NBVScorer:
                          for T in cands], dtype=bool)  # fmt: skip
         live = np.flatnonzero(sees)
         # Texture only where a candidate may look (the chunk's in-frustum voxels), classified once per voxel.
-        use_texture = vox is not None and mode in ("roi-gsurfisher", "roi-fisher")
+        use_texture = vox is not None and mode in ROI_MODES
         textured = np.zeros(len(vox.centres_m), dtype=bool) if use_texture else None
         classified = np.zeros(len(vox.centres_m), dtype=bool) if use_texture else None
-        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher", "texture")}
+        acc = {k: np.zeros(2) for k in ("roi", "close_front", "fisher", "unseen", "texture")}
+        acc["unseen"] += unseen_build
         for lo in range(0, len(live), _ROI_CHUNK):  # chunks: a stop is seen soon, ROI images stay few
             chunk = live[lo : lo + _ROI_CHUNK]
             chunk_poses = np.stack([cands[i] for i in chunk])
@@ -511,14 +520,18 @@ class NBVScorer:
                         fisher[i] = f
                         if mode == "fisherrf":
                             flagged[i] = f == 0.0  # every entry of F is >= 0 and every weight > 0
+                acc["fisher"] += _since(t0)
                 if unseen_term is not None:
+                    t0 = _clock()
                     u = unseen_term.measure(surfel_map, cands[i], i, intr_f)
                     if u is not None:
                         unseen[i] = u
-                acc["fisher"] += _since(t0)
+                    acc["unseen"] += _since(t0)
         if unseen_term is not None:
+            t0 = _clock()
             unseen_term.finish(unseen, should_stop)
             unseen[~sees] = 0.0
+            acc["unseen"] += _since(t0)
         for i in range(m):
             if need_voxels:
                 flagged[i] = n_vox[i] == 0 and (unseen is None or unseen[i] == 0)
@@ -545,7 +558,7 @@ class NBVScorer:
             fused[ok] = zscore(fisher[ok])
         if unseen is not None:
             fused[ok] = fused[ok] + cfg.unseen_weight * zscore(unseen[ok], cfg.unseen_min_std)
-        if cfg.fisherrf_weight > 0 and mode in ("roi-gsurfisher", "roi-fisher"):
+        if cfg.fisherrf_weight > 0 and mode in ROI_MODES:
             t0 = _clock()
             rf = self.score(surfel_map, None, None, poses, cands, intr, "fisherrf", should_stop=should_stop)
             fused[ok] = fused[ok] + cfg.fisherrf_weight * zscore(rf.fisher[ok])

@@ -21,11 +21,13 @@ import numpy as np
 import torch
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.mapping.observed_space import ObservedSpace
 from roigsf_ros.mapping.tsdf import SurfaceVoxels, TSDFVolume
 from roigsf_ros.nbv.close_front import CloseFrontMemory
-from roigsf_ros.nbv.config import NBVConfig
-from roigsf_ros.nbv.scorer import NBVResult, NBVScorer
+from roigsf_ros.nbv.config import ROI_MODES, NBVConfig
+from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, downsampled
 from roigsf_ros.nbv.stop import ShouldStop, check_stop
+from roigsf_ros.nbv.unseen import carve_depths, unseen_box
 from roigsf_ros.render.surfels import SurfelMap
 
 
@@ -146,6 +148,62 @@ def pose_keys(poses: np.ndarray) -> list[bytes]:
     return [np.ascontiguousarray(T, dtype=np.float64).tobytes() for T in np.asarray(poses).reshape(-1, 4, 4)]
 
 
+class CarvedSpaceMemory:
+    """The unseen term's carved grid kept between scoring calls (``NBVConfig.unseen_carve_rerender`` false): the
+    map's depth rendered at each keyframe pose once, when first seen (:func:`~roigsf_ros.nbv.unseen.carve_depths`),
+    and the grid carved incrementally from those depths (:meth:`ObservedSpace.carve_more`). Carving is a per-cell OR,
+    so the kept grid is, cell for cell, the one :meth:`ObservedSpace.carve` makes of all the kept depths at once; a
+    new box (the surface grew) carves the kept depths again, without rendering. ROS-free, not thread-safe.
+    """
+
+    def __init__(self) -> None:
+        self._keys: list[bytes] = []
+        self._depth: list[np.ndarray] = []
+        self._settings: tuple | None = None
+        self._space: ObservedSpace | None = None
+        self._hi = np.zeros(3)
+        self._n_carved = 0
+        self.renders = 0
+        """Keyframe poses rendered so far (each once, unless the keyframe set or the settings changed)."""
+        self.carves = 0
+        """Keyframe depths carved so far (a new box carves the kept ones again)."""
+
+    def space(
+        self,
+        surfel_map: SurfelMap,
+        poses: np.ndarray,
+        intr: Intrinsics,
+        box: tuple[np.ndarray, np.ndarray],
+        config: NBVConfig,
+        should_stop: ShouldStop = None,
+    ) -> ObservedSpace:
+        """The grid of ``box`` (lo, hi) carved by every keyframe of ``poses`` [K, 4, 4] at ``intr``: the ones not
+        seen before rendered from ``surfel_map`` now. A keyframe set that does not extend the kept one (a loaded
+        map), other intrinsics or other carving settings start afresh.
+        """
+        pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        keys = pose_keys(pose_arr)
+        settings = (intr, config.unseen_alpha, config.near_m, config.far_m, config.unseen_voxel_m)
+        if settings != self._settings or keys[: len(self._keys)] != self._keys:
+            self._keys, self._depth, self._settings, self._space, self._n_carved = [], [], settings, None, 0
+        if len(keys) > len(self._keys):
+            new = pose_arr[len(self._keys) :]
+            self._depth.extend(carve_depths(surfel_map, new, intr, config, should_stop))
+            self._keys.extend(keys[len(self._keys) :])
+            self.renders += len(new)
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in box)
+        kept = self._space
+        if kept is None or not (np.array_equal(kept.lo_m, lo) and np.array_equal(self._hi, hi)):
+            self._space, self._hi, self._n_carved = ObservedSpace.empty(lo, hi, config.unseen_voxel_m), hi, 0
+        n = len(self._keys)
+        if self._n_carved < n:
+            k = self._n_carved
+            self._space.carve_more(pose_arr[k:n], np.stack(self._depth[k:n]), intr, config.far_m)
+            self.carves += n - k
+            self._n_carved = n
+        return self._space
+
+
 def running_h_train_fits(
     h_train: dict[str, torch.Tensor] | None, map_fisher_outputs: tuple[str, ...], config: NBVConfig, mode: str
 ) -> bool:
@@ -201,6 +259,10 @@ class ScoringState:
         """Close-front memories built from every keyframe pose (once, or at each TSDF update when exact)."""
         self.close_front_views_added = 0
         """Keyframes folded into the kept close-front memory one at a time (not exact mode)."""
+        keep_grid = config.unseen_source == "carved" and not config.unseen_carve_rerender
+        self.carved = CarvedSpaceMemory() if keep_grid else None
+        """The unseen term's carved grid, kept (``unseen_carve_rerender`` false), else None: carved at each call."""
+        self._kept_space: ObservedSpace | None = None
 
     @property
     def n_fused(self) -> int:
@@ -298,9 +360,16 @@ class ScoringState:
         """Bring everything ``mode`` (default: the config's) scores against up to date: TSDF, its products, H_train."""
         mode = mode or self.config.mode
         voxels = close_front = h = None
+        self._kept_space = None
         if mode != "fisherrf" and len(surfel_map) > 0:
             self.sync(render_rgbd, poses, intr)
             voxels, close_front = self.products(poses, intr, close_front=mode in CLOSE_FRONT_MODES)
+            cfg = self.config
+            unseen = self.carved is not None and cfg.unseen_weight > 0 and mode in ROI_MODES
+            if unseen and voxels is not None and len(voxels.centres_m):  # the scorer's box, at its resolution
+                intr_f = downsampled(intr, cfg.fisher_downsample)
+                box = unseen_box(voxels, cfg)
+                self._kept_space = self.carved.space(surfel_map, poses, intr_f, box, cfg, self.should_stop)
         if self.config.uses_fisher(mode):
             h = self.h_train(surfel_map, running, map_fisher_outputs, poses, intr, mode)
         return voxels, close_front, h
@@ -325,12 +394,13 @@ class ScoringState:
         scorer = PreparedScorer(cfg, tsdf, voxels)
         return scorer.score(
             surfel_map, h, tsdf, poses, candidates, intr, mode=mode, close_front_memory=close_front,
-            should_stop=self.should_stop,
+            should_stop=self.should_stop, kept_space=self._kept_space,
         )  # fmt: skip
 
 
 __all__ = [
     "CLOSE_FRONT_MODES",
+    "CarvedSpaceMemory",
     "PreparedScorer",
     "RenderRGBD",
     "ScoringState",

@@ -182,10 +182,13 @@ class UnseenTerm:
         poses: Sequence[np.ndarray],
         intr_f: Intrinsics,
         should_stop: ShouldStop = None,
+        kept_space: ObservedSpace | None = None,
     ) -> UnseenTerm:
         """What one scoring call builds once, not per candidate: the box, the carved grid of the keyframes ``poses``
         (``unseen_source="carved"``), the back-face tests (``unseen_backfaces``) and the plan (``unseen_plan_views``,
         ``unseen_rarity``); ``vox`` the TSDF's surface voxels (None: none), ``intr_f`` the scoring resolution.
+        ``kept_space``: the carved grid of this box kept by the caller (``unseen_carve_rerender`` false,
+        :class:`~roigsf_ros.nbv.state.CarvedSpaceMemory`) in place of one carved here from the map's renders.
         """
         empty_map = len(surfel_map) == 0
         use_facing = cfg.unseen_source == "map" and cfg.unseen_backfaces == "tsdf" and vox is not None
@@ -194,7 +197,9 @@ class UnseenTerm:
         carved = cfg.unseen_source == "carved"
         space = None  # the space the keyframes' rendered depth observed
         if carved and box is not None and not empty_map:
-            space = carved_space(surfel_map, poses, intr_f, *box, cfg, should_stop)
+            space = kept_space
+            if space is None:
+                space = carved_space(surfel_map, poses, intr_f, *box, cfg, should_stop)
         # each candidate's unseen pixels by entry cell, weighed and planned over once all are in
         grouped = cfg.unseen_plan_views > 1 or cfg.unseen_rarity > 0
         plan: dict[int, UnseenCells] | None = {} if space is not None and grouped else None
@@ -306,9 +311,18 @@ def carved_space(
     as its TSDF fuses it.
     """
     pose_arr = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    depth, alpha = _keyframe_renders(surfel_map, pose_arr, intr, cfg.near_m, cfg.far_m, should_stop)
-    depth = np.where(alpha >= cfg.unseen_alpha, depth, np.inf)
+    depth = carve_depths(surfel_map, pose_arr, intr, cfg, should_stop)
     return ObservedSpace.carve(lo_m, hi_m, cfg.unseen_voxel_m, pose_arr, depth, intr, cfg.far_m)
+
+
+def carve_depths(
+    surfel_map: SurfelMap, poses: np.ndarray, intr: Intrinsics, cfg: NBVConfig, should_stop: ShouldStop = None
+) -> np.ndarray:
+    """[K, H, W] what the carved grid takes from the map at each pose of ``poses`` [K, 4, 4]: its median depth
+    (camera z, metres) where its alpha reaches ``unseen_alpha``, inf (free up to ``far_m``) where it does not.
+    """
+    depth, alpha = _keyframe_renders(surfel_map, poses, intr, cfg.near_m, cfg.far_m, should_stop)
+    return np.where(alpha >= cfg.unseen_alpha, depth, np.inf)
 
 
 def carved_unseen(
@@ -387,6 +401,7 @@ __all__ = [
     "UnseenTerm",
     "box_depths",
     "box_exit_depth",
+    "carve_depths",
     "carved_space",
     "carved_unseen",
     "rarity_blocks",

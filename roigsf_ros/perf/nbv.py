@@ -22,7 +22,13 @@ threads (torch and numba):
 - ``score_state_s``: the same 50 candidates as one request to the planner node, whose :class:`ScoringState`
   keeps the surface voxels and W_f between requests (its sync timer rebuilds them when a keyframe is fused);
 
-for the modes ``roi-gsurfisher`` and ``fisherrf`` and ``fisher_downsample`` 1 and 2. FisherRF's
+for the modes ``roi-gsurfisher`` and ``fisherrf`` and ``fisher_downsample`` 1 and 2. Then, by keyframe count
+(``--keyframes``: the four training poses and seeded room poses after them), one planner request of the same
+candidates with the paper's score and with the unseen term of the variant README recommends (``F2``: carved grid,
+ray measure), its grid rendered and carved again at every request (the default) or kept
+(``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the work the
+planner's sync timer does between requests when one keyframe comes (TSDF fusion, W_f and, kept, one render and
+carve). FisherRF's
 ``h_train`` (colour, every parameter) is computed once outside the timed calls, as a caller that
 keeps it would. Environment notes as in ``roigsf perf render`` (``OMP_WAIT_POLICY=PASSIVE`` is set by
 the package; the malloc variables make runs steadier).
@@ -71,6 +77,15 @@ TARGET_FISHER_RATIO = 1.0
 """A candidate's Fisher phase over a training forward+backward (issue 12: no slower)."""
 TARGET_SCORE_S = 1.0
 """One score() call over 50 candidates at 160x120, 20k surfels (issue 12)."""
+F2 = {"unseen_weight": 1.0, "unseen_source": "carved", "unseen_measure": "rays"}
+"""The unseen term of the variant the README recommends (its fused score is the paper's plus ``z(U_ray)``)."""
+REQUEST_VARIANTS: dict[str, dict[str, Any]] = {
+    "roi-gsurfisher": {},
+    "F2": F2,
+    "F2, kept grid": {**F2, "unseen_carve_rerender": False},
+}
+"""The planner requests timed by keyframe count: the paper's score, F2 rendering its grid at every request, and F2
+with the grid kept between requests."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,6 +100,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--voxel-size", type=float, default=0.02, metavar="M", help="TSDF voxel size in metres (default 0.02)"
     )
+    parser.add_argument(
+        "--keyframes", default="4,16,64", metavar="K,K,...",
+        help="keyframe counts of the planner requests with the unseen term (default 4,16,64)",
+    )  # fmt: skip
 
 
 @dataclass
@@ -273,6 +292,58 @@ def bench_state_score(st: State, scorer: NBVScorer, mode: str, repeats: int) -> 
     }
 
 
+def keyframe_poses(st: State, n: int) -> np.ndarray:
+    """[n, 4, 4] keyframe poses: the training poses, then seeded room poses (another seed than the candidates')."""
+    train = np.stack(st.train_poses)
+    if n <= len(train):
+        return train[:n]
+    return np.concatenate([train, room_candidates(n - len(train), seed=1)])
+
+
+def bench_requests(st: State, n_keyframes: int, repeats: int) -> list[dict[str, Any]]:
+    """For each of :data:`REQUEST_VARIANTS`: a planner state synced to ``n_keyframes`` keyframes (untimed but for the
+    last keyframe's sync, ``sync_one_s``), then one request of every candidate, median wall time of ``repeats``.
+    """
+    poses = keyframe_poses(st, n_keyframes)
+    h = st.h_train["roi-gsurfisher"]
+    outputs = tuple(NBVConfig().fisher_outputs)
+
+    def render_rgbd(T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return map_rgbd(st.surfel_map, T_wc, st.intr)
+
+    rows = []
+    for name, params in REQUEST_VARIANTS.items():
+        state = ScoringState(NBVConfig(**params), st.tsdf.voxel_size_m, st.tsdf.sdf_trunc_m, st.tsdf.depth_max_m)
+        if n_keyframes > 1:
+            state.update(st.surfel_map, h, outputs, poses[:-1], st.intr, render_rgbd)
+        t0 = time.perf_counter()
+        state.update(st.surfel_map, h, outputs, poses, st.intr, render_rgbd)  # what the sync timer does
+        sync_s = time.perf_counter() - t0
+        walls, unseen = [], []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            res = state.score(st.surfel_map, h, outputs, poses, st.candidates, st.intr, render_rgbd)
+            walls.append(time.perf_counter() - t0)
+            unseen.append(res.timings_s["unseen"])
+        rows.append({
+            "variant": name, "params": params, "keyframes": n_keyframes, "request_s": statistics.median(walls),
+            "unseen_s": statistics.median(unseen), "sync_one_s": sync_s, "best_index": int(res.best_index),
+            "renders": state.carved.renders if state.carved is not None else None,
+        })  # fmt: skip
+    return rows
+
+
+def _keyframe_counts(text: str) -> list[int]:
+    """``--keyframes``: comma-separated counts >= 1."""
+    try:
+        counts = [int(t) for t in str(text).split(",") if t.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        raise InputError("--keyframes", f"expected comma-separated counts >= 1, got {text!r}")
+    return counts
+
+
 def run(args: argparse.Namespace) -> int:
     """Build the state, time every (mode, fisher_downsample), print a table, optionally write JSON."""
     for name in ("repeats", "threads", "surfels", "width", "height", "candidates"):
@@ -280,6 +351,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--{name}", f"must be >= 1, got {getattr(args, name)}")
     if not args.voxel_size > 0:
         raise InputError("--voxel-size", f"must be > 0, got {args.voxel_size}")
+    keyframe_counts = _keyframe_counts(args.keyframes)
     torch.set_num_threads(args.threads)
     backend = "torch"
     if numba_available():
@@ -300,6 +372,7 @@ def run(args: argparse.Namespace) -> int:
             row |= bench_score(st, scorer, mode, args.repeats)
             row |= bench_state_score(st, scorer, mode, args.repeats)
             rows.append(row)
+    requests = [r for n in keyframe_counts for r in bench_requests(st, n, args.repeats)]
     result = {
         "benchmark": "nbv",
         "backend": backend,
@@ -332,6 +405,7 @@ def run(args: argparse.Namespace) -> int:
             "score_s_roi_gsurfisher_ds1": TARGET_SCORE_S,
         },
         "rows": rows,
+        "requests": requests,
     }
     print(
         f"{'mode':>15} {'ds':>2} {'fwd+bwd':>8} {'ROI':>7} {'c-front':>7} {'Fisher':>7} {'F ratio':>7} {'cand':>7} "
@@ -353,6 +427,17 @@ def run(args: argparse.Namespace) -> int:
         f"call (target <= {TARGET_SCORE_S} s for roi-gsurfisher at ds 1), cpu its process CPU time; planner = the "
         f"same candidates as one planner request with the TSDF's products kept between requests (ScoringState); "
         f"1-min load {load_before:.1f} -> {os.getloadavg()[0]:.1f})"
+    )
+    print(f"\n{'planner request':>16} {'keyframes':>9} {'request':>9} {'unseen':>8} {'sync one':>9}")
+    for r in requests:
+        print(
+            f"{r['variant']:>16} {r['keyframes']:>9} {r['request_s']:8.3f}s {r['unseen_s']:7.3f}s "
+            f"{r['sync_one_s']:8.3f}s"
+        )
+    print(
+        f"(one request of the {args.candidates} candidates after the state was synced to that many keyframes, median "
+        f"of {args.repeats}; unseen = its unseen-term phase; sync one = the sync timer's work for the "
+        f"last keyframe; F2 = {':'.join(f'{k}={v}' for k, v in F2.items())}, kept grid = unseen_carve_rerender=false)"
     )
     if args.out:
         write_json(args.out, result)
