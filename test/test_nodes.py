@@ -120,10 +120,17 @@ def _request(poses: np.ndarray | list[np.ndarray], frame_id: str = "map", mode: 
 
 
 # ---------------------------------------------------------------------------------------- planner
-@pytest.mark.parametrize("params", [{}, {"unseen_weight": 1.0, "unseen_source": "carved"}], ids=["paper", "carved"])
+KEPT = {"unseen_weight": 1.0, "unseen_source": "carved", "unseen_measure": "rays", "unseen_carve_rerender": False}
+"""The recommended variant's unseen term with its carved grid kept between requests."""
+
+
+@pytest.mark.parametrize(
+    "params", [{}, {"unseen_weight": 1.0, "unseen_source": "carved"}, KEPT], ids=["paper", "carved", "kept-grid"]
+)
 def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped: Mapper, params: dict) -> None:
-    """The planner's service answers as the library scores, in the paper's mode and with an option beyond it set as
-    ROS parameters (the carved unseen term, which needs the keyframe poses the shared map carries)."""
+    """The planner's service answers as the library scores, in the paper's mode and with options beyond it set as
+    ROS parameters (the carved unseen term, which needs the keyframe poses the shared map carries; the same with its
+    grid kept, rendered once per keyframe, which on an unchanged map scores as rendering at every request)."""
     frames, _ = scene
     cands = [frames[i].T_wc for i in (1, 2, 5, 10, 11)]
     # The library's own path: the stream policy's TSDF of rendered depth at the keyframes, its scorer.
@@ -143,8 +150,13 @@ def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped
     client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
     with _spinning(ros_context, planner, client_node):
         res = _call(client, _request(cands))
+        again = _call(client, _request(cands))
         _wait(lambda: bool(best_poses) and bool(images), 10.0, "best view and uncertainty image")
+        status = planner.status()
     assert res.success, res.message
+    assert list(again.fused_scores) == list(res.fused_scores)
+    kept = 3 if params.get("unseen_carve_rerender") is False else 0  # each of the 3 keyframes rendered once
+    assert (status["carved_renders"], status["carved_carves"]) == (kept, kept)
     assert res.best_index == offline.best_index
     assert list(res.top_k_indices) == offline.ranking[:3].tolist()
     np.testing.assert_allclose(res.fused_scores, offline.fused, rtol=1e-6, atol=1e-9)

@@ -420,7 +420,9 @@ class NBVPlannerNode(SystemNode):
 
         ``max_request_wait_s``: the longest time from a request's stamp to the start of its handling (for the
         selector, which stamps at sending: the transport and the wait behind the planner's other work);
-        ``max_sync_s``: the longest run of the sync timer (keyframes fused, TSDF products, H_train, block map grown).
+        ``max_sync_s``: the longest run of the sync timer (keyframes fused, TSDF products, H_train, block map grown);
+        ``carved_renders`` / ``carved_carves``: keyframes rendered for and carved into the unseen term's kept grid
+        (``unseen_carve_rerender`` false; 0 otherwise, where every request renders and carves them all).
         """
         st, c = self.state, self.state.train_fisher_cache
         assert c is not None  # the planner always keeps one
@@ -433,6 +435,8 @@ class NBVPlannerNode(SystemNode):
                 "tsdf_frames": st.n_fused,
                 "h_train_full": c.full_computations,
                 "h_train_poses_added": c.poses_added,
+                "carved_renders": st.carved.renders if st.carved is not None else 0,
+                "carved_carves": st.carved.carves if st.carved is not None else 0,
             }
 
 
