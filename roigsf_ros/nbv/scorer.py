@@ -220,10 +220,10 @@ class NBVResult:
     see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
     degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
     ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi`` (with close-front:
-    one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher``, ``unseen`` (the unseen
-    term: its once-per-call build, e.g. the carved grid, and each candidate's measure); ``roi_close_front`` their ROI
-    sum) and process CPU seconds (``<phase>_cpu``). ``n_skipped``: candidates
-    whose frustum cannot meet the mapped region, flagged before any work.
+    one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher``, ``unseen`` (the unseen term:
+    its once-per-call build, e.g. the carved grid, and each candidate's measure); ``roi_close_front`` their ROI sum)
+    and process CPU seconds (``<phase>_cpu``). ``n_skipped``: candidates whose frustum cannot meet the mapped region,
+    flagged before any work.
     """
 
     mode: str

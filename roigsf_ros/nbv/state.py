@@ -161,7 +161,7 @@ class CarvedSpaceMemory:
         self._depth: list[np.ndarray] = []
         self._settings: tuple | None = None
         self._space: ObservedSpace | None = None
-        self._hi = np.zeros(3)
+        self._box: tuple[np.ndarray, np.ndarray] | None = None
         self._n_carved = 0
         self.renders = 0
         """Keyframe poses rendered so far (each once, unless the keyframe set or the settings changed)."""
@@ -185,16 +185,15 @@ class CarvedSpaceMemory:
         keys = pose_keys(pose_arr)
         settings = (intr, config.unseen_alpha, config.near_m, config.far_m, config.unseen_voxel_m)
         if settings != self._settings or keys[: len(self._keys)] != self._keys:
-            self._keys, self._depth, self._settings, self._space, self._n_carved = [], [], settings, None, 0
+            self._keys, self._depth, self._settings, self._space, self._box = [], [], settings, None, None
         if len(keys) > len(self._keys):
             new = pose_arr[len(self._keys) :]
             self._depth.extend(carve_depths(surfel_map, new, intr, config, should_stop))
             self._keys.extend(keys[len(self._keys) :])
             self.renders += len(new)
         lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in box)
-        kept = self._space
-        if kept is None or not (np.array_equal(kept.lo_m, lo) and np.array_equal(self._hi, hi)):
-            self._space, self._hi, self._n_carved = ObservedSpace.empty(lo, hi, config.unseen_voxel_m), hi, 0
+        if self._space is None or self._box is None or not all(map(np.array_equal, self._box, (lo, hi))):
+            self._space, self._box, self._n_carved = ObservedSpace.empty(lo, hi, config.unseen_voxel_m), (lo, hi), 0
         n = len(self._keys)
         if self._n_carved < n:
             k = self._n_carved
