@@ -98,7 +98,10 @@
 # POLICIES="$F2,fisherrf,random" SCALE=2 with SCENES=synth, SCENES=office0 OFFSET=5 and SCENES=room6 (seeds 0-4: how
 # much a three-seed verdict hangs on one seed; 13-17 min each).
 # Forty-ninth session, the same machine: TAG=once49 POLICIES="$F2:unseen_carve_rerender=false" with SCENES=shelf, then
-# SCALE=2 SCENES=room5 (the carved grid kept between scoring calls; 101 and 247 s; it went no further).
+# SCALE=2 SCENES=room5 (the carved grid kept between scoring calls; 101 and 247 s; it went no further); TAG=w49
+# POLICIES="$F2:unseen_weight=2,$F2:unseen_weight=0.5" with the same two (213 and 549 s; weight 2 went on, F3), then
+# TAG=rep49 POLICIES="$F2:unseen_weight=2" SCALE=2 with the forty-seventh session's list and SCENES=synth, SCENES=office0
+# OFFSET=5, room7, SCENES=office0, room8 (3.7-6.5 min each, 73 min in all; runs/s49/rep49.sh's order).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and

@@ -238,6 +238,17 @@ for s in synth_240 office0_240_o5 room6_240; do
     b="runs/bench_pool_${s}_s5_48"
     verdict "pool_${s}_s5_48_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
 done
+# Forty-ninth session, the same machine: F2 with unseen_weight=2 (F3), chosen on the tuning scenes by the thirtieth
+# session's rule (TAG=w49), alone on the reported scenes (TAG=rep49 POLICIES="$C:unseen_measure=rays:unseen_weight=2"
+# SCALE=2, runs/s49/rep49.sh's order), against the baselines of the rep46 / rep47 benches (the same machine; nothing in
+# the change reaches them), rows pool_*_rep49.
+F3="$C:unseen_measure=rays:unseen_weight=2"
+for s in synth_240:rep46 office0_240_o5:rep46 bins_240:rep47 office0_240:rep46 room7_240:rep46 room6_240:rep47 \
+    clutter_240:rep47 office0_240_kinect:rep47 room1_240:rep47 room2_240:rep47 room3_240:rep47 room4_240:rep47 \
+    room8_240:rep46 room9_240:rep47 office0_240_o10:rep47 office0_240_o15:rep47; do
+    b="runs/bench_pool_${s%%:*}_${s#*:}"
+    verdict "pool_${s%%:*}_rep49" "runs/bench_pool_${s%%:*}_rep49#$F3" "$b#fisherrf" "$b#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect

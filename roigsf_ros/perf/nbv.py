@@ -23,15 +23,14 @@ threads (torch and numba):
   keeps the surface voxels and W_f between requests (its sync timer rebuilds them when a keyframe is fused);
 
 for the modes ``roi-gsurfisher`` and ``fisherrf`` and ``fisher_downsample`` 1 and 2. Then, by keyframe count
-(``--keyframes``: the four training poses and seeded room poses after them), one planner request of the same
-candidates with the paper's score and with the unseen term of the variant README recommends (``F2``: carved grid,
-ray measure), its grid rendered and carved again at every request (the default) or kept
-(``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the work the
-planner's sync timer does between requests when one keyframe comes (TSDF fusion, W_f and, kept, one render and
-carve). FisherRF's
-``h_train`` (colour, every parameter) is computed once outside the timed calls, as a caller that
-keeps it would. Environment notes as in ``roigsf perf render`` (``OMP_WAIT_POLICY=PASSIVE`` is set by
-the package; the malloc variables make runs steadier).
+(``--keyframes``: the four training poses and seeded room poses after them), one planner request of the same candidates
+with the paper's score and with the unseen term of the variants README recommends (``F2``: carved grid, ray measure; F3
+differs only in the term's weight, which costs nothing), its grid rendered and carved again at every request (the
+default) or kept (``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the
+work the planner's sync timer does between requests when one keyframe comes (TSDF fusion, W_f and, kept, one render and
+carve). FisherRF's ``h_train`` (colour, every parameter) is computed once outside the timed calls, as a caller that
+keeps it would. Environment notes as in ``roigsf perf render`` (``OMP_WAIT_POLICY=PASSIVE`` is set by the package; the
+malloc variables make runs steadier).
 """
 
 from __future__ import annotations
@@ -78,7 +77,7 @@ TARGET_FISHER_RATIO = 1.0
 TARGET_SCORE_S = 1.0
 """One score() call over 50 candidates at 160x120, 20k surfels (issue 12)."""
 F2 = {"unseen_weight": 1.0, "unseen_source": "carved", "unseen_measure": "rays"}
-"""The unseen term of the variant the README recommends (its fused score is the paper's plus ``z(U_ray)``)."""
+"""The unseen term of the ray-count variants the README recommends (the paper's score plus ``kappa z(U_ray)``)."""
 REQUEST_VARIANTS: dict[str, dict[str, Any]] = {
     "roi-gsurfisher": {},
     "F2": F2,
