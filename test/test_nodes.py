@@ -121,7 +121,7 @@ def _request(poses: np.ndarray | list[np.ndarray], frame_id: str = "map", mode: 
 
 # ---------------------------------------------------------------------------------------- planner
 KEPT = {"unseen_weight": 1.0, "unseen_source": "carved", "unseen_measure": "rays", "unseen_carve_rerender": False}
-"""The recommended variant's unseen term with its carved grid kept between requests."""
+"""F2's unseen term (the ray count) with its carved grid kept between requests."""
 
 
 @pytest.mark.parametrize(
