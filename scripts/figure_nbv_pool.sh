@@ -178,7 +178,7 @@ for scene in $SCENES; do
     # the scene the options' constants are chosen on (clutter is reported, tuned on nothing)
     shelf) synth_bench shelf-dome shelf_dome 120 shelf "${NICE:-0}" ;;
     bins) synth_bench bins-dome bins_dome 120 bins "${NICE:-0}" ;;
-    room[1-9]) synth_bench room "synth_$scene" 96 "$scene" "${NICE:-0}" "${scene#room}" ;;
-    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf, bins, room1 ... room9)" >&2; exit 2 ;;
+    room[1-9] | room[1-9][0-9]) synth_bench room "synth_$scene" 96 "$scene" "${NICE:-0}" "${scene#room}" ;;
+    *) echo "unknown scene $scene (office0, synth, object, dome, clutter, shelf, bins, room1 ... room99)" >&2; exit 2 ;;
     esac
 done
