@@ -79,6 +79,7 @@ __all__, __getattr__ = lazy_exports(
             "surface_texture",
             "synth_bins",
             "synth_clutter",
+            "synth_dining",
             "synth_object",
             "synth_room",
             "synth_shelf",

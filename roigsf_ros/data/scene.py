@@ -965,6 +965,76 @@ def synth_bins(seed: int = 0) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def synth_dining(seed: int = 0) -> o3d.geometry.TriangleMesh:
+    """A fourth object-centric scene with occlusion, made in the fiftieth session after every NBV option was fixed
+    (issue 10's held-out object scene): a table with two chairs pushed under it, a cabinet with its door half open, a
+    plank leaning on the cabinet's back and a stool, on the disc of :func:`synth_object`.
+
+    Unlike the earlier scenes, some of what it hides lies behind slanted surfaces: the cabinet's inside only past the
+    door, turned 60 deg open, and the wedge under the leaning plank; the chairs' seats under the table top are seen by
+    about a third of the hemisphere's views. Seed 0 is the fixed layout; other seeds move each part by up to 3 cm and
+    change the colours slightly. Vertex colours only.
+    """
+    rng = np.random.default_rng(seed)
+    o3g = o3d.geometry.TriangleMesh
+    colour, box = _jittered_colour(rng, seed), _box
+
+    def jitter() -> np.ndarray:
+        return np.zeros(3) if seed == 0 else np.append(rng.uniform(-0.03, 0.03, 2), 0.0)
+
+    def turned(
+        part: o3d.geometry.TriangleMesh, xyz_rad: tuple[float, float, float], centre: tuple[float, float, float]
+    ) -> o3d.geometry.TriangleMesh:
+        """``part`` turned in place by the x-y-z Euler angles ``xyz_rad`` about ``centre`` (m)."""
+        return part.rotate(o3d.geometry.get_rotation_matrix_from_xyz(xyz_rad), center=centre)
+
+    def chair(c: np.ndarray) -> o3d.geometry.TriangleMesh:
+        """A chair facing +x: seat 0.20 x 0.20 at 0.20-0.23 m on four legs, its back along x = 0 up to 0.47 m."""
+        out = box((0.0, 0.0, 0.20), (0.20, 0.20, 0.03), c)
+        for x, y in ((0.0, 0.0), (0.175, 0.0), (0.0, 0.175), (0.175, 0.175)):
+            out += box((x, y, 0.0), (0.025, 0.025, 0.20), c)
+        return out + box((0.0, 0.0, 0.23), (0.03, 0.20, 0.24), c)
+
+    mesh = o3g.create_cylinder(0.8, 0.04, 96).translate((0, 0, -0.02)).paint_uniform_color([0.5, 0.45, 0.5])
+    # The table: top 0.46 x 0.36 at 0.40-0.43 m over (0.02..0.48, -0.03..0.33), legs 0.03 square.
+    table = box((0.02, -0.03, 0.40), (0.46, 0.36, 0.03), colour([0.55, 0.35, 0.2]))
+    for x, y in ((0.03, -0.02), (0.44, -0.02), (0.03, 0.29), (0.44, 0.29)):
+        table += box((x, y, 0.0), (0.03, 0.03, 0.40), colour([0.3, 0.2, 0.15]))
+    # Two chairs pushed in: one from -x (its seat 0.10 under the top), one from +y turned to face -y.
+    table += chair(colour([0.25, 0.5, 0.75])).translate((-0.08, 0.05, 0.0))
+    table += turned(chair(colour([0.75, 0.55, 0.25])), (0.0, 0.0, -np.pi / 2), (0.0, 0.0, 0.0)).translate(
+        (0.15, 0.45, 0.0)
+    )
+    mesh += table.translate(jitter())
+    # The cabinet: 0.32 wide (x), 0.29 deep, 0.46 high, walls 0.03, open towards -y, with a middle board; its door
+    # (0.32 x 0.02 x 0.46) hinged at the opening's +x edge and turned 60 deg open, outward.
+    cab = o3g()
+    c = colour([0.35, 0.6, 0.45])
+    for lo3, s3 in (
+        ((-0.58, -0.10, 0.0), (0.32, 0.03, 0.46)),  # back
+        ((-0.58, -0.36, 0.0), (0.03, 0.26, 0.46)),  # sides
+        ((-0.29, -0.36, 0.0), (0.03, 0.26, 0.46)),
+        ((-0.58, -0.36, 0.0), (0.32, 0.26, 0.03)),  # bottom, middle board, top
+        ((-0.58, -0.36, 0.22), (0.32, 0.26, 0.02)),
+        ((-0.58, -0.36, 0.43), (0.32, 0.26, 0.03)),
+    ):
+        cab += box(lo3, s3, c)
+    door = box((-0.58, -0.38, 0.0), (0.32, 0.02, 0.46), colour([0.8, 0.8, 0.7]))
+    cab += turned(door, (0.0, 0.0, np.pi / 3), (-0.26, -0.37, 0.0))
+    # The plank (0.16 x 0.02 x 0.45) leaning on the cabinet's back, 20 deg from upright: its top touches the back.
+    plank = box((-0.08, 0.0, 0.0), (0.16, 0.02, 0.45), colour([0.85, 0.7, 0.3]))
+    cab += turned(plank, (np.radians(20.0), 0.0, 0.0), (0.0, 0.0, 0.0)).translate((-0.42, -0.07 + 0.45 * 0.342, 0.0))
+    mesh += cab.translate(jitter())
+    # A stool in the open: a cylinder 0.12 m in radius, 0.30 high.
+    stool = (
+        o3g.create_cylinder(0.12, 0.30, 32).translate((0.35, -0.45, 0.15)).paint_uniform_color(colour([0.7, 0.3, 0.35]))
+    )
+    mesh += stool.translate(jitter())
+    mesh = mesh.subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    return mesh
+
+
 def dome_trajectory(n_frames: int) -> np.ndarray:
     """[N, 4, 4] cameras on a hemisphere over :func:`synth_object`, looking at it: 10-75 deg elevation, 1.0-1.3 m.
 
@@ -1004,6 +1074,7 @@ __all__ = [
     "surface_texture",
     "synth_bins",
     "synth_clutter",
+    "synth_dining",
     "synth_object",
     "synth_room",
     "synth_shelf",
