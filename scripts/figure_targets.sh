@@ -249,6 +249,16 @@ for s in synth_240:rep46 office0_240_o5:rep46 bins_240:rep47 office0_240:rep46 r
     b="runs/bench_pool_${s%%:*}_${s#*:}"
     verdict "pool_${s%%:*}_rep49" "runs/bench_pool_${s%%:*}_rep49#$F3" "$b#fisherrf" "$b#random"
 done
+# Fiftieth session, the same machine: the held-out check, scenes made after F3 was chosen and never benched before
+# (three rooms, a fifth office0 pool, the dining object scene), F3, F2 and both baselines in one bench each, run once
+# and deciding nothing (TAG=held50 POLICIES="$F3,$C:unseen_measure=rays,fisherrf,random" SCALE=2 with SCENES=room10,
+# SCENES=office0 OFFSET=3, room11, room12, dining; runs/s50/held50.sh), rows pool_*_held50 (F3) and pool_*_held50_rays
+# (F2).
+for s in room10_240 office0_240_o3 room11_240 room12_240 dining_240; do
+    b="runs/bench_pool_${s}_held50"
+    verdict "pool_${s}_held50" "$b#$F3" "$b#fisherrf" "$b#random"
+    verdict "pool_${s}_held50_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+done
 
 S=runs/bench_stream_office0_w13
 K=${S}_kinect
