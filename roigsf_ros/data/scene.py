@@ -1021,7 +1021,8 @@ def synth_dining(seed: int = 0) -> o3d.geometry.TriangleMesh:
         cab += box(lo3, s3, c)
     door = box((-0.58, -0.38, 0.0), (0.32, 0.02, 0.46), colour([0.8, 0.8, 0.7]))
     cab += turned(door, (0.0, 0.0, np.pi / 3), (-0.26, -0.37, 0.0))
-    # The plank (0.16 x 0.02 x 0.45) leaning on the cabinet's back, 20 deg from upright: its top touches the back.
+    # The plank (0.16 x 0.02 x 0.45) leaning on the cabinet's back, 20 deg from upright: its top touches the back
+    # (0.342: sin 20 deg, rounded, as the fiftieth session's benches ran it).
     plank = box((-0.08, 0.0, 0.0), (0.16, 0.02, 0.45), colour([0.85, 0.7, 0.3]))
     cab += turned(plank, (np.radians(20.0), 0.0, 0.0), (0.0, 0.0, 0.0)).translate((-0.42, -0.07 + 0.45 * 0.342, 0.0))
     mesh += cab.translate(jitter())
