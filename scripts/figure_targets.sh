@@ -58,6 +58,9 @@ verdict() {  # verdict NAME CANDIDATE AGAINST... [-- roigsf targets options]
     fi
     printf '\n' >> "$MD"
 }
+same_bench() {  # same_bench NAME BENCH POLICY: POLICY of the bench folder BENCH against its own fisherrf and random
+    verdict "$1" "$2#$3" "$2#fisherrf" "$2#random"
+}
 pool() {  # pool NAME BENCH_PREFIX: the variant's TAG=unconfirmed bench against the TAG=base25 baselines
     verdict "pool_$1" "runs/bench_pool_$2_unconfirmed" "runs/bench_pool_$2_base25#fisherrf" \
         "runs/bench_pool_$2_base25#random"
@@ -132,7 +135,7 @@ for run in held31:room6_240 held31:room7_240 held31:room8_240 held31:office0_240
     held32:office0_240_o5 held41:office0_240_o15; do
     b="runs/bench_pool_${run#*:}_${run%%:*}"
     for pair in "carved:roi-gsurfisher:unseen_weight=1:unseen_source=carved" "paper:roi-gsurfisher"; do
-        verdict "pool_${run#*:}_${run%%:*}_${pair%%:*}" "$b#${pair#*:}" "$b#fisherrf" "$b#random"
+        same_bench "pool_${run#*:}_${run%%:*}_${pair%%:*}" "$b" "${pair#*:}"
     done
 done
 
@@ -180,7 +183,7 @@ done
 # against the base36 baselines.
 for s in shelf_120:shelf room5_240 synth_240 room7_240 room8_240 office0_240_o5; do
     b="runs/bench_pool_${s#*:}_base36"
-    verdict "pool_${s%%:*}_base36" "$b#$C" "$b#fisherrf" "$b#random"
+    same_bench "pool_${s%%:*}_base36" "$b" "$C"
 done
 for s in shelf_120:shelf room5_240; do
     for k in 2 4; do
@@ -218,8 +221,8 @@ done
 # OFFSET=5, SCENES=room8, SCENES=office0 and SCENES=room7), rows pool_*_rep46 (the variant) and pool_*_rep46_rays.
 for s in synth_240 office0_240_o5 room8_240 office0_240 room7_240; do
     b="runs/bench_pool_${s}_rep46"
-    verdict "pool_${s}_rep46" "$b#$C" "$b#fisherrf" "$b#random"
-    verdict "pool_${s}_rep46_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+    same_bench "pool_${s}_rep46" "$b" "$C"
+    same_bench "pool_${s}_rep46_rays" "$b" "$C:unseen_measure=rays"
 done
 # Forty-seventh session, the same machine: the variant with unseen_measure=rays and both baselines in one bench per
 # reported scene it had not run on (TAG=rep47 POLICIES="$C:unseen_measure=rays,fisherrf,random" SCALE=2 with
@@ -228,7 +231,7 @@ done
 for s in bins_240 office0_240_kinect clutter_240 room1_240 room2_240 room3_240 room4_240 room6_240 room9_240 \
     office0_240_o10 office0_240_o15; do
     b="runs/bench_pool_${s}_rep47"
-    verdict "pool_${s}_rep47_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+    same_bench "pool_${s}_rep47_rays" "$b" "$C:unseen_measure=rays"
 done
 # Forty-eighth session, the same machine: how much a verdict hangs on one seed, a reading beside the three-seed
 # verdicts of record: the same three policies with seeds 0-4 (SEEDS=5 TAG=s5_48
@@ -236,7 +239,7 @@ done
 # SCENES=room6), rows pool_*_s5_48_rays.
 for s in synth_240 office0_240_o5 room6_240; do
     b="runs/bench_pool_${s}_s5_48"
-    verdict "pool_${s}_s5_48_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+    same_bench "pool_${s}_s5_48_rays" "$b" "$C:unseen_measure=rays"
 done
 # Forty-ninth session, the same machine: F2 with unseen_weight=2 (F3), chosen on the tuning scenes by the thirtieth
 # session's rule (TAG=w49), alone on the reported scenes (TAG=rep49 POLICIES="$C:unseen_measure=rays:unseen_weight=2"
@@ -256,8 +259,8 @@ done
 # (F2).
 for s in room10_240 office0_240_o3 room11_240 room12_240 dining_240; do
     b="runs/bench_pool_${s}_held50"
-    verdict "pool_${s}_held50" "$b#$F3" "$b#fisherrf" "$b#random"
-    verdict "pool_${s}_held50_rays" "$b#$C:unseen_measure=rays" "$b#fisherrf" "$b#random"
+    same_bench "pool_${s}_held50" "$b" "$F3"
+    same_bench "pool_${s}_held50_rays" "$b" "$C:unseen_measure=rays"
 done
 
 S=runs/bench_stream_office0_w13
