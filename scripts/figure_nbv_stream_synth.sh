@@ -23,6 +23,8 @@
 #                    less recall than the area count here, so not run on office0)
 #   fused4-stretch/  the fused-stretch group's K = 4 alone (the weight chosen above; for other layouts; only when
 #                    BENCHES names it)
+#   f3unseen-stretch/  the same with the pool's recommended unseen term (F3's: unseen_weight=2, carved grid, ray count)
+#                    in place of its own (fifty-first session; only when BENCHES names it)
 # Measured 2026-11-25 on 2 cores beside one other job (load 1.5-3): 179 s, 652 s, about 300 s; novelty/ (2026-11-27)
 # about 100 s. BENCHES="a b ..." runs only those folders (default: all); SEEDS=N maps each policy with N seeds.
 #
@@ -80,5 +82,9 @@ bench_group fused-stretch "$FUSED:novelty_weight=1,$FUSED:novelty_weight=2,$FUSE
     --set init_max_stretch=4
 case " ${BENCHES:-} " in  # only when BENCHES names it: the default run has K = 4 in fused-stretch already
     *" fused4-stretch "*) stream_bench "$OUT/fused4-stretch" "$FUSED:novelty_weight=4" --set init_max_stretch=4 ;;
+esac
+F3U="$R:window=$WINDOW:unseen_weight=2:unseen_source=carved:unseen_measure=rays:novelty_weight=4:lookahead=$WINDOW"
+case " ${BENCHES:-} " in  # only when BENCHES names it
+    *" f3unseen-stretch "*) stream_bench "$OUT/f3unseen-stretch" "$F3U" --set init_max_stretch=4 ;;
 esac
 bench_group fused-pixels-stretch "$FUSED:novelty_weight=4:novelty_measure=pixels" --set init_max_stretch=4

@@ -318,6 +318,11 @@ U10=runs/bench_stream_suite_s10
 both_mappers stream_suite_s10_fused4_stretch4 "$U10/fused4-stretch" "$U10/stretch#gaus-slam" "$U10/gaus-slam"
 both_mappers stream_suite_s10_stretch4 "$U10/stretch#novelty:window=12:lookahead=12" "$U10/stretch#gaus-slam" \
     "$U10/gaus-slam"
+# Fifty-first session, the tuning suite on the AVX-512 machine: KIND=suite SEEDS=3 BENCHES="fused4-stretch
+# f3unseen-stretch gaus-slam stretch" scripts/figure_nbv_stream_synth.sh (the stream variant, the same with F3's unseen
+# term, and the references, all re-run on that machine)
+both_mappers stream_suite_fused4_stretch4_s51 "$U/fused4-stretch" "$U/stretch#gaus-slam" "$U/gaus-slam"
+both_mappers stream_suite_f3unseen_stretch4 "$U/f3unseen-stretch" "$U/stretch#gaus-slam" "$U/gaus-slam"
 mv "$MD" "$OUT/targets.md"
 trap - EXIT
 grep -E '^(###|skipped|roigsf targets: error|.*target for)' "$OUT/targets.md"

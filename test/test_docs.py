@@ -175,3 +175,18 @@ def test_the_readme_module_table_lists_each_layers_modules() -> None:
         assert set(listed) <= present, f"{layer}/: the README names {sorted(set(listed) - present)}, not modules"
         if "..." not in cell:
             assert set(listed) == present, f"{layer}/: the README's table leaves out {sorted(present - set(listed))}"
+
+
+def test_the_readme_recommends_the_variant_the_library_names() -> None:
+    """The README's "Which policy to use" recommends, for choosing among candidate poses, the pool spec whose parameters
+    are ``RECOMMENDED_UNSEEN`` (what the kernel warm-up compiles for and ``roigsf perf nbv`` times): a recommendation
+    changed in one place and not the other would leave the warm-up or the figures on a variant nobody recommends."""
+    from roigsf_ros.experiments.bench import parse_policies
+    from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN
+
+    section = (ROOT / "README.md").read_text().split("### Which policy to use", 1)[1].split("\n## ", 1)[0]
+    pool = section.split("- **Choosing keyframes in a stream**", 1)[0]
+    spec_text = re.search(r"`(roi-gsurfisher:[^`]+)`", pool)
+    assert spec_text, "no roi-gsurfisher spec in the README's recommendation for choosing views"
+    (spec,) = parse_policies(spec_text.group(1), "pool")
+    assert spec.params == dict(RECOMMENDED_UNSEEN), (spec_text.group(1), dict(RECOMMENDED_UNSEEN))

@@ -454,12 +454,12 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
     # planner requests by keyframe count: the kept grid renders each keyframe once and, the map being the same,
     # scores as rendering at every request; only the unseen variants have an unseen phase
     req = {(r["variant"], r["keyframes"]): r for r in data["requests"]}
-    assert set(req) == {(v, k) for v in ("roi-gsurfisher", "F2", "F2, kept grid") for k in (2, 5)}
+    assert set(req) == {(v, k) for v in ("roi-gsurfisher", "F3", "F3, kept grid") for k in (2, 5)}
     for k in (2, 5):
-        assert req["roi-gsurfisher", k]["unseen_s"] == 0.0 and req["F2", k]["unseen_s"] > 0
-        assert req["F2, kept grid", k]["renders"] == k and req["F2", k]["renders"] is None
-        assert req["F2, kept grid", k]["best_index"] == req["F2", k]["best_index"]
-        assert all(req[v, k]["request_s"] > 0 and req[v, k]["sync_one_s"] > 0 for v in ("F2", "F2, kept grid"))
+        assert req["roi-gsurfisher", k]["unseen_s"] == 0.0 and req["F3", k]["unseen_s"] > 0
+        assert req["F3, kept grid", k]["renders"] == k and req["F3", k]["renders"] is None
+        assert req["F3, kept grid", k]["best_index"] == req["F3", k]["best_index"]
+        assert all(req[v, k]["request_s"] > 0 and req[v, k]["sync_one_s"] > 0 for v in ("F3", "F3, kept grid"))
     assert "ratio" in capsys.readouterr().out
     assert main([*args, "--candidates", "0"]) == 2  # bad input: one-line error
     assert main([*args, "--keyframes", "0,4"]) == 2
@@ -1045,6 +1045,7 @@ from roigsf_ros.render.numba_setup import set_numba_threads
 set_numba_threads(2)
 warm_up_kernels()
 from roigsf_ros.nbv import roi
+from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.perf import nbv
 
@@ -1055,6 +1056,9 @@ st = nbv.build_state(2000, 80, 60, 4, 0.04, scorer)
 for mode in ("roi-gsurfisher", "fisherrf"):
     for cands in (st.candidates[:1], st.candidates):
         scorer.score(st.surfel_map, st.h_train[mode], st.tsdf, st.train_poses, cands, st.intr, mode=mode)
+recommended = NBVScorer(NBVConfig(**RECOMMENDED_UNSEEN))
+res = recommended.score(st.surfel_map, st.h_train["roi-gsurfisher"], st.tsdf, st.train_poses, st.candidates, st.intr)
+print("UNSEEN", res.timings_s["unseen"])
 after = compiled_signatures()
 new = {k: sorted(set(v) - set(before.get(k, []))) for k, v in after.items() if set(v) - set(before.get(k, []))}
 print("LONE", len(roi._BATCH_KERNELS.dispatchers()["lone"].signatures))
@@ -1080,8 +1084,10 @@ def warm_child() -> dict[str, str]:
 
 def test_warm_up_compiles_every_kernel_a_planner_request_uses(warm_child: dict[str, str]) -> None:
     """After ``warm_up_kernels`` (what set-up and the planner run first), scoring one candidate alone and a window of
-    them in both Fisher modes adds no kernel signature: on a fresh machine nothing compiles during a request. A
-    fresh interpreter, two numba threads (the lone candidate's ROI kernel needs more threads than candidates)."""
+    them in both Fisher modes, and the window with the recommended unseen term (its carved grid), adds no kernel
+    signature: on a fresh machine nothing compiles during a request. A fresh interpreter, two numba threads (the lone
+    candidate's ROI kernel needs more threads than candidates)."""
+    assert float(warm_child["UNSEEN"]) > 0  # the recommended variant did build and march its carved grid
     assert warm_child["NEW"] == "{}", warm_child["NEW"]
 
 

@@ -8,7 +8,15 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],
-        "config": ["BACKFACE_TESTS", "MODES", "NBVConfig", "ROI_MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES"],
+        "config": [
+            "BACKFACE_TESTS",
+            "MODES",
+            "NBVConfig",
+            "RECOMMENDED_UNSEEN",
+            "ROI_MODES",
+            "UNSEEN_MEASURES",
+            "UNSEEN_SOURCES",
+        ],
         "novelty": [
             "NOVELTY_MEASURES",
             "NOVELTY_RADIUS_M",

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import numpy as np
 
@@ -336,4 +338,20 @@ class NBVConfig(Config):
         return self
 
 
-__all__ = ["BACKFACE_TESTS", "MODES", "ROI_MODES", "UNSEEN_MEASURES", "UNSEEN_SOURCES", "NBVConfig"]
+RECOMMENDED_UNSEEN: Mapping[str, float | str] = MappingProxyType(
+    {"unseen_weight": 2.0, "unseen_source": "carved", "unseen_measure": "rays"}
+)
+"""The :class:`NBVConfig` fields of the variant the README recommends for choosing views among candidates (F3,
+``roi-gsurfisher:unseen_weight=2:unseen_source=carved:unseen_measure=rays``): the paper's score plus 2 z(U_ray). Not
+the default, which stays the paper's method; the kernel warm-up scores with it too, so its carved grid starts
+compiled. Read-only: ``NBVConfig(**RECOMMENDED_UNSEEN)``, or ``{**RECOMMENDED_UNSEEN, ...}`` to change a field."""
+
+__all__ = [
+    "BACKFACE_TESTS",
+    "MODES",
+    "RECOMMENDED_UNSEEN",
+    "ROI_MODES",
+    "UNSEEN_MEASURES",
+    "UNSEEN_SOURCES",
+    "NBVConfig",
+]

@@ -4,9 +4,10 @@ The numba kernels (rasteriser forward/backward, Fisher, ROI visibility) compile 
 30-60 s on 2 cores with a cold cache: on a fresh machine the planner's first requests then took that
 long and the keyframe selector decided most of the demo's first windows with its fallback.
 :func:`warm_up_kernels` makes those first calls on a 32x24 textured wall (one keyframe, a few optimiser
-steps, a scoring TSDF, two candidates scored in each Fisher mode and one alone, the uncertainty image), with the same
-argument types as the real calls, so the real work starts compiled. With a warm cache it takes about a
-second (the cached machine code is loaded). ``python -m roigsf_ros.nbv.warmup`` runs it (set-up does).
+steps, a scoring TSDF, two candidates scored in each Fisher mode and one alone, and once with the recommended unseen
+term, :data:`~roigsf_ros.nbv.config.RECOMMENDED_UNSEEN`, whose carved grid has kernels of its own; the uncertainty
+image), with the same argument types as the real calls, so the real work starts compiled. With a warm cache it takes
+about a second (the cached machine code is loaded). ``python -m roigsf_ros.nbv.warmup`` runs it (set-up does).
 
 Cold, that is one process on one core (151 s on a 2-core AMD EPYC). ``--jobs N`` first compiles the kernels on N
 processes from :data:`SIGNATURES_PATH`, the argument types the warm-up's own calls compile (checked by a test against
@@ -33,7 +34,7 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
-from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.render.numba_setup import Kernels
@@ -82,6 +83,9 @@ def warm_up_kernels(nbv: NBVConfig | None = None) -> dict[str, float]:
     state.score(
         mapper.map, h_train, outputs, poses, candidates[:1], WARMUP_INTRINSICS, mapper.rendered_rgbd, "roi-gsurfisher"
     )
+    # The recommended variant's unseen term, whatever ``nbv`` says: its carved grid's carve and ray-march kernels.
+    carved = ScoringState(NBVConfig(**RECOMMENDED_UNSEEN), 0.02, 0.08, 10.0)
+    carved.score(mapper.map, h_train, outputs, poses, candidates, WARMUP_INTRINSICS, mapper.rendered_rgbd)
     NBVScorer(nbv).uncertainty(mapper.map, h_train, candidates[0], WARMUP_INTRINSICS, None)
     times["scoring_s"] = time.perf_counter() - t0
     times["total_s"] = times["mapping_s"] + times["scoring_s"]

@@ -24,9 +24,10 @@ threads (torch and numba):
 
 for the modes ``roi-gsurfisher`` and ``fisherrf`` and ``fisher_downsample`` 1 and 2. Then, by keyframe count
 (``--keyframes``: the four training poses and seeded room poses after them), one planner request of the same candidates
-with the paper's score and with the unseen term of the variants README recommends (``F2``: carved grid, ray measure; F3
-differs only in the term's weight, which costs nothing), its grid rendered and carved again at every request (the
-default) or kept (``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the
+with the paper's score and with the unseen term of the variant README recommends (``F3``,
+:data:`~roigsf_ros.nbv.config.RECOMMENDED_UNSEEN`: carved grid, ray measure; F2, the forty-ninth session's rows, differs
+only in the term's weight, which costs nothing), its grid rendered and carved again at every request (the default) or
+kept (``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the
 work the planner's sync timer does between requests when one keyframe comes (TSDF fusion, W_f and, kept, one render and
 carve). FisherRF's ``h_train`` (colour, every parameter) is computed once outside the timed calls, as a caller that
 keeps it would. Environment notes as in ``roigsf perf render`` (``OMP_WAIT_POLICY=PASSIVE`` is set by the package; the
@@ -53,7 +54,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.mapping.tsdf import TSDFVolume
-from roigsf_ros.nbv.config import NBVConfig
+from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
@@ -76,15 +77,13 @@ TARGET_FISHER_RATIO = 1.0
 """A candidate's Fisher phase over a training forward+backward (issue 12: no slower)."""
 TARGET_SCORE_S = 1.0
 """One score() call over 50 candidates at 160x120, 20k surfels (issue 12)."""
-F2 = {"unseen_weight": 1.0, "unseen_source": "carved", "unseen_measure": "rays"}
-"""The unseen term of the ray-count variants the README recommends (the paper's score plus ``kappa z(U_ray)``)."""
 REQUEST_VARIANTS: dict[str, dict[str, Any]] = {
     "roi-gsurfisher": {},
-    "F2": F2,
-    "F2, kept grid": {**F2, "unseen_carve_rerender": False},
+    "F3": dict(RECOMMENDED_UNSEEN),
+    "F3, kept grid": {**RECOMMENDED_UNSEEN, "unseen_carve_rerender": False},
 }
-"""The planner requests timed by keyframe count: the paper's score, F2 rendering its grid at every request, and F2
-with the grid kept between requests."""
+"""The planner requests timed by keyframe count: the paper's score, the recommended variant (F3) rendering its grid at
+every request, and F3 with the grid kept between requests."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -436,7 +435,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"(one request of the {args.candidates} candidates after the state was synced to that many keyframes, median "
         f"of {args.repeats}; unseen = its unseen-term phase; sync one = the sync timer's work for the "
-        f"last keyframe; F2 = {':'.join(f'{k}={v}' for k, v in F2.items())}, kept grid = unseen_carve_rerender=false)"
+        f"last keyframe; F3 = {':'.join(f'{k}={v}' for k, v in RECOMMENDED_UNSEEN.items())}, kept grid = "
+        f"unseen_carve_rerender=false)"
     )
     if args.out:
         write_json(args.out, result)
