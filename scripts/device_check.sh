@@ -31,6 +31,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST  # the test set-up's default; not
     "$PY" -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda, "available",
         torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else "")'
     nproc
+    lscpu 2>/dev/null | grep -m1 "Model name" || echo "lscpu: no model name"
     "$PY" -c 'import numba; print("numba", numba.__version__)' 2>&1 || true
 } 2>&1 | tee "$OUT/system.txt"
 if ! "$PY" -c 'import sys, torch; sys.exit(not torch.cuda.is_available())'; then

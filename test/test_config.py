@@ -54,6 +54,56 @@ def test_yaml_equals_node_parameter_defaults(file: str, module: str, cls_name: s
         assert params[name] == (list(value) if isinstance(value, tuple | list) else value), name
 
 
+DEFAULT_FILES = {"mapper": "mapper.yaml", "nbv_planner": "nbv.yaml", "keyframe_selector": "keyframe_selector.yaml"}
+"""Each node's config file of defaults (the overlays in config/recommended/ change a few of them)."""
+
+
+def _overlay(name: str) -> dict[str, dict[str, object]]:
+    """config/recommended/``name``: {node: {parameter: value}}."""
+    text = (CONFIG / "recommended" / name).read_text()
+    return {node: body["ros__parameters"] for node, body in yaml.safe_load(text).items()}
+
+
+def test_recommended_overlays_change_declared_parameters_with_values_of_their_type() -> None:
+    """Each overlay names only parameters of its nodes' config files, each with a value of the default's type (a ROS
+    node refuses ``2`` for a double parameter) that differs from the default: an overlay is what it changes (and the
+    selector's policy, which the stream overlay names so that the file says what it runs)."""
+    files = sorted((CONFIG / "recommended").glob("*.yaml"))
+    assert [f.name for f in files] == ["planner.yaml", "stream.yaml"]
+    for file in files:
+        for node, params in _overlay(file.name).items():
+            defaults = yaml.safe_load((CONFIG / DEFAULT_FILES[node]).read_text())[node]["ros__parameters"]
+            for name, value in params.items():
+                assert name in defaults, f"{file.name}: {node} has no parameter {name}"
+                assert type(value) is type(defaults[name]), f"{file.name}: {node}.{name}: {value!r}"
+                assert value != defaults[name] or name == "policy", f"{file.name}: {node}.{name} is the default"
+
+
+def test_the_recommended_overlays_are_the_library_recommendations() -> None:
+    """config/recommended/planner.yaml is ``RECOMMENDED_UNSEEN``; stream.yaml is the stream variant's policy and
+    parameters (the planner's share, the NBVConfig fields, on the planner) and its mapper setting."""
+    from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN
+    from roigsf_ros.policies import RECOMMENDED_STREAM, RECOMMENDED_STREAM_MAPPER, RECOMMENDED_STREAM_POLICY
+
+    assert _overlay("planner.yaml") == {"nbv_planner": dict(RECOMMENDED_UNSEEN)}
+    scorer = {f.name for f in dataclasses.fields(NBVConfig)}
+    selector = {k: v for k, v in RECOMMENDED_STREAM.items() if k not in scorer}
+    assert _overlay("stream.yaml") == {
+        "keyframe_selector": {"policy": RECOMMENDED_STREAM_POLICY, **selector},
+        "nbv_planner": {k: v for k, v in RECOMMENDED_STREAM.items() if k in scorer},
+        "mapper": dict(RECOMMENDED_STREAM_MAPPER),
+    }
+
+
+def test_changed_names_the_fields_off_their_defaults() -> None:
+    """``Config.changed``: what a node's start-up line lists."""
+    from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN
+
+    assert NBVConfig().changed() == {} and MapperConfig().changed() == {}
+    assert NBVConfig(**RECOMMENDED_UNSEEN).changed() == dict(RECOMMENDED_UNSEEN)
+    assert MapperConfig(init_max_stretch=4.0, iters_per_keyframe=10).changed() == {"init_max_stretch": 4.0}
+
+
 def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() -> None:
     """A word, or a bool, where a number belongs is refused on construction naming the field (it once reached
     ``int('abc')`` or a comparison of str and float, a traceback naming nothing); numpy scalars and a whole float for

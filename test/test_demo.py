@@ -107,3 +107,37 @@ def test_demo_decides_the_frames_the_selector_holds_when_the_bag_ends(tmp_path: 
     # frame 0, then windows of 2 decided one trigger late (triggers at frames 2, 4, 6: the first decides nothing),
     # and the frames still held at the end: 1 + 2 + 1
     assert metrics["n_keyframes"] == 4
+
+
+def test_demo_takes_params_files_in_order_and_policy_over_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--params-file`` is repeatable, later files winning; a file's selector policy holds unless ``--policy`` is
+    given, and the report names the policy that ran. A file that is no params file is refused before the replay.
+
+    Before: one file only, and the demo passed its ``--policy`` default to the selector as a parameter override,
+    which beats a params file: a file's ``keyframe_selector.policy`` was silently ignored.
+    """
+    from roigsf_ros.cli import main
+
+    bag = _bag(tmp_path, 6, 32, 24, seed=5)
+    first, second = tmp_path / "first.yaml", tmp_path / "second.yaml"
+    first.write_text("keyframe_selector:\n  ros__parameters:\n    policy: every-n\n    every_n: 2\n")
+    second.write_text("keyframe_selector:\n  ros__parameters:\n    every_n: 3\n")
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--rate", "0", "--gt-mesh", "", "--no-progress",
+            "--final-iters", "0", "--set", "mapper.iters_per_keyframe=2",
+            "--params-file", str(first), "--params-file", str(second)]  # fmt: skip
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["policy"], metrics["n_keyframes"]) == ("every-n", 2)  # frames 0 and 3 of 6: every_n 3 won
+    assert "(policy every-n)" in capsys.readouterr().out
+    assert main([*args, "--policy", "all"]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["policy"], metrics["n_keyframes"]) == ("all", 6)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("keyframe_selector:\n  policy: every-n\n")  # no ros__parameters level
+    capsys.readouterr()
+    assert main([*args, "--params-file", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "'keyframe_selector': needs a 'ros__parameters' mapping" in err, err

@@ -190,3 +190,20 @@ def test_the_readme_recommends_the_variant_the_library_names() -> None:
     assert spec_text, "no roi-gsurfisher spec in the README's recommendation for choosing views"
     (spec,) = parse_policies(spec_text.group(1), "pool")
     assert spec.params == dict(RECOMMENDED_UNSEEN), (spec_text.group(1), dict(RECOMMENDED_UNSEEN))
+
+
+def test_the_readme_recommends_the_stream_variant_the_library_names() -> None:
+    """The same for choosing keyframes in a stream: the README's first spec there is ``RECOMMENDED_STREAM_POLICY``
+    with ``RECOMMENDED_STREAM`` (what config/recommended/stream.yaml holds), on a mapper with
+    ``RECOMMENDED_STREAM_MAPPER``."""
+    from roigsf_ros.experiments.bench import parse_policies
+    from roigsf_ros.policies import RECOMMENDED_STREAM, RECOMMENDED_STREAM_MAPPER, RECOMMENDED_STREAM_POLICY
+
+    section = (ROOT / "README.md").read_text().split("### Which policy to use", 1)[1].split("\n## ", 1)[0]
+    stream = section.split("- **Choosing keyframes in a stream**", 1)[1].split("\n- ", 1)[0]
+    spec_text = re.search(r"`(roi-gsurfisher:[^`]+)`", stream)
+    assert spec_text, "no roi-gsurfisher spec in the README's recommendation for choosing keyframes"
+    (spec,) = parse_policies(spec_text.group(1), "stream")
+    assert (spec.name, spec.params) == (RECOMMENDED_STREAM_POLICY, dict(RECOMMENDED_STREAM)), spec_text.group(1)
+    for name, value in RECOMMENDED_STREAM_MAPPER.items():
+        assert f"`{name}: {value}`" in " ".join(stream.split()), f"the stream recommendation leaves out {name}: {value}"

@@ -671,7 +671,8 @@ def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout or []), daemon=True)
     reader.start()
     try:
-        _wait(lambda: any("policy gaus-slam: deciding alone" in x for x in lines), 60.0, "the node's start-up line")
+        started = "policy gaus-slam (window 3): deciding alone"
+        _wait(lambda: any(started in x for x in lines), 60.0, "the node's start-up line")
     finally:
         proc.send_signal(signal.SIGINT)
         rc = proc.wait(timeout=30)
@@ -680,6 +681,40 @@ def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
     bad = _console("roigsf_ros.nodes.keyframe_selector", "-p", "policy:=nope")
     out, _ = bad.communicate(timeout=60)
     assert bad.returncode == 2 and "parameter 'policy'" in out and "unknown policy 'nope'" in out
+
+
+def test_planner_process_takes_the_recommended_overlay_and_says_so() -> None:
+    """The planner as its own process, as a user starts it with the README's recommendation for choosing views:
+    config/nbv.yaml, then the overlay config/recommended/planner.yaml; its start-up line names the three settings
+    the overlay changes (the scorer built from the parameters), and a mapper's names its own."""
+    from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN
+
+    planner = _console(
+        "roigsf_ros.nodes.nbv_planner", "--params-file", "config/nbv.yaml",
+        "--params-file", "config/recommended/planner.yaml", "-p", "warm_up:=false",
+    )  # fmt: skip
+    mapper = _console("roigsf_ros.nodes.mapper", "--params-file", "config/recommended/stream.yaml")
+    lines: list[str] = []
+    procs = (planner, mapper)
+    readers = [threading.Thread(target=lambda p=p: lines.extend(p.stdout or []), daemon=True) for p in procs]
+    for reader in readers:
+        reader.start()
+    expected = {f"{k}={v}" for k, v in RECOMMENDED_UNSEEN.items()}  # in NBVConfig's field order
+
+    def planner_started() -> bool:
+        said = [x.split("scoring (roi-gsurfisher; ", 1)[1].split(") against", 1)[0] for x in lines if "scoring (" in x]
+        return bool(said) and set(said[0].split(", ")) == expected
+
+    try:
+        _wait(planner_started, 60.0, "the planner's start-up line with the overlay's settings")
+        _wait(lambda: any("own map; init_max_stretch=4.0)" in x for x in lines), 60.0, "the mapper's start-up line")
+    finally:
+        for proc in procs:
+            proc.send_signal(signal.SIGINT)
+        codes = [proc.wait(timeout=30) for proc in procs]
+        for reader in readers:
+            reader.join(timeout=10)
+    assert codes == [0, 0], "".join(lines)
 
 
 def test_gil_switch_interval_is_lowered_never_raised(monkeypatch: pytest.MonkeyPatch) -> None:

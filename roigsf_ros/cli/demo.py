@@ -285,6 +285,25 @@ def parse_sets(items: Sequence[str]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def check_params_file(path: Path) -> None:
+    """InputError naming ``path`` (and the key) unless it is a ROS params file: a YAML mapping of node names to
+    ``ros__parameters`` mappings (rclpy's own error on a bad file names neither).
+    """
+    import yaml
+
+    if not path.is_file():
+        raise InputError(path, "params file not found")
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not a YAML params file ({exc})") from None
+    if not isinstance(doc, dict) or not doc:
+        raise InputError(path, "a params file maps node names to {ros__parameters: {...}}")
+    for node, body in doc.items():
+        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
+            raise InputError(path, f"{node!r}: needs a 'ros__parameters' mapping")
+
+
 class _Progress:
     """One status line: frames received, keyframes, surfels, planner answers/calls, fallbacks, queue."""
 
@@ -317,13 +336,13 @@ class _Progress:
 def run_demo(
     bag: Path,
     out: Path,
-    policy: str = DEFAULT_POLICY,
+    policy: str | None = None,
     rate: float = DEFAULT_RATE,
     final_iters: int = DEFAULT_FINAL_ITERS,
     gt_mesh: Path | None = DEFAULT_GT_MESH,
     domain_id: int | None = None,
     params: dict[str, dict[str, Any]] | None = None,
-    params_file: Path | None = None,
+    params_files: Sequence[Path] = (),
     progress: bool = True,
     drain_timeout_s: float = 120.0,
 ) -> dict[str, Any]:
@@ -348,11 +367,14 @@ def run_demo(
     if gt_mesh is not None and not gt_mesh.is_file():
         raise InputError(gt_mesh, "ground-truth mesh not found")
     node_params = {k: dict(v) for k, v in (params or {}).items()}
-    node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
+    if policy is not None:  # given: over the params files (a node's override beats a file), under a --set of it
+        node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if domain_id is None:
         domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
-    init_args = ["roigsf_demo", "--ros-args", "--params-file", str(params_file)] if params_file else None
+    init_args = None  # the params files in order, later ones winning, as ROS reads them
+    if params_files:
+        init_args = ["roigsf_demo", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
     context = rclpy.Context()
     rclpy.init(args=init_args, context=context, domain_id=domain_id)
     system: ActiveMapping | None = None
@@ -445,7 +467,7 @@ def run_demo(
     metrics, rows, mesh = evaluate_map(mapper, frames, gt_mesh)
     sel = status["selector"]
     metrics |= {
-        "policy": policy,
+        "policy": sel["policy"],  # the selector's: --policy, a --set or a params file, else its default
         "bag": str(bag),
         "rate": rate,
         "frames_received": sel["frames"],
@@ -490,10 +512,14 @@ def _run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     check_writable(out)  # the run folder is written at the end: fail now, not after the replay
+    params_files = [Path(f) for f in args.params_file]
+    for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
+        check_params_file(f)
+    given = f" (policy {args.policy})" if args.policy is not None else ""
     print(
         f"bag {bag}: {info['frame_count']} frames of {info['width']}x{info['height']}, depth "
-        f"{info['depth_encoding']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping "
-        f"(policy {args.policy}), then {args.final_iters} refinement steps"
+        f"{info['depth_encoding']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
+        f"{given}, then {args.final_iters} refinement steps"
     )
     metrics = run_demo(
         bag,
@@ -504,10 +530,10 @@ def _run(args: argparse.Namespace) -> int:
         gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None,
         domain_id=args.domain_id,
         params=parse_sets(args.set),
-        params_file=Path(args.params_file) if args.params_file else None,
+        params_files=params_files,
         progress=not args.no_progress,
     )
-    print(f"\nactive-mapping demo on {bag} (policy {args.policy}) -> {out}")
+    print(f"\nactive-mapping demo on {bag} (policy {metrics['policy']}) -> {out}")
     print(format_table(metrics))
     print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, plot.png, strip.png, replay.json")
     return 0 if metrics["frames_received"] == info["frame_count"] else 1
@@ -527,10 +553,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--policy",
-        default=DEFAULT_POLICY,
+        default=None,
         metavar="P",
-        help=f"keyframe selector policy (default {DEFAULT_POLICY}; also roi-fisher, close-front, fisherrf, "
-        "random, gaus-slam, every-n, all, novelty)",
+        help=f"keyframe selector policy, over the params files' (default: theirs, else {DEFAULT_POLICY}; also "
+        "roi-fisher, close-front, fisherrf, random, gaus-slam, every-n, all, novelty)",
     )
     p.add_argument(
         "--rate",
@@ -553,7 +579,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NODE.NAME=VALUE",
         help="a node parameter, e.g. mapper.iters_per_keyframe=20 or keyframe_selector.window=6 (repeatable)",
     )
-    p.add_argument("--params-file", default=None, metavar="YAML", help="ROS params file for the nodes (config/*.yaml)")
+    p.add_argument(
+        "--params-file",
+        action="append",
+        default=[],
+        metavar="YAML",
+        help="ROS params file for the nodes, over their defaults (config/*.yaml; repeatable, later files win), e.g. "
+        "config/recommended/planner.yaml",
+    )
     p.add_argument(
         "--domain-id",
         type=int,

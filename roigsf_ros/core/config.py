@@ -93,5 +93,12 @@ class Config:
         """Every field as a JSON-friendly dict (tuples become lists)."""
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
+    def changed(self) -> dict[str, Any]:
+        """The fields whose values differ from the class defaults, in field order, JSON-friendly as :meth:`to_dict`:
+        what a node's start-up line names, so its log says which settings beyond the defaults it runs with.
+        """
+        here, default = self.to_dict(), type(self)().to_dict()
+        return {k: v for k, v in here.items() if v != default[k]}
+
 
 __all__ = ["Config", "annotation_words", "check_annotation", "fits_annotation"]

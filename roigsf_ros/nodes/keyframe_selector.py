@@ -195,7 +195,9 @@ class KeyframeSelectorNode(SystemNode):
         if shared is None and "gaus-slam" in (self.policy, self.fallback):
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
         how = f"asking {self.service_name} (fallback {self.fallback})" if self.uses_planner else "deciding alone"
-        self.get_logger().info(f"policy {self.policy}: {how}; keyframes on {keyframe_topic}")
+        window = f"window {self.window}" + (f", lookahead {self.lookahead}" if self.lookahead else "")
+        window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
+        self.get_logger().info(f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}")
 
     def _make_alone(self, name: str) -> KeyframePolicy:
         params: dict[str, Any] = {

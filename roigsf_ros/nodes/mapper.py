@@ -58,7 +58,14 @@ from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings
 from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.node_params import (
+    SystemNode,
+    check_positive,
+    declare,
+    declare_config,
+    run_nodes,
+    settings_text,
+)
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
 
 KEYFRAME_TOPIC = "/roigsf/keyframe"
@@ -260,7 +267,7 @@ class MapperNode(SystemNode):
         self._thread.start()
         self.get_logger().info(
             f"mapping keyframes named on {keyframe_topic} from {self.camera.topics.color}; map on {map_topic} "
-            f"({'shared in-process' if self.in_process else 'own'} map)"
+            f"({'shared in-process' if self.in_process else 'own'} map{settings_text(self.config.changed())})"
         )
 
     # ------------------------------------------------------------------------------ inputs

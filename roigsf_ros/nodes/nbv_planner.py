@@ -83,7 +83,14 @@ from roigsf_ros.nodes.map_msgs import (
     pose_stamped,
 )
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_TOPIC, latched_qos
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, run_nodes
+from roigsf_ros.nodes.node_params import (
+    SystemNode,
+    check_positive,
+    declare,
+    declare_config,
+    run_nodes,
+    settings_text,
+)
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
 
 _MAPPER_DEFAULTS = MapperConfig()
@@ -184,7 +191,8 @@ class NBVPlannerNode(SystemNode):
         if sync_s > 0:
             self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
         source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic}"
-        self.get_logger().info(f"scoring ({self.nbv.mode}) against {source}")
+        changed = {k: v for k, v in self.nbv.changed().items() if k != "mode"}
+        self.get_logger().info(f"scoring ({self.nbv.mode}{settings_text(changed)}) against {source}")
 
     # ------------------------------------------------------------------------------ topic inputs
     def _on_cloud(self, msg: PointCloud2) -> None:

@@ -126,6 +126,13 @@ class SystemNode(Node):
         raise NotImplementedError
 
 
+def settings_text(changed: dict[str, Any]) -> str:
+    """``"; a=1, b=x"`` for a start-up line, from the settings off their defaults (``Config.changed``); "" for none:
+    a node's log then says which settings beyond the defaults (a params file, an overlay) it runs with.
+    """
+    return "; " + ", ".join(f"{k}={v}" for k, v in changed.items()) if changed else ""
+
+
 def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     """``value`` if it is > 0 (or >= 0), else an InputError naming parameter ``name``."""
     ok = value >= 0 if allow_zero else value > 0
@@ -322,5 +329,6 @@ __all__ = [
     "reduce_gil_switch_interval",
     "run_nodes",
     "script_args",
+    "settings_text",
     "shutdown_executor",
 ]

@@ -28,7 +28,9 @@ the same state the planner node keeps): a keyframe is fused the first time the p
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import fields
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -519,7 +521,24 @@ NoveltyStream = _make("novelty", None, novelty_only=True)
 STREAM_POLICIES = ("random", "roi-gsurfisher", "roi-fisher", "close-front", "fisherrf", "novelty")
 """Names this module registers."""
 
+RECOMMENDED_STREAM_POLICY = "roi-gsurfisher"
+"""The policy of the variant the README recommends for choosing keyframes in a stream (the stream variant); its
+parameters are :data:`RECOMMENDED_STREAM` and its mapper's :data:`RECOMMENDED_STREAM_MAPPER`."""
+RECOMMENDED_STREAM: Mapping[str, int | float] = MappingProxyType(
+    {"window": 13, "unseen_weight": 1.0, "novelty_weight": 4.0, "lookahead": 13}
+)
+"""The stream variant's parameters (``roi-gsurfisher:window=13:unseen_weight=1:novelty_weight=4:lookahead=13``):
+``make_policy(RECOMMENDED_STREAM_POLICY, **RECOMMENDED_STREAM)``. Not the default, which stays the paper's one
+keyframe per window of 8. As node parameters (``config/recommended/stream.yaml``) ``unseen_weight`` belongs to the
+planner, which scores for the selector, and the rest to the selector. Read-only."""
+RECOMMENDED_STREAM_MAPPER: Mapping[str, float] = MappingProxyType({"init_max_stretch": 4.0})
+"""The :class:`~roigsf_ros.mapping.mapper.MapperConfig` fields the stream variant was measured with (its keyframes
+are far apart, and stretched new surfels close the gaps between them at grazing angles). Read-only."""
+
 __all__ = [
+    "RECOMMENDED_STREAM",
+    "RECOMMENDED_STREAM_MAPPER",
+    "RECOMMENDED_STREAM_POLICY",
     "STREAM_POLICIES",
     "TRIGGERS",
     "CandidateWindow",
