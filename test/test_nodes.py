@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -28,6 +29,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
@@ -147,16 +149,26 @@ def test_service_ranks_like_offline_scoring(ros_context: Any, scene: Any, mapped
     client_node.create_subscription(PoseStamped, "/nbv_planner/best_view", best_poses.append, latched_qos())
     images: list[Image] = []
     client_node.create_subscription(Image, "/nbv_planner/uncertainty", images.append, latched_qos())
+    published: list[dict[str, Any]] = []
+    client_node.create_subscription(String, "/nbv_planner/status", lambda m: published.append(json.loads(m.data)), 10)
     client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
     with _spinning(ros_context, planner, client_node):
         res = _call(client, _request(cands))
         again = _call(client, _request(cands))
         _wait(lambda: bool(best_poses) and bool(images), 10.0, "best view and uncertainty image")
+        _wait(lambda: any(p["answered"] == 2 for p in published), 10.0, "~/status after both answers")
         status = planner.status()
+    assert [p for p in published if p["answered"] == 2][-1]["slowest_phases_s"] == status["slowest_phases_s"]
     assert res.success, res.message
     assert list(again.fused_scores) == list(res.fused_scores)
     kept = 3 if params.get("unseen_carve_rerender") is False else 0  # each of the 3 keyframes rendered once
     assert (status["carved_renders"], status["carved_carves"]) == (kept, kept)
+    phases = status["last_phases_s"]  # where the last request's time went: the map work, then the scorer's phases
+    assert {"map_update", "scoring", "setup", "h_train", "roi", "fisher", "unseen"} <= set(phases), phases
+    assert all(v >= 0 for v in phases.values()), phases
+    slowest = status["slowest_phases_s"]
+    assert slowest.keys() == phases.keys()
+    assert slowest["map_update"] + slowest["scoring"] >= phases["map_update"] + phases["scoring"]
     assert res.best_index == offline.best_index
     assert list(res.top_k_indices) == offline.ranking[:3].tolist()
     np.testing.assert_allclose(res.fused_scores, offline.fused, rtol=1e-6, atol=1e-9)

@@ -42,7 +42,10 @@ answers ``success: false`` with a reason for an empty candidate list, an unknown
 pose (non-unit quaternion, NaN), or a map that is not ready; scores are always finite. After each
 success it publishes ``~/best_view`` (PoseStamped), ``~/candidate_scores`` (MarkerArray: an arrow per
 candidate coloured by its fused score, best in green and larger, and its score as text) and
-``~/uncertainty`` (32FC1 Image: Eq. 17's pixel uncertainty of the chosen view).
+``~/uncertainty`` (32FC1 Image: Eq. 17's pixel uncertainty of the chosen view). ``~/status``
+(``std_msgs/String`` JSON, ``status_rate_hz``) carries :meth:`NBVPlannerNode.status`: requests, answers, the
+longest scoring, and where the last and the slowest request's time went, so a planner in its own process says
+why a selector's windows went to the fallback.
 
     nbv_planner --ros-args --params-file config/nbv.yaml -p mode:=roi-fisher
 """
@@ -50,6 +53,7 @@ candidate coloured by its fused score, best in green and larger, and its score a
 from __future__ import annotations
 
 import contextlib
+import json
 import sys
 import threading
 import time
@@ -60,6 +64,7 @@ import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from roigsf_interfaces.srv import GetNextBestView
@@ -133,10 +138,12 @@ class NBVPlannerNode(SystemNode):
         warm_up = bool(declare(self, "warm_up", True, "compile the numba kernels at start-up (tiny scene)"))
         refresh = int(declare(self, "h_train_refresh_every", 0, "full H_train recompute every this many new poses"))
         match_tol = float(declare(self, "h_train_match_tol_m", 0.01, "surfel centre drift tolerated when carrying H"))
+        status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
         check_positive("max_request_age_s", self.max_request_age_s, allow_zero=True)
         check_positive("max_candidates", self.max_candidates)
         check_positive("h_train_refresh_every", refresh, allow_zero=True)
         check_positive("h_train_match_tol_m", match_tol)
+        check_positive("status_rate_hz", status_hz, allow_zero=True)
         check_positive("voxel_size_m", self.voxel_size_m)
         check_positive("max_depth_m", self.max_depth_m)
         check_positive("render_near_m", self.render_near_m)
@@ -168,6 +175,9 @@ class NBVPlannerNode(SystemNode):
         self.counters["max_request_wait_s"] = 0.0
         self.counters["max_sync_s"] = 0.0
         self.counters["warm_up_s"] = 0.0
+        self._last_phases_s: dict[str, float] = {}
+        self._slowest_phases_s: dict[str, float] = {}
+        self._slowest_request_s = -1.0
         if warm_up:  # before the service exists: no request waits behind the compiler
             try:
                 times = warm_up_once(self.nbv)
@@ -188,6 +198,9 @@ class NBVPlannerNode(SystemNode):
         self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
         self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())
         self.create_service(GetNextBestView, "~/get_next_best_view", self._on_request, callback_group=scoring)
+        self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
+        if status_hz > 0:  # its own group: published while a request is being scored
+            self.create_timer(1.0 / status_hz, self.publish_status, callback_group=MutuallyExclusiveCallbackGroup())
         if sync_s > 0:
             self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
         source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic}"
@@ -363,14 +376,24 @@ class NBVPlannerNode(SystemNode):
         if len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
             k, n = len(snap.keyframe_poses), snap.n_surfels
             raise InputError("map", f"not ready: {k} keyframes, {n} surfels")
+        t_update = time.perf_counter()
         self._update(snap, mode)  # the map work (kept for the next request) may take a while: check the age again
+        update_s = time.perf_counter() - t_update
         self._check_age(req)
         top_k = int(req.top_k) if req.top_k > 0 else len(cands)
         outputs = tuple(snap.config.fisher_outputs)
+        t_score = time.perf_counter()
         result = self.state.score(
             snap.surfel_map, snap.h_train, outputs, snap.keyframe_poses, cands, snap.intrinsics,
             self._render(snap), mode=mode, top_k=top_k,
         )  # fmt: skip
+        score_s = time.perf_counter() - t_score
+        parts = {k: v for k, v in result.timings_s.items() if not k.endswith("_cpu") and k != "roi_close_front"}
+        phases = {"map_update": update_s, "scoring": score_s, **parts}
+        with self._lock:
+            self._last_phases_s = phases
+            if update_s + score_s > self._slowest_request_s:
+                self._slowest_request_s, self._slowest_phases_s = update_s + score_s, phases
         return result, snap, cands
 
     def _check_age(self, req: GetNextBestView.Request) -> None:
@@ -423,6 +446,10 @@ class NBVPlannerNode(SystemNode):
         img.data = np.ascontiguousarray(u, dtype="<f4").tobytes()
         self._uncertainty_pub.publish(img)
 
+    def publish_status(self) -> None:
+        """Publish :meth:`status` as JSON on ``~/status``."""
+        self._status_pub.publish(String(data=json.dumps(self.status())))
+
     def status(self) -> dict[str, Any]:
         """Counters: requests, answered, failed (of which stale), scoring times, TSDF work, H_train work.
 
@@ -430,7 +457,10 @@ class NBVPlannerNode(SystemNode):
         selector, which stamps at sending: the transport and the wait behind the planner's other work);
         ``max_sync_s``: the longest run of the sync timer (keyframes fused, TSDF products, H_train, block map grown);
         ``carved_renders`` / ``carved_carves``: keyframes rendered for and carved into the unseen term's kept grid
-        (``unseen_carve_rerender`` false; 0 otherwise, where every request renders and carves them all).
+        (``unseen_carve_rerender`` false; 0 otherwise, where every request renders and carves them all);
+        ``last_phases_s`` / ``slowest_phases_s``: where the last and the slowest scored request's time went, wall
+        seconds: ``map_update`` (keyframes fused, H_train), ``scoring`` (the scorer's call) and its phases
+        (:attr:`~roigsf_ros.nbv.scorer.NBVResult.timings_s`), to tell which part makes a planner late for its windows.
         """
         st, c = self.state, self.state.train_fisher_cache
         assert c is not None  # the planner always keeps one
@@ -445,6 +475,8 @@ class NBVPlannerNode(SystemNode):
                 "h_train_poses_added": c.poses_added,
                 "carved_renders": st.carved.renders if st.carved is not None else 0,
                 "carved_carves": st.carved.carves if st.carved is not None else 0,
+                "last_phases_s": dict(self._last_phases_s),
+                "slowest_phases_s": dict(self._slowest_phases_s),
             }
 
 
