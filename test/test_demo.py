@@ -89,6 +89,8 @@ def test_demo_on_a_cold_numba_cache_plans_from_the_first_window(tmp_path: Path) 
     metrics: dict[str, Any] = json.loads((run / "metrics.json").read_text())
     assert metrics["planner_calls"] == 3 and metrics["planner_answers"] == 3 and metrics["fallbacks"] == 0, output
     assert metrics["warm_up_s"] > 0
+    assert metrics["window_period_s"] == pytest.approx(2.0)  # a window of 4 frames at 10 Hz, played at rate 0.2
+    assert 0 < metrics["planner_max_scoring_s"] < 2.0 and "fisher" in metrics["planner_slowest_phases_s"]
     for row in ("planner answers/calls", "fallbacks", "kernel warm-up (s)"):
         assert re.search(rf"^  {re.escape(row)} +\S", proc.stdout, re.MULTILINE), proc.stdout
 
@@ -141,3 +143,19 @@ def test_demo_takes_params_files_in_order_and_policy_over_them(
     assert main([*args, "--params-file", str(bad)]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "'keyframe_selector': needs a 'ros__parameters' mapping" in err, err
+
+
+def test_fallback_hint_says_why_windows_went_to_the_fallback() -> None:
+    """When windows went to the fallback and the planner's longest request outlasted the time between windows, the
+    demo says so, with that request's two largest parts; otherwise it says nothing."""
+    from roigsf_ros.cli.demo import fallback_hint
+
+    phases = {"map_update": 0.0, "scoring": 1.58, "fisher": 0.8, "unseen": 0.62}
+    metrics = {"fallbacks": 2, "planner_max_scoring_s": 1.63, "window_period_s": 1.3, "rate": 1.0,
+               "planner_slowest_phases_s": phases}  # fmt: skip
+    hint = fallback_hint(metrics)
+    assert hint is not None and "2 window(s)" in hint and "1.63 s (fisher 0.80 s, unseen 0.62 s)" in hint, hint
+    assert "every 1.30 s at rate x1" in hint
+    assert fallback_hint({**metrics, "fallbacks": 0}) is None
+    assert fallback_hint({**metrics, "planner_max_scoring_s": 1.0}) is None  # in time: the fallback had other reasons
+    assert fallback_hint({**metrics, "window_period_s": None}) is None  # as fast as possible: no period

@@ -61,6 +61,7 @@ SUMMARY_ROWS = (
     ("recall @5cm", "recall@5cm", "{:.3f}"),
     ("planner answers/calls", "planner", "{}"),
     ("fallbacks", "fallbacks", "{:d}"),
+    ("longest planner request (s)", "planner_max_scoring_s", "{:.2f}"),
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
@@ -285,6 +286,32 @@ def parse_sets(items: Sequence[str]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _window_period_s(system: ActiveMapping, frames: Sequence[BagFrame], rate: float) -> float | None:
+    """Seconds between two of the selector's triggers at playback ``rate`` (its ``trigger_every``, else its
+    ``window``, frames at the bag's median frame interval); None as fast as possible or with under two frames.
+    """
+    if rate <= 0 or len(frames) < 2:
+        return None
+    every = int(system.selector.get_parameter("trigger_every").value) or int(system.selector.window)
+    return every * float(np.median(np.diff([f.stamp_ns for f in frames]))) * 1e-9 / rate
+
+
+def fallback_hint(metrics: dict[str, Any]) -> str | None:
+    """A line saying why windows went to the selector's fallback when the planner was slower than the windows
+    came (its longest request against the trigger period, and that request's two largest parts); None otherwise.
+    """
+    slowest, period = metrics.get("planner_max_scoring_s"), metrics.get("window_period_s")
+    if not metrics.get("fallbacks") or slowest is None or period is None or slowest <= period:
+        return None
+    phases = {k: v for k, v in (metrics.get("planner_slowest_phases_s") or {}).items() if k != "scoring"}
+    parts = ", ".join(f"{k} {v:.2f} s" for k, v in sorted(phases.items(), key=lambda kv: -kv[1])[:2])
+    return (
+        f"  note: {metrics['fallbacks']} window(s) went to the fallback: the planner's longest request took "
+        f"{slowest:.2f} s ({parts}), and a window came every {period:.2f} s at rate x{metrics['rate']:g}; a lower "
+        "--rate gives it the time"
+    )
+
+
 def check_params_file(path: Path) -> None:
     """InputError naming ``path`` (and the key) unless it is a ROS params file: a YAML mapping of node names to
     ``ros__parameters`` mappings (rclpy's own error on a bad file names neither).
@@ -480,6 +507,9 @@ def run_demo(
         "planner_timeouts": sel["planner_timeouts"],
         "fallbacks": sel["fallbacks"],
         "warm_up_s": status["nbv_planner"]["warm_up_s"],
+        "planner_max_scoring_s": status["nbv_planner"]["max_scoring_s"] if sel["planner_calls"] else None,
+        "planner_slowest_phases_s": status["nbv_planner"]["slowest_phases_s"],
+        "window_period_s": _window_period_s(system, frames, rate),
         "keyframes_published": sel["keyframes_published"],
         "stream_s": t_stream,
         "final_iters": final_iters,
@@ -535,6 +565,9 @@ def _run(args: argparse.Namespace) -> int:
     )
     print(f"\nactive-mapping demo on {bag} (policy {metrics['policy']}) -> {out}")
     print(format_table(metrics))
+    hint = fallback_hint(metrics)
+    if hint:
+        print(hint)
     print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, plot.png, strip.png, replay.json")
     return 0 if metrics["frames_received"] == info["frame_count"] else 1
 
