@@ -61,7 +61,7 @@ SUMMARY_ROWS = (
     ("recall @5cm", "recall@5cm", "{:.3f}"),
     ("planner answers/calls", "planner", "{}"),
     ("fallbacks", "fallbacks", "{:d}"),
-    ("longest planner request (s)", "planner_max_scoring_s", "{:.2f}"),
+    ("slowest planner call (s)", "planner_max_scoring_s", "{:.2f}"),
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
