@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from roigsf_ros.core.config import Config
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nbv.config import NBVConfig
 
@@ -102,6 +103,15 @@ def test_changed_names_the_fields_off_their_defaults() -> None:
     assert NBVConfig().changed() == {} and MapperConfig().changed() == {}
     assert NBVConfig(**RECOMMENDED_UNSEEN).changed() == dict(RECOMMENDED_UNSEEN)
     assert MapperConfig(init_max_stretch=4.0, iters_per_keyframe=10).changed() == {"init_max_stretch": 4.0}
+
+    @dataclasses.dataclass(frozen=True)
+    class Run(Config):  # as BenchConfig: a required field, a nested config by default_factory
+        scene: str
+        seeds: int = 1
+        mapper: MapperConfig = dataclasses.field(default_factory=MapperConfig)
+
+    assert Run("s", 3).changed() == {"seeds": 3}  # a required field has no default to differ from
+    assert Run("s", mapper=MapperConfig(init_max_stretch=4.0)).changed()["mapper"]["init_max_stretch"] == 4.0
 
 
 def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() -> None:

@@ -10,7 +10,7 @@ import functools
 import numbers
 import types
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, fields, is_dataclass
 from typing import Any, Self, Union, get_args, get_origin, get_type_hints
 
 import numpy as np
@@ -94,11 +94,22 @@ class Config:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
     def changed(self) -> dict[str, Any]:
-        """The fields whose values differ from the class defaults, in field order, JSON-friendly as :meth:`to_dict`:
-        what a node's start-up line names, so its log says which settings beyond the defaults it runs with.
+        """The fields whose values differ from their declared defaults, in field order, JSON-friendly as
+        :meth:`to_dict` (a field without a default is left out): what a node's start-up line names, so its log says
+        which settings beyond the defaults it runs with.
         """
-        here, default = self.to_dict(), type(self)().to_dict()
-        return {k: v for k, v in here.items() if v != default[k]}
+        here, out = self.to_dict(), {}
+        for f in fields(self):
+            if f.default is not MISSING:
+                default = f.default
+            elif f.default_factory is not MISSING:
+                default = f.default_factory()
+            else:
+                continue
+            default = asdict(default) if is_dataclass(default) else default  # a nested config, as to_dict has it
+            if here[f.name] != (list(default) if isinstance(default, tuple) else default):
+                out[f.name] = here[f.name]
+        return out
 
 
 __all__ = ["Config", "annotation_words", "check_annotation", "fits_annotation"]
