@@ -18,6 +18,7 @@ pytest.importorskip("roigsf_interfaces")
 
 from rclpy.node import Node
 
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.perf.io import make_synthetic_replica
@@ -142,7 +143,15 @@ def test_demo_takes_params_files_in_order_and_policy_over_them(
     capsys.readouterr()
     assert main([*args, "--params-file", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert str(bad) in err and "'keyframe_selector': needs a 'ros__parameters' mapping" in err, err
+    assert str(bad) in err and "'keyframe_selector/policy': needs a 'ros__parameters' mapping" in err, err
+    from roigsf_ros.cli.demo import check_params_file
+
+    namespaced = tmp_path / "namespaced.yaml"  # ROS's other layouts: a wildcard and a namespace level
+    namespaced.write_text("/**:\n  ros__parameters:\n    seed: 1\n/ns:\n  mapper:\n    ros__parameters: {}\n")
+    check_params_file(namespaced)
+    namespaced.write_text("/ns:\n  mapper:\n    policy: every-n\n")
+    with pytest.raises(InputError, match=r"'/ns/mapper/policy': needs a 'ros__parameters' mapping"):
+        check_params_file(namespaced)
 
 
 def test_fallback_hint_says_why_windows_went_to_the_fallback() -> None:

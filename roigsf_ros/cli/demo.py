@@ -326,9 +326,19 @@ def check_params_file(path: Path) -> None:
         raise InputError(path, f"not a YAML params file ({exc})") from None
     if not isinstance(doc, dict) or not doc:
         raise InputError(path, "a params file maps node names to {ros__parameters: {...}}")
+
+    def check(name: str, body: object) -> None:  # a node's entry, or a namespace of entries ("/ns: {node: ...}")
+        if isinstance(body, dict) and "ros__parameters" in body:
+            if not isinstance(body["ros__parameters"], dict):
+                raise InputError(path, f"{name!r}: 'ros__parameters' is not a mapping")
+            return
+        if not isinstance(body, dict) or not body:
+            raise InputError(path, f"{name!r}: needs a 'ros__parameters' mapping")
+        for key, inner in body.items():
+            check(f"{name}/{key}", inner)
+
     for node, body in doc.items():
-        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
-            raise InputError(path, f"{node!r}: needs a 'ros__parameters' mapping")
+        check(str(node), body)
 
 
 class _Progress:
