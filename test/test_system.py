@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rclpy")
 pytest.importorskip("roigsf_interfaces.srv")
@@ -486,18 +487,25 @@ def test_three_processes_match_in_process(
     planner in another process scores the map as last published on /roigsf/map, up to 1/map_publish_rate
     old, with H_train recomputed from the poses). The one keyframe of slack covers a keyframe the mapper
     could not insert in one of the runs (e.g. one named before the mapper's subscription matched).
+
+    The planner here runs with the README's recommendation for choosing views (config/recommended/planner.yaml:
+    the carved grid's unseen term, from the map and keyframe poses it receives over topics), so the recommended
+    path is tested across the process boundary; the in-process run keeps the paper's score.
     """
+    recommended = yaml.safe_load((REPO / "config" / "recommended" / "planner.yaml").read_text())
     watch.clear()
     with processes(tmp_path) as ps:
         ps.start("mapper", as_params("mapper"))
-        ps.start("nbv_planner", as_params("nbv_planner"))
+        planner = ps.start("nbv_planner", as_params("nbv_planner", **recommended["nbv_planner"]["ros__parameters"]))
         ps.start("keyframe_selector", as_params("keyframe_selector"))
         out = replay_once(ps, watch, bag, RATE)
         m, s = out["mapper"], out["selector"]
         check_map_and_mesh(watch, tmp_path, m["keyframes"])
+        started = planner.log()
+    assert "unseen_source=carved" in started and "unseen_measure=rays" in started, started[-2000:]
     assert s["frames"] == N_FRAMES and m["frames_received"] == N_FRAMES
     assert s["keyframes_published"] == expected_keyframes(N_FRAMES)
-    assert s["planner_calls"] >= 1 and s["planner_answers"] + s["fallbacks"] == s["keyframes_published"] - 1
+    assert s["planner_answers"] >= 1 and s["planner_answers"] + s["fallbacks"] == s["keyframes_published"] - 1
     assert set(m["keyframe_ids"]) <= set(bag_stamps)
     assert m["keyframes"] == m["keyframes_inserted"]
     ref = in_process_run["mapper"]["keyframes"]
