@@ -79,9 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     line = json.dumps(result)
     print(line)
     if args.out:
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        tmp.write_text(line + "\n")
-        tmp.replace(args.out)
+        sys.path.insert(0, str(REPO))  # this checkout's file helpers (no torch): the measured code is --checkout's
+        from roigsf_ros.core.fileio import atomic_path
+
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(line + "\n")
     return 0
 
 

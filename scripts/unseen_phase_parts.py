@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,17 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's roigsf_ros
 
 import roigsf_ros  # noqa: E402, F401  first: it sets OMP_WAIT_POLICY before torch loads
-
-
-def _median_s(fn: Callable[[], Any], repeats: int = 3) -> float:
-    """Median wall seconds of ``repeats`` calls after one untimed call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from roigsf_ros.core.fileio import atomic_path  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,6 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     from roigsf_ros.perf import nbv as perf
     from roigsf_ros.render.rasterize import render_map
 
+    def median_s(fn: Callable[[], Any], repeats: int = 3) -> float:  # perf nbv's: one untimed call, then the median
+        return perf._median_ms(fn, repeats) / 1e3
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--keyframes", type=int, default=64, help="keyframes rendered and carved (default 64)")
     parser.add_argument("--out", type=Path, help="also write the JSON here")
@@ -59,23 +50,22 @@ def main(argv: list[str] | None = None) -> int:
     depth = unseen.carve_depths(m, poses, intr, cfg)
     space = ObservedSpace.carve(*box, cfg.unseen_voxel_m, poses, depth, intr, cfg.far_m)
     with torch.no_grad():
-        one = _median_s(lambda: render_map(m.detach(), poses[0], intr, near=cfg.near_m, far=cfg.far_m,
+        one = median_s(lambda: render_map(m.detach(), poses[0], intr, near=cfg.near_m, far=cfg.far_m,
                                            with_distortion=False), 10)  # fmt: skip
     result = {
         "keyframes": args.keyframes,
         "candidates": len(st.candidates),
-        "renders_s": _median_s(lambda: unseen.carve_depths(m, poses, intr, cfg)),
-        "carve_s": _median_s(lambda: ObservedSpace.carve(*box, cfg.unseen_voxel_m, poses, depth, intr, cfg.far_m)),
-        "ray_marches_s": _median_s(lambda: [space.unseen_rays(T, intr, cfg.near_m, cfg.far_m) for T in st.candidates]),
-        "box_tests_s": _median_s(lambda: [unseen.rays_meet_box(T, intr, *box) for T in st.candidates]),
+        "renders_s": median_s(lambda: unseen.carve_depths(m, poses, intr, cfg)),
+        "carve_s": median_s(lambda: ObservedSpace.carve(*box, cfg.unseen_voxel_m, poses, depth, intr, cfg.far_m)),
+        "ray_marches_s": median_s(lambda: [space.unseen_rays(T, intr, cfg.near_m, cfg.far_m) for T in st.candidates]),
+        "box_tests_s": median_s(lambda: [unseen.rays_meet_box(T, intr, *box) for T in st.candidates]),
         "one_render_s": one,
     }
     line = json.dumps(result)
     print(line)
     if args.out:
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        tmp.write_text(line + "\n")
-        tmp.replace(args.out)
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(line + "\n")
     return 0
 
 
