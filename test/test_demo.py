@@ -155,16 +155,23 @@ def test_demo_takes_params_files_in_order_and_policy_over_them(
 
 
 def test_fallback_hint_says_why_windows_went_to_the_fallback() -> None:
-    """When windows went to the fallback and the planner's longest request outlasted the time between windows, the
-    demo says so, with that request's two largest parts; otherwise it says nothing."""
+    """When windows went to the fallback the demo says which measured sign explains it: the longest wait for the
+    planner's answer outlasting the time between windows (with the slowest request's two largest parts), or frames
+    held up before the selector (then a burst of windows); otherwise it says nothing."""
     from roigsf_ros.cli.demo import fallback_hint
 
     phases = {"map_update": 0.0, "scoring": 1.58, "fisher": 0.8, "unseen": 0.62}
-    metrics = {"fallbacks": 2, "planner_max_scoring_s": 1.63, "window_period_s": 1.3, "rate": 1.0,
-               "planner_slowest_phases_s": phases}  # fmt: skip
+    metrics = {"fallbacks": 2, "selector_max_answer_s": 1.63, "window_period_s": 1.3, "rate": 1.0,
+               "planner_slowest_phases_s": phases, "selector_max_frame_gap_s": 0.12,
+               "selector_max_novelty_s": 0.3}  # fmt: skip
     hint = fallback_hint(metrics)
-    assert hint is not None and "2 window(s)" in hint and "1.63 s (fisher 0.80 s, unseen 0.62 s)" in hint, hint
-    assert "every 1.30 s at rate x1" in hint
+    assert hint is not None and "2 window(s)" in hint, hint
+    assert "answer took 1.63 s (its slowest request: fisher 0.80 s, unseen 0.62 s)" in hint, hint
+    assert "every 1.30 s at rate x1" in hint and "burst" not in hint
+    held = {**metrics, "selector_max_answer_s": 0.9, "selector_max_frame_gap_s": 1.35, "selector_max_novelty_s": 1.1}
+    hint = fallback_hint(held)  # the planner in time, the frames held up before the selector
+    assert hint is not None and "up to 1.35 s apart, then in a burst; its novelty took up to 1.10 s" in hint, hint
+    assert "planner's longest" not in hint
     assert fallback_hint({**metrics, "fallbacks": 0}) is None
-    assert fallback_hint({**metrics, "planner_max_scoring_s": 1.0}) is None  # in time: the fallback had other reasons
+    assert fallback_hint({**metrics, "selector_max_answer_s": 1.0}) is None  # in time: the fallback had other reasons
     assert fallback_hint({**metrics, "window_period_s": None}) is None  # as fast as possible: no period

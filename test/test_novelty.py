@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from roigsf_ros.core.camera import Intrinsics, depth_points_w
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.nbv.novelty import ObservedSurface
+from roigsf_ros.nbv.novelty import ObservedSurface, unique_voxels, unreached_by_each, unreached_by_each_plain
 
 INTR = Intrinsics(width=64, height=48, fx=160.0, fy=160.0, cx=31.5, cy=23.5)  # 1.3 cm pixels at 2 m
 
@@ -57,6 +57,41 @@ def test_lookahead_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m
     plain = [surface.new_voxels(c) for c in cands]
     np.testing.assert_array_equal(surface.lookahead_new_voxels(cands, []), plain)  # nothing ahead: the novelty
     assert np.all(got >= plain)
+
+
+def test_unreached_by_each_equals_the_plain_k_d_tree_path() -> None:
+    """The bit-mask pass counts, for every candidate and frame ahead, what a k-d tree per candidate counts: across a
+    64-candidate chunk boundary, with an empty candidate, an empty frame ahead, a candidate outside the box of the
+    frames ahead, and for a box too large to pack (the plain path then)."""
+    rng = np.random.default_rng(11)
+    reach = ObservedSurface(0.025, 0.05)._offsets  # the lattice ball of radius 2.5 voxels
+    blob = lambda c, n: unique_voxels(np.rint(c + rng.normal(0.0, 4.0, (n, 3))).astype(np.int32))  # noqa: E731
+    centres = rng.integers(-20, 20, (8, 3))
+    cand = [blob(centres[k % 8], 150) for k in range(69)]
+    cand[3] = np.zeros((0, 3), np.int32)
+    cand[5] = blob(np.array([500, 500, 500]), 100)  # reaches nothing ahead
+    ahead = [blob(centres[k], 200) for k in (0, 2, 7)] + [np.zeros((0, 3), np.int32), blob(centres[1] + 3, 200)]
+    got = unreached_by_each(cand, ahead, reach)
+    want = unreached_by_each_plain(cand, ahead, reach)
+    np.testing.assert_array_equal(got, want)
+    assert got.shape == (69, 5) and got[3].tolist() == [len(a) for a in ahead] == got[5].tolist()
+    assert got.min() < got.max()  # some candidates reach some voxels ahead, not all
+    big = 1 << 29
+    far = [np.array([[big, big, big], [big + 2, big, big]]), np.array([[-big, -big, -big]])]  # 2^90 voxels: unpacked
+    mixed = [*ahead[:1], *far]
+    plain = unreached_by_each_plain(cand[:4], mixed, reach)
+    np.testing.assert_array_equal(unreached_by_each(cand[:4], mixed, reach), plain)
+    np.testing.assert_array_equal(unreached_by_each([far[0][:1]], far, reach), [[0, 1]])
+
+
+def test_unique_voxels_are_numpys_distinct_rows() -> None:
+    rng = np.random.default_rng(4)
+    shifted = rng.integers(-3, 3, (200, 3)) + np.array([10**8, -(10**8), 5])
+    huge = np.array([[2**30 - 1, -(2**30), 0], [-(2**30), 2**30 - 1, 7]] * 3)  # a box too large to pack
+    for ijk in (rng.integers(-30, 30, (500, 3)), shifted, np.zeros((0, 3), np.int64), huge):
+        got = unique_voxels(ijk)
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.unique(np.asarray(ijk).reshape(-1, 3), axis=0))
 
 
 def test_lookahead_leaves_surface_a_later_frame_shows_to_it() -> None:

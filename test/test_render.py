@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.render import fisher
 from roigsf_ros.render import rasterize as render
 from roigsf_ros.render import reference as render_reference
 from roigsf_ros.render.numba_setup import balanced_bounds, n_threads, numba_available, set_numba_threads
@@ -289,6 +290,36 @@ def test_render_map_uses_colours_and_pose() -> None:
     assert torch.allclose(out.color, ref.features, atol=1e-12)
     assert torch.allclose(out.normal_world(viewmat), ref.normal, atol=1e-12)  # identity rotation
     assert out.visible.any()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_culled_render_equals_the_whole_render(backend: str) -> None:
+    """``render_map(cull=True)`` renders the frustum's surfels only: the same images, ``visible`` per map surfel, and
+    the same gradients (a culled surfel reaches no pixel)."""
+    from roigsf_ros.perf.render import room_camera, room_scene
+
+    m = room_scene(3000, seed=2, dtype=F64)
+    m.sh_rest = torch.randn(len(m), 3, 3, generator=torch.Generator().manual_seed(1), dtype=F64) * 0.1
+    culled_some = False
+    for yaw in (20.0, 110.0, 250.0):
+        T_wc, intr = room_camera(40, 30, yaw_deg=yaw)
+        whole = m.clone().requires_grad_()
+        part = m.clone().requires_grad_()
+        a = render_map(whole, T_wc, intr, near=0.2, far=10.0, backend=backend)
+        b = render_map(part, T_wc, intr, near=0.2, far=10.0, backend=backend, cull=True)
+        for name in ("features", "alpha", "depth", "median_depth", "distortion", "n_contrib", "visible"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert torch.allclose(a.normal, b.normal, atol=1e-12)  # equal up to the order of a sum
+        (a.features.sum() + a.depth.sum()).backward()
+        (b.features.sum() + b.depth.sum()).backward()
+        for k, p in whole.named_parameters().items():
+            assert torch.allclose(p.grad, part.named_parameters()[k].grad, rtol=1e-9, atol=1e-12), k
+        viewmat, _ = camera_tensors(T_wc, intr, dtype=F64)
+        culled_some |= len(fisher.frustum_subset(m, viewmat, intr, 0.2, 10.0)) < len(m) // 2
+        none = torch.zeros(len(m), 0, dtype=F64)  # no feature channel: alpha and depth only
+        c = render_map(m, T_wc, intr, features=none, near=0.2, far=10.0, backend=backend, cull=True)
+        assert c.features.shape == (30, 40, 0) and torch.equal(c.alpha, a.alpha.detach())
+    assert culled_some  # the views do leave most of the room out
 
 
 def test_input_validation() -> None:

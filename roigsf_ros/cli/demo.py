@@ -62,6 +62,9 @@ SUMMARY_ROWS = (
     ("planner answers/calls", "planner", "{}"),
     ("fallbacks", "fallbacks", "{:d}"),
     ("slowest planner call (s)", "planner_max_scoring_s", "{:.2f}"),
+    ("slowest answer to a window (s)", "selector_max_answer_s", "{:.2f}"),
+    ("slowest novelty (s)", "selector_max_novelty_s", "{:.2f}"),
+    ("longest gap between frames (s)", "selector_max_frame_gap_s", "{:.2f}"),
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
@@ -297,18 +300,30 @@ def _window_period_s(system: ActiveMapping, frames: Sequence[BagFrame], rate: fl
 
 
 def fallback_hint(metrics: dict[str, Any]) -> str | None:
-    """A line saying why windows went to the selector's fallback when the planner was slower than the windows
-    came (its longest request against the trigger period, and that request's two largest parts); None otherwise.
+    """A line saying why windows went to the selector's fallback, from what the run measured: the longest wait for
+    the planner's answer to a window of the stream (and the two largest parts of the planner's slowest request)
+    longer than the time between windows, or frames that reached the selector
+    more than that apart (held up, then a burst: windows came faster than any planner answers them; the selector's
+    own novelty computation holds it meanwhile); None without fallbacks or without either sign.
     """
-    slowest, period = metrics.get("planner_max_scoring_s"), metrics.get("window_period_s")
-    if not metrics.get("fallbacks") or slowest is None or period is None or slowest <= period:
+    period = metrics.get("window_period_s")
+    if not metrics.get("fallbacks") or period is None:
         return None
-    phases = {k: v for k, v in (metrics.get("planner_slowest_phases_s") or {}).items() if k != "scoring"}
-    parts = ", ".join(f"{k} {v:.2f} s" for k, v in sorted(phases.items(), key=lambda kv: -kv[1])[:2])
+    slowest, gap = metrics.get("selector_max_answer_s"), metrics.get("selector_max_frame_gap_s")
+    why = []
+    if gap is not None and gap > period:
+        novelty = metrics.get("selector_max_novelty_s")
+        held = f"; its novelty took up to {novelty:.2f} s" if novelty else ""
+        why.append(f"frames reached the selector up to {gap:.2f} s apart, then in a burst{held}")
+    if slowest is not None and slowest > period:
+        phases = {k: v for k, v in (metrics.get("planner_slowest_phases_s") or {}).items() if k != "scoring"}
+        parts = ", ".join(f"{k} {v:.2f} s" for k, v in sorted(phases.items(), key=lambda kv: -kv[1])[:2])
+        why.append(f"the planner's longest answer took {slowest:.2f} s (its slowest request: {parts})")
+    if not why:
+        return None
     return (
-        f"  note: {metrics['fallbacks']} window(s) went to the fallback: the planner's longest request took "
-        f"{slowest:.2f} s ({parts}), and a window came every {period:.2f} s at rate x{metrics['rate']:g}; a lower "
-        "--rate gives it the time"
+        f"  note: {metrics['fallbacks']} window(s) went to the fallback: {'; '.join(why)}; a window came every "
+        f"{period:.2f} s at rate x{metrics['rate']:g}, and a lower --rate gives them the time"
     )
 
 
@@ -520,6 +535,9 @@ def run_demo(
         "planner_max_scoring_s": status["nbv_planner"]["max_scoring_s"] if sel["planner_calls"] else None,
         "planner_slowest_phases_s": status["nbv_planner"]["slowest_phases_s"],
         "window_period_s": _window_period_s(system, frames, rate),
+        "selector_max_answer_s": sel["max_answer_s"] if sel["planner_answers"] else None,
+        "selector_max_novelty_s": sel["max_novelty_s"] if sel["max_novelty_s"] > 0 else None,
+        "selector_max_frame_gap_s": sel["max_frame_gap_s"],
         "keyframes_published": sel["keyframes_published"],
         "stream_s": t_stream,
         "final_iters": final_iters,

@@ -6,7 +6,7 @@ import argparse
 import importlib
 
 # Benchmark modules under roigsf_ros.perf; each exposes add_arguments(parser) and run(args).
-_BENCHMARKS = ("io", "render", "nbv")
+_BENCHMARKS = ("io", "render", "nbv", "novelty")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -421,15 +421,8 @@ class Mapper:
         return out
 
     def _render(self, T: np.ndarray, with_distortion: bool) -> RenderOutput:
-        """Render the surfels that can reach the view; ``visible`` is mapped back to the whole map."""
-        idx = self._frustum_subset(T)
-        sub = self.map if idx.numel() == self.n_surfels else self.map.select(idx)
-        out = render_map(sub, T, self.intr, near=self.config.near_m, with_distortion=with_distortion)
-        if sub is not self.map:
-            visible = torch.zeros(self.n_surfels, dtype=torch.bool, device=self.device)
-            visible[idx[out.visible]] = True
-            out.visible = visible
-        return out
+        """Render the surfels that can reach the view (``cull``); ``visible`` covers the whole map."""
+        return render_map(self.map, T, self.intr, near=self.config.near_m, with_distortion=with_distortion, cull=True)
 
     def _frustum_subset(self, T: np.ndarray) -> Tensor:
         """Indices of surfels that can reach the view from ``T`` [4, 4] (conservative: see fisher.frustum_subset)."""

@@ -167,9 +167,8 @@ def render_surfel_scalar(
         return np.zeros((intr.height, intr.width))
     m = surfel_map.detach()
     with torch.no_grad():
-        out = render_map(
-            m, T_wc, intr, features=values.to(m.dtype)[:, None], near=near_m, far=far_m, with_distortion=False
-        )
+        feats = values.to(m.dtype)[:, None]
+        out = render_map(m, T_wc, intr, features=feats, near=near_m, far=far_m, with_distortion=False, cull=True)
     return out.features[..., 0].double().cpu().numpy()
 
 

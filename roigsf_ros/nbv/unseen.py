@@ -236,16 +236,18 @@ class UnseenTerm:
         if cfg.unseen_source != "map" or len(surfel_map) == 0:
             return None
         m = surfel_map.detach()
-        # With the surfel back-face test the render composites which surfels face this camera; else colours.
+        # With the surfel back-face test the render composites which surfels face this camera; else nothing but
+        # alpha and depth (no feature channel). Culled to the frustum: the same images, the view's surfels projected.
         by_side = cfg.unseen_backfaces in ("surfels", "unconfirmed")
-        feats = surfels_facing(m, T)[:, None].to(m.dtype) if by_side else None
+        feats = surfels_facing(m, T)[:, None].to(m.dtype) if by_side else m.means.new_zeros((len(m), 0))
         with torch.no_grad():
-            out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m, with_distortion=False)
+            out = render_map(m, T, intr_f, features=feats, near=cfg.near_m, far=cfg.far_m, with_distortion=False,
+                             cull=True)  # fmt: skip
         seen = (out.alpha >= cfg.unseen_alpha).cpu().numpy()
         hole = ~seen
         if self.facing is not None:  # the back of the mapped surface: what is in front of it is unseen
             hole |= self.facing.backfacing(T, intr_f, np.where(seen, out.median_depth.cpu().numpy(), 0.0))
-        if feats is not None:  # most of the pixel's alpha from surfels that face away: their back
+        if by_side:  # most of the pixel's alpha from surfels that face away: their back
             back = seen & (out.features[..., 0] < 0.5 * out.alpha).cpu().numpy()
             if self.seen_by is not None and back.any():
                 back &= ~self.seen_by.confirmed(T, out.median_depth.cpu().numpy(), out.normal.cpu().numpy(), back)
@@ -357,10 +359,11 @@ def _keyframe_renders(
     alpha = np.zeros_like(depth)
     if len(surfel_map):
         m = surfel_map.detach()
+        none = m.means.new_zeros((len(m), 0))  # depth and alpha only: no feature channel
         with torch.no_grad():
             for k, T in enumerate(poses):
                 check_stop(should_stop)
-                out = render_map(m, T, intr, near=near_m, far=far_m, with_distortion=False)
+                out = render_map(m, T, intr, features=none, near=near_m, far=far_m, with_distortion=False, cull=True)
                 depth[k] = out.median_depth.cpu().numpy()
                 alpha[k] = out.alpha.cpu().numpy()
     return depth, alpha

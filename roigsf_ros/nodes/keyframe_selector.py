@@ -34,7 +34,10 @@ input stops are decided when ``~/finish`` (``std_srvs/Trigger``) is called, as t
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
 planner calls, failures, timeouts, windows that waited for the previous answer (``planner_waited``) and
-fallbacks.
+fallbacks, and gives the longest wait for an answer to a window of the stream (``max_answer_s``), the slowest
+novelty computation (``max_novelty_s``) and the longest gap between two frames reaching the selector
+(``max_frame_gap_s``): a window decided with the novelty holds the selector meanwhile, so frames wait and then come in
+a burst, and with them windows, faster than the planner answers.
 
     keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
 """
@@ -163,7 +166,8 @@ class KeyframeSelectorNode(SystemNode):
         self._request: tuple[Future, list[Frame], float] | None = None
         self._request_intr: Intrinsics | None = None
         self._request_ahead: list[Frame] = []
-        self._waiting: tuple[list[Frame], Intrinsics, list[Frame]] | None = None
+        self._request_in_stream = True
+        self._waiting: tuple[list[Frame], Intrinsics, list[Frame], bool] | None = None
         """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
         self._last_intr: Intrinsics | None = None
@@ -173,6 +177,12 @@ class KeyframeSelectorNode(SystemNode):
             ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "planner_waited", "fallbacks"),
             0,
         )
+        self.slowest_s = {"answer": 0.0, "novelty": 0.0, "frame_gap": 0.0}
+        """Wall seconds of the longest wait for a planner's answer to a window of the stream (the held frames sent
+        by :meth:`finish` left out: nothing comes after them), of the slowest novelty computation (it holds the
+        selector, frames wait) and of the longest gap between two frames reaching the selector (many frame periods:
+        frames came in a burst, and windows with them)."""
+        self._last_frame_t: float | None = None
 
         inputs = MutuallyExclusiveCallbackGroup()
         planner = MutuallyExclusiveCallbackGroup()
@@ -247,6 +257,10 @@ class KeyframeSelectorNode(SystemNode):
     def _on_frame(self, bf: BagFrame) -> None:
         frame = frame_of(bf)
         with self._lock:
+            now = time.monotonic()
+            if self._last_frame_t is not None:
+                self.slowest_s["frame_gap"] = max(self.slowest_s["frame_gap"], now - self._last_frame_t)
+            self._last_frame_t = now
             self._last_intr = bf.intrinsics
             first = self._seen == 0
             self._seen += 1
@@ -297,7 +311,7 @@ class KeyframeSelectorNode(SystemNode):
             for f in held:
                 self._window.remove(f)  # decided now: never a candidate again
         if held:
-            self._ask_planner(held, intr, [])
+            self._ask_planner(held, intr, [], in_stream=False)
         return len(held)
 
     def _on_finish(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
@@ -307,21 +321,23 @@ class KeyframeSelectorNode(SystemNode):
         return res
 
     # ------------------------------------------------------------------------------ planner
-    def _ask_planner(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> None:
+    def _ask_planner(
+        self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame], in_stream: bool = True
+    ) -> None:
         self._check_request()  # an answer that came since the last timer tick (50 ms) is taken, not called busy
         with self._lock:
             if self._request is not None:  # wait for the answer in flight; at most one window waits
                 if self._waiting is not None:
-                    older, older_intr, older_ahead = self._waiting
+                    older, older_intr, older_ahead, _ = self._waiting
                     self._fall_back(older, older_intr, "is still busy with two windows before this one", older_ahead)
-                self._waiting = (candidates, intr, ahead)
+                self._waiting = (candidates, intr, ahead, in_stream)
                 self.counters["planner_waited"] += 1
                 return
-            self._send(candidates, intr, ahead)
+            self._send(candidates, intr, ahead, in_stream)
 
-    def _send(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> None:
+    def _send(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame], in_stream: bool = True) -> None:
         """Send a window's poses to the planner (call with the lock held and no request in flight); ``ahead``: the
-        newer frames that judge its novelty (``lookahead``).
+        newer frames that judge its novelty (``lookahead``); ``in_stream`` false: the frames held at the end.
         """
         with self._lock:
             if not self._client.service_is_ready():
@@ -334,6 +350,7 @@ class KeyframeSelectorNode(SystemNode):
             self._request = (self._client.call_async(req), candidates, time.monotonic())
             self._request_intr = intr
             self._request_ahead = ahead
+            self._request_in_stream = in_stream
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
@@ -343,9 +360,9 @@ class KeyframeSelectorNode(SystemNode):
         with self._lock:
             self._settle_request()
             if self._request is None and self._waiting is not None:
-                candidates, intr, ahead = self._waiting
+                candidates, intr, ahead, in_stream = self._waiting
                 self._waiting = None
-                self._send(candidates, intr, ahead)
+                self._send(candidates, intr, ahead, in_stream)
 
     def _settle_request(self) -> None:
         """Take the answer of the request in flight, or fall back on a timeout (call with the lock held)."""
@@ -367,6 +384,8 @@ class KeyframeSelectorNode(SystemNode):
                     self._fall_back(candidates, intr, f"answered an invalid best_index {res.best_index}", ahead)
                     return
                 self.counters["planner_answers"] += 1
+                if self._request_in_stream:
+                    self.slowest_s["answer"] = max(self.slowest_s["answer"], time.monotonic() - t_sent)
                 if self._planner_down:
                     self._planner_down = False
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
@@ -418,7 +437,11 @@ class KeyframeSelectorNode(SystemNode):
         published so far (``ahead``: the lookahead novelty).
         """
         assert self._observed is not None
-        return self._observed.frames_novelty(candidates, intr, self._mapper_config(), ahead)
+        t0 = time.monotonic()
+        novelty = self._observed.frames_novelty(candidates, intr, self._mapper_config(), ahead)
+        with self._lock:
+            self.slowest_s["novelty"] = max(self.slowest_s["novelty"], time.monotonic() - t0)
+        return novelty
 
     def _with_novelty(
         self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int, ahead: list[Frame]
@@ -457,6 +480,9 @@ class KeyframeSelectorNode(SystemNode):
                 "planner_pending": self._request is not None,
                 "planner_window_waiting": self._waiting is not None,
                 **self.counters,
+                "max_answer_s": self.slowest_s["answer"],
+                "max_novelty_s": self.slowest_s["novelty"],
+                "max_frame_gap_s": self.slowest_s["frame_gap"],
             }
 
     def publish_status(self) -> None:

@@ -2096,13 +2096,28 @@ def render_map(
     with_distortion: bool = True,
     tile_size: int = 4,
     backend: str = "auto",
+    cull: bool = False,
 ) -> RenderOutput:
     """Render a :class:`~roigsf_ros.render.surfels.SurfelMap` from camera-to-world ``T_wc`` [4, 4].
 
-    ``features`` [N, C] defaults to the map's colours (view-dependent when it has degree-1 SH).
+    ``features`` [N, C] defaults to the map's colours (view-dependent when it has degree-1 SH). ``cull``: render
+    only the surfels whose bounding sphere meets the view frustum (:func:`~roigsf_ros.render.fisher.frustum_subset`,
+    conservative, so the images are the same); the projection then skips the others (in a room most of the map),
+    and ``visible`` is still one flag per surfel of the map.
     """
     m = surfel_map
     viewmat, K = camera_tensors(T_wc, intr, device=m.device, dtype=m.dtype)
+    if cull:
+        from roigsf_ros.render.fisher import frustum_subset  # here: fisher imports this module
+
+        idx = frustum_subset(m, viewmat.detach(), intr, near, far)
+        if idx.numel() < len(m):
+            sub_features = None if features is None else features.index_select(0, idx)
+            out = render_map(m.select(idx), T_wc, intr, sub_features, background, near, far, with_distortion,
+                             tile_size, backend)  # fmt: skip
+            visible = torch.zeros(len(m), dtype=torch.bool, device=m.device)
+            out.visible = visible.index_copy_(0, idx, out.visible)
+            return out
     if features is None:
         viewdirs = None
         if m.sh_rest is not None:

@@ -1,0 +1,119 @@
+"""Lookahead novelty speed: what the keyframe selector computes per window of the recommended stream variant.
+
+The stream variant (``RECOMMENDED_STREAM``: window 13, lookahead 13, novelty weight 4) decides each window once the
+next 13 frames are in, by the planner's fused score plus the window's observed novelty judged against those frames
+(:meth:`~roigsf_ros.nbv.novelty.ObservedSurface.frames_novelty`). The selector node computes it in its timer, holding
+itself: the frames that come meanwhile wait, then arrive in a burst (the fifty-third session found the main job's
+fallbacks came from that, not from the planner). Here, on the frames of a bag (default the shipped one), a keyframe
+is taken in the middle of each window (as a selector would, roughly) and each window's novelty is timed twice:
+
+- ``fast``: as the selector computes it (packed voxel keys, one bit-mask pass for every candidate's reach,
+  :func:`~roigsf_ros.nbv.novelty.unreached_by_each`);
+- ``plain``: the same counts the plain way, as the package computed them before (distinct voxels by sorting rows,
+  a k-d tree per candidate, :func:`~roigsf_ros.nbv.novelty.lookahead_new_voxels_plain`), plus the frames'
+  back-projection; every window's counts must equal the fast ones (``equal``).
+
+Medians over ``--repeats`` per window, then the median and the largest over the windows, and the ratio of the medians,
+measured in one run; ``--out`` writes it all as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.frame import Frame
+from roigsf_ros.data.bags import read_bag_frames
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.nbv.novelty import ObservedSurface, frame_points, lookahead_new_voxels_plain
+from roigsf_ros.policies.stream import RECOMMENDED_STREAM
+
+DEFAULT_BAG = Path("bags/synth_room")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``roigsf perf novelty``."""
+    parser.add_argument("--bag", type=Path, default=DEFAULT_BAG, metavar="BAG", help=f"frames (default {DEFAULT_BAG})")
+    parser.add_argument("--out", type=Path, metavar="FILE.json", help="also write the results as JSON here")
+    parser.add_argument("--repeats", type=int, default=3, metavar="R", help="timed repeats per window (default 3)")
+    window, lookahead = int(RECOMMENDED_STREAM["window"]), int(RECOMMENDED_STREAM["lookahead"])
+    parser.add_argument("--window", type=int, default=window, metavar="W", help=f"frames a window (default {window})")
+    parser.add_argument(
+        "--lookahead", type=int, default=lookahead, metavar="L", help=f"frames ahead (default {lookahead})"
+    )
+
+
+def _median_time(fn: Any, repeats: int) -> tuple[float, Any]:
+    """Median wall seconds of ``repeats`` calls of ``fn()`` and its last result."""
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return float(statistics.median(times)), out
+
+
+def run_windows(
+    frames: list[Frame], intr: Intrinsics, window: int, lookahead: int, repeats: int
+) -> list[dict[str, Any]]:
+    """Each whole window's fast and plain novelty times (median of ``repeats``) and whether their counts agree."""
+    if len(frames) < 1 + window + lookahead:
+        raise InputError("--bag", f"{len(frames)} frames: fewer than 1 + window + lookahead = {1 + window + lookahead}")
+    config = MapperConfig()
+    surface = ObservedSurface()
+    surface.add_frame(frames[0], intr, config)  # the first frame is always a keyframe
+    rows = []
+    for start in range(1, len(frames) - window - lookahead + 1, window):
+        cands, ahead = frames[start : start + window], frames[start + window : start + window + lookahead]
+        fast_s, fast = _median_time(lambda c=cands, a=ahead: surface.frames_novelty(c, intr, config, a), repeats)
+        cand_w = [frame_points(f, intr, config) for f in cands]
+        ahead_w = [frame_points(f, intr, config) for f in ahead]
+        pts_s, _ = _median_time(lambda c=cands, a=ahead: [frame_points(f, intr, config) for f in (*c, *a)], repeats)
+        plain_s, plain_n = _median_time(lambda c=cand_w, a=ahead_w: lookahead_new_voxels_plain(surface, c, a), repeats)
+        plain = plain_n.astype(np.float64) * surface.voxel_m**2
+        rows.append({"first_frame": start, "fast_s": fast_s, "plain_s": plain_s + pts_s,
+                     "equal": bool(np.array_equal(fast, plain))})  # fmt: skip
+        surface.add_frame(cands[len(cands) // 2], intr, config)  # this window's keyframe
+    return rows
+
+
+def run(args: argparse.Namespace) -> int:
+    """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
+    bag_frames, _ = read_bag_frames(args.bag)
+    if not bag_frames:
+        raise InputError(args.bag, "no complete frame in the bag")
+    frames = [Frame(i, f.rgb, f.depth_m, f.T_wc) for i, f in enumerate(bag_frames)]
+    rows = run_windows(frames, bag_frames[0].intrinsics, args.window, args.lookahead, args.repeats)
+    fast = [r["fast_s"] for r in rows]
+    plain = [r["plain_s"] for r in rows]
+    summary = {
+        "fast_median_s": statistics.median(fast),
+        "fast_max_s": max(fast),
+        "plain_median_s": statistics.median(plain),
+        "plain_max_s": max(plain),
+        "plain_over_fast": statistics.median(plain) / statistics.median(fast),
+        "all_equal": all(r["equal"] for r in rows),
+    }
+    result = {"bag": str(args.bag), "window": args.window, "lookahead": args.lookahead, "repeats": args.repeats,
+              "machine": platform.processor() or platform.machine(), "windows": rows, "summary": summary}  # fmt: skip
+    print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({args.bag})")
+    print(f"  {'':22s}{'median (s)':>12s}{'largest (s)':>13s}")
+    print(f"  {'fast (the selector)':22s}{summary['fast_median_s']:12.3f}{summary['fast_max_s']:13.3f}")
+    print(f"  {'plain (k-d trees)':22s}{summary['plain_median_s']:12.3f}{summary['plain_max_s']:13.3f}")
+    print(f"  plain / fast: {summary['plain_over_fast']:.1f}x; counts equal in every window: {summary['all_equal']}")
+    if args.out:
+        write_json(args.out, result)
+        print(f"  -> {args.out}")
+    return 0 if summary["all_equal"] else 1
+
+
+__all__ = ["add_arguments", "run", "run_windows"]
