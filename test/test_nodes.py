@@ -630,6 +630,44 @@ def test_selector_adds_the_novelty_term_to_the_planners_fused_scores(ros_context
     assert published == expected and status["planner_answers"] == 4 and status["fallbacks"] == 0
 
 
+def test_selector_status_times_its_answers_novelty_and_frame_gaps(ros_context: Any, scene: Any) -> None:
+    """``max_answer_s`` is the longest wait for an answer to a window of the stream, the held frames ``finish`` sends
+    left out (nothing comes after them); ``max_novelty_s`` and ``max_frame_gap_s`` time what can hold the frames."""
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value="roi-fisher"),
+        Parameter("window", value=2),
+        Parameter("lookahead", value=2),
+        Parameter("novelty_weight", value=1.0),
+        Parameter("planner_service", value="/test_planner_times/nbv"),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    sizes: list[int] = []
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        sizes.append(len(req.candidates.poses))
+        time.sleep(1.5 if len(sizes) > 3 else 0.2)  # the windows of the stream answered in 0.2 s, finish's in 1.5 s
+        res.success, res.best_index = True, 0
+        res.fused_scores = [0.0] * len(req.candidates.poses)
+        return res
+
+    seq = _novelty_sequence(frames, 4)
+    with _stub_planner(ros_context, "test_planner_times", serve), _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+        for k, frame in enumerate(seq):
+            cam.publish(_frame_msgs(frame, (k + 1) * 1000))
+            time.sleep(0.05)
+        _wait(lambda: selector.status()["planner_answers"] == 3, 20.0, "three windows answered")
+        assert selector.finish() > 0
+        _wait(lambda: selector.status()["planner_answers"] == 4, 20.0, "the held frames answered")
+        status = selector.status()
+    assert sizes[:3] == [2, 2, 2] and len(sizes) == 4
+    assert 0.2 <= status["max_answer_s"] < 1.5, status  # finish's 1.5 s answer is not a window of the stream
+    assert status["max_novelty_s"] > 0 and status["max_frame_gap_s"] > 0.03, status  # frames sent 0.05 s apart
+
+
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
     mapper = MapperNode(
         context=ros_context,

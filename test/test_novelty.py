@@ -222,3 +222,23 @@ def test_bad_input_names_the_field() -> None:
     with pytest.raises(InputError, match="T_wc"):
         surface.add(plane_depth(1.0), np.zeros((4, 4)), INTR, np.ones((INTR.height, INTR.width), dtype=bool))
     assert surface.n_added == 0 and surface.new_voxels(np.zeros((0, 3))) == 0
+
+
+def test_perf_novelty_finds_the_fast_counts_equal_on_the_shipped_bag(tmp_path, capsys) -> None:
+    """``roigsf perf novelty`` on real frames: a window of 66 candidates (two bit-mask chunks) with 20 frames ahead,
+    the fast counts equal to the plain ones, and the JSON written; too few frames is a one-line error."""
+    import json
+    from pathlib import Path
+
+    from roigsf_ros.cli import main
+
+    bag = Path(__file__).resolve().parents[1] / "bags" / "synth_room"
+    out = tmp_path / "novelty.json"
+    args = ["perf", "novelty", "--bag", str(bag), "--repeats", "1"]
+    assert main([*args, "--window", "66", "--lookahead", "20", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert [w["first_frame"] for w in data["windows"]] == [1] and data["summary"]["all_equal"]
+    assert data["windows"][0]["fast_s"] > 0 and data["windows"][0]["plain_s"] > 0
+    capsys.readouterr()
+    assert main([*args, "--window", "100", "--lookahead", "100"]) == 2
+    assert "150 frames: fewer than 1 + window + lookahead = 201" in capsys.readouterr().err

@@ -14,6 +14,9 @@ frame costs one back-projection, one ``np.unique`` and one hash lookup of its vo
 Deciding a window late (the stream policies' ``lookahead``): :meth:`ObservedSurface.lookahead_new_voxels` scores a
 candidate by the pair it makes with the best of the newer frames, so surface that a later frame shows anyway is left
 to that frame (the coverage study's "one window late" scorer, with each frame's depth instead of the ground truth).
+Which voxels ahead each candidate reaches is found for all candidates in one pass (:func:`unreached_by_each`: a bit mask
+per voxel, from a binary search among packed int64 keys), 5.4x faster on the shipped bag than a k-d tree per candidate
+(:func:`unreached_by_each_plain`, the reference; ``roigsf perf novelty``): the selector node computes it holding itself.
 """
 
 from __future__ import annotations
