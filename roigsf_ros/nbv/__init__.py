@@ -23,7 +23,12 @@ __all__, __getattr__ = lazy_exports(
             "NOVELTY_VOXEL_M",
             "ObservedSurface",
             "check_novelty_settings",
+            "frame_points",
             "fuse_novelty",
+            "lookahead_new_voxels_plain",
+            "unique_voxels",
+            "unreached_by_each",
+            "unreached_by_each_plain",
         ],
         "plan": ["UnseenCells", "planned_unseen", "rarity_weighted"],
         "roi": [
