@@ -23,7 +23,9 @@ The first frame is always a keyframe. Then, by ``policy``:
 Beyond the paper, ``novelty_weight`` > 0 with a planner policy adds ``novelty_weight x z(N)`` to the planner's fused
 scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the library's stream policy does), N each
 candidate's observed novelty against the depth of the keyframes published so far; the planner scores poses only,
-the selector holds the frames. ``fallback_policy: novelty`` decides an unanswered window by N. Depth counts within
+the selector holds the frames. N is computed in a thread of the selector's own while the planner scores the window
+(in the node's timer it held the frames back, which then came in bursts, and with them windows faster than any
+planner answers). ``fallback_policy: novelty`` decides an unanswered window by N. Depth counts within
 the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
 ``lookahead`` > 0 (with policy ``novelty``, or a planner policy and ``novelty_weight`` > 0) decides each window once
 the next ``lookahead`` frames are in, N becoming the lookahead novelty (the library's ``lookahead``); the planner
@@ -36,14 +38,14 @@ the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts fr
 planner calls, failures, timeouts, windows that waited for the previous answer (``planner_waited``) and
 fallbacks, and gives the longest wait for an answer to a window of the stream (``max_answer_s``), the slowest
 novelty computation (``max_novelty_s``) and the longest gap between two frames reaching the selector
-(``max_frame_gap_s``): a window decided with the novelty holds the selector meanwhile, so frames wait and then come in
-a burst, and with them windows, faster than the planner answers.
+(``max_frame_gap_s``; many frame periods: something held the frames back, and windows then came in a burst).
 
     keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import json
 import sys
 import threading
@@ -167,6 +169,15 @@ class KeyframeSelectorNode(SystemNode):
         self._request_intr: Intrinsics | None = None
         self._request_ahead: list[Frame] = []
         self._request_in_stream = True
+        self._request_novelty: concurrent.futures.Future | None = None
+        """The request's window's novelty, computed by ``_novelty_pool`` while the planner scores."""
+        self._novelty_pool = (
+            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="selector_novelty")
+            if self._observed is not None and self.novelty_weight > 0
+            else None
+        )
+        self._observed_lock = threading.Lock()
+        """Held around every read and write of ``_observed`` (the pool's thread reads it while keyframes add)."""
         self._waiting: tuple[list[Frame], Intrinsics, list[Frame], bool] | None = None
         """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
@@ -351,6 +362,11 @@ class KeyframeSelectorNode(SystemNode):
             self._request_intr = intr
             self._request_ahead = ahead
             self._request_in_stream = in_stream
+            # The window's novelty (against the keyframes published so far, all windows before it being decided)
+            # is computed while the planner scores, off the executor: frames keep coming meanwhile.
+            self._request_novelty = None
+            if self._novelty_pool is not None:
+                self._request_novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
@@ -391,7 +407,7 @@ class KeyframeSelectorNode(SystemNode):
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
                 best = res.best_index
                 if self.novelty_weight > 0:
-                    best = self._with_novelty(candidates, intr, res.fused_scores, best, ahead)
+                    best = self._with_novelty(candidates, intr, res.fused_scores, best, ahead, self._request_novelty)
                 winner = candidates[best]
                 self._window.remove(winner)
                 self._publish(winner, intr)
@@ -437,29 +453,39 @@ class KeyframeSelectorNode(SystemNode):
         published so far (``ahead``: the lookahead novelty).
         """
         assert self._observed is not None
-        t0 = time.monotonic()
-        novelty = self._observed.frames_novelty(candidates, intr, self._mapper_config(), ahead)
-        with self._lock:
+        with self._observed_lock:  # not the node's lock: a thread holding that may wait for this one's result
+            t0 = time.monotonic()
+            novelty = self._observed.frames_novelty(candidates, intr, self._mapper_config(), ahead)
             self.slowest_s["novelty"] = max(self.slowest_s["novelty"], time.monotonic() - t0)
         return novelty
 
     def _with_novelty(
-        self, candidates: list[Frame], intr: Intrinsics, fused: Any, best: int, ahead: list[Frame]
+        self,
+        candidates: list[Frame],
+        intr: Intrinsics,
+        fused: Any,
+        best: int,
+        ahead: list[Frame],
+        novelty: concurrent.futures.Future | None = None,
     ) -> int:
-        """The pick of ``fused + novelty_weight z(N)``; the planner's own ``best`` when its scores do not fit."""
+        """The pick of ``fused + novelty_weight z(N)``; the planner's own ``best`` when its scores do not fit.
+
+        ``novelty``: the candidates' novelty computed meanwhile (:meth:`_send`); None computes it now.
+        """
         if len(fused) != len(candidates):
             self.get_logger().warning(f"planner answered {len(fused)} fused scores for {len(candidates)} candidates: "
                                       "its pick is taken without the novelty term")  # fmt: skip
             return best
-        novelty = self._novelty(candidates, intr, ahead)
-        return int(np.argmax(fuse_novelty(np.asarray(fused), novelty, self.novelty_weight)))
+        values = novelty.result() if novelty is not None else self._novelty(candidates, intr, ahead)
+        return int(np.argmax(fuse_novelty(np.asarray(fused), values, self.novelty_weight)))
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, frame: Frame, intr: Intrinsics) -> None:
         self.keyframe_ids.append(int(frame.index))
         self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
         if self._observed is not None:  # what the keyframe's depth observes no longer counts as new
-            self._observed.add_frame(frame, intr, self._mapper_config())
+            with self._observed_lock:
+                self._observed.add_frame(frame, intr, self._mapper_config())
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""
@@ -490,13 +516,17 @@ class KeyframeSelectorNode(SystemNode):
         self._status_pub.publish(String(data=json.dumps(self.status())))
 
     def destroy_node(self) -> None:
-        """Drop a planner request still in flight (and a window waiting for it), then destroy the node."""
+        """Drop a planner request still in flight (and a window waiting for it), join the novelty thread, then destroy
+        the node.
+        """
         with self._lock:
             self._waiting = None
             if self._request is not None:
                 self._client.remove_pending_request(self._request[0])
                 self._request[0].cancel()
                 self._request = None
+        if self._novelty_pool is not None:
+            self._novelty_pool.shutdown(wait=True, cancel_futures=True)
         super().destroy_node()
 
 
