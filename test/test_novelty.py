@@ -242,3 +242,5 @@ def test_perf_novelty_finds_the_fast_counts_equal_on_the_shipped_bag(tmp_path, c
     capsys.readouterr()
     assert main([*args, "--window", "100", "--lookahead", "100"]) == 2
     assert "150 frames: fewer than 1 + window + lookahead = 201" in capsys.readouterr().err
+    assert main([*args, "--window", "0"]) == 2
+    assert "--window: must be at least 1, got 0" in capsys.readouterr().err

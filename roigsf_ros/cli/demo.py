@@ -302,9 +302,8 @@ def _window_period_s(system: ActiveMapping, frames: Sequence[BagFrame], rate: fl
 def fallback_hint(metrics: dict[str, Any]) -> str | None:
     """A line saying why windows went to the selector's fallback, from what the run measured: the longest wait for
     the planner's answer to a window of the stream (and the two largest parts of the planner's slowest request)
-    longer than the time between windows, or frames that reached the selector
-    more than that apart (held up, then a burst: windows came faster than any planner answers them; the selector's
-    own novelty computation holds it meanwhile); None without fallbacks or without either sign.
+    longer than the time between windows, or frames that reached the selector more than that apart (held up, then a
+    burst: windows came faster than any planner answers them); None without fallbacks or without either sign.
     """
     period = metrics.get("window_period_s")
     if not metrics.get("fallbacks") or period is None:

@@ -16,7 +16,8 @@ candidate by the pair it makes with the best of the newer frames, so surface tha
 to that frame (the coverage study's "one window late" scorer, with each frame's depth instead of the ground truth).
 Which voxels ahead each candidate reaches is found for all candidates in one pass (:func:`unreached_by_each`: a bit mask
 per voxel, from a binary search among packed int64 keys), 5.4x faster on the shipped bag than a k-d tree per candidate
-(:func:`unreached_by_each_plain`, the reference; ``roigsf perf novelty``): the selector node computes it holding itself.
+(:func:`unreached_by_each_plain`, the reference; ``roigsf perf novelty``); the selector node computes it in a thread
+of its own while the planner scores the window.
 """
 
 from __future__ import annotations
@@ -213,7 +214,7 @@ class ObservedSurface:
 
 def unique_voxels(ijk: np.ndarray) -> np.ndarray:
     """The distinct rows of ``ijk`` [N, 3] (int voxel indices) in lexicographic order, as ``np.unique(ijk, axis=0)``
-    returns them, as int32; each row packed into one int64 relative to the rows' own box (4x faster than sorting rows).
+    returns them, as int32; each row packed into one int64 relative to the rows' own box (sorting rows is slower).
     """
     ijk = np.asarray(ijk).reshape(-1, 3)
     if len(ijk) == 0:
@@ -234,7 +235,7 @@ def unreached_by_each(cand: list[np.ndarray], ahead: list[np.ndarray], offsets: 
 
     One pass for all candidates: each voxel of the frames ahead gathers, over the offsets, a bit mask of the
     candidates that reach it, found by binary search among every candidate's voxels packed into int64 keys (at most
-    64 candidates a pass). The same counts as a nearest-neighbour query of each candidate's voxels, 5-40x faster.
+    64 candidates a pass). The same counts as a nearest-neighbour query of each candidate's voxels.
     """
     m, g = len(cand), len(ahead)
     union = np.concatenate([np.asarray(b, dtype=np.int64).reshape(-1, 3) for b in ahead])

@@ -190,9 +190,9 @@ class KeyframeSelectorNode(SystemNode):
         )
         self.slowest_s = {"answer": 0.0, "novelty": 0.0, "frame_gap": 0.0}
         """Wall seconds of the longest wait for a planner's answer to a window of the stream (the held frames sent
-        by :meth:`finish` left out: nothing comes after them), of the slowest novelty computation (it holds the
-        selector, frames wait) and of the longest gap between two frames reaching the selector (many frame periods:
-        frames came in a burst, and windows with them)."""
+        by :meth:`finish` left out: nothing comes after them), of the slowest novelty computation and of the longest
+        gap between two frames reaching the selector (many frame periods: frames came in a burst, and windows with
+        them)."""
         self._last_frame_t: float | None = None
 
         inputs = MutuallyExclusiveCallbackGroup()
@@ -366,7 +366,10 @@ class KeyframeSelectorNode(SystemNode):
             # is computed while the planner scores, off the executor: frames keep coming meanwhile.
             self._request_novelty = None
             if self._novelty_pool is not None:
-                self._request_novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
+                try:
+                    self._request_novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
+                except RuntimeError:  # the pool is shut down (the node is being destroyed): computed on the answer
+                    self._request_novelty = None
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.

@@ -2,10 +2,11 @@
 
 The stream variant (``RECOMMENDED_STREAM``: window 13, lookahead 13, novelty weight 4) decides each window once the
 next 13 frames are in, by the planner's fused score plus the window's observed novelty judged against those frames
-(:meth:`~roigsf_ros.nbv.novelty.ObservedSurface.frames_novelty`). The selector node computes it in its timer, holding
-itself: the frames that come meanwhile wait, then arrive in a burst (the fifty-third session found the main job's
-fallbacks came from that, not from the planner). Here, on the frames of a bag (default the shipped one), a keyframe
-is taken in the middle of each window (as a selector would, roughly) and each window's novelty is timed twice:
+(:meth:`~roigsf_ros.nbv.novelty.ObservedSurface.frames_novelty`). The selector node computed it in its timer, holding
+itself: the frames that came meanwhile waited, then arrived in a burst (the fifty-third session found the main job's
+fallbacks came from that, not from the planner); now a thread of its own computes it while the planner scores.
+Here, on the frames of a bag (default the shipped one), a keyframe is taken in the middle of each window (as a
+selector would, roughly) and each window's novelty is timed twice:
 
 - ``fast``: as the selector computes it (packed voxel keys, one bit-mask pass for every candidate's reach,
   :func:`~roigsf_ros.nbv.novelty.unreached_by_each`);
@@ -66,6 +67,9 @@ def run_windows(
     frames: list[Frame], intr: Intrinsics, window: int, lookahead: int, repeats: int
 ) -> list[dict[str, Any]]:
     """Each whole window's fast and plain novelty times (median of ``repeats``) and whether their counts agree."""
+    for name, value, least in (("--window", window, 1), ("--lookahead", lookahead, 0), ("--repeats", repeats, 1)):
+        if value < least:
+            raise InputError(name, f"must be at least {least}, got {value}")
     if len(frames) < 1 + window + lookahead:
         raise InputError("--bag", f"{len(frames)} frames: fewer than 1 + window + lookahead = {1 + window + lookahead}")
     config = MapperConfig()
