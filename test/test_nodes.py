@@ -669,6 +669,76 @@ def test_selector_status_times_its_answers_novelty_and_frame_gaps(ros_context: A
     assert status["fallbacks"] == 0
 
 
+def test_selector_takes_frames_while_a_windows_novelty_or_a_keyframes_depth_is_still_counted(
+    ros_context: Any, scene: Any
+) -> None:
+    """The planner's answer is in but the window's novelty is not (or the new keyframe's depth is still being added):
+    frames keep reaching the selector meanwhile, and the pick is the same as when nothing waits."""
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value="roi-fisher"),
+        Parameter("window", value=2),
+        Parameter("novelty_weight", value=1.0),
+        Parameter("planner_service", value="/test_planner_slow_novelty/nbv"),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    published: list[int] = []
+    cam.node.create_subscription(
+        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+    )
+    answered = threading.Event()
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        res.success, res.best_index = True, 0
+        res.fused_scores = [0.1] + [-0.1] * (len(req.candidates.poses) - 1)
+        answered.set()
+        return res
+
+    novelty_gate, add_gate = threading.Event(), threading.Event()
+    observed = selector._observed
+    assert observed is not None
+    count, add = observed.frames_novelty, observed.add_frame
+    adds: list[int] = []
+
+    def slow_count(*args: Any, **kwargs: Any) -> Any:
+        novelty_gate.wait(10.0)
+        return count(*args, **kwargs)
+
+    def slow_add(frame: Frame, *args: Any) -> None:
+        adds.append(frame.index)
+        if len(adds) > 1:  # the first frame's goes through
+            add_gate.wait(10.0)
+        add(frame, *args)
+
+    observed.frames_novelty, observed.add_frame = slow_count, slow_add  # type: ignore[method-assign]
+    seq = _novelty_sequence(frames, 2)
+    expected, _ = _novelty_picks(seq, fused=[0.1, -0.1])
+    try:
+        with _stub_planner(ros_context, "test_planner_slow_novelty", serve), _spinning(ros_context, selector, cam.node):
+            cam.wait_for()
+            _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+            for k in range(3):  # frame 0 (a keyframe), then window 0: sent, its novelty held
+                cam.publish(_frame_msgs(seq[k], (k + 1) * 1000))
+            _wait(answered.is_set, 10.0, "the planner's answer")
+            time.sleep(0.2)  # a few of the selector's 50 ms ticks with the answer in and the novelty not
+            cam.publish(_frame_msgs(seq[3], 4000))
+            _wait(lambda: selector._seen == 4, 5.0, "a frame while the window's novelty is counted")
+            assert published == [1000]  # the window is not decided before its novelty is in
+            novelty_gate.set()
+            _wait(lambda: len(published) == 2, 10.0, "window 0's keyframe")
+            _wait(lambda: len(adds) == 2, 10.0, "the keyframe's depth being added")
+            cam.publish(_frame_msgs(seq[4], 5000))  # window 1 complete: sent, its novelty waits for that depth
+            _wait(lambda: selector._seen == 5, 5.0, "a frame while the keyframe's depth is added")
+            add_gate.set()
+            _wait(lambda: len(published) == 3, 10.0, "window 1's keyframe")
+            status = selector.status()
+    finally:
+        novelty_gate.set()
+        add_gate.set()
+    assert published == expected and status["planner_answers"] == 2 and status["fallbacks"] == 0
+
+
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
     mapper = MapperNode(
         context=ros_context,

@@ -25,7 +25,9 @@ scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the libr
 candidate's observed novelty against the depth of the keyframes published so far; the planner scores poses only,
 the selector holds the frames. N is computed in a thread of the selector's own while the planner scores the window
 (in the node's timer it held the frames back, which then came in bursts, and with them windows faster than any
-planner answers). ``fallback_policy: novelty`` decides an unanswered window by N. Depth counts within
+planner answers); the same thread adds each keyframe's depth, in order, and an answer is taken once its window's N
+is in, so no callback of the node waits for either. ``fallback_policy: novelty`` decides an unanswered window by N.
+Depth counts within
 the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
 ``lookahead`` > 0 (with policy ``novelty``, or a planner policy and ``novelty_weight`` > 0) decides each window once
 the next ``lookahead`` frames are in, N becoming the lookahead novelty (the library's ``lookahead``); the planner
@@ -173,11 +175,14 @@ class KeyframeSelectorNode(SystemNode):
         """The request's window's novelty, computed by ``_novelty_pool`` while the planner scores."""
         self._novelty_pool = (
             concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="selector_novelty")
-            if self._observed is not None and self.novelty_weight > 0
+            if self._observed is not None
             else None
         )
+        """One thread that does all the work on ``_observed``, in the order it was asked for: a keyframe's depth is
+        added before any later window's novelty is counted, and the node never waits for either while holding its
+        lock (frames keep coming)."""
         self._observed_lock = threading.Lock()
-        """Held around every read and write of ``_observed`` (the pool's thread reads it while keyframes add)."""
+        """Held around every read and write of ``_observed`` (the pool's thread, and the node's after a shutdown)."""
         self._waiting: tuple[list[Frame], Intrinsics, list[Frame], bool] | None = None
         """A window that came while ``_request`` was in flight: sent when its answer is in."""
         self._planner_down = False
@@ -365,7 +370,7 @@ class KeyframeSelectorNode(SystemNode):
             # The window's novelty (against the keyframes published so far, all windows before it being decided)
             # is computed while the planner scores, off the executor: frames keep coming meanwhile.
             self._request_novelty = None
-            if self._novelty_pool is not None:
+            if self._novelty_pool is not None and self.novelty_weight > 0:
                 try:
                     self._request_novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
                 except RuntimeError:  # the pool is shut down (the node is being destroyed): computed on the answer
@@ -391,6 +396,8 @@ class KeyframeSelectorNode(SystemNode):
             future, candidates, t_sent = self._request
             intr, ahead = self._request_intr, self._request_ahead
             if future.done():
+                if self._request_novelty is not None and not self._request_novelty.done():
+                    return  # its novelty is still being counted: taken on a later tick, the node not held meanwhile
                 self._request = None
                 res = future.result() if future.exception() is None else None
                 if res is None or not res.success:
@@ -434,7 +441,7 @@ class KeyframeSelectorNode(SystemNode):
             if self.fallback == "random":
                 winner = candidates[int(self._fallback_rng.integers(len(candidates)))]
             else:
-                winner = candidates[int(np.argmax(self._novelty(candidates, intr, ahead)))]  # ties: the oldest
+                winner = candidates[int(np.argmax(self._novelty_in_order(candidates, intr, ahead)))]  # ties: oldest
             self._window.remove(winner)
             self._publish(winner, intr)
             return
@@ -450,6 +457,24 @@ class KeyframeSelectorNode(SystemNode):
     def _depth_view(self, intr: Intrinsics) -> Mapper:
         """An empty map with the mapper's settings: what the novelty policy reads (the camera and depth range)."""
         return view_mapper(SurfelMap.empty(), intr, self._mapper_config())
+
+    def _novelty_in_order(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> np.ndarray:
+        """:meth:`_novelty` counted after every keyframe asked of ``_novelty_pool`` so far has been added (waits)."""
+        if self._novelty_pool is not None:
+            try:
+                return self._novelty_pool.submit(self._novelty, candidates, intr, ahead).result()
+            except RuntimeError:  # the pool is shut down (the node is being destroyed)
+                pass
+        return self._novelty(candidates, intr, ahead)
+
+    def _add_observed(self, frame: Frame, intr: Intrinsics) -> None:
+        """Add a keyframe's depth to ``_observed`` (what it shows no longer counts as new); a bad one is logged."""
+        assert self._observed is not None
+        try:
+            with self._observed_lock:
+                self._observed.add_frame(frame, intr, self._mapper_config())
+        except InputError as exc:  # in the pool's thread nobody would see it raised
+            self.get_logger().warning(f"keyframe {frame.index}: its depth is not counted as observed: {exc}")
 
     def _novelty(self, candidates: list[Frame], intr: Intrinsics, ahead: list[Frame]) -> np.ndarray:
         """[M] observed novelty (``novelty_measure``: m^2 or pixels) of the candidates against the keyframes
@@ -479,16 +504,22 @@ class KeyframeSelectorNode(SystemNode):
             self.get_logger().warning(f"planner answered {len(fused)} fused scores for {len(candidates)} candidates: "
                                       "its pick is taken without the novelty term")  # fmt: skip
             return best
-        values = novelty.result() if novelty is not None else self._novelty(candidates, intr, ahead)
+        values = novelty.result() if novelty is not None else self._novelty_in_order(candidates, intr, ahead)
         return int(np.argmax(fuse_novelty(np.asarray(fused), values, self.novelty_weight)))
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, frame: Frame, intr: Intrinsics) -> None:
         self.keyframe_ids.append(int(frame.index))
         self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
-        if self._observed is not None:  # what the keyframe's depth observes no longer counts as new
-            with self._observed_lock:
-                self._observed.add_frame(frame, intr, self._mapper_config())
+        if self._observed is None:
+            return
+        if self._novelty_pool is not None:  # in the pool's thread, before any novelty asked of it later
+            try:
+                self._novelty_pool.submit(self._add_observed, frame, intr)
+                return
+            except RuntimeError:  # the pool is shut down (the node is being destroyed)
+                pass
+        self._add_observed(frame, intr)
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""
