@@ -157,3 +157,78 @@ def test_every_sized_command_derives_the_missing_side_from_the_source(
     capsys.readouterr()
     assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "c"), "--height", "0"]) == 2
     assert "--height" in capsys.readouterr().err
+
+
+def test_map_of_a_partial_download_names_the_allow_partial_flag(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A traj.txt with more poses than frames: the error names `--allow-partial`, the flag the user types."""
+    traj = tiny_scene / "traj.txt"
+    lines = traj.read_text().splitlines(keepends=True)
+    traj.write_text("".join([*lines, lines[0]]))
+    _stub_work(monkeypatch)
+    assert main(["map", str(tiny_scene), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "traj.txt" in err and "--allow-partial" in err, err
+
+
+def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`--policy` for an unknown policy; `--set` lists the MapperConfig fields (the closest first), as `--pool-set`
+    does, and sends a policy parameter to its own option."""
+    _stub_work(monkeypatch)
+    base = ["map", str(tiny_scene), "--out", str(tmp_path / "out"), "--no-progress"]
+    cases = [
+        (["--policy", "nosuch"], ["--policy nosuch: unknown keyframe policy; choose one of", "gaus-slam"]),
+        (["--set", "lr_mean=1e-4"], ["--set lr_mean=1e-4", "did you mean lr_means?", "iters_per_keyframe"]),
+        (["--set", "tau_k=abc"], ["--set tau_k=abc", "use --tau-k"]),
+        (["--set", "nosuch"], ["--set nosuch: expected NAME=VALUE", "iters_per_keyframe"]),
+    ]
+    for extra, words in cases:
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), (extra, err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_list_values_of_set_and_pool_set_are_comma_separated(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`4,8` is a list; a `+`-joined one (the `--policies` spec syntax) is refused naming the separator to use."""
+    from roigsf_ros.cli.map import parse_overrides
+    from roigsf_ros.experiments.pool import PoolConfig
+    from roigsf_ros.mapping.mapper import MapperConfig
+
+    pool = {"mesh_checkpoints": PoolConfig().mesh_checkpoints, "mesh_taus_m": PoolConfig().mesh_taus_m}
+    assert parse_overrides(["mesh_checkpoints=4,8", "mesh_taus_m=1e-2, 5e-2"], pool, "--pool-set") == {
+        "mesh_checkpoints": (4, 8),
+        "mesh_taus_m": (0.01, 0.05),
+    }
+    mapper = {"fisher_params": MapperConfig().fisher_params}
+    assert parse_overrides(["fisher_params=means,quats"], mapper, "--set") == {"fisher_params": ("means", "quats")}
+    base = [
+        "bench",
+        "--scene",
+        str(tiny_scene),
+        "--setting",
+        "pool",
+        "--policies",
+        "random",
+        "--out",
+        str(tmp_path / "o"),
+    ]
+    for extra, words in (
+        (
+            ["--pool-set", "mesh_checkpoints=4+8"],
+            ["--pool-set mesh_checkpoints", "separate the items with commas, e.g. 4,8"],
+        ),
+        (
+            ["--set", "fisher_params=means+quats"],
+            ["--set fisher_params", "separate the items with commas, e.g. means,quats"],
+        ),
+    ):
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), (extra, err)
+    assert not (tmp_path / "o").exists()

@@ -150,7 +150,7 @@ def test_configs_and_policies_refuse_a_value_of_the_wrong_type_by_its_field() ->
             make_policy(name, **params)
     with pytest.raises(InputError, match=r"^voxel_size_m: must be a finite number > 0 \(m\), got -1$"):
         make_policy("roi-gsurfisher", voxel_size_m=-1)
-    with pytest.raises(InputError, match="policy 'roi-gsurfisher' takes no parameter"):
+    with pytest.raises(InputError, match=r"^policy 'roi-gsurfisher': takes no parameter"):
         make_policy("roi-gsurfisher", windw=3)
     assert make_policy("roi-gsurfisher", window=12.0, seed=np.int64(2)).window == 12
 

@@ -66,3 +66,16 @@ def test_read_json_names_the_file_and_what_is_wrong(tmp_path: Path) -> None:
         with pytest.raises(InputError) as err:
             read_json(path, "give a bench folder")
         assert words in str(err.value)
+
+
+def test_an_existing_folder_error_says_how_the_caller_overwrites(tmp_path: Path) -> None:
+    """The command line's `--overwrite` by default; a service names its request field (`overwrite: true`)."""
+    final = tmp_path / "map"
+    final.mkdir()
+    with pytest.raises(FileExistsError, match=r"already exists \(pass --overwrite to replace it\)"):
+        _write_dir(final, overwrite=False)
+    hint = "set overwrite: true in the request"
+    want = r"already exists \(set overwrite: true in the request to replace it\)"
+    with pytest.raises(FileExistsError, match=want), atomic_dir(final, overwrite_hint=hint) as tmp:
+        (tmp / "map.ply").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map"] and not any(final.iterdir())

@@ -498,3 +498,40 @@ def test_gradient_check_sees_non_finite_rows() -> None:
     assert not Mapper._grads_finite(p, torch.tensor([1, 2, 3]))
     p["means"].grad[2, 1] = float("inf")
     assert not Mapper._grads_finite(p, torch.tensor([2]))
+
+
+def test_a_loaded_map_saved_again_keeps_its_keyframes_and_adds_the_new_ones(frames: list[Frame], tmp_path) -> None:
+    """`Mapper.load(d).save(d2)` writes d's keyframe ids and poses (was: none), a keyframe inserted after the load goes
+    after them, and the shared map's save writes the same keyframes.json (one list: `Mapper.map_keyframes`)."""
+    from roigsf_ros.nodes.shared_map import SharedMapper
+
+    def ids_poses(folder) -> tuple[list[int], np.ndarray]:
+        meta = json.loads((folder / "keyframes.json").read_text())
+        return meta["keyframe_ids"], np.asarray(meta["keyframe_poses"])
+
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=0))
+    for k in (0, 2, 4):
+        assert mapper.add_keyframe(frames[k], optimise=False)
+    mapper.save(tmp_path / "a")
+    ids_a, poses_a = ids_poses(tmp_path / "a")
+    assert ids_a == [0, 2, 4]
+
+    loaded = Mapper.load(tmp_path / "a")
+    loaded.save(tmp_path / "b")
+    ids_b, poses_b = ids_poses(tmp_path / "b")
+    assert ids_b == ids_a
+    np.testing.assert_array_equal(poses_b, poses_a)
+
+    assert loaded.add_keyframe(frames[6], optimise=False)
+    loaded.save(tmp_path / "c")
+    ids_c, poses_c = ids_poses(tmp_path / "c")
+    assert ids_c == [0, 2, 4, 6]
+    np.testing.assert_array_equal(poses_c, np.concatenate([poses_a, frames[6].T_wc[None]]))
+    assert Mapper.load(tmp_path / "c").loaded_keyframe_ids == [0, 2, 4, 6]
+
+    shared = SharedMapper(loaded.config)
+    shared.mapper = loaded
+    shared.save(tmp_path / "d")
+    ids_d, poses_d = ids_poses(tmp_path / "d")
+    assert ids_d == ids_c
+    np.testing.assert_array_equal(poses_d, poses_c)

@@ -357,3 +357,11 @@ def test_novelty_weight_adds_its_z_score_to_the_fused_score(frames: list[Frame])
                      T_wc=frames[0].T_wc)  # fmt: skip
     with pytest.raises(InputError, match=r"frame 1 depth_m.*pool"):
         make_policy("novelty").choose([no_depth], Mapper(INTR, mapper_config()))
+
+
+def test_make_policy_errors_name_the_policy_not_a_command_line_flag() -> None:
+    """The library is called by the CLI, a node parameter and a pool config alike: its errors name no `--policy`."""
+    with pytest.raises(InputError, match=r"^policy 'nosuch': unknown keyframe policy; choose one of .*gaus-slam"):
+        make_policy("nosuch")
+    with pytest.raises(InputError, match=r"^policy 'gaus-slam': takes no parameter\(s\) n$"):
+        make_policy("gaus-slam", n=3)

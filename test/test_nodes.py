@@ -22,7 +22,7 @@ import torch
 pytest.importorskip("rclpy")
 pytest.importorskip("roigsf_interfaces")
 
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from rcl_interfaces.srv import GetParameters
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
@@ -45,7 +45,7 @@ from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.novelty import ObservedSurface, fuse_novelty
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import TrainFisherCache, carry_rows, match_surfels
-from roigsf_ros.nodes.active_mapping import ActiveMapping
+from roigsf_ros.nodes.active_mapping import ActiveMapping, build_nodes
 from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
@@ -739,6 +739,74 @@ def test_selector_takes_frames_while_a_windows_novelty_or_a_keyframes_depth_is_s
     assert published == expected and status["planner_answers"] == 2 and status["fallbacks"] == 0
 
 
+def _gaus_slam_selector(
+    ctx: Any, shared: SharedMapper | None, **params: Any
+) -> tuple[KeyframeSelectorNode, _Camera, list[int]]:
+    """A gaus-slam selector (on ``shared``, else on the map topics), a camera, and the keyframe stamps it publishes."""
+    overrides = [Parameter("policy", value="gaus-slam"), *(Parameter(k, value=v) for k, v in params.items())]
+    selector = KeyframeSelectorNode(context=ctx, parameter_overrides=overrides, shared=shared)
+    cam = _Camera(ctx)
+    published: list[int] = []
+    cam.node.create_subscription(
+        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+    )
+    return selector, cam, published
+
+
+def test_gaus_slam_judges_a_frame_once_the_map_holds_the_keyframes_named_before_it(
+    ros_context: Any, scene: Any
+) -> None:
+    """Live, the mapper inserts a keyframe after the selector names it: a frame waits until the map holds it (as
+    GauS-SLAM judges each frame on a map with every earlier keyframe), so a view the keyframe already shows is not
+    named again. Before, it was judged at once on a map without that keyframe, and nearly every frame became one."""
+    frames, _ = scene
+    shared = SharedMapper(MapperConfig(iters_per_keyframe=2))
+    selector, cam, published = _gaus_slam_selector(ros_context, shared, map_wait_s=30.0)
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1000))  # an empty map: a keyframe
+        _wait(lambda: published == [1000], 10.0, "the first keyframe")
+        cam.publish(_frame_msgs(frames[0], 2000))  # the same view, the map without keyframe 1000 yet: it waits
+        cam.publish(_frame_msgs(frames[6], 3000))  # another view
+        _wait(lambda: selector.status()["frames_held_for_map"] == 2, 10.0, "two frames held for the map")
+        time.sleep(0.3)
+        assert published == [1000]
+        mapper = shared.ensure(INTR)
+        with shared.lock:  # what the mapper's worker does with the keyframe
+            assert mapper.add_keyframe(replace(frames[0], index=1000))
+            shared.touch()
+        # 2000 is judged on a map that shows it: not a keyframe; 3000 looks elsewhere: one
+        _wait(lambda: published == [1000, 3000], 10.0, "the other view named")
+        status = selector.status()
+    assert status["frames_held_for_map"] == 0 and status["map_waits_expired"] == 0
+    assert status["frames_skipped_map_lag"] == 0
+
+
+def test_gaus_slam_waits_for_the_map_at_most_map_wait_s_and_map_wait_frames(ros_context: Any, scene: Any) -> None:
+    """A keyframe the map never holds (the mapper dropped it) holds frames up only ``map_wait_s``; beyond
+    ``map_wait_frames`` held frames the oldest are skipped. Without a shared map the map's keyframe poses say which
+    keyframes it holds."""
+    frames, _ = scene
+    selector, cam, published = _gaus_slam_selector(ros_context, None, map_wait_s=0.5, map_wait_frames=2)
+    poses = cam.node.create_publisher(PoseArray, "/roigsf/keyframe_poses", latched_qos())
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1000))
+        _wait(lambda: published == [1000], 10.0, "the first keyframe")
+        for k in range(3):  # three frames for two places: the oldest skipped
+            cam.publish(_frame_msgs(frames[k + 1], 2000 + k * 1000))
+        _wait(lambda: selector.status()["frames_skipped_map_lag"] == 1, 10.0, "a frame skipped")
+        # no map ever comes: after 0.5 s the wait for keyframe 1000 expires, 3000 is judged (an empty map: named),
+        # and 4000 waits for it
+        _wait(lambda: published == [1000, 3000], 10.0, "the wait expired")
+        assert selector.status()["map_waits_expired"] == 1
+        msg = poses_to_array([frames[0].T_wc, frames[2].T_wc], 0, "map")  # the map now holds 1000 and 3000
+        poses.publish(msg)
+        _wait(lambda: published == [1000, 3000, 4000], 10.0, "4000 judged once the map's poses hold 3000")
+        status = selector.status()
+    assert status["map_waits_expired"] == 1 and status["frames_held_for_map"] == 0
+
+
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
     mapper = MapperNode(
         context=ros_context,
@@ -836,6 +904,119 @@ def test_planner_process_takes_the_recommended_overlay_and_says_so() -> None:
         for reader in readers:
             reader.join(timeout=10)
     assert codes == [0, 0], "".join(lines)
+
+
+def _run_script(program: str, *args: str, module: str = "roigsf_ros.nodes.console") -> subprocess.CompletedProcess:
+    """Run console script ``program`` as installed (``roigsf_ros.nodes.console``) or as its node ``module``."""
+    env = dict(os.environ)
+    assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    head = [program] if module == "roigsf_ros.nodes.console" else []
+    cmd = [sys.executable, "-m", module, *head, *args]
+    return subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("program", ["mapper", "nbv_planner", "keyframe_selector", "active_mapping", "bag_player"])
+def test_console_scripts_name_a_bad_params_file_or_ros_argument_in_one_line(program: str, tmp_path: Path) -> None:
+    """A missing params file, one that is not valid YAML and ``-p NAME`` without ``:=VALUE`` exit 2 with one line
+    naming the file or the argument (before: rclpy's RCLInvalidROSArgsError as a traceback, exit 1)."""
+    missing, bad = tmp_path / "nope.yaml", tmp_path / "bad.yaml"
+    bad.write_text(f"{program}:\n  ros__parameters:\n    window: [1,\n")
+    cases = {
+        ("--params-file", str(missing)): f"{program}: error: {missing}: params file not found",
+        ("--params-file", str(bad)): f"{program}: error: {bad}: not a valid YAML params file (",
+        (
+            "-p",
+            "iters_per_keyframe",
+        ): f"{program}: error: '-p iters_per_keyframe': a parameter is set as -p NAME:=VALUE",
+    }
+    for ros_args, said in cases.items():
+        proc = _run_script(program, "--ros-args", *ros_args)
+        assert proc.returncode == 2, proc.stderr
+        assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert proc.stderr.startswith(said), proc.stderr
+    if program == "mapper":  # the node module's own main (run_nodes) answers the same
+        proc = _run_script(program, "--ros-args", "--params-file", str(missing), module="roigsf_ros.nodes.mapper")
+        assert proc.returncode == 2 and proc.stderr.strip() == f"mapper: error: {missing}: params file not found"
+
+
+@contextmanager
+def _context_with(*ros_args: str) -> Iterator[Any]:
+    """A fresh rclpy Context on this run's domain initialised with ``--ros-args ROS_ARGS``, shut down on exit."""
+    import rclpy
+
+    ctx = rclpy.Context()
+    rclpy.init(args=["test", "--ros-args", *ros_args], context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    try:
+        yield ctx
+    finally:
+        ctx.try_shutdown()
+
+
+def test_undeclared_overrides_of_params_files_and_p_are_logged_once_with_the_closest_name(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """``-p unseen_wieght:=2.0`` left the planner on its defaults without a word (ROS ignores an override no node
+    declares); now each node logs one warning naming such overrides and the declared name closest to each. A
+    params file's ``/**:`` section holding another node's parameter does not fail a node, and in one process
+    (active_mapping) a name one of the three nodes declares is no typo for the other two."""
+    params = tmp_path / "all.yaml"
+    params.write_text(
+        "/**:\n  ros__parameters:\n    policy: every-n\nkeyframe_selector:\n  ros__parameters:\n    window: 3\n"
+    )
+    with _context_with("-p", "unseen_wieght:=2.0", "--params-file", str(params)) as ctx:
+        planner = NBVPlannerNode(context=ctx, parameter_overrides=[Parameter("warm_up", value=False)])
+        selector = KeyframeSelectorNode(context=ctx)
+        try:
+            assert planner.nbv == NBVConfig() and planner.ignored_parameters == ["policy", "unseen_wieght"]
+            assert selector.policy == "every-n" and selector.window == 3
+            assert selector.ignored_parameters == ["unseen_wieght"]
+        finally:
+            planner.destroy_node()
+            selector.destroy_node()
+        err = capfd.readouterr().err
+        warnings = [line.split("]: ", 1)[1] for line in err.splitlines() if "ignored parameter" in line]
+        assert warnings == [
+            "ignored parameter(s) not declared by this node: policy, unseen_wieght (closest declared: unseen_weight)",
+            "ignored parameter(s) not declared by this node: unseen_wieght",
+        ], err
+        assert "[nbv_planner]: ignored parameter(s)" in err
+        nodes = build_nodes(ctx, {"nbv_planner": {"warm_up": False}})
+        try:
+            assert [node.ignored_parameters for node in nodes] == [["unseen_wieght"]] * 3  # policy: the selector's
+            assert nodes[2].policy == "every-n"
+        finally:
+            for node in nodes:
+                node.destroy_node()
+        err = capfd.readouterr().err
+        warnings = [line for line in err.splitlines() if "ignored parameter" in line]
+        assert len(warnings) == 3 and all("nor by" in w and "unseen_wieght (closest declared: unseen_weight)" in w
+                                          for w in warnings), err  # fmt: skip
+
+
+def test_an_undeclared_parameter_given_to_a_node_constructor_is_an_error(ros_context: Any, scene: Any) -> None:
+    """``parameter_overrides`` (the Python API, ``roigsf demo --set NODE.NAME=VALUE``) name one node, so a name
+    it does not declare is an InputError naming it and the closest declared names (before: silently ignored)."""
+    with pytest.raises(InputError, match=r"^parameter 'keyframe_selector\.nosuch': not declared by this node$"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("nosuch", value=1)])
+    with pytest.raises(InputError, match=r"^parameter 'nbv_planner\.unseen_wieght'.*closest declared: unseen_weight"):
+        NBVPlannerNode(
+            context=ros_context,
+            parameter_overrides=[Parameter("warm_up", value=False), Parameter("unseen_wieght", value=2.0)],
+        )
+    with pytest.raises(InputError, match=r"^parameters 'mapper\.itrs_per_keyframe', 'mapper\.nosuch'.*iters_per_key"):
+        ActiveMapping(ros_context, params={"mapper": {"nosuch": 1, "itrs_per_keyframe": 2}})
+    with pytest.raises(InputError, match=r"^parameter 'bag_player\.rat'.*closest declared: rate"):
+        BagPlayer(
+            context=ros_context,
+            parameter_overrides=[Parameter("bag", value=str(scene[1])), Parameter("rat", value=2.0)],
+        )
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("window", value=4)])
+    try:  # declared names pass, and the failed nodes are gone (one name, one node)
+        assert selector.window == 4 and selector.ignored_parameters == []
+        assert ros_context.ok()
+    finally:
+        selector.destroy_node()
 
 
 def test_gil_switch_interval_is_lowered_never_raised(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -948,6 +1129,27 @@ def test_saved_map_is_resumed_by_a_new_mapper(ros_context: Any, scene: Any, mapp
         status = second.status()
     assert status["keyframe_ids"] == [0, 4, 8, 6]
     assert not bad.success and "not found" in bad.message
+
+
+def test_save_map_refusals_name_the_request_field_and_a_file_in_the_path(
+    ros_context: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    """`~/save_map` onto an existing folder says to set `overwrite: true` (the request field, not the command line's
+    `--overwrite`); a folder under a regular file is named "not a folder" (the CLI's check), not a raw Errno 17."""
+    node = MapperNode(context=ros_context, shared=_shared(mapped), node_name="mapper_s")
+    client_node = Node("save_refusal_client", context=ros_context)
+    save = client_node.create_client(SaveMap, "/mapper_s/save_map")
+    (tmp_path / "map").mkdir()
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with _spinning(ros_context, node, client_node):
+        exists = _call(save, SaveMap.Request(directory=str(tmp_path / "map")))
+        under = _call(save, SaveMap.Request(directory=str(blocker / "map")))
+        replaced = _call(save, SaveMap.Request(directory=str(tmp_path / "map"), overwrite=True))
+    assert not exists.success and "already exists (set overwrite: true in the request" in exists.message
+    assert "--overwrite" not in exists.message
+    assert not under.success and f"{blocker}: is not a folder" in under.message and "Errno" not in under.message
+    assert replaced.success and read_keyframe_ids(tmp_path / "map") == [0, 4, 8], replaced.message
 
 
 def test_load_map_of_a_malformed_folder_answers_false_and_keeps_the_map(

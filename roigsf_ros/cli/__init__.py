@@ -8,11 +8,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
-import tempfile
+import threading
 from pathlib import Path
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import check_writable
 from roigsf_ros.data.bags import (
     AUTO,
     COLOR_TRANSPORTS,
@@ -123,26 +125,6 @@ def check_out(out: Path, overwrite: bool) -> None:
     check_writable(out)
 
 
-def check_writable(out: Path) -> None:
-    """Fail before any work if ``out`` cannot be created: its parent is read-only, not writable or not a folder.
-
-    Outputs are written beside their final name and renamed (:mod:`roigsf_ros.core.fileio`), so the test
-    is to create and remove a temporary file in the parent (or the nearest existing ancestor, as
-    missing parents are created); a run would otherwise fail only at its end, with a traceback.
-    """
-    folder = Path(os.path.abspath(out)).parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise InputError(folder, f"is not a folder, so the output {out} cannot be created there")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".roigsf-write-test-", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise InputError(folder, f"output folder is not writable ({exc.strerror or exc}); choose another one") from None
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every subcommand registered."""
     parser = argparse.ArgumentParser(
@@ -155,18 +137,49 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived: the command stops as on Ctrl-C, cleaning up (``signum`` sets the exit status)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    """First SIGINT/SIGTERM: stop the command with its clean-up; a second one exits at once."""
+    signal.signal(signal.SIGINT, _exit_now)
+    signal.signal(signal.SIGTERM, _exit_now)
+    raise _Interrupted(signum)
+
+
+def _exit_now(signum: int, frame: object) -> None:
+    print(f"interrupted again (signal {signum}): exiting without clean-up", file=sys.stderr)
+    os._exit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point: parse, run, and turn bad input into a one-line error and exit code 2."""
+    """Entry point: parse, run, and turn bad input into a one-line error and exit code 2.
+
+    SIGTERM stops a command as Ctrl-C does (the demo stops its nodes and leaves no ROS shared-memory file; nothing
+    half-written is left under a final name), also when the shell started it with SIGINT ignored (``&``).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return int(args.func(args) or 0)
     except (InputError, FileExistsError, FileNotFoundError) as exc:
         print(f"roigsf {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print(f"roigsf {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return 128 + exc.signum if isinstance(exc, _Interrupted) else 130
+    finally:
+        for sig, handler in handlers.items():
+            if handler is not None:  # None: not set from Python, nothing to put back
+                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

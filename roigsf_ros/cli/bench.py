@@ -16,10 +16,9 @@ import shlex
 import sys
 from dataclasses import fields, replace
 from pathlib import Path
-from typing import Any
 
 from roigsf_ros.cli import check_out, image_size
-from roigsf_ros.cli.map import parse_set_value
+from roigsf_ros.cli.map import parse_overrides
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.experiments.bench import BenchConfig, parse_policies, rescore_ause, run_bench
 from roigsf_ros.experiments.pool import PoolConfig
@@ -63,37 +62,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="override a MapperConfig field for every run, e.g. --set iters_per_keyframe=20 (repeatable)",
+        help="override a MapperConfig field for every run, e.g. --set iters_per_keyframe=20 (repeatable; a list "
+        "value comma-separated)",
     )
     p.add_argument(
         "--pool-set",
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="override a PoolConfig field, e.g. --pool-set n_views=20 --pool-set pool_stride=2 (repeatable)",
+        help="override a PoolConfig field, e.g. --pool-set n_views=20 --pool-set pool_stride=2 (repeatable; a list "
+        "value comma-separated, e.g. --pool-set mesh_checkpoints=4,8)",
     )
     p.set_defaults(func=run)
-
-
-def parse_overrides(
-    items: list[str], defaults: dict[str, Any], flag: str, skip: tuple[str, ...] = ()
-) -> dict[str, Any]:
-    """{name: value} from NAME=VALUE items, typed like ``defaults``; unknown names are an InputError."""
-    out: dict[str, Any] = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        name = name.strip()
-        if not sep or name not in defaults or name in skip:
-            raise InputError(f"{flag} {item}", f"expected NAME=VALUE with NAME one of {', '.join(sorted(defaults))}")
-        default = defaults[name]
-        if isinstance(default, tuple) and default and isinstance(default[0], int | float):
-            try:
-                out[name] = tuple(type(default[0])(v) for v in text.split(",") if v.strip())
-            except ValueError:
-                raise InputError(f"{flag} {name}", f"cannot parse {text!r} as numbers") from None
-        else:
-            out[name] = parse_set_value(name, text.strip(), default, flag)
-    return out
 
 
 def config_from_args(args: argparse.Namespace) -> BenchConfig:

@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
 from dataclasses import fields, replace
 from pathlib import Path
+from typing import Any
 
 from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
-from roigsf_ros.policies.base import make_policy, policy_names
+from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names
 
 _SUMMARY_KEYS = (
     ("frames", "n_frames", "{:d}"),
@@ -81,24 +83,72 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="override any MapperConfig field, e.g. --set lr_means=1e-4 (repeatable)",
+        help="override any MapperConfig field, e.g. --set lr_means=1e-4 (repeatable; a list value comma-separated, "
+        "e.g. --set fisher_params=means,quats)",
     )
     add_camera_options(p)
     p.set_defaults(func=run)
 
 
+LIST_SEPARATOR = ","
+"""What separates the items of a list value in ``--set``/``--pool-set``/``--sensor-set`` (``+`` does so only inside a
+``roigsf bench --policies`` spec, where ``,`` already separates the policies)."""
+
+
 def parse_set_value(name: str, text: str, default: object, flag: str = "--set") -> object:
-    """A config value of ``default``'s type from the command line option ``flag``."""
+    """A config value of ``default``'s type from the command line option ``flag``; a list's items comma-separated."""
+    if isinstance(default, tuple):
+        items = [v.strip() for v in text.split(LIST_SEPARATOR) if v.strip()]
+        if default and isinstance(default[0], int | float) and not isinstance(default[0], bool):
+            try:
+                return tuple(type(default[0])(v) for v in items)
+            except ValueError:
+                raise InputError(f"{flag} {name}", _list_problem(text, "numbers")) from None
+        if "+" in text and LIST_SEPARATOR not in text:  # a policy spec's list syntax: one name that matches nothing
+            raise InputError(f"{flag} {name}", _list_problem(text, "a list"))
+        return tuple(items)
     try:
         if isinstance(default, bool):
             if text.lower() not in ("1", "0", "true", "false", "yes", "no"):
                 raise ValueError(text)
             return text.lower() in ("1", "true", "yes")
-        if isinstance(default, tuple):
-            return tuple(v.strip() for v in text.split(",") if v.strip())
         return type(default)(text)
     except ValueError:
         raise InputError(f"{flag} {name}", f"cannot parse {text!r} as {type(default).__name__}") from None
+
+
+def _list_problem(text: str, what: str) -> str:
+    """Why ``text`` is no list value of ``what``, naming the separator to use (with ``text`` rewritten in it)."""
+    example = LIST_SEPARATOR.join(
+        v.strip() for v in text.replace("+", LIST_SEPARATOR).split(LIST_SEPARATOR) if v.strip()
+    )
+    return f"cannot parse {text!r} as {what}: separate the items with commas, e.g. {example}"
+
+
+def parse_overrides(
+    items: list[str], defaults: dict[str, Any], flag: str, skip: tuple[str, ...] = ()
+) -> dict[str, Any]:
+    """{name: value} from NAME=VALUE items of option ``flag``, typed like ``defaults`` (:func:`parse_set_value`).
+
+    A name not in ``defaults``, or in ``skip`` (set by an option of its own), is an InputError listing the names it
+    takes (after the closest ones, if any): the one check of ``roigsf map --set`` and ``roigsf bench --set``/
+    ``--pool-set``.
+    """
+    names = sorted(n for n in defaults if n not in skip)
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in names:
+            close = difflib.get_close_matches(name, names, n=3) if sep else []
+            hint = f"did you mean {' or '.join(close)}? " if close else ""
+            raise InputError(f"{flag} {item}", f"expected NAME=VALUE; {hint}NAME is one of {', '.join(names)}")
+        out[name] = parse_set_value(name, text.strip(), defaults[name], flag)
+    return out
+
+
+_POLICY_OPTIONS = {"n": "--every-n", "tau_k": "--tau-k", "window": "--window"}
+"""The ``roigsf map`` option of each policy parameter it passes."""
 
 
 def config_from_args(args: argparse.Namespace) -> MapperConfig:
@@ -109,13 +159,23 @@ def config_from_args(args: argparse.Namespace) -> MapperConfig:
     if args.final_iters is not None:
         cfg = replace(cfg, final_iters=args.final_iters)
     defaults = {f.name: getattr(cfg, f.name) for f in fields(MapperConfig)}
-    for item in args.set:
-        name, sep, text = item.partition("=")
-        name = name.strip()
-        if not sep or name not in defaults:
-            raise InputError(f"--set {item}", "expected NAME=VALUE with NAME a MapperConfig field")
-        cfg = replace(cfg, **{name: parse_set_value(name, text.strip(), defaults[name])})
-    return cfg.validate()
+    for item in args.set:  # a policy parameter is no MapperConfig field: name its own option
+        name = item.partition("=")[0].strip()
+        if name in _POLICY_OPTIONS:
+            raise InputError(
+                f"--set {item}", f"{name} is a policy parameter, not a MapperConfig field: use {_POLICY_OPTIONS[name]}"
+            )
+    return replace(cfg, **parse_overrides(args.set, defaults, "--set")).validate()
+
+
+def policy_from_args(args: argparse.Namespace) -> KeyframePolicy:
+    """The keyframe policy of the command line; an error names the option typed (``--policy``, ``--tau-k``, ...)."""
+    given = {"n": args.every_n, "tau_k": args.tau_k, "window": args.window}
+    try:
+        return make_policy(args.policy, **given)
+    except InputError as exc:
+        where = f"--policy {args.policy}" if exc.where == f"policy {args.policy!r}" else exc.where
+        raise InputError(_POLICY_OPTIONS.get(where, where), exc.problem) from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -124,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     size = image_size(args)
     topics = camera_topics(args)
     check_out(args.out, args.overwrite)
-    policy = make_policy(args.policy, n=args.every_n, tau_k=args.tau_k, window=args.window)
+    policy = policy_from_args(args)
     cfg = config_from_args(args)
     source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
                          allow_partial=args.allow_partial, topics=topics)  # fmt: skip

@@ -22,7 +22,7 @@ __all__, __getattr__ = lazy_exports(
         "config": ["Config", "annotation_words", "check_annotation", "fits_annotation"],
         "errors": ["InputError"],
         "exports": ["lazy_exports"],
-        "fileio": ["atomic_dir", "atomic_path", "read_json", "write_json"],
+        "fileio": ["atomic_dir", "atomic_path", "check_writable", "read_json", "write_json"],
         "frame": ["Frame", "resize_frame", "spread_indices"],
     },
 )

@@ -26,16 +26,19 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_dir(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
+def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str | None = None) -> Iterator[Path]:
     """Yield a fresh temporary folder beside ``final``; rename it to ``final`` on success.
 
     On an exception the temporary folder is removed and ``final`` is untouched. With
     ``overwrite`` an existing ``final`` (folder, file or symlink) is replaced only after the new one
-    is complete, and removed: nothing but the new folder remains.
+    is complete, and removed: nothing but the new folder remains. Without it an existing ``final`` is a
+    FileExistsError whose ``overwrite_hint`` tells how the caller's user asks to replace it: the command line's
+    ``pass --overwrite`` by default, a request field for a service (``set overwrite: true in the request``).
     """
     final = Path(final)
     if final.exists() and not overwrite:
-        raise FileExistsError(f"{final}: already exists (pass --overwrite to replace it)")
+        hint = "pass --overwrite" if overwrite_hint is None else overwrite_hint
+        raise FileExistsError(f"{final}: already exists ({hint} to replace it)")
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
     tmp.chmod(0o777 & ~_umask())  # mkdtemp makes 0700; the result should look like any new folder
@@ -51,6 +54,27 @@ def atomic_dir(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
         _remove(old)
     else:
         tmp.rename(final)
+
+
+def check_writable(out: str | Path) -> None:
+    """Fail before any work if ``out`` cannot be created: its parent is read-only, not writable or not a folder.
+
+    Outputs are written beside their final name and renamed (:func:`atomic_dir`, :func:`atomic_path`), so the test
+    is to create and remove a temporary file in the parent (or the nearest existing ancestor, as missing parents
+    are created); a run would otherwise fail only at its end, and a path under a regular file with a bare
+    ``[Errno 17] File exists``. The one check of the command line and of the mapper's ``~/save_map``.
+    """
+    folder = Path(os.path.abspath(out)).parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(folder, f"is not a folder, so the output {out} cannot be created there")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".roigsf-write-test-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(folder, f"output folder is not writable ({exc.strerror or exc}); choose another one") from None
 
 
 def _remove(path: Path) -> None:
@@ -105,6 +129,7 @@ def read_json(path: str | Path, missing: str = "not found") -> dict[str, Any]:
 __all__ = [
     "atomic_dir",
     "atomic_path",
+    "check_writable",
     "read_json",
     "write_json",
 ]

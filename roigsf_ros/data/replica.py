@@ -155,7 +155,11 @@ class ReplicaSequence:
         else:
             cam_path = Path(cam) if cam is not None else find_cam_params(self.root)
             if cam_path is None:
-                raise InputError(self.root, "no cam_params.json here or in the parent folder; pass --cam")
+                raise InputError(
+                    self.root,
+                    "no cam_params.json here or in the parent folder: put Replica's there, or give the camera "
+                    "(cam=; on the command line --cam of roigsf bag from-replica and scene render)",
+                )
             native = load_cam_params(cam_path)
 
         self.colour_paths: dict[int, Path] = {}
@@ -184,7 +188,8 @@ class ReplicaSequence:
             raise InputError(
                 traj_path,
                 f"has {len(all_poses)} poses but results/ holds {len(self.indices)} frames "
-                "(line count must match the frames; a partial download needs allow_partial)",
+                "(line count must match the frames; a partial download needs allow_partial=True, "
+                "on the command line --allow-partial)",
             )
         self.poses = all_poses[self.indices]
         self.native = native

@@ -26,6 +26,7 @@ __all__, __getattr__ = lazy_exports(
             "MapperStats",
             "read_map_meta",
             "valid_depth_mask",
+            "write_map_meta",
         ],
         "observed_space": ["FREE", "OCCUPIED", "UNKNOWN", "ObservedSpace"],
         "tsdf": ["SurfaceVoxels", "TSDFVolume", "canonical_mesh", "o3c", "tsdf_mesh_from_depths"],

@@ -398,6 +398,16 @@ class Mapper:
         """Keyframe poses [K, 4, 4] (camera-to-world)."""
         return np.stack([kf.T_wc for kf in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
 
+    def map_keyframes(self) -> tuple[list[int], np.ndarray]:
+        """Ids and poses [K, 4, 4] of every keyframe of the map: a loaded map's first, then those added since.
+
+        The one list of what the map was built from: :meth:`save` writes it, :meth:`mesh` fuses at its poses and
+        the shared map's snapshots carry it, so a map loaded, extended and saved again keeps all its keyframes.
+        """
+        ids = [int(i) for i in self.loaded_keyframe_ids] + [int(kf.frame_id) for kf in self.keyframes]
+        poses = [*self.loaded_keyframe_poses, *(kf.T_wc for kf in self.keyframes)]
+        return ids, (np.stack(poses).astype(np.float64) if poses else np.zeros((0, 4, 4)))
+
     def valid_depth_mask(self, depth_m: np.ndarray) -> np.ndarray:
         """Bool [H, W]: finite depth within (min_depth_m, max_depth_m] (and beyond the near plane)."""
         return valid_depth_mask(depth_m, self.config)
@@ -795,14 +805,14 @@ class Mapper:
         return depth, rgb
 
     def mesh(self, poses: Iterable[np.ndarray] | None = None) -> o3d.geometry.TriangleMesh:
-        """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: keyframe or loaded poses)."""
+        """TSDF + marching-cubes mesh of rendered depth at ``poses`` (default: every keyframe's, loaded and added)."""
         # open3d is imported here, not with the module: mapping itself needs only torch (and numba on the CPU),
         # so the mapper runs on a machine without open3d, e.g. a GPU box (scripts/device_check.sh).
         from roigsf_ros.mapping.tsdf import tsdf_mesh_from_depths
 
         cfg = self.config
         if poses is None:
-            poses = self.keyframe_poses if self.keyframes else self.loaded_keyframe_poses
+            poses = self.map_keyframes()[1]
         poses = list(poses)
 
         def frames() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -820,19 +830,13 @@ class Mapper:
 
     # ------------------------------------------------------------------------------ save/load
     def save(self, out_dir: str | Path) -> None:
-        """Write ``map.ply`` (2DGS layout) and ``keyframes.json`` (ids, poses, intrinsics, config)."""
+        """Write ``map.ply`` (2DGS layout) and ``keyframes.json`` (every keyframe of :meth:`map_keyframes`, loaded
+        ones first; intrinsics, config), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d``.
+        """
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         self.map.save_ply(out / "map.ply")
-        write_json(
-            out / "keyframes.json",
-            {
-                "keyframe_ids": self.keyframe_ids,
-                "keyframe_poses": [kf.T_wc.tolist() for kf in self.keyframes],
-                "intrinsics": asdict(self.intr),
-                "config": self.config.to_dict(),
-            },
-        )
+        write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
 
     @classmethod
     def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:
@@ -912,6 +916,26 @@ class MapMeta:
 _INTRINSICS_REQUIRED = ("width", "height", "fx", "fy", "cx", "cy")
 
 
+def write_map_meta(
+    path: str | Path, keyframe_ids: list[int], keyframe_poses: np.ndarray, intr: Intrinsics, config: MapperConfig
+) -> None:
+    """Write a saved map's ``keyframes.json`` (atomically), as :func:`read_map_meta` reads it.
+
+    The one writer of the layout, for :meth:`Mapper.save` and the shared map's saves alike.
+    """
+    if len(keyframe_ids) != len(keyframe_poses):
+        raise ValueError(f"{path}: {len(keyframe_poses)} keyframe poses for {len(keyframe_ids)} keyframe ids")
+    write_json(
+        path,
+        {
+            "keyframe_ids": [int(i) for i in keyframe_ids],
+            "keyframe_poses": [np.asarray(T, dtype=np.float64).tolist() for T in keyframe_poses],
+            "intrinsics": asdict(intr),
+            "config": config.to_dict(),
+        },
+    )
+
+
 def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
     """Read and check every field of a saved map's ``keyframes.json``; InputError naming the file and the field.
 
@@ -984,4 +1008,5 @@ __all__ = [
     "MapperStats",
     "read_map_meta",
     "valid_depth_mask",
+    "write_map_meta",
 ]

@@ -23,7 +23,13 @@ from rclpy.parameter import Parameter
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BackgroundSpin, reduce_gil_switch_interval, run_nodes, shutdown_executor
+from roigsf_ros.nodes.node_params import (
+    BackgroundSpin,
+    check_parameter_overrides,
+    reduce_gil_switch_interval,
+    run_nodes,
+    shutdown_executor,
+)
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
@@ -42,7 +48,8 @@ def build_nodes(
     """The mapper, planner and selector sharing one :class:`SharedMapper` (the ones built are destroyed on error).
 
     ``params``: ``{"mapper": {...}, "nbv_planner": {...}, "keyframe_selector": {...}}`` overrides
-    (params files and ``--ros-args`` given to the context apply as well).
+    (params files and ``--ros-args`` given to the context apply as well). An override that no node of the
+    three declares is logged once per node it reached (a ``-p`` for one node reaches all three).
     """
     params = params or {}
     unknown = sorted(set(params) - set(NODE_NAMES))
@@ -51,15 +58,15 @@ def build_nodes(
     shared = SharedMapper()
     built: list[Node] = []
     try:
-        mapper = MapperNode(context=context, parameter_overrides=_as_parameters(params.get("mapper")), shared=shared)
+        kw: dict[str, Any] = {"context": context, "shared": shared, "warn_undeclared": False}
+        mapper = MapperNode(parameter_overrides=_as_parameters(params.get("mapper")), **kw)
         built.append(mapper)
-        planner = NBVPlannerNode(
-            context=context, parameter_overrides=_as_parameters(params.get("nbv_planner")), shared=shared
-        )
+        planner = NBVPlannerNode(parameter_overrides=_as_parameters(params.get("nbv_planner")), **kw)
         built.append(planner)
-        selector = KeyframeSelectorNode(
-            context=context, parameter_overrides=_as_parameters(params.get("keyframe_selector")), shared=shared
-        )
+        selector = KeyframeSelectorNode(parameter_overrides=_as_parameters(params.get("keyframe_selector")), **kw)
+        built.append(selector)
+        for node in built:
+            node.ignored_parameters = check_parameter_overrides(node, siblings=built)
     except BaseException:
         for node in built:
             node.destroy_node()

@@ -44,7 +44,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
 from roigsf_ros.data.tf import TF_MESSAGE_TYPE
-from roigsf_ros.nodes.node_params import init_ros, script_args
+from roigsf_ros.nodes.node_params import check_parameter_overrides, init_ros, script_args
 
 
 def message_class(type_name: str, where: str = "message type") -> type:
@@ -107,6 +107,11 @@ class BagPlayer(Node):
             self._setup(node_name)
         except BaseException:
             super().destroy_node()
+            raise
+        try:  # an unknown name in parameter_overrides raises, one in a params file or -p is logged
+            check_parameter_overrides(self, parameter_overrides)
+        except BaseException:
+            self.destroy_node()
             raise
 
     def _setup(self, node_name: str) -> None:

@@ -18,7 +18,12 @@ The first frame is always a keyframe. Then, by ``policy``:
   (``every_n``), ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the
   mapper's ``/roigsf/map``), ``all`` and ``novelty`` (beyond the paper: per window the frame whose depth shows
   the most surface no keyframe's depth showed, :mod:`roigsf_ros.nbv.novelty`) decide alone with the library's
-  policies.
+  policies. ``gaus-slam`` judges a frame only once the map holds every keyframe it named before (the shared map's
+  keyframe ids, else the positions on ``/roigsf/keyframe_poses``), as GauS-SLAM judges each frame on a map with all
+  earlier keyframes: judged at once on a map the mapper has not caught up with, nearly every frame rendered unmapped
+  and became a keyframe, and the mapper's queue dropped most. A frame waits at most ``map_wait_s`` (then it is
+  judged on the map as it is; ``map_waits_expired``), and at most ``map_wait_frames`` frames wait (the oldest
+  beyond is skipped, not a keyframe; ``frames_skipped_map_lag``).
 
 Beyond the paper, ``novelty_weight`` > 0 with a planner policy adds ``novelty_weight x z(N)`` to the planner's fused
 scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the library's stream policy does), N each
@@ -47,6 +52,7 @@ novelty computation (``max_novelty_s``) and the longest gap between two frames r
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import json
 import sys
@@ -55,7 +61,7 @@ import time
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
@@ -79,7 +85,14 @@ from roigsf_ros.nbv.novelty import (
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
-from roigsf_ros.nodes.mapper import KEYFRAME_TOPIC, MAP_TOPIC, camera_params, frame_of, latched_qos
+from roigsf_ros.nodes.mapper import (
+    KEYFRAME_POSES_TOPIC,
+    KEYFRAME_TOPIC,
+    MAP_TOPIC,
+    camera_params,
+    frame_of,
+    latched_qos,
+)
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
@@ -116,6 +129,12 @@ class KeyframeSelectorNode(SystemNode):
         self.novelty_radius_m = float(declare(self, "novelty_radius_m", NOVELTY_RADIUS_M, "observed within this (m)"))
         self.novelty_measure = str(declare(self, "novelty_measure", "area", "novelty counts: area | pixels"))
         self.lookahead = int(declare(self, "lookahead", 0, "newer frames that judge a window's novelty (0 = off)"))
+        self.map_wait_s = float(declare(self, "map_wait_s", 5.0, "gaus-slam: seconds a frame waits for the map to hold "
+                                        "the keyframes named before it (0 = judge on the map as it is)"))  # fmt: skip
+        self.map_wait_frames = int(declare(self, "map_wait_frames", 32, "gaus-slam: frames held meanwhile (beyond: "
+                                           "the oldest is skipped, not a keyframe)"))  # fmt: skip
+        poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "the map's keyframe poses "
+                              "(gaus-slam without a shared map)")  # fmt: skip
         camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
@@ -148,6 +167,8 @@ class KeyframeSelectorNode(SystemNode):
         check_positive("trigger_every", trigger, allow_zero=True)
         check_positive("planner_timeout_s", self.timeout_s)
         check_positive("qos_depth", qos_depth)
+        check_positive("map_wait_s", self.map_wait_s, allow_zero=True)
+        check_positive("map_wait_frames", self.map_wait_frames)
         check_positive("status_rate_hz", status_hz, allow_zero=True)
         self.trigger_every = trigger or self.window
         self.uses_planner = self.policy in PLANNER_POLICIES
@@ -193,6 +214,16 @@ class KeyframeSelectorNode(SystemNode):
             ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "planner_waited", "fallbacks"),
             0,
         )
+        self.counters |= {"frames_skipped_map_lag": 0, "map_waits_expired": 0}
+        self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
+        """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
+        live, the mapper inserts them later, and judged at once nearly every frame would render unmapped."""
+        self._unmapped: dict[int, tuple[float, tuple[float, ...]]] = {}
+        """Keyframes named that the map does not hold yet: stamp -> (monotonic time named, camera position)."""
+        self._held_for_map: collections.deque[tuple[Frame, Intrinsics, bool]] = collections.deque()
+        """Frames waiting for the map (frame, intrinsics, whether it is the first frame), oldest first."""
+        self._map_positions: set[tuple[float, ...]] = set()
+        """Without a shared map: the positions of the map's keyframes, from its latest keyframe poses."""
         self.slowest_s = {"answer": 0.0, "novelty": 0.0, "frame_gap": 0.0}
         """Wall seconds of the longest wait for a planner's answer to a window of the stream (the held frames sent
         by :meth:`finish` left out: nothing comes after them), of the slowest novelty computation and of the longest
@@ -220,6 +251,12 @@ class KeyframeSelectorNode(SystemNode):
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
         if shared is None and "gaus-slam" in (self.policy, self.fallback):
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
+        if self.waits_for_map:
+            if shared is None:
+                self.create_subscription(
+                    PoseArray, poses_topic, self._on_map_poses, latched_qos(), callback_group=inputs
+                )
+            self.create_timer(0.05, self._judge_held, callback_group=inputs)
         how = f"asking {self.service_name} (fallback {self.fallback})" if self.uses_planner else "deciding alone"
         window = f"window {self.window}" + (f", lookahead {self.lookahead}" if self.lookahead else "")
         window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
@@ -247,6 +284,33 @@ class KeyframeSelectorNode(SystemNode):
         with self._lock:
             self._cloud = msg
             self._cloud_version += 1
+
+    def _on_map_poses(self, msg: PoseArray) -> None:
+        with self._lock:
+            self._map_positions = {_position_key(p.position.x, p.position.y, p.position.z) for p in msg.poses}
+
+    def _map_lags(self) -> bool:
+        """Whether a keyframe named less than ``map_wait_s`` ago is not in the map yet (forgets those that are)."""
+        if not self._unmapped:
+            return False
+        if self.shared is not None:
+            held = set(self.shared.keyframe_ids())
+            mapped = [k for k in self._unmapped if k in held]
+        else:
+            mapped = [k for k, (_, pos) in self._unmapped.items() if pos in self._map_positions]
+        now = time.monotonic()
+        expired = [k for k, (t, _) in self._unmapped.items() if k not in mapped and now - t > self.map_wait_s]
+        self.counters["map_waits_expired"] += len(expired)  # dropped by the mapper, or it is slower than the wait
+        for k in (*mapped, *expired):
+            del self._unmapped[k]
+        return bool(self._unmapped)
+
+    def _judge_held(self) -> None:
+        """Judge the frames held for the map, oldest first, while the map holds every keyframe named before them."""
+        with self._lock:
+            while self._held_for_map and not self._map_lags():
+                frame, intr, first = self._held_for_map.popleft()
+                self._decide_alone(self._alone, [frame], intr, force_first=first)
 
     def _map_view(self, intr: Intrinsics) -> Mapper:
         """A Mapper holding the current map to render (an empty one before any map arrives)."""
@@ -280,6 +344,13 @@ class KeyframeSelectorNode(SystemNode):
             self._last_intr = bf.intrinsics
             first = self._seen == 0
             self._seen += 1
+            if self.waits_for_map:  # judged once the map holds the keyframes named before it
+                self._held_for_map.append((frame, bf.intrinsics, first))
+                while len(self._held_for_map) > self.map_wait_frames:  # the mapper is that far behind: skip
+                    self._held_for_map.popleft()
+                    self.counters["frames_skipped_map_lag"] += 1
+                self._judge_held()
+                return
             if not self.uses_planner:
                 self._decide_alone(self._alone, [frame], bf.intrinsics, force_first=first)
                 return
@@ -510,6 +581,8 @@ class KeyframeSelectorNode(SystemNode):
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, frame: Frame, intr: Intrinsics) -> None:
         self.keyframe_ids.append(int(frame.index))
+        if self.waits_for_map:
+            self._unmapped[int(frame.index)] = (time.monotonic(), _position_key(*frame.T_wc[:3, 3]))
         self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
         if self._observed is None:
             return
@@ -538,6 +611,7 @@ class KeyframeSelectorNode(SystemNode):
                 "keyframe_ids": list(self.keyframe_ids),
                 "window": self._window.pending_ids,
                 "planner_pending": self._request is not None,
+                "frames_held_for_map": len(self._held_for_map),
                 "planner_window_waiting": self._waiting is not None,
                 **self.counters,
                 "max_answer_s": self.slowest_s["answer"],
@@ -562,6 +636,11 @@ class KeyframeSelectorNode(SystemNode):
         if self._novelty_pool is not None:
             self._novelty_pool.shutdown(wait=True, cancel_futures=True)
         super().destroy_node()
+
+
+def _position_key(x: float, y: float, z: float) -> tuple[float, ...]:
+    """A camera position (m) as a set key: a keyframe's pose is the frame's, so the mapper's equals ours."""
+    return (round(float(x), 6), round(float(y), 6), round(float(z), 6))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -52,6 +52,7 @@ from visualization_msgs.msg import Marker
 
 from roigsf_interfaces.srv import LoadMap, SaveMap
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import check_writable
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame, CameraTopics, stamp_to_ns
 from roigsf_ros.mapping.mapper import MapperConfig
@@ -491,16 +492,23 @@ class MapperNode(SystemNode):
         """Publish :meth:`status` as JSON on ``~/status``."""
         self._status_pub.publish(String(data=json.dumps(self.status())))
 
-    def save(self, directory: str, with_mesh: bool = False, overwrite: bool = False) -> tuple[int, int]:
-        """Save the map (atomically) into ``directory``; returns (keyframes, surfels)."""
-        snap = self.shared.save(directory, with_mesh=with_mesh, overwrite=overwrite)
+    def save(
+        self, directory: str, with_mesh: bool = False, overwrite: bool = False, overwrite_hint: str | None = None
+    ) -> tuple[int, int]:
+        """Save the map (atomically) into ``directory``; returns (keyframes, surfels). ``overwrite_hint``: how the
+        caller's user replaces an existing folder (:meth:`SharedMapper.save`).
+        """
+        snap = self.shared.save(directory, with_mesh=with_mesh, overwrite=overwrite, overwrite_hint=overwrite_hint)
         return len(snap.keyframe_ids), snap.n_surfels
 
     def _on_save(self, req: SaveMap.Request, res: SaveMap.Response) -> SaveMap.Response:
         try:
             if not req.directory:
                 raise InputError("directory", "no folder given")
-            res.keyframes, res.surfels = self.save(req.directory, req.with_mesh, req.overwrite)
+            check_writable(req.directory)  # as the command line: a path under a file "is not a folder", not Errno 17
+            # An existing folder's error names the request field, not the command line's --overwrite.
+            hint = "set overwrite: true in the request"
+            res.keyframes, res.surfels = self.save(req.directory, req.with_mesh, req.overwrite, overwrite_hint=hint)
             res.success = True
             res.message = f"saved {res.keyframes} keyframes, {res.surfels} surfels to {req.directory}"
             self.get_logger().info(res.message)

@@ -13,21 +13,25 @@ import ast
 import concurrent.futures
 import contextlib
 import dataclasses
+import difflib
 import functools
 import inspect
 import itertools
 import os
+import re
 import signal
 import sys
 import textwrap
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
@@ -98,11 +102,88 @@ def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str,
     return out
 
 
+RCLPY_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+"""Parameters rclpy itself reads (declared by it on demand): overrides of them are never a node's typo."""
+
+RCLPY_PARAMETER_PREFIXES = ("qos_overrides.",)
+"""Prefixes of rclpy's own parameters (QoS overrides of a topic, declared only where a node allows them)."""
+
+
+def _declared_names(node: Node) -> list[str]:
+    """The parameters ``node`` declared, rclpy's own left out: the names a typo is matched against."""
+    return [n for n in node.list_parameters([], 0).names if n not in RCLPY_PARAMETERS]
+
+
+def _closest(name: str, declared: Iterable[str]) -> list[str]:
+    """The declared names closest to an unknown parameter ``name`` (at most 3, none when nothing is close)."""
+    return difflib.get_close_matches(name, list(declared), n=3, cutoff=0.75)
+
+
+def _hint(name: str, declared: Iterable[str]) -> str:
+    """`` (closest declared: a, b)`` after an unknown parameter ``name``, or "" when no declared name is close."""
+    close = _closest(name, declared)
+    return f" (closest declared: {', '.join(close)})" if close else ""
+
+
+def undeclared_overrides(node: Node, also_declared: Iterable[str] = ()) -> list[str]:
+    """The overrides addressed to ``node`` (params files, ``-p``, its constructor) that it does not declare, sorted.
+
+    rclpy ignores them without a word (its ``_parameter_overrides`` keeps them all); a misspelt name in a
+    params file or ``-p`` would leave the node on its default. ``also_declared``: names another node of the
+    process declares (a ``-p`` or ``/**:`` entry reaches every node); rclpy's own parameters are skipped.
+    """
+    known = set(also_declared)
+    return sorted(
+        name
+        for name in getattr(node, "_parameter_overrides", {})
+        if not node.has_parameter(name)
+        and name not in known
+        and name not in RCLPY_PARAMETERS
+        and not name.startswith(RCLPY_PARAMETER_PREFIXES)
+    )
+
+
+def check_parameter_overrides(
+    node: Node,
+    explicit: Iterable[Parameter] | None = None,
+    *,
+    warn: bool = True,
+    siblings: Sequence[Node] = (),
+) -> list[str]:
+    """Call once ``node`` declared all its parameters: an InputError for an undeclared one in ``explicit``, else
+    ONE warning naming the other undeclared overrides (with the closest declared names); returns those names.
+
+    ``explicit``: the ``parameter_overrides`` given to the node's constructor, a call naming this node, so an
+    unknown name there is an error; a params file or ``-p`` may carry other nodes' parameters (ROS ignores
+    those), so they only warn. ``siblings``: the other nodes of the process, whose names are not typos here.
+    """
+    declared = _declared_names(node)
+    unknown_explicit = sorted({p.name for p in explicit or ()} - set(node.list_parameters([], 0).names))
+    if len(unknown_explicit) == 1:
+        name = unknown_explicit[0]
+        raise InputError(f"parameter '{node.get_name()}.{name}'", f"not declared by this node{_hint(name, declared)}")
+    if unknown_explicit:
+        where = "parameters " + ", ".join(f"'{node.get_name()}.{name}'" for name in unknown_explicit)
+        hints = "; ".join(f"{name}: {', '.join(c)}" for name in unknown_explicit if (c := _closest(name, declared)))
+        raise InputError(where, "not declared by this node" + (f" (closest declared {hints})" if hints else ""))
+    others = [n for n in siblings if n is not node]
+    also = [name for other in others for name in _declared_names(other)]
+    ignored = undeclared_overrides(node, also)
+    if warn and ignored:
+        by = " nor by " + ", ".join(n.get_name() for n in others) if others else ""
+        names = ", ".join(f"{name}{_hint(name, declared + also)}" for name in ignored)
+        node.get_logger().warning(f"ignored parameter(s) not declared by this node{by}: {names}")
+    return ignored
+
+
 class SystemNode(Node):
     """A node of the active-mapping system; ``shared``: the in-process map (None: the node runs on its own).
 
     Subclasses set :attr:`default_name` and build everything in :meth:`_setup`. A set-up that raises
     destroys the half-built node (rclpy's part only: a subclass's ``destroy_node`` expects a whole node).
+    Then :func:`check_parameter_overrides` runs: an unknown name in ``parameter_overrides`` raises (the
+    whole node destroyed), one in a params file or ``-p`` is logged, unless ``warn_undeclared`` is false (a
+    process of several nodes checks them together, see ``active_mapping.build_nodes``).
     """
 
     default_name = ""
@@ -114,12 +195,18 @@ class SystemNode(Node):
         parameter_overrides: list[Parameter] | None = None,
         shared: SharedMapper | None = None,
         node_name: str | None = None,
+        warn_undeclared: bool = True,
     ) -> None:
         super().__init__(node_name or self.default_name, context=context, parameter_overrides=parameter_overrides)
         try:
             self._setup(shared)
         except BaseException:
             Node.destroy_node(self)
+            raise
+        try:  # the overrides addressed to this node that it does not declare (logged unless warn_undeclared is off)
+            self.ignored_parameters = check_parameter_overrides(self, parameter_overrides, warn=warn_undeclared)
+        except BaseException:
+            self.destroy_node()
             raise
 
     def _setup(self, shared: SharedMapper | None) -> None:
@@ -168,12 +255,56 @@ ROS_ARGS_HELP = """ROS arguments (after --ros-args):
   -r __node:=NAME        rename the node; -r OLD:=NEW remaps a topic"""
 
 
+_RCL_LOCATION = re.compile(r",? at [^,]*:\d+")
+"""rcl's ``, at /project/src/parser.c:271`` source locations in its error messages."""
+
+_RCL_RULE = re.compile(r"Couldn't parse (?P<what>[^:']+?): '(?P<arg>.*)'\.(?: Error: (?P<why>.*))?$", re.DOTALL)
+"""rcl's message for an argument it could not parse: what kind, the argument, its reason."""
+
+
+def ros_args_error(exc: Exception) -> InputError:
+    """An InputError naming the ROS argument rclpy refused (``exc``: its RCLInvalidROSArgsError or
+    UnknownROSArgsError), without rcl's source locations; a params file is checked here to say which of
+    not found, unreadable or not valid YAML it is.
+    """
+    if isinstance(exc, _rclpy.UnknownROSArgsError):
+        try:
+            unknown = ", ".join(map(str, ast.literal_eval(str(exc))))  # rclpy's message is the list's repr
+        except (ValueError, SyntaxError, TypeError):
+            unknown = str(exc)
+        return InputError("--ros-args", f"unknown ROS argument(s) {unknown} (see --help)")
+    text = _RCL_LOCATION.sub("", str(exc)).removeprefix("Failed to parse ROS arguments: ").strip()
+    rule = _RCL_RULE.match(text)
+    if rule is None:
+        return InputError("--ros-args", text)
+    arg, why = rule["arg"], (rule["why"] or "").strip()
+    flag, _, value = arg.partition(" ")
+    if rule["what"] == "params file" and flag == "--params-file":
+        path = Path(value)
+        if not path.exists():
+            return InputError(path, "params file not found")
+        if not path.is_file() or not os.access(path, os.R_OK):
+            return InputError(path, "params file cannot be read (not a readable file)")
+        return InputError(path, f"not a valid YAML params file ({why})")
+    if rule["what"] == "parameter override rule":
+        return InputError(f"'{arg}'", "a parameter is set as -p NAME:=VALUE")
+    if rule["what"] == "remap rule":
+        return InputError(f"'{arg}'", "a remap is -r OLD:=NEW")
+    return InputError(f"'{arg}'", f"cannot parse {rule['what']}" + (f" ({why})" if why else ""))
+
+
+ROS_ARGS_ERRORS = (_rclpy.RCLInvalidROSArgsError, _rclpy.UnknownROSArgsError)
+"""What rclpy raises for ROS arguments it cannot parse (reported by :func:`ros_args_error`, exit code 2)."""
+
+
 def script_args(program: str, description: str | None, args: list[str] | None, bag: bool = False) -> list[str]:
     """The console scripts' own command line: ``--help`` prints help and exits 0 before ROS starts.
 
     Plain (non-ROS) arguments are parsed by argparse, so anything unknown exits 2 with usage; with
     ``bag`` an optional positional BAG is accepted (as ``ros2 bag play BAG``) and becomes the ``bag``
-    parameter. Returns the argument list for ``rclpy.init``.
+    parameter. ROS arguments rclpy cannot parse (a missing or invalid params file, ``-p NAME`` without
+    ``:=VALUE``) exit 2 with one line naming them (:func:`ros_args_error`). Returns the argument list for
+    ``rclpy.init``.
     """
     argv = list(sys.argv if args is None else args)
     parser = argparse.ArgumentParser(
@@ -184,7 +315,12 @@ def script_args(program: str, description: str | None, args: list[str] | None, b
     )
     if bag:
         parser.add_argument("bag", nargs="?", metavar="BAG", help="bag folder or .mcap file (or -p bag:=PATH)")
-    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        plain = remove_ros_args(argv)
+    except ROS_ARGS_ERRORS as exc:
+        print(f"{program}: error: {ros_args_error(exc)}", file=sys.stderr)
+        raise SystemExit(2) from None
+    ns = parser.parse_args(plain[1:])
     if bag and ns.bag:
         quoted = "'" + str(ns.bag).replace("'", "''") + "'"  # a YAML string, whatever the path looks like
         argv += ["--ros-args", "-p", f"bag:={quoted}"]
@@ -194,7 +330,8 @@ def script_args(program: str, description: str | None, args: list[str] | None, b
 def init_ros(args: list[str] | None = None) -> None:
     """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
 
-    Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`).
+    Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`). ROS arguments rclpy cannot
+    parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` does.
 
     rclpy's own handlers shut the context down inside the signal handler, under the executor's feet:
     callbacks still running then fail ("publisher's context is invalid", printed by rclpy as "exception
@@ -203,7 +340,10 @@ def init_ros(args: list[str] | None = None) -> None:
     nodes and shuts the context down last. A second signal during that clean-up exits at once (128 + signal).
     """
     reduce_gil_switch_interval()
-    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
+    except ROS_ARGS_ERRORS as exc:
+        raise ros_args_error(exc) from None
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
 
@@ -276,9 +416,9 @@ def run_nodes(
 ) -> int:
     """Console-script body: init, build the nodes, spin them on a multi-threaded executor until Ctrl-C.
 
-    Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters (or ``ROIGSF_GIL_SWITCH_INTERVAL_S``) are bad,
-    the message naming them. Spins with ``spin_once`` in a loop (plain ``spin`` does not always return on
-    SIGINT, see the notes).
+    Exit codes: 0 after Ctrl-C/shutdown, 2 when the parameters, the ROS arguments (or
+    ``ROIGSF_GIL_SWITCH_INTERVAL_S``) are bad, the message naming them. Spins with ``spin_once`` in a loop
+    (plain ``spin`` does not always return on SIGINT, see the notes).
     """
     args = script_args(program, description, args)
     try:
@@ -318,17 +458,23 @@ def run_nodes(
 
 __all__ = [
     "BAD_PARAMETER_ERRORS",
+    "RCLPY_PARAMETERS",
+    "RCLPY_PARAMETER_PREFIXES",
+    "ROS_ARGS_ERRORS",
     "ROS_ARGS_HELP",
     "BackgroundSpin",
     "SystemNode",
+    "check_parameter_overrides",
     "check_positive",
     "declare",
     "declare_config",
     "field_docs",
     "init_ros",
     "reduce_gil_switch_interval",
+    "ros_args_error",
     "run_nodes",
     "script_args",
     "settings_text",
     "shutdown_executor",
+    "undeclared_overrides",
 ]

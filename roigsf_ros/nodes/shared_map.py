@@ -4,7 +4,8 @@ ROS-free. The mapper node owns the writes (keyframe insertion and optimisation i
 the lock); the planner and the selector read :meth:`SharedMapper.snapshot` (cloned tensors, so they
 never see a half-written step and never hold the lock while they score). The map is created on the
 first frame (its intrinsics), or by :meth:`SharedMapper.load`. Keyframe ids/poses of a loaded map
-are kept: :attr:`MapSnapshot.keyframe_ids` lists the loaded ones first, then the ones added since.
+are kept: :attr:`MapSnapshot.keyframe_ids` lists the loaded ones first, then the ones added since
+(:meth:`Mapper.map_keyframes`, which :meth:`Mapper.save` writes too).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import json
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,8 @@ from torch import Tensor
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, write_json
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.core.fileio import atomic_dir
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig, write_map_meta
 from roigsf_ros.render.surfels import SurfelMap
 
 
@@ -166,9 +167,8 @@ class SharedMapper:
 
     @staticmethod
     def _ids_poses(m: Mapper) -> tuple[list[int], np.ndarray]:
-        ids = [*m.loaded_keyframe_ids, *m.keyframe_ids]
-        poses = [p for p in m.loaded_keyframe_poses] + [kf.T_wc.copy() for kf in m.keyframes]
-        return ids, (np.stack(poses) if poses else np.zeros((0, 4, 4)))
+        """Every keyframe of the map, loaded first: :meth:`Mapper.map_keyframes`, which the library's save writes."""
+        return m.map_keyframes()
 
     def keyframe_ids(self) -> list[int]:
         """All keyframe ids (loaded first)."""
@@ -200,12 +200,22 @@ class SharedMapper:
             )
 
     # ----------------------------------------------------------------------------- outputs
-    def save(self, directory: str | Path, with_mesh: bool = False, overwrite: bool = False) -> MapSnapshot:
-        """Write map.ply + keyframes.json (+ mesh.ply) atomically from a snapshot (lock not held while writing)."""
+    def save(
+        self,
+        directory: str | Path,
+        with_mesh: bool = False,
+        overwrite: bool = False,
+        overwrite_hint: str | None = None,
+    ) -> MapSnapshot:
+        """Write map.ply + keyframes.json (+ mesh.ply) atomically from a snapshot (lock not held while writing).
+
+        An existing ``directory`` without ``overwrite`` is a FileExistsError whose ``overwrite_hint`` tells the
+        caller's user how to replace it (default: the command line's ``--overwrite``; :func:`atomic_dir`).
+        """
         snap = self.snapshot(with_h_train=False)
         if snap is None:
             raise InputError(directory, "nothing to save: the mapper has no map yet")
-        with atomic_dir(directory, overwrite=overwrite) as tmp:
+        with atomic_dir(directory, overwrite=overwrite, overwrite_hint=overwrite_hint) as tmp:
             save_snapshot(snap, tmp, with_mesh=with_mesh)
         return snap
 
@@ -248,15 +258,7 @@ def decimate_mesh(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
 def save_snapshot(snap: MapSnapshot, directory: Path, with_mesh: bool = False) -> None:
     """Write a snapshot into an existing folder in :meth:`Mapper.save`'s layout (readable by :meth:`Mapper.load`)."""
     snap.surfel_map.save_ply(directory / "map.ply")
-    write_json(
-        directory / "keyframes.json",
-        {
-            "keyframe_ids": [int(i) for i in snap.keyframe_ids],
-            "keyframe_poses": [T.tolist() for T in snap.keyframe_poses],
-            "intrinsics": asdict(snap.intrinsics),
-            "config": snap.config.to_dict(),
-        },
-    )
+    write_map_meta(directory / "keyframes.json", snap.keyframe_ids, snap.keyframe_poses, snap.intrinsics, snap.config)
     if with_mesh:
         mesh = snapshot_mesh(snap)
         if not o3d.io.write_triangle_mesh(str(directory / "mesh.ply"), mesh):

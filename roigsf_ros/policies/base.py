@@ -143,17 +143,18 @@ def policy_names() -> list[str]:
 
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
     """A policy by registered name; ``None``-valued params are dropped; an unknown one is an InputError naming the
-    policy, and a value not of its parameter's type (a word for a number, say) one naming the parameter (the
-    constructor's check, :func:`_checked_init`).
+    policy (``policy 'x': ...``, no command-line flag: callers are the CLI, a node parameter, a pool config), and a
+    value not of its parameter's type (a word for a number, say) one naming the parameter (the constructor's check,
+    :func:`_checked_init`).
     """
     if name not in _REGISTRY:
-        raise InputError("--policy", f"unknown keyframe policy {name!r}; choose one of {', '.join(policy_names())}")
+        raise InputError(f"policy {name!r}", f"unknown keyframe policy; choose one of {', '.join(policy_names())}")
     factory = _REGISTRY[name]
     given = {k: v for k, v in params.items() if v is not None}
     sig = inspect.signature(factory).parameters  # names only: the constructor checks the types
     extra = sorted(set(given) - set(sig))
     if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
-        raise InputError("--policy", f"policy {name!r} takes no parameter(s) {', '.join(extra)}")
+        raise InputError(f"policy {name!r}", f"takes no parameter(s) {', '.join(extra)}")
     return factory(**given)
 
 

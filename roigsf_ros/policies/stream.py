@@ -258,7 +258,7 @@ class StreamNBVPolicy(KeyframePolicy):
                "phi": phi, "near_m": near_m, "far_m": far_m}  # fmt: skip
         unknown = sorted(set(nbv_options) - {f.name for f in fields(NBVConfig)} | ({"mode"} & set(nbv_options)))
         if unknown:
-            raise InputError("--policy", f"policy {self.name!r} takes no parameter(s) {', '.join(unknown)}")
+            raise InputError(f"policy {self.name!r}", f"takes no parameter(s) {', '.join(unknown)}")
         nbv |= nbv_options
         self._nbv_overrides = {k: v for k, v in nbv.items() if v is not None}
         self.config = NBVConfig(mode=self.mode or "roi-gsurfisher", **self._nbv_overrides)
