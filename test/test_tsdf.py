@@ -13,6 +13,7 @@ from roigsf_ros.core.camera import Intrinsics, load_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import load_traj
 from roigsf_ros.evaluation.metrics import mesh_metrics, raycast_depth, raycasting_scene
+from roigsf_ros.mapping import tsdf
 from roigsf_ros.mapping.tsdf import TSDFVolume, canonical_mesh, tsdf_mesh_from_depths
 
 INTR = Intrinsics(160, 120, 120.0, 120.0, 79.5, 59.5)
@@ -260,3 +261,21 @@ def test_a_volume_without_colour_holds_the_same_geometry_in_a_smaller_block_map(
     assert not b.has_color
     with pytest.raises(InputError, match="rgb"):
         b.integrate(np.full((48, 64), 2.0, np.float32), np.eye(4), intr, np.zeros((48, 64, 3), np.uint8))
+
+
+def test_mesh_colours_are_clamped_to_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Marching cubes interpolates fused colour to just past 1 (1.0000001 on the demo's map): the mesh clamps it, as
+    open3d's PLY writer did with a "Write Ply clamped color value" warning in every run."""
+    volume = TSDFVolume(voxel_size_m=0.04)
+    depth = np.full((INTR.height, INTR.width), 1.5, np.float32)
+    assert volume.integrate(depth, np.eye(4), INTR, np.full((INTR.height, INTR.width, 3), 255, np.uint8))
+    canonical = tsdf.canonical_mesh
+
+    def past_one(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+        out = canonical(mesh)
+        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(out.vertex_colors) * (1 + 1e-7))
+        return out
+
+    monkeypatch.setattr(tsdf, "canonical_mesh", past_one)
+    colours = np.asarray(volume.extract_mesh().vertex_colors)
+    assert len(colours) > 0 and colours.max() == 1.0

@@ -167,6 +167,8 @@ class TSDFVolume:
         mesh = canonical_mesh(mesh_t.to_legacy())
         if not self.has_color:
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
+        elif mesh.has_vertex_colors():  # interpolated colours reach 1 + 1e-7: clamp as open3d's PLY writer would warn
+            mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
         return mesh
 
     def save_mesh(self, path: str | Path, min_weight: float = 1.0) -> o3d.geometry.TriangleMesh:
