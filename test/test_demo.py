@@ -224,3 +224,20 @@ def test_demo_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
     assert proc.returncode == 143, (proc.returncode, out, err)
     assert "roigsf demo: interrupted" in err and not TRACEBACK.search(out + err), err
     assert not run.exists()
+
+
+def test_demo_says_why_it_fails_when_frames_did_not_reach_the_nodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Exit 1 with a line naming how many of the bag's frames the nodes did not get (before: exit 1 and the normal
+    report, nothing saying why)."""
+    from roigsf_ros.cli import demo, main
+
+    bag = _bag(tmp_path, 4, 32, 24, seed=7)
+    metrics = {"policy": "every-n", "frames_received": 3, "fallbacks": 0, "keyframes_not_mapped": 0}
+    monkeypatch.setattr(demo, "run_demo", lambda *args, **kwargs: metrics)
+    assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "error: 1 of the bag's 4 frames did not reach the nodes complete and valid (at rate x0" in err, err
+    metrics["frames_received"] = 4
+    assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 0

@@ -628,9 +628,9 @@ def _run(args: argparse.Namespace) -> int:
     missed = info["frame_count"] - metrics["frames_received"]
     if missed:  # the map and its figures are of the frames that came: say so, and fail
         print(
-            f"roigsf demo: error: {missed} of the bag's {info['frame_count']} frames never reached the nodes "
-            f"(at rate x{args.rate:g}; replay.json has the player's and the nodes' counts): the results are of the "
-            "rest",
+            f"roigsf demo: error: {missed} of the bag's {info['frame_count']} frames did not reach the nodes complete "
+            f"and valid (at rate x{args.rate:g}; replay.json has the player's and the nodes' counts): the results are "
+            "of the rest",
             file=sys.stderr,
         )
         return 1

@@ -32,8 +32,8 @@ the selector holds the frames. N is computed in a thread of the selector's own w
 (in the node's timer it held the frames back, which then came in bursts, and with them windows faster than any
 planner answers); the same thread adds each keyframe's depth, in order, and an answer is taken once its window's N
 is in, so no callback of the node waits for either. ``fallback_policy: novelty`` decides an unanswered window by N.
-Depth counts within
-the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults, 0.1-10 m).
+Depth counts within the mapper's depth range (the shared mapper's settings in ``active_mapping``, else the defaults,
+0.1-10 m).
 ``lookahead`` > 0 (with policy ``novelty``, or a planner policy and ``novelty_weight`` > 0) decides each window once
 the next ``lookahead`` frames are in, N becoming the lookahead novelty (the library's ``lookahead``); the planner
 is asked about the window's frames only. A stream has no end a node could see, so the frames still held when the
