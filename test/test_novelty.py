@@ -41,6 +41,22 @@ def test_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -
     assert surface.unreached_points(q) == np.count_nonzero(dist > (radius_m + 0.5 * voxel_m) / voxel_m + 1e-9)
 
 
+def test_the_hash_set_in_small_chunks_holds_and_finds_the_same() -> None:
+    """Inserts and lookups go into open3d's hash set in chunks (each call holds Python's lock), from a capacity large
+    enough not to rehash: chunks of 97 rows from a small set that grows give the k-d tree reference's counts too."""
+    rng = np.random.default_rng(8)
+    clouds = [c + rng.normal(0.0, 0.15, (800, 3)) for c in rng.uniform(-1.0, 1.0, (3, 3))]
+    counts = []
+    for kwargs in ({}, {"hash_capacity": 64, "hash_chunk_rows": 97}):
+        surface = ObservedSurface(0.025, 0.05, **kwargs)
+        surface.add_points(clouds[0])
+        surface.add_points(clouds[1])
+        counts.append((surface.new_voxels(clouds[2]), surface.unreached_points(clouds[2])))
+    assert counts[0] == counts[1] and counts[0][0] == reference_new_voxels(clouds[:2], clouds[2], 0.025, 0.05)
+    with pytest.raises(InputError, match="hash_chunk_rows"):
+        ObservedSurface(hash_chunk_rows=0)
+
+
 @pytest.mark.parametrize(("voxel_m", "radius_m"), [(0.025, 0.05), (0.1, 0.0), (0.03, 0.1)])
 def test_lookahead_new_voxels_equal_a_kd_tree_reference(voxel_m: float, radius_m: float) -> None:
     """Each candidate's new voxels plus the most one frame ahead still adds after it, against the k-d tree count."""

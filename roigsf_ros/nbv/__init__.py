@@ -18,6 +18,8 @@ __all__, __getattr__ = lazy_exports(
             "UNSEEN_SOURCES",
         ],
         "novelty": [
+            "HASH_CAPACITY",
+            "HASH_CHUNK_ROWS",
             "NOVELTY_MEASURES",
             "NOVELTY_RADIUS_M",
             "NOVELTY_VOXEL_M",

@@ -41,6 +41,16 @@ NOVELTY_MEASURES = ("area", "pixels")
 """What a frame's novelty counts: the area of surface it shows first (the default), or the held frames' pixels
 it brings within reach (:meth:`ObservedSurface.held_pixels_covered`)."""
 
+HASH_CHUNK_ROWS = 1 << 16
+"""Rows per call into open3d's hash set: a call holds Python's lock throughout (a keyframe's 1.4M reach keys took 84 ms
+in one call, stalling every other thread of the node, the executor's among them), so large inserts and lookups go in
+chunks of a few milliseconds each. The same set either way."""
+
+HASH_CAPACITY = 1 << 21
+"""Initial capacity of the observed-surface hash set: growing it rehashes every entry in one call that holds Python's
+lock (0.07 s at 0.26M entries, 0.14 s at 0.5M on the shipped bag's keyframes), so it starts large enough that a room's
+reach voxels (0.6M for the shipped bag) never make it grow; pages are touched only as it fills (4 MB at 1M empty)."""
+
 _MAX_INDEX = 1 << 30
 """Voxel indices stay within int32 (+-2^30 voxels: far beyond any map; larger means a broken pose or depth)."""
 
@@ -67,9 +77,19 @@ class ObservedSurface:
     """
 
     def __init__(
-        self, voxel_m: float = NOVELTY_VOXEL_M, radius_m: float = NOVELTY_RADIUS_M, measure: str = "area"
+        self,
+        voxel_m: float = NOVELTY_VOXEL_M,
+        radius_m: float = NOVELTY_RADIUS_M,
+        measure: str = "area",
+        hash_capacity: int = HASH_CAPACITY,
+        hash_chunk_rows: int = HASH_CHUNK_ROWS,
     ) -> None:
         check_novelty_settings(voxel_m, radius_m, measure)
+        for name, value in (("hash_capacity", hash_capacity), ("hash_chunk_rows", hash_chunk_rows)):
+            if int(value) < 1:
+                raise InputError(name, f"must be at least 1, got {value}")
+        self.hash_chunk_rows = int(hash_chunk_rows)
+        """Rows per call into the hash set (:data:`HASH_CHUNK_ROWS`); the same counts whatever it is."""
         self.measure = measure
         """What :meth:`frames_novelty` counts: "area" (m^2 of new surface) or "pixels" (held frames' pixels)."""
         self.voxel_m = float(voxel_m)
@@ -80,7 +100,7 @@ class ObservedSurface:
         offs = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), axis=-1).reshape(-1, 3)
         self._offsets = offs[(offs**2).sum(axis=1) <= r * r + 1e-9].astype(np.int64)
         """Integer voxel offsets within reach: [K, 3]."""
-        self._reached = o3d.core.HashSet(1 << 16, o3d.core.int32, [3], o3d.core.Device("CPU:0"))
+        self._reached = o3d.core.HashSet(int(hash_capacity), o3d.core.int32, [3], o3d.core.Device("CPU:0"))
         self.n_added = 0
         """Frames added so far."""
 
@@ -102,8 +122,10 @@ class ObservedSurface:
         """Mark the voxels within reach of ``points_w`` [N, 3] (world, metres) as observed."""
         ijk = self._voxels(points_w)
         if len(ijk):  # open3d hashes the [3] keys itself (packing them into one int64 hashed badly: 100x slower)
-            reached = (ijk[:, None, :] + self._offsets[None].astype(np.int32)).reshape(-1, 3)
-            self._reached.insert(o3d.core.Tensor(np.ascontiguousarray(reached)))
+            reached = np.ascontiguousarray((ijk[:, None, :] + self._offsets[None].astype(np.int32)).reshape(-1, 3))
+            step = self.hash_chunk_rows
+            for start in range(0, len(reached), step):  # Python's lock released between the chunks
+                self._reached.insert(o3d.core.Tensor(reached[start : start + step]))
         self.n_added += 1
 
     def add(self, depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, valid: np.ndarray) -> None:
@@ -114,8 +136,12 @@ class ObservedSurface:
         """[N] bool: which voxels of ``ijk`` [N, 3] int32 (distinct) no added observation reaches."""
         if len(ijk) == 0 or self.n_added == 0:
             return np.ones(len(ijk), dtype=bool)
-        _, found = self._reached.find(o3d.core.Tensor(np.ascontiguousarray(ijk)))
-        return ~found.numpy().astype(bool)
+        ijk, step = np.ascontiguousarray(ijk), self.hash_chunk_rows
+        found = [
+            self._reached.find(o3d.core.Tensor(ijk[start : start + step]))[1].numpy().astype(bool)
+            for start in range(0, len(ijk), step)  # Python's lock released between the chunks
+        ]
+        return ~np.concatenate(found)
 
     def _unreached(self, ijk: np.ndarray) -> np.ndarray:
         """The voxels [N, 3] int32 of ``ijk`` (distinct) that no added observation reaches."""
@@ -345,6 +371,8 @@ def fuse_novelty(fused: np.ndarray, novelty_m2: np.ndarray, weight: float) -> np
 
 
 __all__ = [
+    "HASH_CAPACITY",
+    "HASH_CHUNK_ROWS",
     "NOVELTY_MEASURES",
     "NOVELTY_RADIUS_M",
     "NOVELTY_VOXEL_M",

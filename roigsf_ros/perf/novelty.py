@@ -14,6 +14,12 @@ selector would, roughly) and each window's novelty is timed twice:
   a k-d tree per candidate, :func:`~roigsf_ros.nbv.novelty.lookahead_new_voxels_plain`), plus the frames'
   back-projection; every window's counts must equal the fast ones (``equal``).
 
+Also the window's keyframe being added (``add``, :meth:`~roigsf_ros.nbv.novelty.ObservedSurface.add_frame`, which the
+selector's novelty thread does too), and ``stall``: the longest a second Python thread, waking every millisecond, had to
+wait while the fast path and the adds ran (a call that holds Python's lock holds up every thread of the node, the
+executor's among them: open3d's hash set held it for whole inserts and rehashes, 0.07-0.2 s, until the fifty-fourth
+session).
+
 Medians over ``--repeats`` per window, then the median and the largest over the windows, and the ratio of the medians,
 measured in one run; ``--out`` writes it all as JSON.
 """
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -35,7 +42,13 @@ from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import read_bag_frames
 from roigsf_ros.mapping.mapper import MapperConfig
-from roigsf_ros.nbv.novelty import ObservedSurface, frame_points, lookahead_new_voxels_plain
+from roigsf_ros.nbv.novelty import (
+    HASH_CAPACITY,
+    HASH_CHUNK_ROWS,
+    ObservedSurface,
+    frame_points,
+    lookahead_new_voxels_plain,
+)
 from roigsf_ros.policies.stream import RECOMMENDED_STREAM
 
 DEFAULT_BAG = Path("bags/synth_room")
@@ -51,6 +64,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lookahead", type=int, default=lookahead, metavar="L", help=f"frames ahead (default {lookahead})"
     )
+    parser.add_argument("--hash-capacity", type=int, default=HASH_CAPACITY, metavar="N",
+                        help=f"the observed surface's hash set's initial capacity (default {HASH_CAPACITY}; 65536 as "
+                        "before the fifty-fourth session)")  # fmt: skip
+    parser.add_argument("--hash-chunk-rows", type=int, default=HASH_CHUNK_ROWS, metavar="N",
+                        help=f"rows per call into it (default {HASH_CHUNK_ROWS}; a large number: one call, as "
+                        "before)")  # fmt: skip
 
 
 def _median_time(fn: Any, repeats: int) -> tuple[float, Any]:
@@ -63,30 +82,71 @@ def _median_time(fn: Any, repeats: int) -> tuple[float, Any]:
     return float(statistics.median(times)), out
 
 
+class StallWatch:
+    """A thread that wakes every millisecond while in the ``with`` block; :attr:`worst_s` is the longest it waited
+    (beyond its sleep) across every block: how long some other call held Python's lock.
+    """
+
+    def __init__(self) -> None:
+        self.worst_s = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _watch(self) -> None:
+        last = time.perf_counter()
+        while not self._stop.wait(0.001):
+            now = time.perf_counter()
+            self.worst_s = max(self.worst_s, now - last - 0.001)
+            last = now
+
+    def __enter__(self) -> StallWatch:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._watch, name="stall_watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        assert self._thread is not None
+        self._thread.join()
+
+
 def run_windows(
-    frames: list[Frame], intr: Intrinsics, window: int, lookahead: int, repeats: int
+    frames: list[Frame],
+    intr: Intrinsics,
+    window: int,
+    lookahead: int,
+    repeats: int,
+    surface: ObservedSurface | None = None,
 ) -> list[dict[str, Any]]:
-    """Each whole window's fast and plain novelty times (median of ``repeats``) and whether their counts agree."""
+    """Each whole window's fast and plain novelty times (median of ``repeats``), whether their counts agree, the
+    time its keyframe took to add and the longest stall of another thread during the fast path and the add.
+    """
     for name, value, least in (("--window", window, 1), ("--lookahead", lookahead, 0), ("--repeats", repeats, 1)):
         if value < least:
             raise InputError(name, f"must be at least {least}, got {value}")
     if len(frames) < 1 + window + lookahead:
         raise InputError("--bag", f"{len(frames)} frames: fewer than 1 + window + lookahead = {1 + window + lookahead}")
     config = MapperConfig()
-    surface = ObservedSurface()
+    surface = surface or ObservedSurface()
     surface.add_frame(frames[0], intr, config)  # the first frame is always a keyframe
     rows = []
     for start in range(1, len(frames) - window - lookahead + 1, window):
         cands, ahead = frames[start : start + window], frames[start + window : start + window + lookahead]
-        fast_s, fast = _median_time(lambda c=cands, a=ahead: surface.frames_novelty(c, intr, config, a), repeats)
+        watch = StallWatch()
+        with watch:
+            fast_s, fast = _median_time(lambda c=cands, a=ahead: surface.frames_novelty(c, intr, config, a), repeats)
         cand_w = [frame_points(f, intr, config) for f in cands]
         ahead_w = [frame_points(f, intr, config) for f in ahead]
         pts_s, _ = _median_time(lambda c=cands, a=ahead: [frame_points(f, intr, config) for f in (*c, *a)], repeats)
         plain_s, plain_n = _median_time(lambda c=cand_w, a=ahead_w: lookahead_new_voxels_plain(surface, c, a), repeats)
         plain = plain_n.astype(np.float64) * surface.voxel_m**2
-        rows.append({"first_frame": start, "fast_s": fast_s, "plain_s": plain_s + pts_s,
-                     "equal": bool(np.array_equal(fast, plain))})  # fmt: skip
-        surface.add_frame(cands[len(cands) // 2], intr, config)  # this window's keyframe
+        t0 = time.perf_counter()
+        with watch:
+            surface.add_frame(cands[len(cands) // 2], intr, config)  # this window's keyframe
+        add_s = time.perf_counter() - t0
+        rows.append({"first_frame": start, "fast_s": fast_s, "plain_s": plain_s + pts_s, "add_s": add_s,
+                     "stall_s": watch.worst_s, "equal": bool(np.array_equal(fast, plain))})  # fmt: skip
     return rows
 
 
@@ -96,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     if not bag_frames:
         raise InputError(args.bag, "no complete frame in the bag")
     frames = [Frame(i, f.rgb, f.depth_m, f.T_wc) for i, f in enumerate(bag_frames)]
-    rows = run_windows(frames, bag_frames[0].intrinsics, args.window, args.lookahead, args.repeats)
+    surface = ObservedSurface(hash_capacity=args.hash_capacity, hash_chunk_rows=args.hash_chunk_rows)
+    rows = run_windows(frames, bag_frames[0].intrinsics, args.window, args.lookahead, args.repeats, surface)
     fast = [r["fast_s"] for r in rows]
     plain = [r["plain_s"] for r in rows]
     summary = {
@@ -105,19 +166,25 @@ def run(args: argparse.Namespace) -> int:
         "plain_median_s": statistics.median(plain),
         "plain_max_s": max(plain),
         "plain_over_fast": statistics.median(plain) / statistics.median(fast),
+        "add_median_s": statistics.median(r["add_s"] for r in rows),
+        "add_max_s": max(r["add_s"] for r in rows),
+        "max_stall_s": max(r["stall_s"] for r in rows),
         "all_equal": all(r["equal"] for r in rows),
     }
     result = {"bag": str(args.bag), "window": args.window, "lookahead": args.lookahead, "repeats": args.repeats,
+              "hash_capacity": args.hash_capacity, "hash_chunk_rows": args.hash_chunk_rows,
               "machine": platform.processor() or platform.machine(), "windows": rows, "summary": summary}  # fmt: skip
     print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({args.bag})")
     print(f"  {'':22s}{'median (s)':>12s}{'largest (s)':>13s}")
     print(f"  {'fast (the selector)':22s}{summary['fast_median_s']:12.3f}{summary['fast_max_s']:13.3f}")
     print(f"  {'plain (k-d trees)':22s}{summary['plain_median_s']:12.3f}{summary['plain_max_s']:13.3f}")
+    print(f"  {'add a keyframe':22s}{summary['add_median_s']:12.3f}{summary['add_max_s']:13.3f}")
     print(f"  plain / fast: {summary['plain_over_fast']:.1f}x; counts equal in every window: {summary['all_equal']}")
+    print(f"  longest another thread waited for Python's lock (fast path and adds): {summary['max_stall_s']:.3f} s")
     if args.out:
         write_json(args.out, result)
         print(f"  -> {args.out}")
     return 0 if summary["all_equal"] else 1
 
 
-__all__ = ["add_arguments", "run", "run_windows"]
+__all__ = ["StallWatch", "add_arguments", "run", "run_windows"]
