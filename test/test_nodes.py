@@ -358,13 +358,17 @@ def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: An
 
 
 # ---------------------------------------------------------------------------------------- selector
-def _windowed_selector(ctx: Any, service: str, timeout_s: float) -> tuple[KeyframeSelectorNode, _Camera, list[int]]:
-    """A roi-fisher selector with windows of 2 asking ``service``, a camera, and the keyframe stamps it publishes."""
+def _windowed_selector(
+    ctx: Any, service: str, timeout_s: float = 10.0, **params: Any
+) -> tuple[KeyframeSelectorNode, _Camera, list[int]]:
+    """A roi-fisher selector with windows of 2 asking ``service`` (and ``params``), a camera, and the keyframe stamps
+    it publishes."""
     overrides = [
         Parameter("policy", value="roi-fisher"),
         Parameter("window", value=2),
         Parameter("planner_service", value=service),
         Parameter("planner_timeout_s", value=timeout_s),
+        *(Parameter(k, value=v) for k, v in params.items()),
     ]
     selector = KeyframeSelectorNode(context=ctx, parameter_overrides=overrides)
     cam = _Camera(ctx)
@@ -597,18 +601,7 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
 def test_selector_adds_the_novelty_term_to_the_planners_fused_scores(ros_context: Any, scene: Any) -> None:
     """novelty_weight 1: the pick is argmax(fused + z(N)), not the planner's best_index (always 0 here)."""
     frames, _ = scene
-    overrides = [
-        Parameter("policy", value="roi-fisher"),
-        Parameter("window", value=2),
-        Parameter("planner_service", value="/test_planner_novelty/nbv"),
-        Parameter("novelty_weight", value=1.0),
-    ]
-    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
-    cam = _Camera(ros_context)
-    published: list[int] = []
-    cam.node.create_subscription(
-        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
-    )
+    selector, cam, published = _windowed_selector(ros_context, "/test_planner_novelty/nbv", novelty_weight=1.0)
 
     def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
         res.success, res.best_index = True, 0
@@ -634,15 +627,7 @@ def test_selector_status_times_its_answers_novelty_and_frame_gaps(ros_context: A
     """``max_answer_s`` is the longest wait for an answer to a window of the stream, the held frames ``finish`` sends
     left out (nothing comes after them); ``max_novelty_s`` and ``max_frame_gap_s`` time what can hold the frames."""
     frames, _ = scene
-    overrides = [
-        Parameter("policy", value="roi-fisher"),
-        Parameter("window", value=2),
-        Parameter("lookahead", value=2),
-        Parameter("novelty_weight", value=1.0),
-        Parameter("planner_service", value="/test_planner_times/nbv"),
-    ]
-    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
-    cam = _Camera(ros_context)
+    selector, cam, _ = _windowed_selector(ros_context, "/test_planner_times/nbv", lookahead=2, novelty_weight=1.0)
     sizes: list[int] = []
 
     def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
@@ -675,18 +660,7 @@ def test_selector_takes_frames_while_a_windows_novelty_or_a_keyframes_depth_is_s
     """The planner's answer is in but the window's novelty is not (or the new keyframe's depth is still being added):
     frames keep reaching the selector meanwhile, and the pick is the same as when nothing waits."""
     frames, _ = scene
-    overrides = [
-        Parameter("policy", value="roi-fisher"),
-        Parameter("window", value=2),
-        Parameter("novelty_weight", value=1.0),
-        Parameter("planner_service", value="/test_planner_slow_novelty/nbv"),
-    ]
-    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
-    cam = _Camera(ros_context)
-    published: list[int] = []
-    cam.node.create_subscription(
-        PoseStamped, "/roigsf/keyframe", lambda m: published.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
-    )
+    selector, cam, published = _windowed_selector(ros_context, "/test_planner_slow_novelty/nbv", novelty_weight=1.0)
     answered = threading.Event()
 
     def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
@@ -787,7 +761,7 @@ def test_gaus_slam_waits_for_the_map_at_most_map_wait_s_and_map_wait_frames(ros_
     ``map_wait_frames`` held frames the oldest are skipped. Without a shared map the map's keyframe poses say which
     keyframes it holds."""
     frames, _ = scene
-    selector, cam, published = _gaus_slam_selector(ros_context, None, map_wait_s=0.5, map_wait_frames=2)
+    selector, cam, published = _gaus_slam_selector(ros_context, None, map_wait_s=2.0, map_wait_frames=2)
     poses = cam.node.create_publisher(PoseArray, "/roigsf/keyframe_poses", latched_qos())
     with _spinning(ros_context, selector, cam.node):
         cam.wait_for()
@@ -796,7 +770,7 @@ def test_gaus_slam_waits_for_the_map_at_most_map_wait_s_and_map_wait_frames(ros_
         for k in range(3):  # three frames for two places: the oldest skipped
             cam.publish(_frame_msgs(frames[k + 1], 2000 + k * 1000))
         _wait(lambda: selector.status()["frames_skipped_map_lag"] == 1, 10.0, "a frame skipped")
-        # no map ever comes: after 0.5 s the wait for keyframe 1000 expires, 3000 is judged (an empty map: named),
+        # no map ever comes: after 2 s the wait for keyframe 1000 expires, 3000 is judged (an empty map: named),
         # and 4000 waits for it
         _wait(lambda: published == [1000, 3000], 10.0, "the wait expired")
         assert selector.status()["map_waits_expired"] == 1
