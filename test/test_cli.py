@@ -184,6 +184,8 @@ def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
         (["--set", "lr_mean=1e-4"], ["--set lr_mean=1e-4", "did you mean lr_means?", "iters_per_keyframe"]),
         (["--set", "tau_k=abc"], ["--set tau_k=abc", "use --tau-k"]),
         (["--set", "nosuch"], ["--set nosuch: expected NAME=VALUE", "iters_per_keyframe"]),
+        (["--policy", "every-n", "--every-n", "0"], ["--every-n: must be at least 1, got 0"]),
+        (["--policy", "gaus-slam", "--tau-k", "1.5"], ["--tau-k: must be in [0, 1), got 1.5"]),
     ]
     for extra, words in cases:
         assert main([*base, *extra]) == 2

@@ -593,6 +593,13 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
         KeyframeSelectorNode(context=ros_context, parameter_overrides=pixels_alone)
     with pytest.raises(InputError, match=r"parameter 'novelty_voxel_m'.*> 0"):  # checked though nothing counts novelty
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_voxel_m", value=0.0)])
+    # a policy's range error names the node's parameter, not the library's field or a CLI flag (--every-n, --tau-k)
+    with pytest.raises(InputError, match=r"^parameter 'every_n': must be at least 1, got 0$"):
+        every_n0 = [Parameter("policy", value="every-n"), Parameter("every_n", value=0)]
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=every_n0)
+    with pytest.raises(InputError, match=r"^parameter 'tau_k': must be in \[0, 1\), got 1\.5$"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("fallback_policy", value="gaus-slam"),
+                                                                       Parameter("tau_k", value=1.5)])  # fmt: skip
     with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="roi-fisher"),
                                                                        Parameter("lookahead", value=2)])  # fmt: skip

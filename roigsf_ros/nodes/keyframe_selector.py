@@ -277,7 +277,11 @@ class KeyframeSelectorNode(SystemNode):
             "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
             "all": {},
         }[name]
-        return make_policy(name, **params)
+        try:
+            return make_policy(name, **params)
+        except InputError as exc:  # the library names its own field (``n``): name the node's parameter
+            where = {"n": "every_n"}.get(exc.where, exc.where)
+            raise InputError(f"parameter '{where}'", exc.problem) from None
 
     # ------------------------------------------------------------------------------ map (gaus-slam)
     def _on_cloud(self, msg: PointCloud2) -> None:

@@ -26,7 +26,7 @@ class EveryN(KeyframePolicy):
 
     def __init__(self, n: int = 5) -> None:
         if int(n) < 1:
-            raise InputError("--every-n", f"must be at least 1, got {n}")
+            raise InputError("n", f"must be at least 1, got {n}")
         self.n = int(n)
         self._seen = 0
 
@@ -55,7 +55,7 @@ class GausSlam(KeyframePolicy):
 
     def __init__(self, tau_k: float = 0.01, alpha_threshold: float = 0.5) -> None:
         if not 0.0 <= float(tau_k) < 1.0:
-            raise InputError("--tau-k", f"must be in [0, 1), got {tau_k}")
+            raise InputError("tau_k", f"must be in [0, 1), got {tau_k}")
         if not 0.0 < float(alpha_threshold) <= 1.0:
             raise InputError("alpha_threshold", f"must be in (0, 1], got {alpha_threshold}")
         self.tau_k = float(tau_k)
