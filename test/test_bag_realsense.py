@@ -1,8 +1,9 @@
 """Real-robot bags: camera poses on TF (+ tf_static, through a chain), compressed images, RealSense topic names.
 
 A bag with the poses on ``/tf`` and the images as ``sensor_msgs/CompressedImage`` (PNG colour, compressedDepth
-depth) under RealSense names is derived message by message from a raw bag written by ``write_bag``; it must
-read back as the same frames and map through ``roigsf map`` to the same keyframes and poses.
+depth) under RealSense names is derived from a raw bag written by ``write_bag`` (``roigsf bag to-robot``,
+:func:`write_robot_bag`); it must read back as the same frames and map through ``roigsf map`` to the same
+keyframes and poses.
 """
 
 from __future__ import annotations
@@ -16,15 +17,14 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.interfaces import QosDurability
 from rosbags.typesys import Stores, get_typestore
-from scipy.spatial.transform import Rotation
 
 from roigsf_ros.cli import main as cli_main
-from roigsf_ros.core.camera import matrix_to_quat_xyzw
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.robot_bag import write_robot_bag
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.perf.io import make_synthetic_replica
 
@@ -39,39 +39,6 @@ RS_COLOR, RS_DEPTH, RS_INFO = (
 OPTICAL = "camera_color_optical_frame"
 
 
-def _rigid(rotvec: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = t
-    return T
-
-
-# A robot's tree: map -> odom (static here), odom -> base_link (the moving part, on /tf),
-# base_link -> camera_link -> camera_color_optical_frame (static, REP 103 body to optical axes).
-T_MAP_ODOM = _rigid((0.0, 0.0, 0.4), (1.0, -2.0, 0.0))
-T_BASE_LINK = _rigid((0.0, 0.05, 0.0), (0.1, 0.0, 0.3))
-T_LINK_OPTICAL = _rigid((-np.pi / 2, 0.0, 0.0), (0.0, 0.0, 0.0)) @ _rigid((0.0, -np.pi / 2, 0.0), (0.0, 0.0, 0.0))
-
-
-def _transform(parent: str, child: str, T: np.ndarray, stamp_ns: int) -> Any:
-    q = matrix_to_quat_xyzw(T[:3, :3])
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    return T_["geometry_msgs/msg/TransformStamped"](
-        header=T_["std_msgs/msg/Header"](
-            stamp=T_["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=parent
-        ),
-        child_frame_id=child,
-        transform=T_["geometry_msgs/msg/Transform"](
-            translation=T_["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-            rotation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
-        ),
-    )
-
-
-def _tf(*transforms: Any) -> Any:
-    return T_["tf2_msgs/msg/TFMessage"](transforms=list(transforms))
-
-
 def _compressed(header: Any, fmt: str, data: bytes) -> Any:
     return T_["sensor_msgs/msg/CompressedImage"](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
 
@@ -81,55 +48,12 @@ def realsense_bag(
     out: Path,
     color_format: str = "png",
     depth_transport: str = "compressedDepth",
-    tf_lag_ns: int = 1_000_000,
-    keep_tf: Callable[[int], bool] = lambda k: True,
+    keep_tf: Callable[[int], bool] | None = None,
 ) -> None:
-    """``raw_bag`` (write_bag, 16UC1) rewritten as a robot records it: RealSense names, compressed images, pose on TF.
-
-    The odom -> base_link transform of frame k is recorded ``tf_lag_ns`` after its images (TF lags the
-    camera on a robot), unless ``keep_tf(k)`` is False; the static transforms come first, on /tf_static.
-    """
-    color_topic = f"{RS_COLOR}/compressed"
-    depth_topic = f"{RS_DEPTH}/{depth_transport}"
-    types = {
-        color_topic: "sensor_msgs/msg/CompressedImage",
-        depth_topic: "sensor_msgs/msg/CompressedImage",
-        RS_INFO: "sensor_msgs/msg/CameraInfo",
-        "/tf": "tf2_msgs/msg/TFMessage",
-        "/tf_static": "tf2_msgs/msg/TFMessage",
-    }
-    records: list[tuple[int, str, Any]] = []
-    with bags.open_any_reader(raw_bag) as reader:
-        k = -1
-        for conn, stamp, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            if conn.topic == bags.COLOR_TOPIC:
-                rgb = bags.image_to_rgb(msg)
-                fmt, data = bags.encode_compressed_rgb(rgb, color_format)
-                records.append((stamp, color_topic, _compressed(msg.header, fmt, data)))
-            elif conn.topic == bags.DEPTH_TOPIC:
-                fmt, data = bags.encode_compressed_depth(bags.image_to_depth_m(msg), depth_transport)
-                records.append((stamp, depth_topic, _compressed(msg.header, fmt, data)))
-            elif conn.topic == bags.CAMERA_INFO_TOPIC:
-                records.append((stamp, RS_INFO, msg))
-            elif conn.topic == bags.POSE_TOPIC:
-                k += 1
-                T_wc = bags.pose_to_matrix(msg)
-                T_odom_base = np.linalg.inv(T_MAP_ODOM) @ T_wc @ np.linalg.inv(T_BASE_LINK @ T_LINK_OPTICAL)
-                if keep_tf(k):
-                    records.append((stamp + tf_lag_ns, "/tf", _tf(_transform("odom", "base_link", T_odom_base, stamp))))
-    t0 = min(r[0] for r in records)
-    static = _tf(
-        _transform("map", "odom", T_MAP_ODOM, 0),
-        _transform("base_link", "camera_link", T_BASE_LINK, 0),
-        _transform("camera_link", OPTICAL, T_LINK_OPTICAL, 0),
-    )
-    records.append((t0 - 1, "/tf_static", static))
-    records.sort(key=lambda r: r[0])
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {topic: writer.add_connection(topic, typ, typestore=TS) for topic, typ in types.items()}
-        for stamp, topic, msg in records:
-            writer.write(conns[topic], stamp, TS.serialize_cdr(msg, types[topic]))
+    """``raw_bag`` rewritten as a robot records it (:func:`write_robot_bag`: RealSense names, compressed images,
+    the pose through a TF chain recorded 1 ms after the images)."""
+    n = write_robot_bag(raw_bag, out, color_format=color_format, depth_transport=depth_transport, keep_tf=keep_tf)
+    assert n == N
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +67,9 @@ def raw_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def rs_bag(raw_bag: Path) -> Path:
+    """The raw bag through ``roigsf bag to-robot`` (its defaults: PNG colour, compressedDepth, /camera)."""
     out = raw_bag.parent / "realsense"
-    realsense_bag(raw_bag, out)
+    assert cli_main(["bag", "to-robot", str(raw_bag), "--out", str(out), "--no-progress"]) == 0
     return out
 
 
@@ -172,6 +97,38 @@ def test_tf_and_compressed_bag_reads_as_the_raw_bag(raw_bag: Path, rs_bag: Path)
     # the transports named instead of detected: the same frames
     topics = bags.realsense_topics(color_transport="compressed", depth_transport="compressedDepth")
     _assert_same_frames(bags.read_bag_frames(rs_bag, topics)[0], want)
+
+
+def test_robot_bag_is_a_tf_chain_with_latched_statics_and_late_dynamic_transforms(rs_bag: Path) -> None:
+    """The camera's pose is nowhere on TF as one transform: three static links (offered transient local, as tf2's
+    static broadcaster does) and odom -> base_link on /tf, each recorded 1 ms after the images of its stamp."""
+    with bags.open_any_reader(rs_bag) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        assert conns["/tf_static"].ext.offered_qos_profiles[0].durability == QosDurability.TRANSIENT_LOCAL
+        links, dynamic, image_records = set(), [], []
+        for conn, record_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == "/tf_static":
+                links |= {(t.header.frame_id, t.child_frame_id) for t in msg.transforms}
+            elif conn.topic == "/tf":
+                (t,) = msg.transforms
+                dynamic.append((t.header.frame_id, t.child_frame_id, record_ns - bags.stamp_to_ns(t.header.stamp)))
+            elif conn.topic == f"{RS_COLOR}/compressed":
+                image_records.append(record_ns)
+    assert links == {("map", "odom"), ("base_link", "camera_link"), ("camera_link", OPTICAL)}
+    assert dynamic == [("odom", "base_link", 1_000_000)] * N and len(image_records) == N
+
+
+def test_robot_bag_refuses_bad_settings_and_leaves_nothing(raw_bag: Path, tmp_path: Path, capsys: Any) -> None:
+    for kwargs, word in (({"color_format": "bmp"}, "color_format"), ({"depth_transport": "raw"}, "depth_transport"),
+                         ({"tf_lag_s": -1.0}, "tf_lag_s")):  # fmt: skip
+        with pytest.raises(InputError, match=word):
+            write_robot_bag(raw_bag, tmp_path / "bad", **kwargs)
+    with pytest.raises(InputError, match="bag not found"):
+        write_robot_bag(tmp_path / "nosuch", tmp_path / "bad")
+    assert not (tmp_path / "bad").exists() and not list(tmp_path.glob(".*"))
+    assert cli_main(["bag", "to-robot", str(raw_bag), "--out", str(tmp_path / "b"), "--tf-lag-ms", "nan"]) == 2
+    assert "--tf-lag-ms" in capsys.readouterr().err and not (tmp_path / "b").exists()
 
 
 def test_jpeg_colour_and_png_depth_transport(raw_bag: Path, tmp_path: Path) -> None:

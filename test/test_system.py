@@ -9,7 +9,9 @@ A small bag (40 frames of 64x48 at 10 Hz, the synthetic room) is replayed throug
    restarted planner again);
 3. a mapper saved, killed and restarted from its saved map (no saved keyframe lost);
 4. ``active_mapping`` with the bag looped 4x faster than real time (bounded queues, counted drops,
-   flat memory).
+   flat memory);
+5. the same bag as a robot records it (pose on TF, compressed images, RealSense names) into
+   ``active_mapping`` set to read it so.
 
 Every process is started with ``python -m roigsf_ros.nodes.X`` (the source tree) on this run's
 ROS domain with localhost discovery, its output in a log file that failures print; every process
@@ -510,6 +512,45 @@ def test_three_processes_match_in_process(
     assert m["keyframes"] == m["keyframes_inserted"]
     ref = in_process_run["mapper"]["keyframes"]
     assert abs(m["keyframes"] - ref) <= KEYFRAME_TOLERANCE, (m["keyframes"], ref)
+
+
+# ------------------------------------------------------------------ a robot's bag: pose on TF, compressed images
+ROBOT_CAMERA_PARAMS = {
+    "pose_source": "tf",
+    "color_transport": "compressed",
+    "depth_transport": "compressedDepth",
+    "color_topic": "/camera/color/image_raw",
+    "depth_topic": "/camera/aligned_depth_to_color/image_raw",
+    "camera_info_topic": "/camera/color/camera_info",
+}
+"""The README's RealSense parameters (without the downscale): what ``roigsf bag to-robot`` prints."""
+
+
+def test_a_robots_bag_through_active_mapping_in_another_process(
+    bag: Path, bag_stamps: list[int], watch: Watcher, tmp_path: Path
+):
+    """The real-robot path as a user runs it: ``bag_player`` in one process plays the bag as a robot records it
+    (``roigsf bag to-robot``: JPEG colour, compressedDepth, the pose only through map -> odom -> base_link ->
+    camera_link -> optical, its /tf recorded after the images) into ``active_mapping`` in another, set to
+    ``pose_source: tf`` and the compressed transports. Every frame must reach both camera inputs with its pose
+    (none rejected, none left waiting for TF), and every keyframe named must be mapped, as with the raw bag."""
+    from roigsf_ros.data.robot_bag import write_robot_bag
+
+    robot_bag = tmp_path / "robot_bag"
+    assert write_robot_bag(bag, robot_bag, color_format="jpeg", tf_lag_s=0.02) == N_FRAMES
+    watch.clear()
+    with processes(tmp_path) as ps:
+        node_params = {**as_params("mapper"), **as_params("keyframe_selector"), **as_params("nbv_planner")}
+        ps.start("active_mapping", node_params | ROBOT_CAMERA_PARAMS)
+        out = replay_once(ps, watch, robot_bag, RATE)
+        m, s = out["mapper"], out["selector"]
+        check_map_and_mesh(watch, tmp_path, m["keyframes"])
+    assert s["frames"] == N_FRAMES and m["frames_received"] == N_FRAMES, (s, m)
+    assert not any(m["frames_rejected"].values()) and not any(s["frames_rejected"].values()), (m, s)
+    assert m["frames_awaiting_tf"] == 0
+    assert s["keyframes_published"] == expected_keyframes(N_FRAMES)
+    assert set(m["keyframe_ids"]) <= set(bag_stamps)
+    assert m["keyframes"] == m["keyframes_inserted"] == s["keyframes_published"]
 
 
 # ------------------------------------------------------------------ a player started later, in its own process

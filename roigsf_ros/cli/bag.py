@@ -12,10 +12,11 @@ from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_s
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.robot_bag import ROBOT_COLOR_FORMATS, ROBOT_DEPTH_TRANSPORTS, write_robot_bag
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``bag from-replica`` and ``bag info``."""
+    """Add ``bag from-replica``, ``bag to-robot`` and ``bag info``."""
     parser = sub.add_parser(
         "bag",
         help="make and inspect ROS 2 bags (rosbag2 MCAP)",
@@ -64,6 +65,43 @@ def register(sub: argparse._SubParsersAction) -> None:
     conv.add_argument("--no-progress", action="store_true", help="no progress bar")
     conv.set_defaults(func=_from_replica)
 
+    robot = bag_sub.add_parser(
+        "to-robot",
+        help="rewrite a camera bag as a robot records it: pose on TF, compressed images, RealSense names",
+        description="Rewrite a camera bag (one `bag from-replica` wrote, say) as a RealSense on a mobile robot records "
+        "it, to try the robot settings without a robot: the pose on /tf through map -> odom -> base_link -> "
+        "camera_link -> camera_color_optical_frame (static parts on /tf_static), colour as CompressedImage on "
+        "NS/color/image_raw/compressed, depth a 16-bit PNG of millimetres on "
+        "NS/aligned_depth_to_color/image_raw/compressedDepth, camera info on NS/color/camera_info.",
+    )
+    robot.add_argument(
+        "src",
+        type=Path,
+        metavar="SRC",
+        help="camera bag in this package's layout (`bag from-replica`), folder or .mcap",
+    )
+    robot.add_argument("--out", type=Path, required=True, metavar="BAG", help="bag folder to create")
+    robot.add_argument("--namespace", default="/camera", metavar="NS", help="the camera's namespace (default /camera)")
+    robot.add_argument(
+        "--color-format", choices=ROBOT_COLOR_FORMATS, default="png", help="png (lossless, default) or jpeg"
+    )
+    robot.add_argument(
+        "--depth-transport",
+        choices=ROBOT_DEPTH_TRANSPORTS,
+        default="compressedDepth",
+        help="compressedDepth (default) or compressed",
+    )
+    robot.add_argument(
+        "--tf-lag-ms",
+        type=float,
+        default=1.0,
+        metavar="MS",
+        help="record each frame's /tf this long after its images, as on a robot (default 1)",
+    )
+    robot.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    robot.add_argument("--no-progress", action="store_true", help="no progress bar")
+    robot.set_defaults(func=_to_robot)
+
     info = bag_sub.add_parser(
         "info",
         help="summarise a bag: topics, types, counts, duration, resolution",
@@ -99,6 +137,28 @@ def _from_replica(args: argparse.Namespace) -> int:
     )
     intr = seq.intrinsics
     print(f"wrote {n} frames ({intr.width}x{intr.height}, depth {args.depth_encoding}, {args.rate:g} Hz) to {args.out}")
+    return 0
+
+
+def _to_robot(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.tf_lag_ms) and args.tf_lag_ms >= 0):
+        raise InputError("--tf-lag-ms", f"must be a number of milliseconds >= 0, got {args.tf_lag_ms:g}")
+    check_out(args.out, args.overwrite)
+    n = write_robot_bag(
+        args.src,
+        args.out,
+        namespace=args.namespace,
+        color_format=args.color_format,
+        depth_transport=args.depth_transport,
+        tf_lag_s=args.tf_lag_ms * 1e-3,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
+    )
+    ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns or '/'}`, or give the "
+          f"nodes: -p pose_source:=tf -p color_transport:=compressed -p depth_transport:={args.depth_transport} "
+          f"-p color_topic:={ns}/color/image_raw -p depth_topic:={ns}/aligned_depth_to_color/image_raw "
+          f"-p camera_info_topic:={ns}/color/camera_info")  # fmt: skip
     return 0
 
 

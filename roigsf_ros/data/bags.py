@@ -73,8 +73,8 @@ DEFAULT_T0_NS = 1_700_000_000 * 10**9
 MAX_PENDING_STAMPS = 64
 """The reader holds at most this many incomplete frames while it waits for their other messages."""
 
-_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-_QOS_RELIABLE = Qos(
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+QOS_RELIABLE = Qos(
     history=QosHistory.KEEP_LAST,
     depth=10,
     reliability=QosReliability.RELIABLE,
@@ -485,8 +485,9 @@ def _header_stamp_ns(rawdata: bytes | memoryview) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-def _header(stamp_ns: int, frame_id: str) -> Any:
-    t = _TYPESTORE.types
+def header_msg(stamp_ns: int, frame_id: str) -> Any:
+    """A ``std_msgs/Header`` (rosbags type) of a stamp in ns and a frame id."""
+    t = TYPESTORE.types
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
     return t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
 
@@ -494,8 +495,8 @@ def _header(stamp_ns: int, frame_id: str) -> Any:
 def _image_msg(stamp_ns: int, pixels: np.ndarray, encoding: str) -> Any:
     pixels = np.ascontiguousarray(pixels)
     height, width = pixels.shape[:2]
-    return _TYPESTORE.types[IMAGE_TYPE](
-        header=_header(stamp_ns, CAMERA_FRAME_ID),
+    return TYPESTORE.types[IMAGE_TYPE](
+        header=header_msg(stamp_ns, CAMERA_FRAME_ID),
         height=height,
         width=width,
         encoding=encoding,
@@ -518,14 +519,15 @@ def depth_to_image_data(depth_m: np.ndarray, encoding: str) -> np.ndarray:
     raise InputError("depth_encoding", f"'{encoding}' is not one of {', '.join(DEPTH_ENCODINGS)}")
 
 
-def _camera_info_msg(stamp_ns: int, intr: Intrinsics) -> Any:
-    t = _TYPESTORE.types
+def camera_info_msg(stamp_ns: int, intr: Intrinsics) -> Any:
+    """A ``sensor_msgs/CameraInfo`` (rosbags type) of pinhole intrinsics, no distortion, in the optical frame."""
+    t = TYPESTORE.types
     k = intr.K.reshape(-1)
     p = np.zeros((3, 4))
     p[:, :3] = intr.K
     roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return t[CAMERA_INFO_TYPE](
-        header=_header(stamp_ns, CAMERA_FRAME_ID),
+        header=header_msg(stamp_ns, CAMERA_FRAME_ID),
         height=intr.height,
         width=intr.width,
         distortion_model="plumb_bob",
@@ -540,14 +542,14 @@ def _camera_info_msg(stamp_ns: int, intr: Intrinsics) -> Any:
 
 
 def _pose_msg(stamp_ns: int, T_wc: np.ndarray) -> Any:
-    t = _TYPESTORE.types
+    t = TYPESTORE.types
     x, y, z = (float(v) for v in T_wc[:3, 3])
     qx, qy, qz, qw = (float(v) for v in matrix_to_quat_xyzw(T_wc[:3, :3]))
     pose = t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
         orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
     )
-    return t[POSE_TYPE](header=_header(stamp_ns, MAP_FRAME_ID), pose=pose)
+    return t[POSE_TYPE](header=header_msg(stamp_ns, MAP_FRAME_ID), pose=pose)
 
 
 def frame_stamp_ns(k: int, rate_hz: float, t0_ns: int = DEFAULT_T0_NS) -> int:
@@ -586,7 +588,7 @@ def write_bag(
         staging = tmp / out.name
         with Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             conns = {
-                topic: writer.add_connection(topic, typ, typestore=_TYPESTORE, offered_qos_profiles=[_QOS_RELIABLE])
+                topic: writer.add_connection(topic, typ, typestore=TYPESTORE, offered_qos_profiles=[QOS_RELIABLE])
                 for topic, typ in CameraTopics().types().items()
             }
             for n, k in enumerate(tqdm(ks, desc=f"bag {out.name}", unit="frame", disable=not progress)):
@@ -596,11 +598,11 @@ def write_bag(
                 msgs = (
                     (COLOR_TOPIC, _image_msg(stamp, frame.rgb, "rgb8")),
                     (DEPTH_TOPIC, _image_msg(stamp, depth_px, depth_encoding)),
-                    (CAMERA_INFO_TOPIC, _camera_info_msg(stamp, intr)),
+                    (CAMERA_INFO_TOPIC, camera_info_msg(stamp, intr)),
                     (POSE_TOPIC, _pose_msg(stamp, frame.T_wc)),
                 )
                 for topic, msg in msgs:
-                    writer.write(conns[topic], stamp, _TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+                    writer.write(conns[topic], stamp, TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
         for item in staging.iterdir():
             item.rename(tmp / item.name)
         staging.rmdir()
@@ -914,12 +916,15 @@ __all__ = [
     "POSE_SOURCES",
     "POSE_TOPIC",
     "POSE_TYPE",
+    "QOS_RELIABLE",
+    "TYPESTORE",
     "BagFrame",
     "BagReader",
     "CameraTopics",
     "assemble_frame",
     "assemble_images",
     "bag_info",
+    "camera_info_msg",
     "camera_info_to_intrinsics",
     "compressed_to_depth_m",
     "compressed_to_rgb",
@@ -927,6 +932,7 @@ __all__ = [
     "encode_compressed_depth",
     "encode_compressed_rgb",
     "frame_stamp_ns",
+    "header_msg",
     "image_to_depth_m",
     "image_to_rgb",
     "is_compressed",
