@@ -301,6 +301,10 @@ def test_tf_and_compressed_images_give_the_frames_of_pose_and_raw_images(ros_con
     stats = tf_cam.stats()
     assert stats["rejected"] == {"no_tf": 2, "bad_image": 1} and stats["awaiting_tf"] == 0
     assert "within 0.05 s" in stats["last_rejection"] or "in time" in stats["last_rejection"]
+    # why each refused frame was refused, for the mapper's message about a keyframe named on one
+    assert [str(tf_cam.rejection_of(T0_NS + k * 100_000_000)).split(":")[0] for k in (4, 5, 6, 7)] == [
+        "None", "no_tf", "bad_image", "no_tf",
+    ]  # fmt: skip
     assert [f.stamp_ns for f in tf_frames] == [T0_NS + k * 100_000_000 for k in range(5)]
     assert len(raw_frames) == 8 and raw_cam.stats()["rejected"] == {}
     for got, want in zip(tf_frames, raw_frames[:5], strict=True):
@@ -431,3 +435,84 @@ def test_bag_player_latches_tf_static_for_late_listeners(ros_context: Any, tmp_p
         player.destroy_node()
         late.destroy_node()
     assert len(got) == 1
+
+
+def _wait_for(predicate: Any, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
+    ros_context: Any, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A wrong transport, a pose topic beside a published /tf, a best-effort camera: the nodes said nothing and
+    ``~/status`` only counted incomplete frames. Now each silent topic is named with why and what to set, the
+    incomplete frames dropped are logged naming the topic that never delivered, and ``camera_reliability:
+    best_effort`` matches a best-effort publisher."""
+    pytest.importorskip("tf2_msgs")
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from roigsf_ros.data.bags import realsense_topics
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.nodes.camera_input import camera_qos, describe_topics
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    make_synthetic_replica(tmp_path / "scene", 16, 12, 20, seed=4)
+    seq = ReplicaSequence(tmp_path / "scene")
+    qos = reliable_qos(50)
+    published = realsense_topics(color_transport="compressed", depth_transport="compressedDepth")
+    wrong_depth = realsense_topics(color_transport="compressed", depth_transport="raw")  # the bag's is compressedDepth
+    pose_topic = CameraTopics(pose="/robot/camera_pose")  # the robot gives the pose on /tf only
+    be_topics = CameraTopics(color="/be/color", depth="/be/depth", camera_info="/be/info", pose="/be/pose")
+    nodes = [Node(name, context=ros_context) for name in ("wrong_depth", "pose_topic", "reliable_in", "best_in")]
+    got: list[list[BagFrame]] = [[] for _ in nodes]
+    inputs = [
+        CameraInput(nodes[0], got[0].append, qos, wrong_depth),
+        CameraInput(nodes[1], got[1].append, qos, pose_topic),
+        CameraInput(nodes[2], got[2].append, camera_qos(10, "reliable"), be_topics),
+        CameraInput(nodes[3], got[3].append, camera_qos(10, "best_effort"), be_topics),
+    ]
+    pub = _Publishers(ros_context, published.resolved(), qos)
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    be_pub = pub.node.create_publisher(Image, "/be/color", best_effort)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (*nodes, pub.node):
+        executor.add_node(n)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        pub.wait_for_subscribers()
+        pub.publish_static()
+        for k, frame in enumerate(seq):
+            pub.publish_frame(frame, seq.intrinsics, T0_NS + k * 100_000_000, tf=True)
+        _wait_for(lambda: len(got[1]) == 0 and inputs[1].received[CameraTopics().color] == 20)
+        _wait_for(lambda: inputs[2].qos_incompatible["/be/color"] >= 1 and be_pub.get_subscription_count() == 1)
+        be_pub.publish(_messages(T0_NS)[CameraTopics().color])
+        _wait_for(lambda: inputs[3].received["/be/color"] == 1 and inputs[0].stats()["dropped_incomplete"] >= 1)
+        silent = [camera.silent_topics() for camera in inputs]
+    finally:
+        executor.shutdown()
+        spin.join()
+        for n in (*nodes, pub.node):
+            n.destroy_node()
+    depth = "/camera/aligned_depth_to_color/image_raw"
+    assert list(silent[0]) == [depth], silent[0]
+    assert silent[0][depth].startswith(f"no publisher; {depth}/compressedDepth is published: set depth_transport: "
+                                       "compressedDepth (while ")  # fmt: skip
+    assert "/camera/color/image_raw/compressed" in silent[0][depth]
+    assert list(silent[1]) == ["/robot/camera_pose"]
+    assert "/tf is published: set pose_source: tf" in silent[1]["/robot/camera_pose"]
+    assert "camera_reliability: best_effort" in silent[2]["/be/color"]
+    assert inputs[2].received["/be/color"] == 0 and "/be/color" not in inputs[3].qos_incompatible
+    err = capfd.readouterr().err
+    assert f"1 incomplete frame(s) dropped so far (more than 16 waiting): nothing ever received on {depth}" in err
+    assert "/be/color: a publisher's QoS does not match this subscription (RELIABILITY" in err, err
+    line = describe_topics(published)
+    assert line == (
+        "colour /camera/color/image_raw/compressed (compressed), depth /camera/aligned_depth_to_color/image_raw/"
+        "compressedDepth (compressedDepth), info /camera/color/camera_info, pose from TF map -> "
+        "camera_color_optical_frame (/tf, /tf_static)"
+    )
+    with pytest.raises(Exception, match="camera_reliability"):
+        camera_qos(10, "sensor_data")

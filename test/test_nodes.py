@@ -939,17 +939,20 @@ def test_undeclared_overrides_of_params_files_and_p_are_logged_once_with_the_clo
 ) -> None:
     """``-p unseen_wieght:=2.0`` left the planner on its defaults without a word (ROS ignores an override no node
     declares); now each node logs one warning naming such overrides and the declared name closest to each. A
-    params file's ``/**:`` section holding another node's parameter does not fail a node, and in one process
-    (active_mapping) a name one of the three nodes declares is no typo for the other two."""
+    params file's ``/**:`` section holding another node's parameter does not fail a node; in one process
+    (active_mapping) a name one of the three nodes declares is no typo for the other two, and a node on its own
+    does not warn about a name another node of the package declares (the README gives the three processes the
+    same camera arguments: the planner warned about pose_source and suggested unseen_source)."""
     params = tmp_path / "all.yaml"
     params.write_text(
         "/**:\n  ros__parameters:\n    policy: every-n\nkeyframe_selector:\n  ros__parameters:\n    window: 3\n"
     )
-    with _context_with("-p", "unseen_wieght:=2.0", "--params-file", str(params)) as ctx:
+    camera = ("-p", "pose_source:=tf", "-p", "color_transport:=compressed")
+    with _context_with("-p", "unseen_wieght:=2.0", *camera, "--params-file", str(params)) as ctx:
         planner = NBVPlannerNode(context=ctx, parameter_overrides=[Parameter("warm_up", value=False)])
         selector = KeyframeSelectorNode(context=ctx)
         try:
-            assert planner.nbv == NBVConfig() and planner.ignored_parameters == ["policy", "unseen_wieght"]
+            assert planner.nbv == NBVConfig() and planner.ignored_parameters == ["unseen_wieght"]
             assert selector.policy == "every-n" and selector.window == 3
             assert selector.ignored_parameters == ["unseen_wieght"]
         finally:
@@ -958,8 +961,9 @@ def test_undeclared_overrides_of_params_files_and_p_are_logged_once_with_the_clo
         err = capfd.readouterr().err
         warnings = [line.split("]: ", 1)[1] for line in err.splitlines() if "ignored parameter" in line]
         assert warnings == [
-            "ignored parameter(s) not declared by this node: policy, unseen_wieght (closest declared: unseen_weight)",
-            "ignored parameter(s) not declared by this node: unseen_wieght",
+            "ignored parameter(s) not declared by this node nor by any other roigsf node: unseen_wieght (closest "
+            "declared: unseen_weight)",
+            "ignored parameter(s) not declared by this node nor by any other roigsf node: unseen_wieght",
         ], err
         assert "[nbv_planner]: ignored parameter(s)" in err
         nodes = build_nodes(ctx, {"nbv_planner": {"warm_up": False}})

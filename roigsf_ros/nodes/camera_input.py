@@ -17,6 +17,10 @@ overwritten in a full middleware queue, which the middleware does not report) ar
 in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`). With poses from TF, a complete frame
 waits (at most ``max_pending`` frames, at most ``tf_wait_s``) until TF gives its pose, else it is
 dropped and counted as ``no_tf``.
+
+A topic that delivers nothing is named in a warning with what the ROS graph suggests instead (the topic under
+another transport, ``/tf`` for a pose topic, a publisher whose QoS does not match), so a wrong transport, a typo
+or a best-effort camera (``camera_reliability``) is not a silent node.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from __future__ import annotations
 import importlib
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -32,8 +36,9 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import CallbackGroup
+from rclpy.event_handler import QoSRequestedIncompatibleQoSInfo, SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from roigsf_ros.core.camera import Intrinsics, load_pose
@@ -42,7 +47,9 @@ from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.data.bags import (
     AUTO,
     CAMERA_INFO_TYPE,
+    COLOR_TRANSPORTS,
     COMPRESSED_IMAGE_TYPE,
+    DEPTH_TRANSPORTS,
     IMAGE_TYPE,
     POSE_TYPE,
     BagFrame,
@@ -50,14 +57,25 @@ from roigsf_ros.data.bags import (
     assemble_frame,
     assemble_images,
     stamp_to_ns,
+    transport_topic,
 )
 from roigsf_ros.data.sync import FrameLedger, StampGapCounter
 from roigsf_ros.data.tf import TransformBuffer, TransformUnavailableError
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
+REMEMBERED_REJECTIONS = 256
+"""How many refused frames' stamps the input remembers with their reason (:meth:`CameraInput.rejection_of`)."""
 TF_EXPIRE_PERIOD_S = 0.1
 """How often frames waiting for their pose on TF are checked against ``tf_wait_s``."""
+INPUT_CHECK_PERIOD_S = 5.0
+"""How often the input looks for subscribed topics that delivered nothing (:meth:`CameraInput.silent_topics`)."""
+SILENT_WARN_S = 30.0
+"""At most one warning about silent topics in this many seconds."""
+CAMERA_RELIABILITIES = ("reliable", "best_effort")
+"""``camera_reliability``: what the camera subscriptions ask for. A reliable one never matches a best-effort
+publisher (many camera drivers publish sensor data best effort); a best-effort one matches both, but may lose
+frames under load."""
 _MESSAGE_CLASSES: dict[str, type] = {
     IMAGE_TYPE: Image,
     COMPRESSED_IMAGE_TYPE: CompressedImage,
@@ -115,6 +133,31 @@ def tf_qos() -> QoSProfile:
     )
 
 
+def camera_qos(depth: int, reliability: str = "reliable") -> QoSProfile:
+    """The camera subscriptions' QoS: keep-last ``depth``, volatile, ``reliability`` (one of CAMERA_RELIABILITIES)."""
+    if reliability not in CAMERA_RELIABILITIES:
+        raise InputError("parameter 'camera_reliability'", f"'{reliability}' is not one of reliable, best_effort")
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def describe_topics(topics: CameraTopics) -> str:
+    """One line naming what a camera input reads: topics with their transports, and where the pose comes from."""
+    t = topics.resolved()
+    pose = (
+        f"pose from TF {t.tf_parent_frame} -> {t.tf_child_frame} ({t.tf_topic}, {t.tf_static_topic})"
+        if t.uses_tf
+        else f"pose {t.pose}"
+    )
+    return (
+        f"colour {t.color} ({t.color_transport}), depth {t.depth} ({t.depth_transport}), info {t.camera_info}, {pose}"
+    )
+
+
 @dataclass(frozen=True)
 class CameraSettings:
     """How a node reads its camera: topics, transports and pose source, the mapping size, the TF wait."""
@@ -124,6 +167,8 @@ class CameraSettings:
     """(width, height) frames are downscaled to on arrival; None keeps the camera's size, one None its aspect."""
     tf_wait_s: float = 1.0
     """Seconds a complete frame waits for its pose on TF before it is dropped (``no_tf``)."""
+    reliability: str = "reliable"
+    """What the camera subscriptions ask for (CAMERA_RELIABILITIES; ``camera_reliability``)."""
 
 
 @dataclass
@@ -169,13 +214,20 @@ class CameraInput:
         """The full text of the last frame's conversion error (the counters hold only its category)."""
         self._ledger: FrameLedger[Any] = FrameLedger(self.topics.types(), max_pending)
         self._gaps = {topic: StampGapCounter() for topic in self.topics.types()}
+        self.qos_incompatible: Counter[str] = Counter()
+        """Publishers per topic this input could not match for their QoS (rclpy's incompatible-QoS event)."""
         self._lock = threading.Lock()
         self._tf: TransformBuffer | None = None
         self._awaiting: deque[_AwaitingPose] = deque()
+        self._last_silent_warning = -float("inf")
+        self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
         t = self.topics
         for topic, type_name in t.types().items():
             cls = _MESSAGE_CLASSES[type_name]
-            node.create_subscription(cls, topic, self._callback_for(topic), qos, callback_group=callback_group)
+            events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_callback_for(topic, qos))
+            node.create_subscription(
+                cls, topic, self._callback_for(topic), qos, callback_group=callback_group, event_callbacks=events
+            )
         if t.uses_tf:
             tf_cls = tf_message_class()
             self._tf = TransformBuffer(tolerance_s=t.tf_tolerance_s)
@@ -184,6 +236,7 @@ class CameraInput:
                     tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
                 )
             node.create_timer(TF_EXPIRE_PERIOD_S, self._expire_awaiting, callback_group=callback_group)
+        node.create_timer(INPUT_CHECK_PERIOD_S, self._check_inputs, callback_group=callback_group)
 
     @property
     def frames(self) -> int:
@@ -222,7 +275,94 @@ class CameraInput:
                 "missed_estimate": {topic: g.missed for topic, g in self._gaps.items()},
                 "tf_rejected": self.tf_rejected,
                 "last_rejection": self.last_rejection,
+                "qos_incompatible": dict(self.qos_incompatible),
             }
+
+    def subscribed_topics(self) -> list[str]:
+        """The topics a frame needs messages from: colour, depth, camera info, and the pose topic or /tf."""
+        t = self.topics
+        return [*t.types(), *([t.tf_topic] if t.uses_tf else [])]
+
+    def silent_topics(self) -> dict[str, str]:
+        """Each subscribed topic that delivered nothing yet -> why, as far as the ROS graph tells, with the fix.
+
+        Only where the graph says something is off: another of the camera's topics delivers, a publisher is on
+        the topic but its messages do not come (QoS), or the topic's stream is published under another name
+        this input could read (another transport; ``/tf`` beside a pose topic). A camera not started yet is
+        not reported.
+        """
+        with self._lock:
+            received = Counter(self.received)
+            incompatible = Counter(self.qos_incompatible)
+        silent = [topic for topic in self.subscribed_topics() if received[topic] == 0]
+        if not silent:
+            return {}
+        published = {name: types for name, types in self.node.get_topic_names_and_types()}
+        flowing = sorted(topic for topic in self.subscribed_topics() if received[topic] > 0)
+        t = self.topics
+        out: dict[str, str] = {}
+        for topic in silent:
+            publishers = self.node.count_publishers(topic)
+            if incompatible[topic]:
+                why = (f"{incompatible[topic]} publisher(s) with a QoS this subscription cannot match (most often a "
+                       "best-effort camera: set camera_reliability: best_effort)")  # fmt: skip
+            elif publishers:
+                if not flowing:
+                    continue  # the publisher may not have started sending (a player waiting for subscribers)
+                why = f"{publishers} publisher(s) on it, but no message has arrived"
+            else:
+                why = "no publisher"
+                hint = self._elsewhere(topic, published)
+                if hint:
+                    why += f"; {hint}"
+                elif not flowing:
+                    continue  # nothing at all yet, and nothing better to read: the camera may not have started
+            if flowing and topic != t.tf_topic:
+                why += f" (while {', '.join(flowing)} delivered)"
+            out[topic] = why
+        return out
+
+    def _elsewhere(self, topic: str, published: dict[str, list[str]]) -> str:
+        """Where the stream of a silent ``topic`` seems to be published instead, with the parameter to set; or ""."""
+        t = self.topics
+        for stream, transports in (("color", COLOR_TRANSPORTS), ("depth", DEPTH_TRANSPORTS)):
+            if topic != getattr(t, stream):
+                continue
+            base = topic
+            for suffix in ("/compressed", "/compressedDepth"):
+                base = base.removesuffix(suffix)
+            for transport in transports:
+                other = transport_topic(base, transport)
+                if other != topic and other in published and self.node.count_publishers(other):
+                    return f"{other} is published: set {stream}_transport: {transport}"
+        if topic == t.pose and t.tf_topic in published and self.node.count_publishers(t.tf_topic):
+            return f"{t.tf_topic} is published: set pose_source: tf (with tf_parent_frame and tf_child_frame)"
+        return ""
+
+    def _check_inputs(self) -> None:
+        """Warn (throttled) about subscribed topics that deliver nothing, naming why and what to set."""
+        now = time.monotonic()
+        if now - self._last_silent_warning < SILENT_WARN_S:
+            return
+        silent = self.silent_topics()
+        if silent:
+            self._last_silent_warning = now
+            listed = "; ".join(f"{topic}: {why}" for topic, why in silent.items())
+            self.node.get_logger().warning(f"nothing received on {listed}")
+
+    def _incompatible_callback_for(self, topic: str, qos: QoSProfile) -> Callable[[Any], None]:
+        def callback(info: QoSRequestedIncompatibleQoSInfo) -> None:
+            with self._lock:
+                self.qos_incompatible[topic] = info.total_count
+            policy = QoSPolicyKind(info.last_policy_kind).name
+            asked = qos.reliability.name.lower()
+            self.node.get_logger().warning(
+                f"{topic}: a publisher's QoS does not match this subscription ({policy}; it asks {asked}): its "
+                "messages never arrive; a best-effort camera needs camera_reliability: best_effort",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+
+        return callback
 
     def _callback_for(self, topic: str) -> Callable[[Any], None]:
         def callback(msg: Any) -> None:
@@ -241,7 +381,16 @@ class CameraInput:
         with self._lock:
             self.received[topic] += 1
             self._gaps[topic].add(stamp)
+            dropped_before = self._ledger.dropped_incomplete
             parts = self._ledger.add(stamp, topic, msg)
+            dropped = self._ledger.dropped_incomplete
+            missing = [name for name in self.topics.types() if self.received[name] == 0]
+        if dropped > dropped_before:
+            why = f"nothing ever received on {', '.join(missing)}" if missing else "one of their messages never came"
+            self.node.get_logger().warning(
+                f"{dropped} incomplete frame(s) dropped so far (more than {self.max_pending} waiting): {why}",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
         if parts is None:
             return
         t = self.topics
@@ -259,7 +408,7 @@ class CameraInput:
                 small = self._downscale(BagFrame(stamp, rgb, depth_m, np.eye(4), intr))
                 awaiting = _AwaitingPose(stamp, small.rgb, small.depth_m, small.intrinsics, time.monotonic())
         except InputError as exc:
-            self._reject(exc)
+            self._reject(exc, stamp)
             return
         if self._tf is None:
             self.on_frame(frame)
@@ -301,14 +450,12 @@ class CameraInput:
                     if exc.retry:
                         why = "in time" if expired else f"before {self.max_pending} newer frames were waiting"
                         exc = TransformUnavailableError(exc.where, f"{exc.problem} (no pose {why})", retry=False)
-                    self._ledger.reject("no_tf")
-                    self.last_rejection = str(exc)
+                    self._remember_rejection(a.stamp_ns, "no_tf", exc)
                     dropped.append(exc)
                     continue
                 except InputError as exc:  # a composed pose that is not rigid
                     self._awaiting.popleft()
-                    self._ledger.reject("bad_pose")
-                    self.last_rejection = str(exc)
+                    self._remember_rejection(a.stamp_ns, "bad_pose", exc)
                     dropped.append(exc)
                     continue
                 self._awaiting.popleft()
@@ -320,10 +467,22 @@ class CameraInput:
         for frame in ready:
             self.on_frame(frame)
 
-    def _reject(self, exc: InputError) -> None:
+    def rejection_of(self, stamp_ns: int) -> str | None:
+        """Why the frame of ``stamp_ns`` was refused (``no_tf: ...``), if it was one of the last ones refused."""
         with self._lock:
-            self._ledger.reject(reject_reason(exc, self.topics))
-            self.last_rejection = str(exc)
+            return self._rejections.get(int(stamp_ns))
+
+    def _remember_rejection(self, stamp_ns: int, reason: str, exc: InputError) -> None:
+        """Count a refused frame and keep why (the caller holds the lock)."""
+        self._ledger.reject(reason)
+        self.last_rejection = str(exc)
+        self._rejections[int(stamp_ns)] = f"{reason}: {exc}"
+        while len(self._rejections) > REMEMBERED_REJECTIONS:
+            self._rejections.popitem(last=False)
+
+    def _reject(self, exc: InputError, stamp_ns: int) -> None:
+        with self._lock:
+            self._remember_rejection(stamp_ns, reject_reason(exc, self.topics), exc)
         self.node.get_logger().warning(f"dropped frame: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
 
     def _downscale(self, bf: BagFrame) -> BagFrame:

@@ -83,7 +83,7 @@ from roigsf_ros.nbv.novelty import (
     fuse_novelty,
 )
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, camera_qos, describe_topics
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import (
     KEYFRAME_POSES_TOPIC,
@@ -236,7 +236,7 @@ class KeyframeSelectorNode(SystemNode):
         self.camera = CameraInput(
             self,
             self._on_frame,
-            reliable_qos(qos_depth),
+            camera_qos(qos_depth, camera.reliability),
             camera.topics,
             callback_group=inputs,
             input_size=camera.input_size,
@@ -260,7 +260,10 @@ class KeyframeSelectorNode(SystemNode):
         how = f"asking {self.service_name} (fallback {self.fallback})" if self.uses_planner else "deciding alone"
         window = f"window {self.window}" + (f", lookahead {self.lookahead}" if self.lookahead else "")
         window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
-        self.get_logger().info(f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}")
+        self.get_logger().info(
+            f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}; camera: "
+            f"{describe_topics(self.camera.topics)}, {camera.reliability}"
+        )
 
     def _make_alone(self, name: str) -> KeyframePolicy:
         params: dict[str, Any] = {
@@ -606,6 +609,9 @@ class KeyframeSelectorNode(SystemNode):
                 "policy": self.policy,
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],
+                "frames_pending": cam["pending"],
+                "messages_received": cam["received"],
+                "qos_incompatible": cam["qos_incompatible"],
                 "frames_awaiting_tf": cam["awaiting_tf"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
                 "frames_duplicate_stamp": cam["duplicate_stamp"],

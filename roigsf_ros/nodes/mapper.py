@@ -57,7 +57,7 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame, CameraTopics, stamp_to_ns
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
 from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import (
     SystemNode,
@@ -121,6 +121,9 @@ def camera_params(node: Node) -> CameraSettings:
         ),
     }
     tf_wait_s = float(declare(node, "tf_wait_s", 1.0, "tf: seconds a frame waits for its pose, then dropped (no_tf)"))
+    reliability = str(
+        declare(node, "camera_reliability", "reliable", "reliable | best_effort (what the camera publishes)")
+    )
     width = int(declare(node, "input_width", 0, "frames downscaled on arrival to this width (0 = camera's)"))
     height = int(declare(node, "input_height", 0, "frames downscaled on arrival to this height (0 = camera's)"))
     check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
@@ -137,7 +140,8 @@ def camera_params(node: Node) -> CameraSettings:
         }
         raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
     size = None if not width and not height else (width or None, height or None)
-    return CameraSettings(topics, size, tf_wait_s)
+    camera_qos(1, reliability)  # an unknown value: an error naming the parameter
+    return CameraSettings(topics, size, tf_wait_s, reliability)
 
 
 def frame_of(bf: BagFrame) -> Frame:
@@ -242,7 +246,7 @@ class MapperNode(SystemNode):
         self.camera = CameraInput(
             self,
             self._on_frame,
-            reliable_qos(qos_depth),
+            camera_qos(qos_depth, camera.reliability),
             camera.topics,
             callback_group=inputs,
             input_size=camera.input_size,
@@ -267,8 +271,9 @@ class MapperNode(SystemNode):
         self._thread = threading.Thread(target=self._work, name=f"{self.get_name()}_worker", daemon=True)
         self._thread.start()
         self.get_logger().info(
-            f"mapping keyframes named on {keyframe_topic} from {self.camera.topics.color}; map on {map_topic} "
-            f"({'shared in-process' if self.in_process else 'own'} map{settings_text(self.config.changed())})"
+            f"mapping keyframes named on {keyframe_topic}; map on {map_topic} "
+            f"({'shared in-process' if self.in_process else 'own'} map{settings_text(self.config.changed())}); "
+            f"camera: {describe_topics(self.camera.topics)}, {camera.reliability}"
         )
 
     # ------------------------------------------------------------------------------ inputs
@@ -328,7 +333,9 @@ class MapperNode(SystemNode):
                     self._waiting[stamp] = [time.monotonic(), 0]
             else:
                 self.counters["keyframes_missing"] += 1
-                warn = f"keyframe {stamp}: its frame was never received or already left the buffer; dropped"
+                refused = self.camera.rejection_of(stamp)
+                why = f"refused ({refused})" if refused else "never received or already left the buffer"
+                warn = f"keyframe {stamp}: its frame was {why}; dropped"
         if warn:
             self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
 
@@ -354,8 +361,10 @@ class MapperNode(SystemNode):
                 del self._waiting[s]
             self.counters["keyframes_missing"] += len(expired)
         if expired:
+            refused = [why for s in expired if (why := self.camera.rejection_of(s))]
+            because = f" ({len(refused)} refused, the last: {refused[-1]})" if refused else ""
             self.get_logger().warning(
-                f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s",
+                f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s{because}",
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
 
@@ -472,6 +481,9 @@ class MapperNode(SystemNode):
             return {
                 "frames_received": cam["frames"],
                 "frames_rejected": cam["rejected"],
+                "frames_pending": cam["pending"],
+                "messages_received": cam["received"],
+                "qos_incompatible": cam["qos_incompatible"],
                 "frames_awaiting_tf": cam["awaiting_tf"],
                 "frames_dropped_incomplete": cam["dropped_incomplete"],
                 "frames_duplicate_stamp": cam["duplicate_stamp"],

@@ -78,7 +78,7 @@ from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.nbv.stop import ScoringStoppedError
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, camera_qos
 from roigsf_ros.nodes.map_msgs import (
     array_to_poses,
     cloud_h_train,
@@ -123,6 +123,7 @@ class NBVPlannerNode(SystemNode):
         info_topic = declare(
             self, "camera_info_topic", CameraTopics().camera_info, "camera info (intrinsics, topic mode)"
         )
+        info_qos = camera_qos(10, str(declare(self, "camera_reliability", "reliable", "reliable | best_effort")))
         in_w = int(declare(self, "input_width", 0, "camera info scaled to the mapper's input_width (0 = as sent)"))
         in_h = int(declare(self, "input_height", 0, "camera info scaled to the mapper's input_height (0 = as sent)"))
         check_positive("input_width", in_w, allow_zero=True)
@@ -193,7 +194,7 @@ class NBVPlannerNode(SystemNode):
         if shared is None:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
             self.create_subscription(PoseArray, poses_topic, self._on_poses, latched_qos(), callback_group=inputs)
-            self.create_subscription(CameraInfo, info_topic, self._on_info, reliable_qos(10), callback_group=inputs)
+            self.create_subscription(CameraInfo, info_topic, self._on_info, info_qos, callback_group=inputs)
         self._best_pub = self.create_publisher(PoseStamped, "~/best_view", latched_qos())
         self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
         self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())

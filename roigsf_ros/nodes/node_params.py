@@ -125,6 +125,36 @@ def _hint(name: str, declared: Iterable[str]) -> str:
     return f" (closest declared: {', '.join(close)})" if close else ""
 
 
+PACKAGE_CONFIG_FILES = ("mapper.yaml", "nbv.yaml", "keyframe_selector.yaml", "bag_player.yaml")
+"""The params files of the package's nodes (config/): every parameter each node declares, with its default."""
+
+
+@functools.cache
+def package_parameter_names() -> frozenset[str]:
+    """Every parameter some node of this package declares, read from its params files (the checkout's config/, else
+    the installed share/roigsf_ros/config/); empty when neither is found.
+
+    A ``-p NAME:=VALUE`` reaches every node of a process, and the README gives the three processes the same camera
+    arguments: a name another node of the package declares is not a typo in a node that runs on its own.
+    """
+    import yaml
+
+    folder = Path(__file__).resolve().parents[2] / "config"
+    if not all((folder / name).is_file() for name in PACKAGE_CONFIG_FILES):
+        try:
+            from ament_index_python.packages import get_package_share_directory
+
+            folder = Path(get_package_share_directory("roigsf_ros")) / "config"
+        except (ImportError, LookupError, OSError, ValueError):  # no ament index, or the package not in it
+            return frozenset()
+    names: set[str] = set()
+    for name in PACKAGE_CONFIG_FILES:
+        with contextlib.suppress(OSError, yaml.YAMLError, AttributeError):
+            for section in (yaml.safe_load((folder / name).read_text()) or {}).values():
+                names.update(section.get("ros__parameters") or {})
+    return frozenset(names)
+
+
 def undeclared_overrides(node: Node, also_declared: Iterable[str] = ()) -> list[str]:
     """The overrides addressed to ``node`` (params files, ``-p``, its constructor) that it does not declare, sorted.
 
@@ -155,7 +185,8 @@ def check_parameter_overrides(
 
     ``explicit``: the ``parameter_overrides`` given to the node's constructor, a call naming this node, so an
     unknown name there is an error; a params file or ``-p`` may carry other nodes' parameters (ROS ignores
-    those), so they only warn. ``siblings``: the other nodes of the process, whose names are not typos here.
+    those), so they only warn. ``siblings``: the other nodes of the process, whose names are not typos here; a
+    node on its own skips the names any node of the package declares (:func:`package_parameter_names`).
     """
     declared = _declared_names(node)
     unknown_explicit = sorted({p.name for p in explicit or ()} - set(node.list_parameters([], 0).names))
@@ -168,9 +199,9 @@ def check_parameter_overrides(
         raise InputError(where, "not declared by this node" + (f" (closest declared {hints})" if hints else ""))
     others = [n for n in siblings if n is not node]
     also = [name for other in others for name in _declared_names(other)]
-    ignored = undeclared_overrides(node, also)
+    ignored = undeclared_overrides(node, also if others else package_parameter_names())
     if warn and ignored:
-        by = " nor by " + ", ".join(n.get_name() for n in others) if others else ""
+        by = " nor by " + ", ".join(n.get_name() for n in others) if others else " nor by any other roigsf node"
         names = ", ".join(f"{name}{_hint(name, declared + also)}" for name in ignored)
         node.get_logger().warning(f"ignored parameter(s) not declared by this node{by}: {names}")
     return ignored
