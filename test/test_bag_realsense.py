@@ -9,6 +9,7 @@ keyframes and poses.
 from __future__ import annotations
 
 import json
+import re
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -226,3 +227,84 @@ def test_compressed_converters_round_trip_and_reject_bad_data_naming_the_topic()
         bags.image_to_depth_m(_compressed(hdr, "16UC1; compressedDepth rvl", data), "/d")
     with pytest.raises(InputError, match=r"^/d: .*expected a 16-bit PNG"):
         bags.image_to_depth_m(_compressed(hdr, "png", cv2.imencode(".png", rgb)[1].tobytes()), "/d")
+
+
+# ------------------------------------------------------------------------------------------ frames without TF
+
+AUTO_RS = {"color_transport": "auto", "depth_transport": "auto"}
+
+
+@pytest.fixture(scope="module")
+def tf_gap_bag(raw_bag: Path) -> Path:
+    """The robot bag with frames 2 and 3 never posed on TF (their odom -> base_link lost)."""
+    out = raw_bag.parent / "tf_gap_2_3"
+    realsense_bag(raw_bag, out, keep_tf=lambda k: k not in (2, 3))
+    return out
+
+
+def test_bag_frame_ids_name_bag_frames_past_frames_skipped_for_tf(tf_gap_bag: Path) -> None:
+    """A frame's index is its place among all the bag's frames, the skipped ones counted: stride and cap too."""
+    src = open_frames(tf_gap_bag, topics=bags.realsense_topics(**AUTO_RS))
+    assert len(src) == N and [f.index for f in src] == [0, 1, 4, 5]
+    assert (src.skipped_no_tf, src.skipped_incomplete) == (2, 0) and "'odom' -> 'base_link'" in src.no_tf_reason
+    strided = open_frames(tf_gap_bag, stride=2, topics=bags.realsense_topics(**AUTO_RS))
+    assert len(strided) == 3 and [f.index for f in strided] == [0, 4] and strided.skipped_no_tf == 1
+    capped = open_frames(tf_gap_bag, max_frames=3, topics=bags.realsense_topics(**AUTO_RS))
+    assert len(capped) == 3 and [f.index for f in capped] == [0, 1] and capped.skipped_no_tf == 1
+
+
+def test_map_reports_frames_skipped_without_tf_and_keeps_bag_frame_ids(
+    raw_bag: Path, tf_gap_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`roigsf map` says how many frames TF never posed and why (summary and metrics.json), and its keyframe ids
+    are bag frame numbers: keyframe 4 is the bag's frame 4, at its pose."""
+    argv = ["map", str(tf_gap_bag), "--realsense", "--policy", "all", "--out", str(tmp_path / "run"), "--no-progress"]
+    assert cli_main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"skipped: no TF pose\s+2 \(.*'odom' -> 'base_link'", out), out
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_skipped_no_tf"], metrics["frames_skipped_incomplete"]) == (4, 2, 0)
+    assert "'odom' -> 'base_link'" in metrics["frames_skipped_no_tf_reason"]
+    keyframes = json.loads((tmp_path / "run" / "keyframes.json").read_text())
+    assert metrics["keyframe_ids"] == keyframes["keyframe_ids"] == [0, 1, 4, 5]
+    want = {k: f.T_wc for k, f in enumerate(bags.read_bag_frames(raw_bag)[0])}
+    np.testing.assert_allclose(keyframes["keyframe_poses"], [want[k] for k in (0, 1, 4, 5)], atol=1e-9)
+
+
+def test_bag_info_counts_frames_tf_does_not_pose_with_the_reason(
+    rs_bag: Path, tf_gap_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert cli_main(["bag", "info", str(tf_gap_bag), "--realsense", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["frame_count"], info["frames_without_tf"], info["incomplete_stamps"]) == (N - 2, 2, 0)
+    assert "'odom' -> 'base_link'" in info["no_tf_reason"] and info["missing_topics"] == []
+    assert cli_main(["bag", "info", str(tf_gap_bag), "--realsense"]) == 0
+    text = capsys.readouterr().out
+    assert f"frames:       {N - 2} complete and posed by TF, 2 complete without a TF pose" in text
+    assert "no TF pose:   tf 'map' -> 'camera_color_optical_frame'" in text
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--tf-child-frame", "nope", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["frame_count"], info["frames_without_tf"]) == (0, N) and "'nope' is unknown" in info["no_tf_reason"]
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--json"]) == 0  # every frame posed
+    info = json.loads(capsys.readouterr().out)
+    assert (info["frame_count"], info["frames_without_tf"], info["no_tf_reason"]) == (N, 0, None)
+
+
+def test_bag_info_names_missing_topics_and_hints_realsense(
+    raw_bag: Path, rs_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Wrong topics: each missing one is named (exit 0: info inspects unknown bags), with `--realsense` to try."""
+    assert cli_main(["bag", "info", str(rs_bag)]) == 0
+    text = capsys.readouterr().out
+    assert "missing:      depth topic /camera/depth/image_raw" in text
+    assert "missing:      topic /camera/camera_info" in text and "missing:      topic /camera/pose" in text
+    assert "hint:         the bag holds a RealSense camera under /camera: try --realsense\n" in text
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--color-transport", "raw", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frame_count"] == 0 and info["missing_topics"] == [
+        f"topic {RS_COLOR} (sensor_msgs/msg/Image) is missing (the bag has {RS_COLOR}/compressed)"
+    ]
+    assert info["hint"] == "the bag holds a RealSense camera under /camera: try --realsense without --color-transport"
+    assert cli_main(["bag", "info", str(raw_bag), "--json"]) == 0  # nothing missing: no hint
+    info = json.loads(capsys.readouterr().out)
+    assert info["missing_topics"] == [] and "hint" not in info and info["realsense_namespace"] is None

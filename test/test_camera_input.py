@@ -516,3 +516,48 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
     )
     with pytest.raises(Exception, match="camera_reliability"):
         camera_qos(10, "sensor_data")
+
+
+def test_tf_history_as_long_as_tf_cache_s_poses_frames_whose_tf_came_long_before(ros_context: Any) -> None:
+    """A bag played as fast as possible sends all its /tf before the images are decoded: with tf2's 10 s of history
+    the first frames of a 13 s bag lost their poses (``no_tf``; ``roigsf demo --rate 0`` on the shipped bag turned
+    robot: 125 of 150). ``tf_cache_s`` keeps more; the demo sets it to the bag's length at rate 0."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.data.bags import realsense_topics
+
+    rs = realsense_topics(tf_child_frame="cam")  # raw transports, the pose of "cam" in "map" on /tf
+    d = CameraTopics()
+    qos = reliable_qos(50)
+    nodes = [Node(f"cache_{s}", context=ros_context) for s in ("default", "long")]
+    got: list[list[BagFrame]] = [[], []]
+    inputs = [CameraInput(nodes[0], got[0].append, qos, rs), CameraInput(nodes[1], got[1].append, qos, rs,
+                                                                          tf_cache_s=20.0)]  # fmt: skip
+    pub = Node("cache_pub", context=ros_context)
+    tf_pub = pub.create_publisher(TFMessage, "/tf", qos)
+    images = {(rs.color, d.color): Image, (rs.depth, d.depth): Image, (rs.camera_info, d.camera_info): CameraInfo}
+    pubs = {(topic, key): pub.create_publisher(cls, topic, qos) for (topic, key), cls in images.items()}
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (*nodes, pub):
+        executor.add_node(n)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    stamps = [T0_NS + k * 1_000_000_000 for k in range(14)]  # 1 Hz, 13 s
+    try:
+        _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (tf_pub, *pubs.values())))
+        for stamp in stamps:  # every transform first, as a replay at rate 0 delivers them
+            tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
+        time.sleep(0.3)
+        for stamp in stamps:
+            msgs = _messages(stamp)
+            for (_, key), publisher in pubs.items():
+                publisher.publish(msgs[key])
+        _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == 14 for c in inputs))
+    finally:
+        executor.shutdown()
+        spin.join()
+        for n in (*nodes, pub):
+            n.destroy_node()
+    assert inputs[0].stats()["rejected"] == {"no_tf": 3}, inputs[0].stats()  # more than 10 s behind the newest
+    assert len(got[1]) == 14 and inputs[1].stats()["rejected"] == {}

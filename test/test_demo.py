@@ -241,3 +241,65 @@ def test_demo_says_why_it_fails_when_frames_did_not_reach_the_nodes(
     assert "error: 1 of the bag's 4 frames did not reach the nodes complete and valid (at rate x0" in err, err
     metrics["frames_received"] = 4
     assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 0
+
+
+def _robot_bag(root: Path, frames: int, seed: int) -> Path:
+    """A small bag as a robot records it (RealSense names, pose only on TF, compressed images)."""
+    from roigsf_ros.data.robot_bag import write_robot_bag
+
+    assert write_robot_bag(_bag(root, frames, 32, 24, seed=seed), root / "robot") == frames
+    return root / "robot"
+
+
+def test_demo_maps_a_robot_bag_with_realsense(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--realsense`` reads a robot's bag as the nodes do: every frame received, every keyframe named mapped.
+
+    Before: the demo read the bag with the default topics whatever the nodes were set to, printed "0 frames of
+    NonexNone" and failed on the missing /camera/color/image_raw; it had no ``--realsense``.
+    """
+    from roigsf_ros.cli import main
+
+    bag = _robot_bag(tmp_path, 6, seed=8)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--rate", "1", "--gt-mesh", "", "--no-progress",
+            "--policy", "all", "--final-iters", "0", "--set", "mapper.iters_per_keyframe=2"]  # fmt: skip
+    assert main(args) == 2  # the default names: the reader's error, and a hint, before anything starts
+    out = capsys.readouterr()
+    assert "topic /camera/color/image_raw (sensor_msgs/msg/Image) is missing" in out.err, out.err
+    assert "try --realsense" in out.err and "None" not in out.out + out.err and not run.exists(), out
+    assert main([*args, "--realsense"]) == 0
+    out = capsys.readouterr()
+    assert out.out.startswith(f"bag {bag}: 6 frames of 32x24, depth 16UC1; compressedDepth png, pose from tf"), out
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_received"], metrics["dropped_frames"]) == (6, 6, 0), metrics
+    assert (metrics["keyframes_published"], metrics["n_keyframes"], metrics["keyframes_in_bag"]) == (6, 6, 6)
+    assert metrics["keyframes_not_mapped"] == 0
+
+
+def test_demo_refuses_camera_settings_with_which_a_node_reads_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The mapper's and the selector's camera settings (params files, ``--realsense``, ``--set``) are checked against
+    the bag before anything starts: one that reads no frame of it is named. ``--set`` wins over ``--realsense``."""
+    from roigsf_ros.cli import main
+
+    bag = _robot_bag(tmp_path, 3, seed=9)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--gt-mesh", "", "--no-progress"]
+    robot = {"color_topic": "/camera/color/image_raw", "depth_topic": "/camera/aligned_depth_to_color/image_raw",
+             "camera_info_topic": "/camera/color/camera_info", "pose_source": "tf", "color_transport": "compressed",
+             "depth_transport": "compressedDepth"}  # fmt: skip
+    assert main([*args, *(a for k, v in robot.items() for a in ("--set", f"mapper.{k}={v}"))]) == 2  # mapper only
+    err = capsys.readouterr().err
+    assert "parameters 'keyframe_selector.depth_topic', 'keyframe_selector.camera_info_topic'" in err, err
+    assert "the keyframe_selector would read no frame of the bag" in err, err
+    assert main([*args, "--realsense", "--set", "keyframe_selector.depth_transport=raw"]) == 2
+    err = capsys.readouterr().err
+    assert "parameter 'keyframe_selector.depth_transport': depth_transport=raw (the mapper's: auto, here " \
+        "compressedDepth)" in err, err  # fmt: skip
+    params = tmp_path / "world.yaml"
+    params.write_text("keyframe_selector:\n  ros__parameters:\n    tf_parent_frame: world\n")
+    assert main([*args, "--realsense", "--params-file", str(params)]) == 2
+    err = capsys.readouterr().err
+    assert "parameter 'keyframe_selector.tf_parent_frame': tf_parent_frame=world (the mapper's: map)" in err, err
+    assert "without a pose on TF" in err and not run.exists(), err

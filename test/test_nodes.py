@@ -357,6 +357,32 @@ def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: An
     assert status["keyframe_ids"] == [5_000] and status["surfels"] > 0 and status["keyframes_failed"] == 0
 
 
+def test_a_keyframe_whose_frame_is_gone_says_why(ros_context: Any, scene: Any, capfd: Any) -> None:
+    """A keyframe named on a refused frame, or on one older than the frame buffer reaches back (the README's
+    RealSense command at 30 Hz with a window of 30: 5 of 10 keyframes), said "never received or already left the
+    buffer"; now the refusal's reason, or how far back the buffer reaches and the parameter to raise."""
+    frames, _ = scene
+    overrides = [Parameter("iters_per_keyframe", value=1), Parameter("frame_buffer_size", value=2)]
+    mapper = MapperNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    with _spinning(ros_context, mapper, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1_000, encoding="8UC1"))  # refused: unsupported encoding
+        for k, stamp in enumerate((2_000, 3_000, 4_000)):
+            cam.publish(_frame_msgs(frames[k], stamp))
+        _wait(lambda: mapper.status()["frames_received"] == 3, 10.0, "three good frames")
+        cam.keyframes.publish(pose_stamped(frames[0].T_wc, 1_000))
+        _wait(lambda: mapper.status()["keyframes_missing"] == 1, 10.0, "the refused frame's keyframe")
+        refused = mapper.status()["last_keyframe_drop"]
+        cam.keyframes.publish(pose_stamped(frames[0].T_wc, 2_000))  # the buffer holds 3_000 and 4_000 only
+        _wait(lambda: mapper.status()["keyframes_missing"] == 2, 10.0, "the old frame's keyframe")
+        old = mapper.status()["last_keyframe_drop"]  # in ~/status: the second warning is throttled
+    assert refused.startswith("keyframe 1000: its frame was refused (bad_encoding: "), refused
+    assert "keyframe 1000: its frame was refused (bad_encoding: " in capfd.readouterr().err
+    assert old.startswith("keyframe 2000: its frame was already out of the buffer, which holds the last 2 frames"), old
+    assert old.endswith("raise frame_buffer_size; dropped")
+
+
 # ---------------------------------------------------------------------------------------- selector
 def _windowed_selector(
     ctx: Any, service: str, timeout_s: float = 10.0, **params: Any

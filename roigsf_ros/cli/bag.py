@@ -10,7 +10,7 @@ from typing import Any
 
 from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
+from roigsf_ros.data.bags import AUTO, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.robot_bag import ROBOT_COLOR_FORMATS, ROBOT_DEPTH_TRANSPORTS, write_robot_bag
 
@@ -177,7 +177,20 @@ def format_info(info: dict[str, Any]) -> str:
             f"images:       {info['width']}x{info['height']}, colour {info['color_encoding']}, "
             f"depth {info['depth_encoding']}, pose from {info['pose_source']}"
         )
-    lines.append(f"frames:       {info['frame_count']} complete, {info['incomplete_stamps']} incomplete stamps")
+    no_tf = info.get("frames_without_tf")
+    if no_tf is None:
+        lines.append(f"frames:       {info['frame_count']} complete, {info['incomplete_stamps']} incomplete stamps")
+    else:
+        lines.append(
+            f"frames:       {info['frame_count']} complete and posed by TF, {no_tf} complete without a TF pose, "
+            f"{info['incomplete_stamps']} incomplete stamps"
+        )
+        if no_tf:
+            lines.append(f"no TF pose:   {info['no_tf_reason']}")
+    for problem in info.get("missing_topics") or []:
+        lines.append(f"missing:      {problem}")
+    if info.get("hint"):
+        lines.append(f"hint:         {info['hint']}")
     lines.append(f"messages:     {info['message_count']}")
     width = max([len(t) for t in info["topics"]] + [5])
     lines.append("topics:")
@@ -188,5 +201,20 @@ def format_info(info: dict[str, Any]) -> str:
 
 def _info(args: argparse.Namespace) -> int:
     info = bag_info(args.bag, camera_topics(args))
+    hint = _hint(args, info)
+    if hint is not None:  # in --json too: a field only when there is a hint
+        info["hint"] = hint
     print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0
+
+
+def _hint(args: argparse.Namespace, info: dict[str, Any]) -> str | None:
+    """The options that read a bag whose camera topics are not the ones asked for, when it holds a RealSense's."""
+    ns = info.get("realsense_namespace")
+    if ns is None:
+        return None
+    option = "--realsense" if ns == "/camera" else f"--realsense {ns}"
+    named = [o for o in ("color_transport", "depth_transport") if getattr(args, o) not in (None, AUTO)]
+    named += [o for o in ("color_topic", "depth_topic", "camera_info_topic") if getattr(args, o) is not None]
+    drop = f" without {', '.join('--' + o.replace('_', '-') for o in named)}" if named else ""
+    return f"the bag holds a RealSense camera under {ns}: try {option}{drop}"

@@ -25,6 +25,13 @@ from roigsf_ros.experiments.pool import PoolConfig
 from roigsf_ros.mapping.mapper import MapperConfig
 
 
+def _mesh_path(text: str) -> Path:
+    """``--gt-mesh``'s path; ``''`` (no mesh, as ``roigsf map`` takes it) is refused: policies are compared on it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("'' (no mesh) is not taken here: the benchmark compares the policies' meshes")
+    return Path(text)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``bench`` subcommand."""
     p = sub.add_parser("bench", help="benchmark keyframe / NBV policies (stream or pool setting)", description=__doc__)
@@ -42,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rewrites results.json, results.md and the plots",
     )
     p.add_argument("--seeds", type=int, default=1, help="run seeds 0..N-1 (default 1)")
-    p.add_argument("--gt-mesh", type=Path, help="ground-truth mesh (default: the scene folder's mesh.ply)")
+    p.add_argument("--gt-mesh", type=_mesh_path, help="ground-truth mesh (default: the scene folder's mesh.ply)")
     p.add_argument("--width", type=int, help="resize frames to this width (alone: the height keeps the aspect ratio)")
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")

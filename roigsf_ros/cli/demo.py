@@ -13,15 +13,26 @@ steps over all keyframes, and the run folder receives (atomically) ``metrics.jso
 ``map.ply`` + ``keyframes.json``, ``strip.png`` (input vs rendered colour and depth of non-keyframes),
 ``plot.png`` (trajectory with keyframes, next to the strip) and ``replay.json`` (player and node
 counters). Ctrl-C stops the player and the nodes cleanly and writes nothing.
+
+The report reads the bag with the camera settings the mapper runs with (its camera parameters after the params
+files and ``--set``), and the player plays only the topics the camera nodes read. A robot's bag (RealSense names,
+pose on TF, compressed images) needs ``--realsense [NS]``: it sets those names and pose_source tf on the mapper and
+the keyframe selector (and the planner's camera_info_topic), with the transports read from the bag's topic types,
+over the params files; a ``--set NODE.NAME=VALUE`` still wins. Settings with which the mapper or the selector would
+read no frame of the bag are refused before anything starts, naming the parameter. Played as fast as possible
+(``--rate 0``), a bag's whole /tf arrives before its images are decoded, so the camera nodes then keep the bag's
+length of TF history (``tf_cache_s``; 10 s, tf2's default, dropped the first frames as ``no_tf``).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,10 +40,12 @@ import numpy as np
 
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import BagFrame, bag_info
+from roigsf_ros.data.bags import AUTO, BagFrame, BagReader, CameraTopics, bag_info, open_any_reader, realsense_topics
+from roigsf_ros.data.tf import DEFAULT_CACHE_S
 
 if TYPE_CHECKING:
     import open3d as o3d
+    from rclpy.context import Context
 
     from roigsf_ros.experiments.offline import EvalConfig
     from roigsf_ros.mapping.mapper import Mapper
@@ -138,6 +151,185 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
         "input": camera.stats(),
         "wall_s": time.monotonic() - t0,
     }
+
+
+# ------------------------------------------------------------------------------------ the bag's camera
+CAMERA_NODES = ("mapper", "keyframe_selector")
+"""The nodes that read the camera topics (``roigsf_ros.nodes.mapper.camera_params``)."""
+CAMERA_PARAMETERS = {
+    "color": "color_topic",
+    "depth": "depth_topic",
+    "camera_info": "camera_info_topic",
+    "pose": "pose_topic",
+    **{name: name for name in ("pose_source", "tf_parent_frame", "tf_child_frame", "tf_topic", "tf_static_topic")},
+    **{name: name for name in ("tf_tolerance_s", "color_transport", "depth_transport")},
+}
+"""CameraTopics field -> the camera nodes' parameter that sets it."""
+_PROBED = {*CAMERA_PARAMETERS.values(), "tf_wait_s", "tf_cache_s", "input_width", "input_height", "camera_reliability"}
+"""Every parameter ``camera_params`` declares: the ``--set`` values a probe node gets."""
+REALSENSE_FIELDS = ("color", "depth", "camera_info", "pose_source", "tf_child_frame")
+"""The CameraTopics fields :func:`~roigsf_ros.data.bags.realsense_topics` names (``--realsense`` sets them)."""
+
+
+@dataclass(frozen=True)
+class DemoCamera:
+    """How the demo reads the bag's camera, and the node parameters that make the nodes read it the same way."""
+
+    topics: CameraTopics
+    """The mapper's camera settings resolved against the bag: the frames the report is evaluated on."""
+    params: dict[str, dict[str, Any]]
+    """Node parameters: the ``--set`` ones over ``--realsense``'s, ``auto`` transports replaced by the bag's."""
+    play: tuple[str, ...]
+    """The bag's topics a camera node reads: what the player plays."""
+
+
+def realsense_parameters(namespace: str) -> dict[str, Any]:
+    """The camera parameters ``--realsense NS`` sets: RealSense names, pose from TF, transports from the bag."""
+    t = realsense_topics(namespace, color_transport=AUTO, depth_transport=AUTO)
+    fields = (*REALSENSE_FIELDS, "color_transport", "depth_transport")
+    return {CAMERA_PARAMETERS[f]: getattr(t, f) for f in fields}
+
+
+def bag_topics(bag: Path) -> dict[str, str]:
+    """The bag's ``{topic: message type}``; InputError naming the bag if it cannot be opened."""
+    from rosbags.highlevel import AnyReaderError
+
+    reader = open_any_reader(bag)
+    try:
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputError(bag, f"cannot open bag: {exc}") from None
+    try:
+        return {c.topic: c.msgtype for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def _node_parameter(node: str, where: str) -> str:
+    """An error's ``parameter 'NAME'`` as ``parameter 'NODE.NAME'`` (the demo runs two camera nodes)."""
+    m = re.fullmatch(r"parameter '([^'.]+)'", where)
+    return f"parameter '{node}.{m[1]}'" if m else where
+
+
+def node_camera(context: Context, node: str, overrides: dict[str, Any]) -> CameraTopics:
+    """The camera settings node ``node`` will run with: a short-lived node of that name declares its camera
+    parameters under the context's params files and ``overrides`` (rcl resolves them exactly as for the node).
+    """
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros.nodes.mapper import camera_params
+
+    given = [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in overrides.items() if k in _PROBED]
+    probe = Node(node, context=context, parameter_overrides=given, start_parameter_services=False, enable_rosout=False)
+    try:
+        return camera_params(probe).topics
+    except InputError as exc:
+        raise InputError(_node_parameter(node, exc.where), exc.problem) from None
+    finally:
+        probe.destroy_node()
+
+
+def first_frame(bag: Path, topics: CameraTopics, present: dict[str, str]) -> tuple[CameraTopics, InputError | None]:
+    """``topics`` resolved against the bag's ``present`` topics, and None if they read a first frame of it, else the
+    reader's error: a missing topic or one of another type, or no complete frame (incomplete stamps, no pose on TF).
+    """
+    try:
+        resolved = topics.in_bag(present, bag)
+        with BagReader(bag, resolved) as reader:
+            if next(reader.frames(), None) is not None:
+                return resolved, None
+            why = f"{reader.skipped_frames} incomplete stamps"
+            if reader.no_tf:
+                why += f", {reader.no_tf} complete frame(s) without a pose on TF: {reader.last_tf_error}"
+    except InputError as exc:
+        return topics, exc
+    return resolved, InputError(bag, f"no complete frame on {', '.join(resolved.types())} ({why})")
+
+
+def _realsense_hint(bag: Path, present: dict[str, str], given: str | None) -> str:
+    """``; ... try --realsense NS`` when the bag holds a RealSense camera's topics (not under ``given``), else ""."""
+    suffix = "/color/camera_info"
+    for topic in sorted(present):
+        if topic.endswith(suffix):
+            ns = topic[: -len(suffix)] or "/"
+            if given is not None and ns.strip("/") == given.strip("/"):
+                continue
+            try:
+                realsense_topics(ns, color_transport=AUTO, depth_transport=AUTO).in_bag(present, bag)
+            except InputError:
+                continue
+            option = "--realsense" if ns == "/camera" else f"--realsense {ns}"
+            return f"; the bag has a RealSense camera's topics under {ns}: try {option}"
+    return ""
+
+
+def demo_camera(
+    bag: Path,
+    params: dict[str, dict[str, Any]] | None = None,
+    params_files: Sequence[Path] = (),
+    realsense: str | None = None,
+    domain_id: int | None = None,
+) -> DemoCamera:
+    """The bag's camera as the nodes will read it: their camera parameters (params files, then ``realsense``'s, then
+    ``params``, which win), ``auto`` transports resolved from the bag, checked to read a frame of it.
+
+    InputError with the reader's error when the mapper reads no frame (suggesting ``--realsense`` when the bag has
+    RealSense names), or naming the parameters when the mapper's and the selector's settings differ so that one of
+    them would read nothing.
+    """
+    import rclpy
+
+    node_params = {k: dict(v) for k, v in (params or {}).items()}
+    if realsense is not None:
+        rs = realsense_parameters(realsense)
+        for node in CAMERA_NODES:
+            node_params[node] = rs | node_params.get(node, {})
+        node_params.setdefault("nbv_planner", {}).setdefault("camera_info_topic", rs["camera_info_topic"])
+    present = bag_topics(bag)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)
+    try:
+        wanted = {node: node_camera(context, node, node_params.get(node, {})) for node in CAMERA_NODES}
+    finally:
+        context.try_shutdown()
+    read = {wanted["mapper"]: first_frame(bag, wanted["mapper"], present)}
+    read.setdefault(wanted["keyframe_selector"], first_frame(bag, wanted["keyframe_selector"], present))
+    (mapper, mapper_error), (selector, selector_error) = (read[wanted[n]] for n in CAMERA_NODES)
+    if (mapper_error is None) != (selector_error is None):  # one reads the bag, the other nothing
+        node, peer = ("mapper", "keyframe_selector") if mapper_error else ("keyframe_selector", "mapper")
+        error = mapper_error or selector_error
+        fields = [f for f in CAMERA_PARAMETERS if getattr(wanted[node], f) != getattr(wanted[peer], f)]
+        peer_read = mapper if peer == "mapper" else selector
+
+        def theirs(f: str) -> str:  # an auto transport with what it is in this bag
+            value = getattr(wanted[peer], f)
+            return f"auto, here {getattr(peer_read, f)}" if value == AUTO else str(value)
+
+        mine = ", ".join(f"{CAMERA_PARAMETERS[f]}={getattr(wanted[node], f)}" for f in fields)
+        theirs_all = ", ".join(theirs(f) for f in fields)
+        names = ", ".join(f"'{node}.{CAMERA_PARAMETERS[f]}'" for f in fields)
+        raise InputError(
+            f"parameter{'s' if len(fields) > 1 else ''} {names}",
+            f"{mine} (the {peer}'s: {theirs_all}): the {node} would read no frame of the bag: {error}",
+        )
+    if mapper_error is not None:
+        hint = _realsense_hint(bag, present, realsense)
+        raise InputError(mapper_error.where, f"{mapper_error.problem}{hint}")
+    for node, resolved in zip(CAMERA_NODES, (mapper, selector), strict=True):
+        for stream in ("color", "depth"):
+            if getattr(wanted[node], f"{stream}_transport") == AUTO:  # the nodes need it named
+                node_params.setdefault(node, {})[f"{stream}_transport"] = getattr(resolved, f"{stream}_transport")
+    topics = {t for r in (mapper, selector) for t in (*r.types(), *r.tf_types())}
+    return DemoCamera(mapper, node_params, tuple(sorted(topics & set(present))))
+
+
+def _ros_args(params_files: Sequence[Path]) -> list[str] | None:
+    """The rclpy arguments for the params files in order (later ones win, as ROS reads them); None without any."""
+    if not params_files:
+        return None
+    return ["roigsf_demo", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
 
 
 # ------------------------------------------------------------------------------------ evaluation
@@ -421,10 +613,13 @@ def run_demo(
     params_files: Sequence[Path] = (),
     progress: bool = True,
     drain_timeout_s: float = 120.0,
+    realsense: str | None = None,
+    camera: DemoCamera | None = None,
 ) -> dict[str, Any]:
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
 
-    Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
+    ``camera``: the bag's camera as :func:`demo_camera` resolved it (its ``params`` then replace ``params`` and
+    ``realsense``); None resolves it here. Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
     """
     import rclpy
     from rclpy.parameter import Parameter
@@ -437,22 +632,26 @@ def run_demo(
     from roigsf_ros.nodes.shared_map import save_snapshot
 
     t0 = time.perf_counter()
-    frames, skipped = read_bag_frames(bag)  # the recorded frames: what the map is evaluated against
-    if not frames:
-        raise InputError(bag, "no complete frame in the bag")
     if gt_mesh is not None and not gt_mesh.is_file():
         raise InputError(gt_mesh, "ground-truth mesh not found")
-    node_params = {k: dict(v) for k, v in (params or {}).items()}
+    if camera is None:
+        camera = demo_camera(bag, params, params_files, realsense, domain_id)
+    # the recorded frames, read as the mapper reads them: what the map is evaluated against
+    frames, skipped = read_bag_frames(bag, camera.topics)
+    if not frames:
+        raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}")
+    node_params = {k: dict(v) for k, v in camera.params.items()}
+    if rate <= 0 and camera.topics.uses_tf:  # the whole bag's /tf comes before its images are decoded: keep it all
+        span_s = (frames[-1].stamp_ns - frames[0].stamp_ns) * 1e-9
+        for node in CAMERA_NODES:
+            node_params.setdefault(node, {}).setdefault("tf_cache_s", max(DEFAULT_CACHE_S, span_s + 1.0))
     if policy is not None:  # given: over the params files (a node's override beats a file), under a --set of it
         node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if domain_id is None:
         domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
-    init_args = None  # the params files in order, later ones winning, as ROS reads them
-    if params_files:
-        init_args = ["roigsf_demo", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
     context = rclpy.Context()
-    rclpy.init(args=init_args, context=context, domain_id=domain_id)
+    rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)
     system: ActiveMapping | None = None
     player: BagPlayer | None = None
     try:
@@ -461,6 +660,7 @@ def run_demo(
             context=context,
             parameter_overrides=[
                 Parameter("bag", value=str(bag)),
+                Parameter("topics", value=list(camera.play)),  # a robot's other topics (and types) are not needed
                 Parameter("rate", value=float(rate)),
                 Parameter("start_delay_s", value=0.5),
                 Parameter("progress_period_s", value=0.0),
@@ -593,7 +793,6 @@ def run_demo(
 
 def _run(args: argparse.Namespace) -> int:
     bag = Path(args.bag)
-    info = bag_info(bag)  # validates the bag before anything runs
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
@@ -601,10 +800,14 @@ def _run(args: argparse.Namespace) -> int:
     params_files = [Path(f) for f in args.params_file]
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
         check_params_file(f)
+    # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
+    camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, args.domain_id)
+    info = bag_info(bag, camera.topics)
     given = f" (policy {args.policy})" if args.policy is not None else ""
+    size = f"{info['width']}x{info['height']}" if info["width"] is not None else "an undecoded size"
     print(
-        f"bag {bag}: {info['frame_count']} frames of {info['width']}x{info['height']}, depth "
-        f"{info['depth_encoding']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
+        f"bag {bag}: {info['frame_count']} frames of {size}, depth {info['depth_encoding']}, pose from "
+        f"{info['pose_source']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
         f"{given}, then {args.final_iters} refinement steps"
     )
     metrics = run_demo(
@@ -615,9 +818,9 @@ def _run(args: argparse.Namespace) -> int:
         final_iters=args.final_iters,
         gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None,
         domain_id=args.domain_id,
-        params=parse_sets(args.set),
         params_files=params_files,
         progress=not args.no_progress,
+        camera=camera,
     )
     print(f"\nactive-mapping demo on {bag} (policy {metrics['policy']}) -> {out}")
     print(format_table(metrics))
@@ -684,6 +887,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="YAML",
         help="ROS params file for the nodes, over their defaults (config/*.yaml; repeatable, later files win), e.g. "
         "config/recommended/planner.yaml",
+    )
+    p.add_argument(
+        "--realsense",
+        nargs="?",
+        const="/camera",
+        metavar="NS",
+        help="a robot's bag: RealSense names under NS (default /camera) on the mapper and the keyframe selector "
+        "(NS/color/image_raw, NS/aligned_depth_to_color/image_raw, NS/color/camera_info; also the planner's "
+        "camera_info_topic), pose from TF, transports from the bag's topic types; over the params files, under "
+        "--set NODE.NAME=VALUE",
     )
     p.add_argument(
         "--domain-id",

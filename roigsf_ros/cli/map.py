@@ -50,7 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("source", metavar="BAG_OR_DIR", help="rosbag2 bag (folder or .mcap) or Replica-layout folder")
     p.add_argument("--policy", default="gaus-slam", help=f"keyframe policy: {', '.join(policy_names())}")
     p.add_argument("--out", required=True, type=Path, help="run folder to write (atomically)")
-    p.add_argument("--gt-mesh", type=Path, help="ground-truth mesh (default: the source folder's mesh.ply)")
+    p.add_argument(
+        "--gt-mesh",
+        metavar="PLY",
+        help="ground-truth mesh (default: the source folder's mesh.ply; '' for none: no mesh metrics)",
+    )
     p.add_argument("--width", type=int, help="resize frames to this width (alone: the height keeps the aspect ratio)")
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame")
@@ -193,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         eval_source = open_frames(args.eval_against, size=size, stride=args.stride, max_frames=args.max_frames,
                                   allow_partial=args.allow_partial, topics=topics)  # fmt: skip
     test_source = open_frames(args.test_scene, size=size, topics=topics) if args.test_scene is not None else None
-    gt_mesh = args.gt_mesh if args.gt_mesh is not None else source.gt_mesh_path
+    gt_mesh = gt_mesh_of(args.gt_mesh, source.gt_mesh_path)
     metrics = run_offline(
         source,
         policy,
@@ -211,13 +215,38 @@ def run(args: argparse.Namespace) -> int:
         print(f"  (PSNR, SSIM, depth L1 against {args.eval_against})")
     print_summary(metrics)
     if gt_mesh is None:
-        print("  (no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)")
+        hint = "" if args.gt_mesh == "" else "; pass --gt-mesh"
+        print(f"  (no ground-truth mesh: mesh metrics skipped{hint})")
     return 0
 
 
+def gt_mesh_of(option: str | None, default: Path | None) -> Path | None:
+    """The ground-truth mesh of ``--gt-mesh``: the source's own (``default``) when not given, none for ``''``."""
+    if option is None:
+        return default
+    return Path(option) if option.strip() else None
+
+
+_SKIPPED_KEYS = (
+    ("skipped: no TF pose", "frames_skipped_no_tf", "frames_skipped_no_tf_reason"),
+    ("skipped: incomplete", "frames_skipped_incomplete", None),
+    ("skipped: bad pose", "frames_skipped_bad_pose", None),
+)
+"""Summary lines printed only when frames were skipped: (label, count key, reason key)."""
+
+
 def print_summary(metrics: dict) -> None:
-    """The short table of a run's metrics (frames, keyframes, PSNR, mesh precision/recall, wall time)."""
+    """The short table of a run's metrics (frames, keyframes, PSNR, mesh precision/recall, wall time).
+
+    Frames skipped (no pose on TF, incomplete, bad pose) get a line each, with the reason, so a run that mapped
+    fewer frames than the source holds says why.
+    """
     for label, key, fmt in _SUMMARY_KEYS:
         value = metrics.get(key)
         if value is not None:
             print(f"  {label:<24} {fmt.format(value)}")
+        if key == "n_frames":
+            for skip_label, skip_key, reason_key in _SKIPPED_KEYS:
+                if metrics.get(skip_key):
+                    reason = metrics.get(reason_key) if reason_key is not None else None
+                    print(f"  {skip_label:<24} {metrics[skip_key]:d}" + (f" ({reason})" if reason else ""))

@@ -43,6 +43,7 @@ __all__, __getattr__ = lazy_exports(
             "encode_compressed_rgb",
             "frame_stamp_ns",
             "header_msg",
+            "header_stamp_ns",
             "image_to_depth_m",
             "image_to_rgb",
             "is_compressed",

@@ -471,7 +471,7 @@ def pose_to_matrix(msg: Any, where: str = POSE_TOPIC, source: str | None = None)
     return load_pose(T, where, source)
 
 
-def _header_stamp_ns(rawdata: bytes | memoryview) -> int:
+def header_stamp_ns(rawdata: bytes | memoryview) -> int:
     """Header stamp of a CDR-serialized message whose first field is ``std_msgs/Header``.
 
     CDR: 4-byte encapsulation (byte 1 = little-endian flag), then stamp.sec int32, stamp.nanosec uint32.
@@ -703,7 +703,7 @@ class BagReader:
                 yield from self._posed(tf, waiting, final=False)
                 continue
             try:
-                stamp = _header_stamp_ns(raw)
+                stamp = header_stamp_ns(raw)
             except (struct.error, IndexError):
                 raise InputError(f"{self.path}:{conn.topic}", "message too short to hold a header") from None
             parts = matcher.add(stamp, conn.topic, (conn, raw))
@@ -824,11 +824,16 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
     """Summary of a bag: topics with types and counts, time span, image size, encodings, frame count.
 
     Frames are stamps carried by every topic matched into a frame (:meth:`CameraTopics.types`, resolved
-    against the bag when it has them); ``incomplete_stamps`` counts the others. With poses from TF the
-    pose is not checked here. Image fields are None when the bag has no such topic; a compressed
+    against the bag when it has them) and, with poses from TF, posed by the bag's TF messages as
+    :class:`BagReader` poses them (``frame_count``: the frames it reads); ``frames_without_tf`` counts the
+    complete stamps TF does not pose (None with poses from a topic), ``no_tf_reason`` says why (the last
+    lookup's error), ``incomplete_stamps`` the other stamps. ``missing_topics`` names each topic the bag
+    lacks or holds with another type (empty when all are there; the counts are then as far as the bag has
+    the topics); ``realsense_namespace`` is then the namespace of a RealSense camera the bag does hold in full
+    (:func:`realsense_topics`), else None. Image fields are None when the bag has no such topic; a compressed
     stream's encoding is its ``format``.
     """
-    t = topics or CameraTopics()
+    requested = topics or CameraTopics()
     reader = open_any_reader(path)
     try:
         reader.open()
@@ -840,27 +845,38 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         for c in conns:
             entry = counts.setdefault(c.topic, {"type": c.msgtype, "count": 0})
             entry["count"] += c.msgcount
+        present = {c.topic: c.msgtype for c in conns}
         try:
-            t = t.in_bag({c.topic: c.msgtype for c in conns}, path)
-        except InputError:
-            t = t.resolved()  # counted as far as the bag has the topics
+            t, missing = requested.in_bag(present, path), []
+        except InputError as exc:
+            t, missing = _topics_as_far_as_present(requested, present)  # counted as far as the bag has the topics
+            missing = missing or [exc.problem]
         frame_types = t.types()
+        n_keys = len(frame_types)
         camera = [c for c in conns if c.topic in frame_types and c.msgtype == frame_types[c.topic]]
+        tf_conns = [c for c in conns if c.topic in t.tf_types() and c.msgtype == TF_MESSAGE_TYPE]
+        tf = _TfCheck(t) if t.uses_tf else None
         stamps: dict[int, set[str]] = {}
         first_msgs: dict[str, Any] = {}
         first_ns = last_ns = None
         for conn, ts, raw in reader.messages():
             first_ns = ts if first_ns is None else min(first_ns, ts)
             last_ns = ts if last_ns is None else max(last_ns, ts)
-            if conn in camera:
-                stamps.setdefault(_header_stamp_ns(raw), set()).add(conn.topic)
+            if tf is not None and conn in tf_conns:
+                tf.add(reader.deserialize(raw, conn.msgtype), static=conn.topic == t.tf_static_topic)
+            elif conn in camera:
+                stamp = header_stamp_ns(raw)
+                have = stamps.setdefault(stamp, set())
+                have.add(conn.topic)
+                if tf is not None and len(have) == n_keys:
+                    tf.frame(stamp)
                 if conn.topic not in first_msgs and conn.msgtype in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE):
                     first_msgs[conn.topic] = reader.deserialize(raw, conn.msgtype)
+        if tf is not None:
+            tf.settle(final=True)
     finally:
         reader.close()
-    n_topics = len({c.topic for c in camera})
-    n_keys = len(frame_types)
-    complete = sum(1 for s in stamps.values() if len(s) == n_keys) if n_topics == n_keys else 0
+    complete = sum(1 for s in stamps.values() if len(s) == n_keys)
     color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
     size = None
     for msg, convert, topic in ((color, image_to_rgb, t.color), (depth, image_to_depth_m, t.depth)):
@@ -884,9 +900,112 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         "color_encoding": _encoding_of(color),
         "depth_encoding": _encoding_of(depth),
         "pose_source": t.pose_source,
-        "frame_count": complete,
+        "frame_count": complete - (tf.no_tf if tf is not None else 0),
+        "frames_without_tf": tf.no_tf if tf is not None else None,
+        "no_tf_reason": tf.reason if tf is not None and tf.no_tf else None,
         "incomplete_stamps": len(stamps) - complete,
+        "missing_topics": missing,
+        "realsense_namespace": _realsense_namespace(present) if missing else None,
     }
+
+
+class _TfCheck:
+    """Whether TF poses the complete stamps of a bag read in record order, as :class:`BagReader` decides it.
+
+    A complete stamp waits (at most ``MAX_PENDING_STAMPS`` of them) until the TF messages read so far give
+    its pose; one whose pose never comes is counted in ``no_tf``, the last lookup's error in ``reason``.
+    """
+
+    def __init__(self, topics: CameraTopics) -> None:
+        self.topics = topics
+        self.buffer = TransformBuffer(tolerance_s=topics.tf_tolerance_s)
+        self.waiting: deque[int] = deque()
+        self.no_tf = 0
+        self.reason = ""
+
+    def add(self, msg: Any, static: bool) -> None:
+        """Store one TFMessage (transforms with bad values are refused, as the reader does) and settle frames."""
+        self.buffer.add_message(msg, static=static)
+        self.settle(final=False)
+
+    def frame(self, stamp_ns: int) -> None:
+        """A stamp became complete: it waits for its pose."""
+        self.waiting.append(stamp_ns)
+        self.settle(final=False)
+
+    def settle(self, final: bool) -> None:
+        """Look up the waiting stamps, oldest first; give up those TF will not pose (all unposed when ``final``)."""
+        t = self.topics
+        while self.waiting:
+            try:
+                self.buffer.lookup(t.tf_parent_frame, t.tf_child_frame, self.waiting[0])
+            except TransformUnavailableError as exc:
+                if exc.retry and not final and len(self.waiting) <= MAX_PENDING_STAMPS:
+                    return
+                self.no_tf += 1
+                self.reason = str(exc)
+            self.waiting.popleft()
+
+
+def _topics_as_far_as_present(requested: CameraTopics, present: dict[str, str]) -> tuple[CameraTopics, list[str]]:
+    """``requested`` resolved against a bag's ``{topic: type}`` as far as it has the topics, and one line per
+    topic it lacks or holds with another type (all that :meth:`CameraTopics.in_bag` refuses, not the first only).
+    """
+    fields: dict[str, str] = {}
+    problems: list[str] = []
+    reported: set[str] = set()
+
+    def near(topic: str) -> str:
+        similar = sorted(p for p in present if p.startswith(topic.rstrip("/") + "/") or topic.startswith(p + "/"))
+        return f" (the bag has {', '.join(similar)})" if similar else ""
+
+    for stream, suffixes in (("color", ("compressed",)), ("depth", ("compressedDepth", "compressed"))):
+        topic, transport = getattr(requested, stream), getattr(requested, f"{stream}_transport")
+        if transport != AUTO:
+            continue
+        candidates = [topic, *(transport_topic(topic, s) for s in suffixes)]
+        found = next((c for c in candidates if c in present), None)
+        if found is None:
+            problems.append(f"{stream} topic {topic} (or {', '.join(candidates[1:])}) is missing{near(topic)}")
+            reported.add(topic)
+            continue
+        if present[found] == COMPRESSED_IMAGE_TYPE:
+            fields[f"{stream}_transport"] = "compressedDepth" if found.endswith("/compressedDepth") else "compressed"
+        elif present[found] == IMAGE_TYPE:
+            fields[f"{stream}_transport"] = "raw"
+        else:
+            problems.append(f"{found} has type {present[found]}, expected {IMAGE_TYPE} or {COMPRESSED_IMAGE_TYPE}")
+            reported.add(found)
+        fields[stream] = found
+    topics = replace(requested, **fields).resolved()
+    for topic, typ in topics.types().items():
+        if topic in reported:
+            continue
+        if topic not in present:
+            problems.append(f"topic {topic} ({typ}) is missing{near(topic)}")
+        elif present[topic] != typ:
+            problems.append(f"{topic} has type {present[topic]}, expected {typ}")
+    if topics.uses_tf:
+        if topics.tf_topic not in present and topics.tf_static_topic not in present:
+            problems.append(f"pose_source is tf but the bag has neither {topics.tf_topic} nor {topics.tf_static_topic}")
+        for topic in (topics.tf_topic, topics.tf_static_topic):
+            if topic in present and present[topic] != TF_MESSAGE_TYPE:
+                problems.append(f"{topic} has type {present[topic]}, expected {TF_MESSAGE_TYPE}")
+    return topics, problems
+
+
+def _realsense_namespace(present: dict[str, str]) -> str | None:
+    """The namespace of a RealSense camera (:func:`realsense_topics`, auto transports) a bag's ``{topic: type}``
+    holds in full, TF included, or None: what ``--realsense`` would read.
+    """
+    marker = "/aligned_depth_to_color/image_raw"
+    for ns in sorted({topic.split(marker)[0] for topic in present if marker in topic}):
+        try:
+            realsense_topics(ns or "/", color_transport=AUTO, depth_transport=AUTO).in_bag(present, "bag")
+        except InputError:
+            continue
+        return ns or "/"
+    return None
 
 
 def _encoding_of(msg: Any) -> str | None:
@@ -933,6 +1052,7 @@ __all__ = [
     "encode_compressed_rgb",
     "frame_stamp_ns",
     "header_msg",
+    "header_stamp_ns",
     "image_to_depth_m",
     "image_to_rgb",
     "is_compressed",

@@ -3,10 +3,16 @@
 :func:`open_frames` returns a :class:`FrameSource` with the (possibly resized) intrinsics, a frame
 count and re-iterable frames as :class:`roigsf_ros.data.replica.Frame`. Scene folders written by
 ``roigsf scene render/synth`` also carry the ground-truth ``mesh.ply``, exposed as ``gt_mesh_path``.
+
+A frame's ``index`` names it in its source, whatever was skipped: a Replica frame's number, or a bag
+frame's position among all the bag's frames (the sorted distinct stamps of its colour topic), so a
+frame the reader skips (incomplete, or no pose on TF) still takes its number and later ids stay those
+of the bag.
 """
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
@@ -16,7 +22,7 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
-from roigsf_ros.data.bags import BagReader, CameraTopics
+from roigsf_ros.data.bags import BagReader, CameraTopics, header_stamp_ns, open_any_reader
 from roigsf_ros.data.replica import ReplicaSequence
 
 
@@ -31,7 +37,12 @@ class FrameSequence(Protocol):
 
 
 class FrameSource:
-    """Posed RGB-D frames from disk, re-iterable; ``len`` is the number of frames after stride and cap."""
+    """Posed RGB-D frames from disk, re-iterable; ``len`` is the number of frames after stride and cap.
+
+    A source that skips frames it cannot read (a bag: incomplete stamps, no pose on TF) yields fewer than
+    ``len`` and counts them, of those the stride and cap keep, after each full pass: ``skipped_incomplete``,
+    ``skipped_no_tf`` and why (``no_tf_reason``).
+    """
 
     kind = "base"
 
@@ -40,6 +51,12 @@ class FrameSource:
         self.intrinsics = intrinsics
         self.n_frames = n_frames
         self.gt_mesh_path = gt_mesh_path
+        self.skipped_incomplete = 0
+        """Frames skipped on the last full pass because a message of theirs is missing."""
+        self.skipped_no_tf = 0
+        """Frames skipped on the last full pass because TF never gave their pose."""
+        self.no_tf_reason = ""
+        """Why TF gave no pose (the last lookup error), when ``skipped_no_tf``."""
 
     def __len__(self) -> int:
         return self.n_frames
@@ -80,7 +97,13 @@ class ReplicaFrameSource(FrameSource):
 
 
 class BagFrameSource(FrameSource):
-    """Frames of a rosbag2 bag (folder or ``.mcap``): the topics, transports and pose source of ``topics``."""
+    """Frames of a rosbag2 bag (folder or ``.mcap``): the topics, transports and pose source of ``topics``.
+
+    A frame's index is its position among all the bag's frames, the sorted distinct header stamps of the
+    colour topic (a stamp without colour is no frame), counted once when the source is opened: frames the
+    reader skips (incomplete, no pose on TF) keep their numbers, so the stride, the cap and the ids of
+    the frames given name bag frames. ``len`` counts the frames the stride and cap keep, those skipped too.
+    """
 
     kind = "bag"
 
@@ -99,24 +122,36 @@ class BagFrameSource(FrameSource):
             for bf in reader.frames():
                 native = bf.intrinsics
                 break
-            n_total = reader.message_count() // len(reader.topics.types())  # one message per topic and frame
+            resolved = reader.topics
             why = f" (no pose on TF: {reader.last_tf_error})" if reader.no_tf else ""
         if native is None:
             raise InputError(path, f"bag holds no complete RGB-D frame{why}")
         self.native = native
-        n = len(range(0, n_total, stride))
-        n = min(n, max_frames) if max_frames is not None else n
+        self.stamps_ns, self.complete = _frame_stamps(path, resolved)
+        kept = range(0, len(self.stamps_ns), stride)
+        self.kept = kept[:max_frames] if max_frames is not None else kept
+        """Indices of the bag frames given (those skipped too): every stride-th, at most ``max_frames``."""
         intr = native.resized(*size) if size is not None else native
         mesh = (path if path.is_dir() else path.parent) / "mesh.ply"
-        super().__init__(path, intr, n, mesh if mesh.is_file() else None)
+        super().__init__(path, intr, len(self.kept), mesh if mesh.is_file() else None)
+
+    def index_of(self, stamp_ns: int) -> int:
+        """The bag frame index of a frame's stamp (its position in the sorted colour stamps)."""
+        i = int(np.searchsorted(self.stamps_ns, stamp_ns))
+        if i >= len(self.stamps_ns) or int(self.stamps_ns[i]) != stamp_ns:
+            raise InputError(self.path, f"frame at {stamp_ns} ns is not among the bag's colour stamps: bag changed?")
+        return i
 
     def __iter__(self) -> Iterator[Frame]:
+        last = self.kept[-1] if len(self.kept) else -1
+        expected = {k for k in self.kept if self.complete[k]}  # what the reader should give, unless TF cannot
+        given: set[int] = set()
         with BagReader(self.path, self.topics) as reader:
-            emitted = 0
-            for i, bf in enumerate(reader.frames()):
-                if self.max_frames is not None and emitted >= self.max_frames:
-                    break
-                if i % self.stride:
+            for bf in reader.frames():
+                i = self.index_of(bf.stamp_ns)
+                if i > last and reader.topics.uses_tf:
+                    break  # posed frames come in stamp order: every kept one was given or skipped
+                if i > last or i % self.stride or i in given:
                     continue
                 if (bf.intrinsics.width, bf.intrinsics.height) != (self.native.width, self.native.height):
                     raise InputError(
@@ -124,9 +159,41 @@ class BagFrameSource(FrameSource):
                         f"image size {bf.intrinsics.width}x{bf.intrinsics.height} changed from "
                         f"{self.native.width}x{self.native.height}",
                     )
-                frame = Frame(index=i, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc)
-                emitted += 1
-                yield resize_frame(frame, self.intrinsics)
+                given.add(i)
+                expected.discard(i)
+                yield resize_frame(Frame(index=i, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), self.intrinsics)
+                if not expected:
+                    break  # the rest of the kept frames are incomplete
+            missing = [k for k in self.kept if k not in given]
+            incomplete = sum(1 for k in missing if not self.complete[k])
+            self.skipped_incomplete, self.skipped_no_tf = incomplete, 0
+            if reader.no_tf:  # complete frames not given: TF gave no pose (or the reader gave up waiting)
+                self.skipped_no_tf = len(missing) - incomplete
+            else:
+                self.skipped_incomplete = len(missing)
+            self.no_tf_reason = reader.last_tf_error if self.skipped_no_tf else ""
+
+
+def _frame_stamps(path: Path, topics: CameraTopics) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted distinct colour stamps [N] int64 ns of a bag, and [N] bool: the stamp has every frame topic's message.
+
+    ``topics`` resolved against the bag (:meth:`CameraTopics.in_bag`). One pass over the frame topics' raw
+    messages, header stamps only (nothing is deserialized).
+    """
+    types = topics.types()
+    seen: dict[int, set[str]] = {}
+    reader = open_any_reader(path)
+    with reader:
+        conns = [c for c in reader.connections if types.get(c.topic) == c.msgtype]
+        for conn, _, raw in reader.messages(connections=conns):
+            try:
+                stamp = header_stamp_ns(raw)
+            except (struct.error, IndexError):
+                raise InputError(f"{path}:{conn.topic}", "message too short to hold a header") from None
+            seen.setdefault(stamp, set()).add(conn.topic)
+    stamps = sorted(s for s, have in seen.items() if topics.color in have)
+    complete = [len(seen[s]) == len(types) for s in stamps]
+    return np.asarray(stamps, dtype=np.int64), np.asarray(complete, dtype=bool)
 
 
 class MemoryFrameSource(FrameSource):

@@ -60,7 +60,7 @@ from roigsf_ros.data.bags import (
     transport_topic,
 )
 from roigsf_ros.data.sync import FrameLedger, StampGapCounter
-from roigsf_ros.data.tf import TransformBuffer, TransformUnavailableError
+from roigsf_ros.data.tf import DEFAULT_CACHE_S, TransformBuffer, TransformUnavailableError
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
@@ -169,6 +169,9 @@ class CameraSettings:
     """Seconds a complete frame waits for its pose on TF before it is dropped (``no_tf``)."""
     reliability: str = "reliable"
     """What the camera subscriptions ask for (CAMERA_RELIABILITIES; ``camera_reliability``)."""
+    tf_cache_s: float = DEFAULT_CACHE_S
+    """Seconds of TF history kept behind the newest transform (tf2's cache time; a replay as fast as possible
+    sends the whole bag's /tf before the images are decoded, so it needs the bag's length)."""
 
 
 @dataclass
@@ -195,6 +198,7 @@ class CameraInput:
         callback_group: CallbackGroup | None = None,
         input_size: tuple[int | None, int | None] | None = None,
         tf_wait_s: float = 1.0,
+        tf_cache_s: float = DEFAULT_CACHE_S,
     ) -> None:
         self.node = node
         self.on_frame = on_frame
@@ -230,7 +234,7 @@ class CameraInput:
             )
         if t.uses_tf:
             tf_cls = tf_message_class()
-            self._tf = TransformBuffer(tolerance_s=t.tf_tolerance_s)
+            self._tf = TransformBuffer(cache_s=tf_cache_s, tolerance_s=t.tf_tolerance_s)
             for topic, static, tqos in ((t.tf_topic, False, tf_qos()), (t.tf_static_topic, True, tf_static_qos())):
                 node.create_subscription(
                     tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group

@@ -241,6 +241,7 @@ class KeyframeSelectorNode(SystemNode):
             callback_group=inputs,
             input_size=camera.input_size,
             tf_wait_s=camera.tf_wait_s,
+            tf_cache_s=camera.tf_cache_s,
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))

@@ -55,6 +55,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_writable
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame, CameraTopics, stamp_to_ns
+from roigsf_ros.data.tf import DEFAULT_CACHE_S
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
@@ -124,6 +125,8 @@ def camera_params(node: Node) -> CameraSettings:
     reliability = str(
         declare(node, "camera_reliability", "reliable", "reliable | best_effort (what the camera publishes)")
     )
+    tf_cache_s = float(declare(node, "tf_cache_s", DEFAULT_CACHE_S, "tf: seconds of history behind the newest"))
+    check_positive("tf_cache_s", tf_cache_s)
     width = int(declare(node, "input_width", 0, "frames downscaled on arrival to this width (0 = camera's)"))
     height = int(declare(node, "input_height", 0, "frames downscaled on arrival to this height (0 = camera's)"))
     check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
@@ -141,7 +144,7 @@ def camera_params(node: Node) -> CameraSettings:
         raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
     size = None if not width and not height else (width or None, height or None)
     camera_qos(1, reliability)  # an unknown value: an error naming the parameter
-    return CameraSettings(topics, size, tf_wait_s, reliability)
+    return CameraSettings(topics, size, tf_wait_s, reliability, tf_cache_s)
 
 
 def frame_of(bf: BagFrame) -> Frame:
@@ -238,6 +241,8 @@ class MapperNode(SystemNode):
             0,
         )
         self.counters["paused_for_planner_s"] = 0.0  # type: ignore[assignment]
+        self.last_keyframe_drop = ""
+        """Why the last keyframe named was dropped (the warnings are throttled; ``~/status`` keeps this)."""
 
         inputs = MutuallyExclusiveCallbackGroup()
         keyframes = MutuallyExclusiveCallbackGroup()
@@ -251,6 +256,7 @@ class MapperNode(SystemNode):
             callback_group=inputs,
             input_size=camera.input_size,
             tf_wait_s=camera.tf_wait_s,
+            tf_cache_s=camera.tf_cache_s,
         )
         self.create_subscription(
             PoseStamped, keyframe_topic, self._on_keyframe, reliable_qos(qos_depth), callback_group=keyframes
@@ -334,8 +340,18 @@ class MapperNode(SystemNode):
             else:
                 self.counters["keyframes_missing"] += 1
                 refused = self.camera.rejection_of(stamp)
-                why = f"refused ({refused})" if refused else "never received or already left the buffer"
+                oldest, newest = next(iter(self._frames)), next(reversed(self._frames))
+                if refused:
+                    why = f"refused ({refused})"
+                elif stamp < oldest and len(self._frames) >= self.buffer_size:  # named later than the buffer holds
+                    why = (f"already out of the buffer, which holds the last {len(self._frames)} frames "
+                           f"({(newest - oldest) * 1e-9:.1f} s; named {(newest - stamp) * 1e-9:.1f} s after it): "
+                           "raise frame_buffer_size")  # fmt: skip
+                else:
+                    why = "never received"
                 warn = f"keyframe {stamp}: its frame was {why}; dropped"
+            if warn:
+                self.last_keyframe_drop = warn
         if warn:
             self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
 
@@ -363,10 +379,10 @@ class MapperNode(SystemNode):
         if expired:
             refused = [why for s in expired if (why := self.camera.rejection_of(s))]
             because = f" ({len(refused)} refused, the last: {refused[-1]})" if refused else ""
-            self.get_logger().warning(
-                f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s{because}",
-                throttle_duration_sec=WARN_THROTTLE_S,
-            )
+            warn = f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s{because}"
+            with self._lock:
+                self.last_keyframe_drop = warn
+            self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
 
     # ------------------------------------------------------------------------------ worker
     def _work(self) -> None:
@@ -496,6 +512,7 @@ class MapperNode(SystemNode):
                 "waiting_keyframes": len(self._waiting),
                 "buffered_frames": len(self._frames),
                 "map_version": self.shared.version,
+                "last_keyframe_drop": self.last_keyframe_drop,
                 **self.counters,
                 "mapper_stats": stats,
             }
