@@ -27,17 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.data.bags import bag_info, realsense_topics
+from roigsf_ros.data.robot_bag import robot_node_parameters
 
 REPO = Path(__file__).resolve().parents[1]
-REALSENSE = {
-    "pose_source": "tf",
-    "color_transport": "compressed",
-    "depth_transport": "compressedDepth",
-    "color_topic": "/camera/color/image_raw",
-    "depth_topic": "/camera/aligned_depth_to_color/image_raw",
-    "camera_info_topic": "/camera/color/camera_info",
-    "input_width": "160",
-}
+REALSENSE = robot_node_parameters() | {"input_width": "160"}
 """The README's RealSense parameters, with the depth transport of a bag recorded with compressed depth."""
 
 

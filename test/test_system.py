@@ -515,15 +515,6 @@ def test_three_processes_match_in_process(
 
 
 # ------------------------------------------------------------------ a robot's bag: pose on TF, compressed images
-ROBOT_CAMERA_PARAMS = {
-    "pose_source": "tf",
-    "color_transport": "compressed",
-    "depth_transport": "compressedDepth",
-    "color_topic": "/camera/color/image_raw",
-    "depth_topic": "/camera/aligned_depth_to_color/image_raw",
-    "camera_info_topic": "/camera/color/camera_info",
-}
-"""The README's RealSense parameters (without the downscale): what ``roigsf bag to-robot`` prints."""
 
 
 def test_a_robots_bag_through_active_mapping_in_another_process(
@@ -534,14 +525,14 @@ def test_a_robots_bag_through_active_mapping_in_another_process(
     camera_link -> optical, its /tf recorded after the images) into ``active_mapping`` in another, set to
     ``pose_source: tf`` and the compressed transports. Every frame must reach both camera inputs with its pose
     (none rejected, none left waiting for TF), and every keyframe named must be mapped, as with the raw bag."""
-    from roigsf_ros.data.robot_bag import write_robot_bag
+    from roigsf_ros.data.robot_bag import robot_node_parameters, write_robot_bag
 
     robot_bag = tmp_path / "robot_bag"
     assert write_robot_bag(bag, robot_bag, color_format="jpeg", tf_lag_s=0.02) == N_FRAMES
     watch.clear()
     with processes(tmp_path) as ps:
         node_params = {**as_params("mapper"), **as_params("keyframe_selector"), **as_params("nbv_planner")}
-        ps.start("active_mapping", node_params | ROBOT_CAMERA_PARAMS)
+        ps.start("active_mapping", node_params | robot_node_parameters())  # what `roigsf bag to-robot` prints
         out = replay_once(ps, watch, robot_bag, RATE)
         m, s = out["mapper"], out["selector"]
         check_map_and_mesh(watch, tmp_path, m["keyframes"])

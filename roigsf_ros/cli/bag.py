@@ -12,7 +12,12 @@ from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_s
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence
-from roigsf_ros.data.robot_bag import ROBOT_COLOR_FORMATS, ROBOT_DEPTH_TRANSPORTS, write_robot_bag
+from roigsf_ros.data.robot_bag import (
+    ROBOT_COLOR_FORMATS,
+    ROBOT_DEPTH_TRANSPORTS,
+    robot_node_parameters,
+    write_robot_bag,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -154,11 +159,10 @@ def _to_robot(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         progress=not args.no_progress,
     )
-    ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
-    print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns or '/'}`, or give the "
-          f"nodes: -p pose_source:=tf -p color_transport:=compressed -p depth_transport:={args.depth_transport} "
-          f"-p color_topic:={ns}/color/image_raw -p depth_topic:={ns}/aligned_depth_to_color/image_raw "
-          f"-p camera_info_topic:={ns}/color/camera_info")  # fmt: skip
+    ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else "/"
+    params = " ".join(f"-p {k}:={v}" for k, v in robot_node_parameters(args.namespace, args.depth_transport).items())
+    print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns}`, or give the "
+          f"nodes: {params}")  # fmt: skip
     return 0
 
 

@@ -75,6 +75,7 @@ __all__, __getattr__ = lazy_exports(
             "T_CAMERA_LINK_OPTICAL",
             "T_MAP_ODOM",
             "base_link_in_odom",
+            "robot_node_parameters",
             "write_robot_bag",
         ],
         "scene": [

@@ -189,10 +189,24 @@ class CameraTopics:
 
         With transport ``auto`` the topic is read as given if the bag has it, else ``<topic>/compressed``
         (depth: also ``<topic>/compressedDepth``); its type then says raw or compressed. InputError names
-        the bag and the topic when a topic is missing or of the wrong type.
+        the bag and the topic when a topic is missing or of the wrong type (the first of :meth:`against`'s).
         """
-        have = ", ".join(sorted(present)) or "no topics"
+        topics, problems = self.against(present)
+        if problems:
+            topic, problem, missing = problems[0]
+            have = ", ".join(sorted(present)) or "no topics"
+            if missing:
+                raise InputError(where, f"{problem} (it has {have})")
+            raise InputError(f"{where}:{topic}", problem)
+        return topics
+
+    def against(self, present: dict[str, str]) -> tuple[CameraTopics, list[tuple[str, str, bool]]]:
+        """These topics resolved as far as a bag's ``{topic: type}`` has them, and every problem :meth:`in_bag`
+        refuses, in its order: ``(topic, what is wrong, True if it is missing / False if of another type)``.
+        """
         fields: dict[str, str] = {}
+        problems: list[tuple[str, str, bool]] = []
+        reported: set[str] = set()
         for stream, suffixes in (("color", ("compressed",)), ("depth", ("compressedDepth", "compressed"))):
             topic, transport = getattr(self, stream), getattr(self, f"{stream}_transport")
             if transport != AUTO:
@@ -200,9 +214,9 @@ class CameraTopics:
             candidates = [topic, *(transport_topic(topic, s) for s in suffixes)]
             found = next((c for c in candidates if c in present), None)
             if found is None:
-                raise InputError(
-                    where, f"{stream} topic {topic} (or {', '.join(candidates[1:])}) is missing (it has {have})"
-                )
+                problems.append((topic, f"{stream} topic {topic} (or {', '.join(candidates[1:])}) is missing", True))
+                reported.add(topic)
+                continue
             if present[found] == COMPRESSED_IMAGE_TYPE:
                 fields[f"{stream}_transport"] = (
                     "compressedDepth" if found.endswith("/compressedDepth") else "compressed"
@@ -210,27 +224,29 @@ class CameraTopics:
             elif present[found] == IMAGE_TYPE:
                 fields[f"{stream}_transport"] = "raw"
             else:
-                raise InputError(
-                    f"{where}:{found}", f"has type {present[found]}, expected {IMAGE_TYPE} or {COMPRESSED_IMAGE_TYPE}"
+                problems.append(
+                    (found, f"has type {present[found]}, expected {IMAGE_TYPE} or {COMPRESSED_IMAGE_TYPE}", False)
                 )
+                reported.add(found)
             fields[stream] = found
         topics = replace(self, **fields).resolved()
         for topic, typ in topics.types().items():
+            if topic in reported:
+                continue
             if topic not in present:
-                raise InputError(where, f"topic {topic} ({typ}) is missing from the bag (it has {have})")
-            if present[topic] != typ:
-                raise InputError(f"{where}:{topic}", f"has type {present[topic]}, expected {typ}")
+                problems.append((topic, f"topic {topic} ({typ}) is missing from the bag", True))
+            elif present[topic] != typ:
+                problems.append((topic, f"has type {present[topic]}, expected {typ}", False))
         if topics.uses_tf:
             if topics.tf_topic not in present and topics.tf_static_topic not in present:
-                raise InputError(
-                    where,
-                    f"pose_source is tf but the bag has neither {topics.tf_topic} nor {topics.tf_static_topic} "
-                    f"(it has {have})",
-                )
+                problems.append(
+                    (topics.tf_topic, f"pose_source is tf but the bag has neither {topics.tf_topic} nor "
+                     f"{topics.tf_static_topic}", True)
+                )  # fmt: skip
             for topic in (topics.tf_topic, topics.tf_static_topic):
                 if topic in present and present[topic] != TF_MESSAGE_TYPE:
-                    raise InputError(f"{where}:{topic}", f"has type {present[topic]}, expected {TF_MESSAGE_TYPE}")
-        return topics
+                    problems.append((topic, f"has type {present[topic]}, expected {TF_MESSAGE_TYPE}", False))
+        return topics, problems
 
 
 def realsense_topics(namespace: str = "/camera", **overrides: Any) -> CameraTopics:
@@ -949,49 +965,17 @@ class _TfCheck:
 
 def _topics_as_far_as_present(requested: CameraTopics, present: dict[str, str]) -> tuple[CameraTopics, list[str]]:
     """``requested`` resolved against a bag's ``{topic: type}`` as far as it has the topics, and one line per
-    topic it lacks or holds with another type (all that :meth:`CameraTopics.in_bag` refuses, not the first only).
+    topic it lacks or holds with another type (all that :meth:`CameraTopics.in_bag` refuses, not the first only),
+    a missing one with the bag's similar topics.
     """
-    fields: dict[str, str] = {}
-    problems: list[str] = []
-    reported: set[str] = set()
 
     def near(topic: str) -> str:
         similar = sorted(p for p in present if p.startswith(topic.rstrip("/") + "/") or topic.startswith(p + "/"))
         return f" (the bag has {', '.join(similar)})" if similar else ""
 
-    for stream, suffixes in (("color", ("compressed",)), ("depth", ("compressedDepth", "compressed"))):
-        topic, transport = getattr(requested, stream), getattr(requested, f"{stream}_transport")
-        if transport != AUTO:
-            continue
-        candidates = [topic, *(transport_topic(topic, s) for s in suffixes)]
-        found = next((c for c in candidates if c in present), None)
-        if found is None:
-            problems.append(f"{stream} topic {topic} (or {', '.join(candidates[1:])}) is missing{near(topic)}")
-            reported.add(topic)
-            continue
-        if present[found] == COMPRESSED_IMAGE_TYPE:
-            fields[f"{stream}_transport"] = "compressedDepth" if found.endswith("/compressedDepth") else "compressed"
-        elif present[found] == IMAGE_TYPE:
-            fields[f"{stream}_transport"] = "raw"
-        else:
-            problems.append(f"{found} has type {present[found]}, expected {IMAGE_TYPE} or {COMPRESSED_IMAGE_TYPE}")
-            reported.add(found)
-        fields[stream] = found
-    topics = replace(requested, **fields).resolved()
-    for topic, typ in topics.types().items():
-        if topic in reported:
-            continue
-        if topic not in present:
-            problems.append(f"topic {topic} ({typ}) is missing{near(topic)}")
-        elif present[topic] != typ:
-            problems.append(f"{topic} has type {present[topic]}, expected {typ}")
-    if topics.uses_tf:
-        if topics.tf_topic not in present and topics.tf_static_topic not in present:
-            problems.append(f"pose_source is tf but the bag has neither {topics.tf_topic} nor {topics.tf_static_topic}")
-        for topic in (topics.tf_topic, topics.tf_static_topic):
-            if topic in present and present[topic] != TF_MESSAGE_TYPE:
-                problems.append(f"{topic} has type {present[topic]}, expected {TF_MESSAGE_TYPE}")
-    return topics, problems
+    topics, problems = requested.against(present)
+    return topics, [text.removesuffix(" from the bag") + near(topic) if missing else f"{topic} {text}"
+                    for topic, text, missing in problems]  # fmt: skip
 
 
 def _realsense_namespace(present: dict[str, str]) -> str | None:

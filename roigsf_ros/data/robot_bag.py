@@ -89,6 +89,19 @@ def base_link_in_odom(T_wc: np.ndarray) -> np.ndarray:
     return np.linalg.inv(T_MAP_ODOM) @ T_wc @ np.linalg.inv(T_BASE_CAMERA_LINK @ T_CAMERA_LINK_OPTICAL)
 
 
+def robot_node_parameters(namespace: str = "/camera", depth_transport: str = "compressedDepth") -> dict[str, str]:
+    """The camera nodes' parameters that read a bag :func:`write_robot_bag` wrote (names as the nodes declare them)."""
+    t = bags.realsense_topics(namespace, color_transport="compressed", depth_transport=depth_transport)
+    return {
+        "pose_source": t.pose_source,
+        "color_transport": t.color_transport,
+        "depth_transport": t.depth_transport,
+        "color_topic": t.color,
+        "depth_topic": t.depth,
+        "camera_info_topic": t.camera_info,
+    }
+
+
 def write_robot_bag(
     src: str | Path,
     out: str | Path,
@@ -180,5 +193,6 @@ __all__ = [
     "T_CAMERA_LINK_OPTICAL",
     "T_MAP_ODOM",
     "base_link_in_odom",
+    "robot_node_parameters",
     "write_robot_bag",
 ]
