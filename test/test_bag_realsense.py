@@ -130,6 +130,12 @@ def test_robot_bag_refuses_bad_settings_and_leaves_nothing(raw_bag: Path, tmp_pa
     assert not (tmp_path / "bad").exists() and not list(tmp_path.glob(".*"))
     assert cli_main(["bag", "to-robot", str(raw_bag), "--out", str(tmp_path / "b"), "--tf-lag-ms", "nan"]) == 2
     assert "--tf-lag-ms" in capsys.readouterr().err and not (tmp_path / "b").exists()
+    before = sorted((p.name, p.stat().st_size) for p in raw_bag.iterdir())  # --overwrite replaced the source itself
+    assert cli_main(["bag", "to-robot", str(raw_bag), "--out", str(raw_bag), "--overwrite"]) == 2
+    assert "is the bag being rewritten" in capsys.readouterr().err
+    assert sorted((p.name, p.stat().st_size) for p in raw_bag.iterdir()) == before
+    with pytest.raises(InputError, match="is the bag being rewritten"):
+        write_robot_bag(raw_bag, raw_bag, overwrite=True)
 
 
 def test_jpeg_colour_and_png_depth_transport(raw_bag: Path, tmp_path: Path) -> None:

@@ -561,3 +561,67 @@ def test_tf_history_as_long_as_tf_cache_s_poses_frames_whose_tf_came_long_before
             n.destroy_node()
     assert inputs[0].stats()["rejected"] == {"no_tf": 3}, inputs[0].stats()  # more than 10 s behind the newest
     assert len(got[1]) == 14 and inputs[1].stats()["rejected"] == {}
+
+
+def test_a_camera_that_never_publishes_is_named_after_the_start_up_wait(ros_context: Any) -> None:
+    """Every camera topic misspelt, nothing else flowing: nothing was said, ever. A camera may still be starting, so
+    the topics are named only once the input has waited SILENT_WARN_S; ``received`` lists them with 0."""
+    from roigsf_ros.nodes.camera_input import SILENT_WARN_S
+
+    topics = CameraTopics(color="/cam/color", depth="/cam/depth", camera_info="/cam/info", pose="/cam/pose")
+    node = Node("never_publishes", context=ros_context)
+    try:
+        camera = CameraInput(node, lambda bf: None, reliable_qos(10), topics)
+        assert camera.stats()["received"] == dict.fromkeys(["/cam/color", "/cam/depth", "/cam/info", "/cam/pose"], 0)
+        assert camera.silent_topics() == {}  # just started
+        camera._started -= SILENT_WARN_S + 1
+        assert camera.silent_topics() == dict.fromkeys(["/cam/color", "/cam/depth", "/cam/info", "/cam/pose"],
+                                                       "no publisher")  # fmt: skip
+    finally:
+        node.destroy_node()
+
+
+def test_frames_wait_for_late_tf_up_to_tf_wait_frames(ros_context: Any) -> None:
+    """A robot whose TF comes 0.7 s after its images at 30 Hz: 21 frames wait for their poses. At most 16 could wait
+    (hard-coded), so every frame was dropped as no_tf whatever tf_wait_s said; ``tf_wait_frames`` (64) now holds
+    them, and a smaller one drops the oldest naming the parameter."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.data.bags import realsense_topics
+
+    rs = realsense_topics(tf_child_frame="cam")
+    d = CameraTopics()
+    qos = reliable_qos(50)
+    nodes = [Node(f"late_{s}", context=ros_context) for s in ("default", "sixteen")]
+    got: list[list[BagFrame]] = [[], []]
+    inputs = [CameraInput(nodes[0], got[0].append, qos, rs, tf_wait_s=30.0),
+              CameraInput(nodes[1], got[1].append, qos, rs, tf_wait_s=30.0, tf_wait_frames=16)]  # fmt: skip
+    pub = Node("late_pub", context=ros_context)
+    tf_pub = pub.create_publisher(TFMessage, "/tf", qos)
+    images = {(rs.color, d.color): Image, (rs.depth, d.depth): Image, (rs.camera_info, d.camera_info): CameraInfo}
+    pubs = {(topic, key): pub.create_publisher(cls, topic, qos) for (topic, key), cls in images.items()}
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (*nodes, pub):
+        executor.add_node(n)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    stamps = [T0_NS + k * 33_000_000 for k in range(21)]
+    try:
+        _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (tf_pub, *pubs.values())))
+        for stamp in stamps:  # the images first, as TF lagging 0.7 s delivers them
+            msgs = _messages(stamp)
+            for (_, key), publisher in pubs.items():
+                publisher.publish(msgs[key])
+        _wait_for(lambda: all(c.stats()["awaiting_tf"] + sum(c.stats()["rejected"].values()) == 21 for c in inputs))
+        for stamp in stamps:
+            tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
+        _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == 21 for c in inputs))
+    finally:
+        executor.shutdown()
+        spin.join()
+        for n in (*nodes, pub):
+            n.destroy_node()
+    assert len(got[0]) == 21 and inputs[0].stats()["rejected"] == {}
+    assert inputs[1].stats()["rejected"] == {"no_tf": 5} and len(got[1]) == 16
+    assert "before 16 newer frames were (tf_wait_frames)" in inputs[1].stats()["last_rejection"]

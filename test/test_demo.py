@@ -276,6 +276,26 @@ def test_demo_maps_a_robot_bag_with_realsense(tmp_path: Path, capsys: pytest.Cap
     assert metrics["keyframes_not_mapped"] == 0
 
 
+def test_demo_names_the_bag_frames_tf_does_not_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A robot's bag with a gap in its TF: the demo said "5 frames" and "dropped frames 0" as if the bag held no
+    more; now its first line, its table and metrics.json name the frame TF does not pose, with the reason."""
+    from roigsf_ros.cli import main
+    from roigsf_ros.data.robot_bag import write_robot_bag
+
+    write_robot_bag(_bag(tmp_path, 6, 32, 24, seed=8), tmp_path / "gap", keep_tf=lambda k: k != 5)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(tmp_path / "gap"), "--out", str(run), "--gt-mesh", "", "--realsense",
+            "--no-progress", "--policy", "all", "--final-iters", "0",
+            "--set", "mapper.iters_per_keyframe=1"]  # fmt: skip
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"bag {tmp_path / 'gap'}: 5 frames (and 1 TF does not pose: "), out
+    assert "bag frames without a TF pose" in out
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["bag_frames_without_tf"], metrics["dropped_frames"]) == (5, 1, 0), metrics
+    assert "'odom' -> 'base_link'" in metrics["bag_frames_without_tf_reason"]
+
+
 def test_demo_refuses_camera_settings_with_which_a_node_reads_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

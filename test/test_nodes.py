@@ -201,7 +201,7 @@ def test_service_refuses_with_a_reason(ros_context: Any, scene: Any) -> None:
         wrong_mode = _call(client, _request(poses, mode="best"))
         ok = _call(client, _request(poses, mode="close-front"))
     for res, reason in (
-        (no_map, "map: not ready: no map yet"),
+        (no_map, "map: not ready: no keyframe in the shared map yet"),
         (empty_map, "map: not ready: 0 keyframes, 0 surfels"),
         (empty_list, "empty candidate list"),
         (bad_quat, "candidates[1]"),
@@ -212,6 +212,15 @@ def test_service_refuses_with_a_reason(ros_context: Any, scene: Any) -> None:
         assert not res.fused_scores
     assert ok.success and all(np.isfinite(ok.fused_scores)) and len(ok.close_front_scores) == 2
     assert planner.status()["failed"] == 6 and planner.status()["answered"] == 1
+    # on its own (three processes), the planner names the topics it has heard nothing on: a planner given the
+    # camera settings of the other two but not camera_info_topic failed every window with "no map yet"
+    alone = NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("warm_up", value=False)])
+    try:
+        assert alone._waiting_for() == (
+            "nothing received yet: a map on /roigsf/map and camera info on /camera/camera_info (camera_info_topic)"
+        )
+    finally:
+        alone.destroy_node()
 
 
 def test_service_refuses_more_than_max_candidates_and_serves_on(ros_context: Any, scene: Any, mapped: Mapper) -> None:

@@ -148,6 +148,8 @@ def _from_replica(args: argparse.Namespace) -> int:
 def _to_robot(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.tf_lag_ms) and args.tf_lag_ms >= 0):
         raise InputError("--tf-lag-ms", f"must be a number of milliseconds >= 0, got {args.tf_lag_ms:g}")
+    if args.out.resolve() == args.src.resolve():  # before check_out: --overwrite would let it replace the source
+        raise InputError("--out", f"{args.out} is the bag being rewritten: write the robot's bag elsewhere")
     check_out(args.out, args.overwrite)
     n = write_robot_bag(
         args.src,

@@ -81,6 +81,7 @@ SUMMARY_ROWS = (
     ("longest frame gap (s)", "selector_max_frame_gap_s", "{:.2f}"),
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
+    ("bag frames without a TF pose", "bag_frames_without_tf", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
 )
 """The demo's table: label, metrics key, format."""
@@ -165,7 +166,10 @@ CAMERA_PARAMETERS = {
     **{name: name for name in ("tf_tolerance_s", "color_transport", "depth_transport")},
 }
 """CameraTopics field -> the camera nodes' parameter that sets it."""
-_PROBED = {*CAMERA_PARAMETERS.values(), "tf_wait_s", "tf_cache_s", "input_width", "input_height", "camera_reliability"}
+_PROBED = {
+    *CAMERA_PARAMETERS.values(),
+    *("tf_wait_s", "tf_wait_frames", "tf_cache_s", "input_width", "input_height", "camera_reliability"),
+}
 """Every parameter ``camera_params`` declares: the ``--set`` values a probe node gets."""
 REALSENSE_FIELDS = ("color", "depth", "camera_info", "pose_source", "tf_child_frame")
 """The CameraTopics fields :func:`~roigsf_ros.data.bags.realsense_topics` names (``--realsense`` sets them)."""
@@ -626,7 +630,6 @@ def run_demo(
 
     from roigsf_ros import evaluation
     from roigsf_ros.core.fileio import atomic_dir, write_json
-    from roigsf_ros.data.bags import read_bag_frames
     from roigsf_ros.nodes.active_mapping import ActiveMapping
     from roigsf_ros.nodes.bag_player import BagPlayer
     from roigsf_ros.nodes.shared_map import save_snapshot
@@ -637,7 +640,9 @@ def run_demo(
     if camera is None:
         camera = demo_camera(bag, params, params_files, realsense, domain_id)
     # the recorded frames, read as the mapper reads them: what the map is evaluated against
-    frames, skipped = read_bag_frames(bag, camera.topics)
+    with BagReader(bag, camera.topics) as reader:
+        frames, skipped, no_tf = list(reader.frames()), reader.skipped_frames, reader.no_tf
+        no_tf_reason = reader.last_tf_error if no_tf else ""
     if not frames:
         raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}")
     node_params = {k: dict(v) for k, v in camera.params.items()}
@@ -750,6 +755,8 @@ def run_demo(
         "frames_received": sel["frames"],
         "dropped_frames": len(frames) - sel["frames"],  # recorded but not received complete and valid
         "bag_incomplete_stamps": skipped,
+        "bag_frames_without_tf": no_tf,  # complete in the bag, but TF never gives their pose: not in n_frames
+        "bag_frames_without_tf_reason": no_tf_reason,
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],
@@ -805,8 +812,13 @@ def _run(args: argparse.Namespace) -> int:
     info = bag_info(bag, camera.topics)
     given = f" (policy {args.policy})" if args.policy is not None else ""
     size = f"{info['width']}x{info['height']}" if info["width"] is not None else "an undecoded size"
+    unposed = (
+        f" (and {info['frames_without_tf']} TF does not pose: {info['no_tf_reason']})"
+        if info.get("frames_without_tf")
+        else ""
+    )
     print(
-        f"bag {bag}: {info['frame_count']} frames of {size}, depth {info['depth_encoding']}, pose from "
+        f"bag {bag}: {info['frame_count']} frames{unposed} of {size}, depth {info['depth_encoding']}, pose from "
         f"{info['pose_source']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
         f"{given}, then {args.final_iters} refinement steps"
     )

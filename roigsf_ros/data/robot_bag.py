@@ -128,6 +128,8 @@ def write_robot_bag(
         raise InputError("depth_transport", f"'{depth_transport}' is not one of {', '.join(ROBOT_DEPTH_TRANSPORTS)}")
     if not (np.isfinite(tf_lag_s) and tf_lag_s >= 0):
         raise InputError("tf_lag_s", f"must be a number of seconds >= 0, got {tf_lag_s}")
+    if Path(out).resolve() == Path(src).resolve():
+        raise InputError(out, "is the bag being rewritten: write the robot's bag elsewhere")
     topics = bags.realsense_topics(namespace, color_transport="compressed", depth_transport=depth_transport)
     resolved = topics.resolved()
     types = resolved.types() | {TF_TOPIC: TF_MESSAGE_TYPE, TF_STATIC_TOPIC: TF_MESSAGE_TYPE}

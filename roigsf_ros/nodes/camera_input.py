@@ -15,7 +15,7 @@ complete (e.g. depth without colour) are dropped and counted once the bounded qu
 stamps and stamps gone back are counted, not delivered; frames that never arrived at all (every message
 overwritten in a full middleware queue, which the middleware does not report) are estimated from gaps
 in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`). With poses from TF, a complete frame
-waits (at most ``max_pending`` frames, at most ``tf_wait_s``) until TF gives its pose, else it is
+waits (at most ``tf_wait_frames`` frames, at most ``tf_wait_s``) until TF gives its pose, else it is
 dropped and counted as ``no_tf``.
 
 A topic that delivers nothing is named in a warning with what the ROS graph suggests instead (the topic under
@@ -169,6 +169,10 @@ class CameraSettings:
     """Seconds a complete frame waits for its pose on TF before it is dropped (``no_tf``)."""
     reliability: str = "reliable"
     """What the camera subscriptions ask for (CAMERA_RELIABILITIES; ``camera_reliability``)."""
+    tf_wait_frames: int = 64
+    """At most this many complete frames wait for their pose on TF (the oldest beyond is dropped, ``no_tf``): 64 are
+    2.1 s at 30 Hz, so ``tf_wait_s`` (1 s) decides (16 were 0.53 s, and a robot whose TF came 0.7 s late lost every
+    frame)."""
     tf_cache_s: float = DEFAULT_CACHE_S
     """Seconds of TF history kept behind the newest transform (tf2's cache time; a replay as fast as possible
     sends the whole bag's /tf before the images are decoded, so it needs the bag's length)."""
@@ -199,6 +203,7 @@ class CameraInput:
         input_size: tuple[int | None, int | None] | None = None,
         tf_wait_s: float = 1.0,
         tf_cache_s: float = DEFAULT_CACHE_S,
+        tf_wait_frames: int = 64,
     ) -> None:
         self.node = node
         self.on_frame = on_frame
@@ -210,8 +215,10 @@ class CameraInput:
         self.input_size = input_size
         self.tf_wait_s = float(tf_wait_s)
         self.max_pending = int(max_pending)
+        self.tf_wait_frames = int(tf_wait_frames)
+        self._started = time.monotonic()
         self.received: Counter[str] = Counter()
-        """Messages received per topic."""
+        """Messages received per topic (every subscribed topic listed, 0 until its first message)."""
         self.tf_rejected = 0
         """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.last_rejection = ""
@@ -240,6 +247,7 @@ class CameraInput:
                     tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
                 )
             node.create_timer(TF_EXPIRE_PERIOD_S, self._expire_awaiting, callback_group=callback_group)
+        self.received.update(dict.fromkeys(self.subscribed_topics(), 0))
         node.create_timer(INPUT_CHECK_PERIOD_S, self._check_inputs, callback_group=callback_group)
 
     @property
@@ -290,10 +298,10 @@ class CameraInput:
     def silent_topics(self) -> dict[str, str]:
         """Each subscribed topic that delivered nothing yet -> why, as far as the ROS graph tells, with the fix.
 
-        Only where the graph says something is off: another of the camera's topics delivers, a publisher is on
+        At once where the graph says something is off: another of the camera's topics delivers, a publisher is on
         the topic but its messages do not come (QoS), or the topic's stream is published under another name
-        this input could read (another transport; ``/tf`` beside a pose topic). A camera not started yet is
-        not reported.
+        this input could read (another transport; ``/tf`` beside a pose topic); a topic with no publisher and
+        nothing better to read only once the input has waited SILENT_WARN_S (a camera starting up).
         """
         with self._lock:
             received = Counter(self.received)
@@ -319,7 +327,7 @@ class CameraInput:
                 hint = self._elsewhere(topic, published)
                 if hint:
                     why += f"; {hint}"
-                elif not flowing:
+                elif not flowing and time.monotonic() - self._started < SILENT_WARN_S:
                     continue  # nothing at all yet, and nothing better to read: the camera may not have started
             if flowing and topic != t.tf_topic:
                 why += f" (while {', '.join(flowing)} delivered)"
@@ -448,11 +456,12 @@ class CameraInput:
                     T_wc = load_pose(T, f"{t.tf_topic} @ {a.stamp_ns} ns", t.tf_topic)
                 except TransformUnavailableError as exc:
                     expired = now is not None and now - a.since > self.tf_wait_s
-                    if exc.retry and not expired and len(self._awaiting) <= self.max_pending:
+                    if exc.retry and not expired and len(self._awaiting) <= self.tf_wait_frames:
                         break
                     self._awaiting.popleft()
                     if exc.retry:
-                        why = "in time" if expired else f"before {self.max_pending} newer frames were waiting"
+                        n = self.tf_wait_frames
+                        why = "in time (tf_wait_s)" if expired else f"before {n} newer frames were (tf_wait_frames)"
                         exc = TransformUnavailableError(exc.where, f"{exc.problem} (no pose {why})", retry=False)
                     self._remember_rejection(a.stamp_ns, "no_tf", exc)
                     dropped.append(exc)
@@ -465,8 +474,11 @@ class CameraInput:
                 self._awaiting.popleft()
                 ready.append(BagFrame(a.stamp_ns, a.rgb, a.depth_m, T_wc, a.intrinsics))
         if dropped:
+            with self._lock:
+                total = sum(self._ledger.counts()["rejected"].values())  # type: ignore[union-attr]
             self.node.get_logger().warning(
-                f"dropped {len(dropped)} frame(s): {dropped[-1]}", throttle_duration_sec=WARN_THROTTLE_S
+                f"dropped {len(dropped)} frame(s) ({total} refused so far): {dropped[-1]}",
+                throttle_duration_sec=WARN_THROTTLE_S,
             )
         for frame in ready:
             self.on_frame(frame)

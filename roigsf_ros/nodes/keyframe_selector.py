@@ -242,6 +242,7 @@ class KeyframeSelectorNode(SystemNode):
             input_size=camera.input_size,
             tf_wait_s=camera.tf_wait_s,
             tf_cache_s=camera.tf_cache_s,
+            tf_wait_frames=camera.tf_wait_frames,
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))

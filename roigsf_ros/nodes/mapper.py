@@ -126,7 +126,9 @@ def camera_params(node: Node) -> CameraSettings:
         declare(node, "camera_reliability", "reliable", "reliable | best_effort (what the camera publishes)")
     )
     tf_cache_s = float(declare(node, "tf_cache_s", DEFAULT_CACHE_S, "tf: seconds of history behind the newest"))
+    tf_wait_frames = int(declare(node, "tf_wait_frames", 64, "tf: at most this many frames wait for their pose"))
     check_positive("tf_cache_s", tf_cache_s)
+    check_positive("tf_wait_frames", tf_wait_frames)
     width = int(declare(node, "input_width", 0, "frames downscaled on arrival to this width (0 = camera's)"))
     height = int(declare(node, "input_height", 0, "frames downscaled on arrival to this height (0 = camera's)"))
     check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
@@ -144,7 +146,7 @@ def camera_params(node: Node) -> CameraSettings:
         raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
     size = None if not width and not height else (width or None, height or None)
     camera_qos(1, reliability)  # an unknown value: an error naming the parameter
-    return CameraSettings(topics, size, tf_wait_s, reliability, tf_cache_s)
+    return CameraSettings(topics, size, tf_wait_s, reliability, tf_wait_frames, tf_cache_s)
 
 
 def frame_of(bf: BagFrame) -> Frame:
@@ -257,6 +259,7 @@ class MapperNode(SystemNode):
             input_size=camera.input_size,
             tf_wait_s=camera.tf_wait_s,
             tf_cache_s=camera.tf_cache_s,
+            tf_wait_frames=camera.tf_wait_frames,
         )
         self.create_subscription(
             PoseStamped, keyframe_topic, self._on_keyframe, reliable_qos(qos_depth), callback_group=keyframes
@@ -379,8 +382,10 @@ class MapperNode(SystemNode):
         if expired:
             refused = [why for s in expired if (why := self.camera.rejection_of(s))]
             because = f" ({len(refused)} refused, the last: {refused[-1]})" if refused else ""
-            warn = f"{len(expired)} keyframe(s) dropped: their frames did not arrive within {self.wait_s:g} s{because}"
             with self._lock:
+                total = self.counters["keyframes_missing"]
+                warn = (f"{len(expired)} keyframe(s) dropped ({total} missing so far): their frames did not arrive "
+                        f"within {self.wait_s:g} s{because}")  # fmt: skip
                 self.last_keyframe_drop = warn
             self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
 

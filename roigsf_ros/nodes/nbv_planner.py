@@ -191,6 +191,7 @@ class NBVPlannerNode(SystemNode):
 
         scoring = MutuallyExclusiveCallbackGroup()
         inputs = MutuallyExclusiveCallbackGroup()
+        self._map_topic, self._info_topic = map_topic, info_topic
         if shared is None:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
             self.create_subscription(PoseArray, poses_topic, self._on_poses, latched_qos(), callback_group=inputs)
@@ -204,7 +205,7 @@ class NBVPlannerNode(SystemNode):
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=MutuallyExclusiveCallbackGroup())
         if sync_s > 0:
             self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
-        source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic}"
+        source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic} + {info_topic}"
         changed = {k: v for k, v in self.nbv.changed().items() if k != "mode"}
         self.get_logger().info(f"scoring ({self.nbv.mode}{settings_text(changed)}) against {source}")
 
@@ -266,6 +267,15 @@ class NBVPlannerNode(SystemNode):
         with self._lock:
             self._topic_snapshot = snap
         return snap
+
+    def _waiting_for(self) -> str:
+        """What the planner has not received yet, naming the topics (a shared map: the mapper's first keyframe)."""
+        if self.shared is not None:
+            return "no keyframe in the shared map yet"
+        with self._lock:
+            missing = [f"a map on {self._map_topic}"] if self._cloud is None else []
+            missing += [f"camera info on {self._info_topic} (camera_info_topic)"] if self._intr is None else []
+        return "nothing received yet: " + " and ".join(missing) if missing else "the map is not readable"
 
     def _render(self, snap: MapSnapshot):
         """The snapshot's rendered RGB-D at a pose, as the scoring TSDF fuses it."""
@@ -373,7 +383,7 @@ class NBVPlannerNode(SystemNode):
         self._check_age(req)
         snap = self.snapshot()
         if snap is None:
-            raise InputError("map", "not ready: no map yet (no frame, map or camera info received)")
+            raise InputError("map", f"not ready: {self._waiting_for()}")
         if len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
             k, n = len(snap.keyframe_poses), snap.n_surfels
             raise InputError("map", f"not ready: {k} keyframes, {n} surfels")
