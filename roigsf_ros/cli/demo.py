@@ -81,7 +81,7 @@ SUMMARY_ROWS = (
     ("longest frame gap (s)", "selector_max_frame_gap_s", "{:.2f}"),
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
-    ("bag frames without a TF pose", "bag_frames_without_tf", "{:d}"),
+    ("frames TF never posed", "bag_frames_without_tf", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
 )
 """The demo's table: label, metrics key, format."""
