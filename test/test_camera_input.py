@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -518,49 +519,70 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
         camera_qos(10, "sensor_data")
 
 
+class _TfRig:
+    """Two camera inputs (raw images, the pose of "cam" in "map" on /tf) told apart by their keyword arguments, and a
+    publisher node: :meth:`run` sends images and transforms in the order a test gives, then waits for both inputs."""
+
+    def __init__(self, ctx: Any, name: str, kwargs: tuple[dict[str, Any], dict[str, Any]]) -> None:
+        from tf2_msgs.msg import TFMessage
+
+        from roigsf_ros.data.bags import realsense_topics
+
+        rs = realsense_topics(tf_child_frame="cam")
+        d = CameraTopics()
+        qos = reliable_qos(50)
+        self.nodes = [Node(f"{name}_{k}", context=ctx) for k in range(2)]
+        self.got: list[list[BagFrame]] = [[], []]
+        pairs = zip(self.nodes, self.got, kwargs, strict=True)
+        self.inputs = [CameraInput(n, got.append, qos, rs, **kw) for n, got, kw in pairs]
+        self.pub = Node(f"{name}_pub", context=ctx)
+        self.tf_pub = self.pub.create_publisher(TFMessage, "/tf", qos)
+        types = {(rs.color, d.color): Image, (rs.depth, d.depth): Image, (rs.camera_info, d.camera_info): CameraInfo}
+        self.pubs = {key: self.pub.create_publisher(cls, topic, qos) for (topic, key), cls in types.items()}
+        self.ctx = ctx
+
+    def images(self, stamps: list[int]) -> None:
+        for stamp in stamps:
+            msgs = _messages(stamp)
+            for key, publisher in self.pubs.items():
+                publisher.publish(msgs[key])
+
+    def transforms(self, stamps: list[int]) -> None:
+        from tf2_msgs.msg import TFMessage
+
+        for stamp in stamps:
+            self.tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
+
+    def run(self, steps: list[Callable[[], None]], n_frames: int) -> None:
+        """Spin, run ``steps`` once every publisher is matched, wait until each input counted ``n_frames``."""
+        executor = SingleThreadedExecutor(context=self.ctx)
+        for n in (*self.nodes, self.pub):
+            executor.add_node(n)
+        spin = threading.Thread(target=executor.spin, daemon=True)
+        spin.start()
+        try:
+            _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (self.tf_pub, *self.pubs.values())))
+            for step in steps:
+                step()
+            _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == n_frames for c in self.inputs))
+        finally:
+            executor.shutdown()
+            spin.join()
+            for n in (*self.nodes, self.pub):
+                n.destroy_node()
+
+
 def test_tf_history_as_long_as_tf_cache_s_poses_frames_whose_tf_came_long_before(ros_context: Any) -> None:
     """A bag played as fast as possible sends all its /tf before the images are decoded: with tf2's 10 s of history
     the first frames of a 13 s bag lost their poses (``no_tf``; ``roigsf demo --rate 0`` on the shipped bag turned
     robot: 125 of 150). ``tf_cache_s`` keeps more; the demo sets it to the bag's length at rate 0."""
     pytest.importorskip("tf2_msgs")
-    from tf2_msgs.msg import TFMessage
-
-    from roigsf_ros.data.bags import realsense_topics
-
-    rs = realsense_topics(tf_child_frame="cam")  # raw transports, the pose of "cam" in "map" on /tf
-    d = CameraTopics()
-    qos = reliable_qos(50)
-    nodes = [Node(f"cache_{s}", context=ros_context) for s in ("default", "long")]
-    got: list[list[BagFrame]] = [[], []]
-    inputs = [CameraInput(nodes[0], got[0].append, qos, rs), CameraInput(nodes[1], got[1].append, qos, rs,
-                                                                          tf_cache_s=20.0)]  # fmt: skip
-    pub = Node("cache_pub", context=ros_context)
-    tf_pub = pub.create_publisher(TFMessage, "/tf", qos)
-    images = {(rs.color, d.color): Image, (rs.depth, d.depth): Image, (rs.camera_info, d.camera_info): CameraInfo}
-    pubs = {(topic, key): pub.create_publisher(cls, topic, qos) for (topic, key), cls in images.items()}
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (*nodes, pub):
-        executor.add_node(n)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
+    rig = _TfRig(ros_context, "cache", ({}, {"tf_cache_s": 20.0}))
     stamps = [T0_NS + k * 1_000_000_000 for k in range(14)]  # 1 Hz, 13 s
-    try:
-        _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (tf_pub, *pubs.values())))
-        for stamp in stamps:  # every transform first, as a replay at rate 0 delivers them
-            tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
-        time.sleep(0.3)
-        for stamp in stamps:
-            msgs = _messages(stamp)
-            for (_, key), publisher in pubs.items():
-                publisher.publish(msgs[key])
-        _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == 14 for c in inputs))
-    finally:
-        executor.shutdown()
-        spin.join()
-        for n in (*nodes, pub):
-            n.destroy_node()
-    assert inputs[0].stats()["rejected"] == {"no_tf": 3}, inputs[0].stats()  # more than 10 s behind the newest
-    assert len(got[1]) == 14 and inputs[1].stats()["rejected"] == {}
+    # every transform first, as a replay at rate 0 delivers them
+    rig.run([lambda: rig.transforms(stamps), lambda: time.sleep(0.3), lambda: rig.images(stamps)], 14)
+    assert rig.inputs[0].stats()["rejected"] == {"no_tf": 3}, rig.inputs[0].stats()  # > 10 s behind the newest
+    assert len(rig.got[1]) == 14 and rig.inputs[1].stats()["rejected"] == {}
 
 
 def test_a_camera_that_never_publishes_is_named_after_the_start_up_wait(ros_context: Any) -> None:
@@ -586,42 +608,15 @@ def test_frames_wait_for_late_tf_up_to_tf_wait_frames(ros_context: Any) -> None:
     (hard-coded), so every frame was dropped as no_tf whatever tf_wait_s said; ``tf_wait_frames`` (64) now holds
     them, and a smaller one drops the oldest naming the parameter."""
     pytest.importorskip("tf2_msgs")
-    from tf2_msgs.msg import TFMessage
-
-    from roigsf_ros.data.bags import realsense_topics
-
-    rs = realsense_topics(tf_child_frame="cam")
-    d = CameraTopics()
-    qos = reliable_qos(50)
-    nodes = [Node(f"late_{s}", context=ros_context) for s in ("default", "sixteen")]
-    got: list[list[BagFrame]] = [[], []]
-    inputs = [CameraInput(nodes[0], got[0].append, qos, rs, tf_wait_s=30.0),
-              CameraInput(nodes[1], got[1].append, qos, rs, tf_wait_s=30.0, tf_wait_frames=16)]  # fmt: skip
-    pub = Node("late_pub", context=ros_context)
-    tf_pub = pub.create_publisher(TFMessage, "/tf", qos)
-    images = {(rs.color, d.color): Image, (rs.depth, d.depth): Image, (rs.camera_info, d.camera_info): CameraInfo}
-    pubs = {(topic, key): pub.create_publisher(cls, topic, qos) for (topic, key), cls in images.items()}
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (*nodes, pub):
-        executor.add_node(n)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
+    rig = _TfRig(ros_context, "late", ({"tf_wait_s": 30.0}, {"tf_wait_s": 30.0, "tf_wait_frames": 16}))
     stamps = [T0_NS + k * 33_000_000 for k in range(21)]
-    try:
-        _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (tf_pub, *pubs.values())))
-        for stamp in stamps:  # the images first, as TF lagging 0.7 s delivers them
-            msgs = _messages(stamp)
-            for (_, key), publisher in pubs.items():
-                publisher.publish(msgs[key])
-        _wait_for(lambda: all(c.stats()["awaiting_tf"] + sum(c.stats()["rejected"].values()) == 21 for c in inputs))
-        for stamp in stamps:
-            tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
-        _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == 21 for c in inputs))
-    finally:
-        executor.shutdown()
-        spin.join()
-        for n in (*nodes, pub):
-            n.destroy_node()
-    assert len(got[0]) == 21 and inputs[0].stats()["rejected"] == {}
-    assert inputs[1].stats()["rejected"] == {"no_tf": 5} and len(got[1]) == 16
-    assert "before 16 newer frames were (tf_wait_frames)" in inputs[1].stats()["last_rejection"]
+
+    def all_waiting_or_dropped() -> None:
+        _wait_for(lambda: all(c.stats()["awaiting_tf"] + sum(c.stats()["rejected"].values()) == 21
+                              for c in rig.inputs))  # fmt: skip
+
+    # the images first, as TF lagging 0.7 s delivers them
+    rig.run([lambda: rig.images(stamps), all_waiting_or_dropped, lambda: rig.transforms(stamps)], 21)
+    assert len(rig.got[0]) == 21 and rig.inputs[0].stats()["rejected"] == {}
+    assert rig.inputs[1].stats()["rejected"] == {"no_tf": 5} and len(rig.got[1]) == 16
+    assert "before 16 newer frames were (tf_wait_frames)" in rig.inputs[1].stats()["last_rejection"]
