@@ -105,6 +105,7 @@ def test_unknown_or_unconnected_frames_are_named() -> None:
         buf.lookup("map", "camera_color_optical_frame", 0)  # odom -> base_link never came
     msg = str(exc.value)
     assert "'map' and 'camera_color_optical_frame' are not connected" in msg and "'base_link'" in msg
+    assert "no transform with child 'base_link' has come yet" in msg  # a robot's odom -> base_link not in yet
     assert exc.value.retry and exc.value.where == "tf 'map' -> 'camera_color_optical_frame'"
 
 

@@ -219,8 +219,8 @@ class TransformBuffer:
                     )
             raise TransformUnavailableError(
                 where,
-                f"frames '{parent}' and '{child}' are not connected (their trees have roots '{up_parent[-1]}' "
-                f"and '{up_child[-1]}'; frames known: {known})",
+                f"frames '{parent}' and '{child}' are not connected: no transform with child '{up_child[-1]}' has "
+                f"come yet (their trees have roots '{up_parent[-1]}' and '{up_child[-1]}'; frames known: {known})",
                 retry=True,
             )
         T_common_child = self._compose(up_child[: common + 1], stamp_ns, where)
