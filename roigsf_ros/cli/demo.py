@@ -40,7 +40,7 @@ import numpy as np
 
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import AUTO, BagFrame, BagReader, CameraTopics, bag_info, open_any_reader, realsense_topics
+from roigsf_ros.data.bags import AUTO, BagFrame, BagReader, CameraTopics, bag_info, bag_topic_types, realsense_topics
 from roigsf_ros.data.tf import DEFAULT_CACHE_S
 
 if TYPE_CHECKING:
@@ -194,21 +194,6 @@ def realsense_parameters(namespace: str) -> dict[str, Any]:
     return {CAMERA_PARAMETERS[f]: getattr(t, f) for f in fields}
 
 
-def bag_topics(bag: Path) -> dict[str, str]:
-    """The bag's ``{topic: message type}``; InputError naming the bag if it cannot be opened."""
-    from rosbags.highlevel import AnyReaderError
-
-    reader = open_any_reader(bag)
-    try:
-        reader.open()
-    except (AnyReaderError, OSError, ValueError) as exc:
-        raise InputError(bag, f"cannot open bag: {exc}") from None
-    try:
-        return {c.topic: c.msgtype for c in reader.connections}
-    finally:
-        reader.close()
-
-
 def _node_parameter(node: str, where: str) -> str:
     """An error's ``parameter 'NAME'`` as ``parameter 'NODE.NAME'`` (the demo runs two camera nodes)."""
     m = re.fullmatch(r"parameter '([^'.]+)'", where)
@@ -290,7 +275,7 @@ def demo_camera(
         for node in CAMERA_NODES:
             node_params[node] = rs | node_params.get(node, {})
         node_params.setdefault("nbv_planner", {}).setdefault("camera_info_topic", rs["camera_info_topic"])
-    present = bag_topics(bag)
+    present = bag_topic_types(bag)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     context = rclpy.Context()
     rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)

@@ -17,6 +17,7 @@ messages both work, and ROS nodes reuse them.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 from collections import deque
@@ -646,6 +647,26 @@ def open_any_reader(path: str | Path) -> AnyReader:
         raise InputError(path, f"cannot open bag: {exc}") from None
 
 
+@contextlib.contextmanager
+def opened_bag(path: str | Path) -> Iterator[AnyReader]:
+    """An open rosbags ``AnyReader`` of a bag, closed on exit; InputError naming the bag if it cannot be opened."""
+    reader = open_any_reader(path)
+    try:
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputError(path, f"cannot open bag: {exc}") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def bag_topic_types(path: str | Path) -> dict[str, str]:
+    """The bag's ``{topic: message type}``."""
+    with opened_bag(path) as reader:
+        return {c.topic: c.msgtype for c in reader.connections}
+
+
 class BagReader:
     """Frames of an RGB-D bag, their messages matched by identical header stamp (no approximate sync).
 
@@ -850,23 +871,14 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
     stream's encoding is its ``format``.
     """
     requested = topics or CameraTopics()
-    reader = open_any_reader(path)
-    try:
-        reader.open()
-    except (AnyReaderError, OSError, ValueError) as exc:
-        raise InputError(path, f"cannot open bag: {exc}") from None
-    try:
+    with opened_bag(path) as reader:
         conns = reader.connections
         counts: dict[str, dict[str, Any]] = {}
         for c in conns:
             entry = counts.setdefault(c.topic, {"type": c.msgtype, "count": 0})
             entry["count"] += c.msgcount
         present = {c.topic: c.msgtype for c in conns}
-        try:
-            t, missing = requested.in_bag(present, path), []
-        except InputError as exc:
-            t, missing = _topics_as_far_as_present(requested, present)  # counted as far as the bag has the topics
-            missing = missing or [exc.problem]
+        t, missing = _topics_as_far_as_present(requested, present)  # counted as far as the bag has the topics
         frame_types = t.types()
         n_keys = len(frame_types)
         camera = [c for c in conns if c.topic in frame_types and c.msgtype == frame_types[c.topic]]
@@ -890,8 +902,6 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
                     first_msgs[conn.topic] = reader.deserialize(raw, conn.msgtype)
         if tf is not None:
             tf.settle(final=True)
-    finally:
-        reader.close()
     complete = sum(1 for s in stamps.values() if len(s) == n_keys)
     color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
     size = None
@@ -1027,6 +1037,7 @@ __all__ = [
     "assemble_frame",
     "assemble_images",
     "bag_info",
+    "bag_topic_types",
     "camera_info_msg",
     "camera_info_to_intrinsics",
     "compressed_to_depth_m",
@@ -1041,6 +1052,7 @@ __all__ = [
     "image_to_rgb",
     "is_compressed",
     "open_any_reader",
+    "opened_bag",
     "pose_to_matrix",
     "read_bag_frames",
     "realsense_topics",

@@ -22,7 +22,7 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
-from roigsf_ros.data.bags import BagReader, CameraTopics, header_stamp_ns, open_any_reader
+from roigsf_ros.data.bags import BagReader, CameraTopics, header_stamp_ns, opened_bag
 from roigsf_ros.data.replica import ReplicaSequence
 
 
@@ -182,8 +182,7 @@ def _frame_stamps(path: Path, topics: CameraTopics) -> tuple[np.ndarray, np.ndar
     """
     types = topics.types()
     seen: dict[int, set[str]] = {}
-    reader = open_any_reader(path)
-    with reader:
+    with opened_bag(path) as reader:
         conns = [c for c in reader.connections if types.get(c.topic) == c.msgtype]
         for conn, _, raw in reader.messages(connections=conns):
             try:

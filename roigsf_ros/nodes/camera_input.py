@@ -396,8 +396,9 @@ class CameraInput:
             dropped_before = self._ledger.dropped_incomplete
             parts = self._ledger.add(stamp, topic, msg)
             dropped = self._ledger.dropped_incomplete
-            missing = [name for name in self.topics.types() if self.received[name] == 0]
-        if dropped > dropped_before:
+        if dropped > dropped_before:  # rare: only then look for the topics that never delivered
+            with self._lock:
+                missing = [name for name in self.topics.types() if self.received[name] == 0]
             why = f"nothing ever received on {', '.join(missing)}" if missing else "one of their messages never came"
             self.node.get_logger().warning(
                 f"{dropped} incomplete frame(s) dropped so far (more than {self.max_pending} waiting): {why}",
