@@ -121,6 +121,32 @@ def _sink(ctx: Any, name: str, types: dict[str, str], received: dict[str, list[b
     return sink
 
 
+def test_pace_runs_before_each_message_at_rate_0_with_the_counts_so_far(ros_context: Any, bag: Path) -> None:
+    """At rate 0 a ``pace`` callable is called before every message with its topic and what was published before
+    it, in the playback thread, and each message waits for it to return (how ``roigsf demo --rate 0`` keeps its
+    nodes' queues from overflowing).
+    """
+    calls: list[tuple[str, dict[str, int]]] = []
+    player: BagPlayer | None = None
+
+    def pace(topic: str, published: Any) -> None:
+        assert player is not None and player.published == sum(published.values())  # nothing goes before we return
+        calls.append((topic, dict(published)))
+        time.sleep(0.002)
+
+    overrides = [Parameter("bag", value=str(bag)), Parameter("rate", value=0.0)]
+    overrides += [Parameter("wait_for_subscribers", value=0), Parameter("start_delay_s", value=0.0)]
+    player = BagPlayer(context=ros_context, parameter_overrides=overrides, pace=pace)
+    with _spinning(ros_context, player):
+        assert player.wait(30.0), "playback did not finish"
+        summary = player.summary()
+    assert summary["published"] == 20 and len(calls) == 20
+    types, _ = _bag_messages(bag)
+    assert summary["published_by_topic"] == dict.fromkeys(types, 5)
+    for n, (topic, before) in enumerate(calls):
+        assert sum(before.values()) == n and topic in types
+
+
 def test_waits_for_subscribers_before_the_first_message(ros_context: Any, bag: Path) -> None:
     """Nothing is published until every topic has a matched subscriber; then all of it arrives, the first included.
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -182,6 +183,51 @@ def test_cli_info_text_and_json(bag32: Path, capsys: pytest.CaptureFixture[str])
         assert needle in text
     assert cli_main(["bag", "info", str(bag32), "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(bags.bag_info(bag32)))
+
+
+def test_bag_info_counts_the_frames_the_reader_refuses_with_the_reason(
+    bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A camera_info of another size (frame 1) and a depth image in an unknown encoding (frame 3): ``roigsf map``
+    skips them as the nodes do, counted with the reason; ``bag info`` counts them as refused, not as complete.
+
+    Before: ``bag info`` counted stamps only and said 5 complete frames; ``roigsf map`` then stopped on frame 1.
+    """
+
+    def edit(topic: str, k: int, msg: Any) -> Any:
+        if topic == bags.CAMERA_INFO_TOPIC and k == 1:
+            msg.width = W * 2
+        if topic == bags.DEPTH_TOPIC and k == 3:
+            msg.encoding = "mono8"
+        return msg
+
+    out = tmp_path / "bad_frames"
+    _rewrite_bag(bag32, out, edit)
+    with pytest.raises(InputError, match=re.escape(bags.CAMERA_INFO_TOPIC) + "|sizes disagree"):
+        bags.read_bag_frames(out)
+    with bags.BagReader(out, skip_refused=True) as reader:
+        kept = [f.stamp_ns - bags.DEFAULT_T0_NS for f in reader.frames()]
+        assert (reader.refused, reader.frames_read) == (2, N - 2) and "mono8" in reader.last_refusal
+    assert kept == [k * 100_000_000 for k in range(N) if k not in (1, 3)]
+    info = bags.bag_info(out)
+    assert (info["frame_count"], info["frames_refused"], info["incomplete_stamps"]) == (N - 2, 2, 0)
+    assert bags.DEPTH_TOPIC in info["refused_reason"] and "mono8" in info["refused_reason"]
+    fast = bags.bag_info(out, decode=False)  # stamps only: the refused frames are counted, and it says so
+    assert (fast["frame_count"], fast["frames_refused"], fast["refused_reason"]) == (N, None, None)
+    assert cli_main(["bag", "info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"frames:       {N - 2} complete, 2 refused, 0 incomplete stamps" in text, text
+    assert re.search(r"^refused: +\S+" + re.escape(bags.DEPTH_TOPIC) + ".*mono8", text, re.MULTILINE), text
+    assert cli_main(["bag", "info", str(out), "--no-decode"]) == 0
+    assert f"frames:       {N} complete (not decoded), 0 incomplete stamps" in capsys.readouterr().out
+    # `roigsf map` skips them as the nodes do, counted with the reason, the others keeping their bag frame ids
+    argv = ["map", str(out), "--policy", "all", "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", ""]
+    assert cli_main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"skipped: refused\s+2 \(.*mono8", text), text
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_skipped_refused"], metrics["frames_skipped_incomplete"]) == (3, 2, 0)
+    assert metrics["keyframe_ids"] == [0, 2, 4] and "mono8" in metrics["frames_skipped_refused_reason"]
 
 
 def test_cli_from_replica_resize_scales_intrinsics(replica: Path, tmp_path: Path) -> None:

@@ -575,7 +575,7 @@ class _TfRig:
 def test_tf_history_as_long_as_tf_cache_s_poses_frames_whose_tf_came_long_before(ros_context: Any) -> None:
     """A bag played as fast as possible sends all its /tf before the images are decoded: with tf2's 10 s of history
     the first frames of a 13 s bag lost their poses (``no_tf``; ``roigsf demo --rate 0`` on the shipped bag turned
-    robot: 125 of 150). ``tf_cache_s`` keeps more; the demo sets it to the bag's length at rate 0."""
+    robot: 125 of 150). ``tf_cache_s`` keeps more."""
     pytest.importorskip("tf2_msgs")
     rig = _TfRig(ros_context, "cache", ({}, {"tf_cache_s": 20.0}))
     stamps = [T0_NS + k * 1_000_000_000 for k in range(14)]  # 1 Hz, 13 s

@@ -98,6 +98,62 @@ def test_demo_on_a_cold_numba_cache_plans_from_the_first_window(tmp_path: Path) 
         assert re.search(rf"^  {re.escape(row)} +\S", proc.stdout, re.MULTILINE), proc.stdout
 
 
+def test_demo_at_rate_0_keeps_pace_with_its_nodes_and_loses_nothing(tmp_path: Path) -> None:
+    """``--rate 0``: every frame reaches the nodes, every window is answered by the planner, every keyframe mapped.
+
+    Before: the player published the whole bag at once; the nodes' queues overflowed (47 of the shipped bag's 150
+    frames received) and the windows that came while the planner was busy went to the fallback policy.
+    """
+    from roigsf_ros.cli import main
+
+    bag = _bag(tmp_path, 25, 64, 48, seed=8)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--rate", "0", "--gt-mesh", "", "--no-progress",
+            "--final-iters", "0", "--set", "keyframe_selector.window=4",
+            "--set", "mapper.iters_per_keyframe=3"]  # fmt: skip
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["frames_received"] == 25 and metrics["dropped_frames"] == 0
+    assert metrics["planner_calls"] == 6 and metrics["planner_answers"] == 6 and metrics["fallbacks"] == 0
+    assert metrics["keyframes_not_mapped"] == 0 and metrics["n_keyframes"] == 7
+    assert metrics["lockstep_stalls"] == 0
+
+
+def test_demo_counts_the_frames_the_nodes_refuse_and_maps_the_rest(tmp_path: Path) -> None:
+    """A frame whose depth image the nodes refuse (an unknown encoding) is counted, not fatal: the nodes map the
+    others, and "dropped frames" stays 0 (the frame never was one the nodes could take).
+
+    Before: the demo read the bag for its report, stopped on that frame with an InputError and mapped nothing.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from roigsf_ros.cli import main
+
+    src, bag = _bag(tmp_path, 6, 32, 24, seed=9), tmp_path / "one_bad"
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with bags.opened_bag(src) as reader, Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns: dict[str, Any] = {}
+        seen = 0
+        for conn, stamp, raw in reader.messages():
+            if conn.topic == bags.DEPTH_TOPIC:
+                seen += 1
+                if seen == 3:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    msg.encoding = "mono8"
+                    raw = store.serialize_cdr(msg, conn.msgtype)
+            if conn.topic not in conns:
+                conns[conn.topic] = writer.add_connection(conn.topic, conn.msgtype, typestore=store)
+            writer.write(conns[conn.topic], stamp, bytes(raw))
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--rate", "0", "--gt-mesh", "", "--no-progress",
+            "--policy", "every-n", "--final-iters", "0", "--set", "mapper.iters_per_keyframe=2"]  # fmt: skip
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_received"], metrics["dropped_frames"]) == (5, 5, 0), metrics
+    assert metrics["bag_frames_refused"] == 1 and "mono8" in metrics["bag_frames_refused_reason"]
+
+
 def test_demo_decides_the_frames_the_selector_holds_when_the_bag_ends(tmp_path: Path) -> None:
     """With ``lookahead`` the selector holds the last window when the stream ends: the demo calls its ``finish``."""
     from roigsf_ros.cli import main

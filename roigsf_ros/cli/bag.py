@@ -111,10 +111,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "info",
         help="summarise a bag: topics, types, counts, duration, resolution",
         description="Summarise a rosbag2 bag folder or .mcap file: topics with types and message counts, "
-        "duration, image resolution, depth encoding and complete frames.",
+        "duration, image resolution, depth encoding and the frames `roigsf map` reads with the same camera "
+        "options (complete, posed, and decoded: frames that do not convert are counted as refused, with why).",
     )
     info.add_argument("bag", type=Path, metavar="BAG", help="rosbag2 folder or .mcap file")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.add_argument(
+        "--no-decode",
+        action="store_true",
+        help="count complete, posed frames without decoding their images (faster on a long bag; "
+        "a frame that does not convert is then counted)",
+    )
     add_camera_options(info)
     info.set_defaults(func=_info)
 
@@ -183,16 +190,16 @@ def format_info(info: dict[str, Any]) -> str:
             f"images:       {info['width']}x{info['height']}, colour {info['color_encoding']}, "
             f"depth {info['depth_encoding']}, pose from {info['pose_source']}"
         )
-    no_tf = info.get("frames_without_tf")
-    if no_tf is None:
-        lines.append(f"frames:       {info['frame_count']} complete, {info['incomplete_stamps']} incomplete stamps")
-    else:
-        lines.append(
-            f"frames:       {info['frame_count']} complete and posed by TF, {no_tf} complete without a TF pose, "
-            f"{info['incomplete_stamps']} incomplete stamps"
-        )
-        if no_tf:
-            lines.append(f"no TF pose:   {info['no_tf_reason']}")
+    no_tf, refused = info.get("frames_without_tf"), info.get("frames_refused")
+    read = "complete" if no_tf is None else "complete and posed by TF"
+    line = f"frames:       {info['frame_count']} {read}"
+    line += "" if no_tf is None else f", {no_tf} complete without a TF pose"
+    line += " (not decoded)" if refused is None else f", {refused} refused"
+    lines.append(f"{line}, {info['incomplete_stamps']} incomplete stamps")
+    if no_tf:
+        lines.append(f"no TF pose:   {info['no_tf_reason']}")
+    if refused:
+        lines.append(f"refused:      {info['refused_reason']}")
     for problem in info.get("missing_topics") or []:
         lines.append(f"missing:      {problem}")
     if info.get("hint"):
@@ -206,7 +213,7 @@ def format_info(info: dict[str, Any]) -> str:
 
 
 def _info(args: argparse.Namespace) -> int:
-    info = bag_info(args.bag, camera_topics(args))
+    info = bag_info(args.bag, camera_topics(args), decode=not args.no_decode)
     hint = _hint(args, info)
     if hint is not None:  # in --json too: a field only when there is a hint
         info["hint"] = hint

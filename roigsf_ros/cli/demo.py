@@ -19,9 +19,12 @@ files and ``--set``), and the player plays only the topics the camera nodes read
 pose on TF, compressed images) needs ``--realsense [NS]``: it sets those names and pose_source tf on the mapper and
 the keyframe selector (and the planner's camera_info_topic), with the transports read from the bag's topic types,
 over the params files; a ``--set NODE.NAME=VALUE`` still wins. Settings with which the mapper or the selector would
-read no frame of the bag are refused before anything starts, naming the parameter. Played as fast as possible
-(``--rate 0``), a bag's whole /tf arrives before its images are decoded, so the camera nodes then keep the bag's
-length of TF history (``tf_cache_s``; 10 s, tf2's default, dropped the first frames as ``no_tf``).
+read no frame of the bag are refused before anything starts, naming the parameter.
+
+``--rate 0`` plays as fast as the nodes can take the bag without losing anything (:class:`Lockstep`): each frame
+waits until the nodes received the one before and have room for it. Played blindly as fast as possible, the nodes'
+queues overflowed (47 of the shipped bag's 150 frames received), windows went to the fallback, and a bag's whole /tf
+came before its images were decoded.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,7 +44,6 @@ import numpy as np
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, BagFrame, BagReader, CameraTopics, bag_info, bag_topic_types, realsense_topics
-from roigsf_ros.data.tf import DEFAULT_CACHE_S
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -50,6 +52,7 @@ if TYPE_CHECKING:
     from roigsf_ros.experiments.offline import EvalConfig
     from roigsf_ros.mapping.mapper import Mapper
     from roigsf_ros.nodes.active_mapping import ActiveMapping
+    from roigsf_ros.nodes.bag_player import BagPlayer
 
 DEFAULT_BAG = Path("bags/synth_room")
 DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
@@ -82,6 +85,7 @@ SUMMARY_ROWS = (
     ("kernel warm-up (s)", "warm_up_s", "{:.1f}"),
     ("dropped frames", "dropped_frames", "{:d}"),
     ("frames TF never posed", "bag_frames_without_tf", "{:d}"),
+    ("frames refused", "bag_frames_refused", "{:d}"),
     ("wall time (s)", "wall_s", "{:.1f}"),
 )
 """The demo's table: label, metrics key, format."""
@@ -560,6 +564,83 @@ def check_params_file(path: Path) -> None:
         check(str(node), body)
 
 
+def system_busy(status: dict[str, Any]) -> bool:
+    """Whether the nodes still work on what they received: a planner request or a window waiting for one, frames
+    held until the map catches up (gaus-slam), or keyframes named and not yet inserted, dropped or refused.
+    """
+    sel, mp = status["selector"], status["mapper"]
+    handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
+    handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
+    return bool(
+        sel["planner_pending"]
+        or sel["planner_window_waiting"]
+        or mp["pending_keyframes"]
+        or mp["waiting_keyframes"]
+        or sel["frames_held_for_map"]
+        or handled < mp["keyframe_msgs"]
+        or mp["keyframe_msgs"] < sel["keyframes_published"]
+    )
+
+
+class Lockstep:
+    """The player's ``pace`` at ``--rate 0``: as fast as the nodes can go without losing anything.
+
+    A frame's first message (on ``frame_topic``, the colour topic) waits until both camera nodes received and
+    handled every message published before it, and until going on would lose work: while a window already waits
+    behind a planner request (the next one would go to the fallback), while gaus-slam holds frames for the map,
+    or while the mapper has more than one keyframe to insert (its queue and frame buffer would overflow). The nodes'
+    work otherwise overlaps the stream, as in real time. When nothing in the nodes' status moves for ``stall_s``
+    while a frame waits (a message lost on a best-effort subscription, a stuck node), it goes anyway and
+    ``stalls`` counts it. ``waited_s``: the playback thread's time in here.
+    """
+
+    def __init__(self, system: ActiveMapping, frame_topic: str, stall_s: float = 30.0, poll_s: float = 0.005) -> None:
+        self.system = system
+        self.frame_topic = frame_topic
+        self.stall_s = stall_s
+        self.poll_s = poll_s
+        self.player: BagPlayer | None = None
+        """The player paced (set once it is made): waiting ends when it is ``stopping``."""
+        self.stalls = 0
+        self.waited_s = 0.0
+
+    def ready(self, published: Mapping[str, int]) -> tuple[bool, object]:
+        """(the nodes can take the next frame without loss, a snapshot of their state to tell progress by)."""
+        cams = [self.system.mapper.camera.stats(), self.system.selector.camera.stats()]
+        status = self.system.status()
+        sel, mp = status["selector"], status["mapper"]
+        delivered = all(
+            cam["in_callback"] == 0 and all(cam["received"].get(t, n) >= n for t, n in published.items())
+            for cam in cams
+        )
+        free = not (
+            sel["planner_window_waiting"]
+            or sel["frames_held_for_map"]
+            or mp["pending_keyframes"] + mp["waiting_keyframes"] > 1
+        )
+        snapshot = ([cam["received"] for cam in cams], sel, mp)
+        return delivered and free, snapshot
+
+    def __call__(self, topic: str, published: Mapping[str, int]) -> None:
+        """Return once the nodes are ready for a message on ``topic`` (at once unless it starts a frame)."""
+        if topic != self.frame_topic:
+            return
+        t0 = time.monotonic()
+        moved_at, last = t0, None
+        while self.player is None or not self.player.stopping:
+            ok, snapshot = self.ready(dict(published))
+            if ok:
+                break
+            now = time.monotonic()
+            if snapshot != last:
+                moved_at, last = now, snapshot
+            elif now - moved_at > self.stall_s:
+                self.stalls += 1
+                break
+            time.sleep(self.poll_s)
+        self.waited_s += time.monotonic() - t0
+
+
 class _Progress:
     """One status line: frames received, keyframes, surfels, planner answers/calls, fallbacks, queue."""
 
@@ -625,16 +706,15 @@ def run_demo(
     if camera is None:
         camera = demo_camera(bag, params, params_files, realsense, domain_id)
     # the recorded frames, read as the mapper reads them: what the map is evaluated against
-    with BagReader(bag, camera.topics) as reader:
+    # (frames whose messages do not convert are refused by the nodes too, and counted, not fatal)
+    with BagReader(bag, camera.topics, skip_refused=True) as reader:
         frames, skipped, no_tf = list(reader.frames()), reader.skipped_frames, reader.no_tf
         no_tf_reason = reader.last_tf_error if no_tf else ""
+        refused, refusal = reader.refused, reader.last_refusal
     if not frames:
-        raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}")
+        why = f" ({refused} refused: {refusal})" if refused else ""
+        raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}{why}")
     node_params = {k: dict(v) for k, v in camera.params.items()}
-    if rate <= 0 and camera.topics.uses_tf:  # the whole bag's /tf comes before its images are decoded: keep it all
-        span_s = (frames[-1].stamp_ns - frames[0].stamp_ns) * 1e-9
-        for node in CAMERA_NODES:
-            node_params.setdefault(node, {}).setdefault("tf_cache_s", max(DEFAULT_CACHE_S, span_s + 1.0))
     if policy is not None:  # given: over the params files (a node's override beats a file), under a --set of it
         node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -644,10 +724,14 @@ def run_demo(
     rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)
     system: ActiveMapping | None = None
     player: BagPlayer | None = None
+    lockstep: Lockstep | None = None
     try:
         system = ActiveMapping(context=context, params=node_params)
+        if rate <= 0:
+            lockstep = Lockstep(system, camera.topics.resolved().color)
         player = BagPlayer(
             context=context,
+            pace=lockstep,
             parameter_overrides=[
                 Parameter("bag", value=str(bag)),
                 Parameter("topics", value=list(camera.play)),  # a robot's other topics (and types) are not needed
@@ -656,6 +740,8 @@ def run_demo(
                 Parameter("progress_period_s", value=0.0),
             ],
         )
+        if lockstep is not None:
+            lockstep.player = player
         system.executor.add_node(player)
         system.start()
         bar = _Progress(len(frames), progress)
@@ -680,16 +766,7 @@ def run_demo(
             key = (sel["frames"], sel["keyframes_published"], mp["keyframe_msgs"])
             if key != last:
                 settled_since, last = time.monotonic(), key
-            handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
-            handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
-            busy = (
-                sel["planner_pending"]
-                or sel["planner_window_waiting"]
-                or mp["pending_keyframes"]
-                or mp["waiting_keyframes"]
-                or sel["frames_held_for_map"]  # gaus-slam: frames still to judge once the map holds its keyframes
-            )
-            busy = busy or handled < mp["keyframe_msgs"] or mp["keyframe_msgs"] < sel["keyframes_published"]
+            busy = system_busy(st)
             # Done when nothing moved for a while: 1 s once every frame is in, 5 s if some never came.
             quiet_s = 1.0 if sel["frames"] >= len(frames) else 5.0
             if not busy and time.monotonic() - settled_since > quiet_s:
@@ -737,11 +814,15 @@ def run_demo(
         "policy": sel["policy"],  # the selector's: --policy, a --set or a params file, else its default
         "bag": str(bag),
         "rate": rate,
+        "lockstep_stalls": None if lockstep is None else lockstep.stalls,  # frames played before the nodes were ready
+        "lockstep_wait_s": None if lockstep is None else lockstep.waited_s,
         "frames_received": sel["frames"],
         "dropped_frames": len(frames) - sel["frames"],  # recorded but not received complete and valid
         "bag_incomplete_stamps": skipped,
         "bag_frames_without_tf": no_tf,  # complete in the bag, but TF never gives their pose: not in n_frames
         "bag_frames_without_tf_reason": no_tf_reason,
+        "bag_frames_refused": refused,  # complete and posed, but their messages do not convert: not in n_frames
+        "bag_frames_refused_reason": refusal,
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],

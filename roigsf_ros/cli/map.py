@@ -230,6 +230,7 @@ def gt_mesh_of(option: str | None, default: Path | None) -> Path | None:
 _SKIPPED_KEYS = (
     ("skipped: no TF pose", "frames_skipped_no_tf", "frames_skipped_no_tf_reason"),
     ("skipped: incomplete", "frames_skipped_incomplete", None),
+    ("skipped: refused", "frames_skipped_refused", "frames_skipped_refused_reason"),
     ("skipped: bad pose", "frames_skipped_bad_pose", None),
 )
 """Summary lines printed only when frames were skipped: (label, count key, reason key)."""
@@ -238,7 +239,7 @@ _SKIPPED_KEYS = (
 def print_summary(metrics: dict) -> None:
     """The short table of a run's metrics (frames, keyframes, PSNR, mesh precision/recall, wall time).
 
-    Frames skipped (no pose on TF, incomplete, bad pose) get a line each, with the reason, so a run that mapped
+    Frames skipped (no pose on TF, incomplete, refused, bad pose) get a line each, with the reason, so a run that mapped
     fewer frames than the source holds says why.
     """
     for label, key, fmt in _SUMMARY_KEYS:

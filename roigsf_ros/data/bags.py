@@ -676,14 +676,21 @@ class BagReader:
     InputError naming the bag and the topic. Transports ``auto`` are read from the topics' types
     (:meth:`CameraTopics.in_bag`). With poses from TF, a complete frame waits (at most
     ``MAX_PENDING_STAMPS`` of them) until the TF messages read so far give its pose; one whose pose
-    never comes is skipped and counted in ``no_tf`` (the reason in ``last_tf_error``).
+    never comes is skipped and counted in ``no_tf`` (the reason in ``last_tf_error``). A complete, posed
+    frame whose messages do not convert (a JPEG depth image, sizes that disagree, a pose that is no rotation)
+    raises InputError naming the topic and stamp, or with ``skip_refused`` is skipped and its stamp kept in
+    ``refused_stamps`` (the reason in ``last_refusal``). :meth:`stamps` gives the frames' stamps undecoded.
     """
 
-    def __init__(self, path: str | Path, topics: CameraTopics | None = None) -> None:
+    def __init__(self, path: str | Path, topics: CameraTopics | None = None, skip_refused: bool = False) -> None:
         self.path = Path(path)
         self.requested = topics or CameraTopics()
         self.topics = self.requested
         """The topics read: ``requested`` resolved against the bag once it is open."""
+        self.skip_refused = skip_refused
+        self.refused_stamps: list[int] = []
+        """Stamps of the complete, posed frames skipped because their messages did not convert (``skip_refused``)."""
+        self.last_refusal = ""
         self.skipped_frames = 0
         self.frames_read = 0
         self.no_tf = 0
@@ -726,6 +733,30 @@ class BagReader:
 
     def frames(self) -> Iterator[BagFrame]:
         """Yield complete frames in the order they complete (stamp order for bags from :func:`write_bag`)."""
+        for stamp, parts, T_wc in self._matched():
+            try:
+                frame = self._convert(stamp, parts, T_wc)
+            except InputError as exc:
+                if not self.skip_refused:
+                    raise
+                self.refused_stamps.append(stamp)
+                self.last_refusal = str(exc)
+                continue
+            self.frames_read += 1
+            yield frame
+
+    @property
+    def refused(self) -> int:
+        """How many frames were refused (``skip_refused``): :attr:`refused_stamps`."""
+        return len(self.refused_stamps)
+
+    def stamps(self) -> Iterator[int]:
+        """The stamps of the frames :meth:`frames` would read (matched and posed), their images not decoded."""
+        for stamp, _, _ in self._matched():
+            yield stamp
+
+    def _matched(self) -> Iterator[tuple[int, dict[str, tuple[Any, bytes]], np.ndarray | None]]:
+        """``(stamp, {topic: (connection, raw)}, T_wc or None)`` of each complete frame TF poses, as it completes."""
         if not self._open:
             raise RuntimeError("BagReader.frames() needs an open reader: use it in a `with` block")
         t = self.topics
@@ -748,8 +779,7 @@ class BagReader:
             if parts is None:
                 continue
             if tf is None:
-                self.frames_read += 1
-                yield self._convert(stamp, parts, None)
+                yield stamp, parts, None
                 continue
             waiting.append((stamp, parts))
             yield from self._posed(tf, waiting, final=False)
@@ -771,7 +801,7 @@ class BagReader:
 
     def _posed(
         self, tf: TransformBuffer, waiting: deque[tuple[int, dict[str, tuple[Any, bytes]]]], final: bool
-    ) -> Iterator[BagFrame]:
+    ) -> Iterator[tuple[int, dict[str, tuple[Any, bytes]], np.ndarray]]:
         """Frames of ``waiting`` (oldest first) whose pose TF now gives; those it never will are counted and dropped."""
         t = self.topics
         while waiting:
@@ -786,8 +816,7 @@ class BagReader:
                 self.last_tf_error = str(exc)
                 continue
             waiting.popleft()
-            self.frames_read += 1
-            yield self._convert(stamp, parts, T_wc)
+            yield stamp, parts, T_wc
 
     def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]], T_wc: np.ndarray | None) -> BagFrame:
         t = self.topics
@@ -857,18 +886,20 @@ def read_bag_frames(path: str | Path, topics: CameraTopics | None = None) -> tup
         return frames, reader.skipped_frames
 
 
-def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, Any]:
+def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool = True) -> dict[str, Any]:
     """Summary of a bag: topics with types and counts, time span, image size, encodings, frame count.
 
-    Frames are stamps carried by every topic matched into a frame (:meth:`CameraTopics.types`, resolved
-    against the bag when it has them) and, with poses from TF, posed by the bag's TF messages as
-    :class:`BagReader` poses them (``frame_count``: the frames it reads); ``frames_without_tf`` counts the
+    ``frame_count`` counts the frames :class:`BagReader` reads with these topics (resolved against the bag
+    when it has them): stamps carried by every topic matched into a frame, posed by the bag's TF messages
+    when poses come from TF, and (``decode``) whose messages convert. ``frames_without_tf`` counts the
     complete stamps TF does not pose (None with poses from a topic), ``no_tf_reason`` says why (the last
-    lookup's error), ``incomplete_stamps`` the other stamps. ``missing_topics`` names each topic the bag
-    lacks or holds with another type (empty when all are there; the counts are then as far as the bag has
-    the topics); ``realsense_namespace`` is then the namespace of a RealSense camera the bag does hold in full
-    (:func:`realsense_topics`), else None. Image fields are None when the bag has no such topic; a compressed
-    stream's encoding is its ``format``.
+    error); ``frames_refused`` the complete, posed frames whose messages do not convert (a JPEG depth image,
+    sizes that disagree; None without ``decode``, whose count then includes them), ``refused_reason`` the
+    last one's error; ``incomplete_stamps`` the other stamps. ``missing_topics`` names each topic the bag
+    lacks or holds with another type (empty when all are there; no frame is then complete, and the stamps of
+    the topics it has count as incomplete); ``realsense_namespace`` is then the namespace of a RealSense
+    camera the bag does hold in full (:func:`realsense_topics`), else None. Image fields are None when the bag
+    has no such topic; a compressed stream's encoding is its ``format``.
     """
     requested = topics or CameraTopics()
     with opened_bag(path) as reader:
@@ -880,29 +911,25 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         present = {c.topic: c.msgtype for c in conns}
         t, missing = _topics_as_far_as_present(requested, present)  # counted as far as the bag has the topics
         frame_types = t.types()
-        n_keys = len(frame_types)
         camera = [c for c in conns if c.topic in frame_types and c.msgtype == frame_types[c.topic]]
-        tf_conns = [c for c in conns if c.topic in t.tf_types() and c.msgtype == TF_MESSAGE_TYPE]
-        tf = _TfCheck(t) if t.uses_tf else None
-        stamps: dict[int, set[str]] = {}
         first_msgs: dict[str, Any] = {}
-        first_ns = last_ns = None
-        for conn, ts, raw in reader.messages():
-            first_ns = ts if first_ns is None else min(first_ns, ts)
-            last_ns = ts if last_ns is None else max(last_ns, ts)
-            if tf is not None and conn in tf_conns:
-                tf.add(reader.deserialize(raw, conn.msgtype), static=conn.topic == t.tf_static_topic)
-            elif conn in camera:
-                stamp = header_stamp_ns(raw)
-                have = stamps.setdefault(stamp, set())
-                have.add(conn.topic)
-                if tf is not None and len(have) == n_keys:
-                    tf.frame(stamp)
-                if conn.topic not in first_msgs and conn.msgtype in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE):
-                    first_msgs[conn.topic] = reader.deserialize(raw, conn.msgtype)
-        if tf is not None:
-            tf.settle(final=True)
-    complete = sum(1 for s in stamps.values() if len(s) == n_keys)
+        for c in camera:
+            if c.msgtype in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE) and c.topic not in first_msgs:
+                for conn, _, raw in reader.messages(connections=[c]):
+                    first_msgs[c.topic] = reader.deserialize(raw, conn.msgtype)
+                    break
+        any_message = sum(c.msgcount for c in conns) > 0
+        first_ns = reader.start_time if any_message else None
+        last_ns = reader.end_time - 1 if any_message else None  # rosbags' end is one past the last message
+        if missing:  # no frame is complete: the stamps of the topics present are all incomplete
+            incomplete = len({header_stamp_ns(raw) for _, _, raw in reader.messages(connections=camera)})
+    frames = refused = no_tf = 0
+    reason = refusal = ""
+    if not missing:
+        with BagReader(path, requested, skip_refused=True) as frame_reader:
+            frames = sum(1 for _ in (frame_reader.frames() if decode else frame_reader.stamps()))
+            incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
+            reason, refusal = frame_reader.last_tf_error, frame_reader.last_refusal
     color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
     size = None
     for msg, convert, topic in ((color, image_to_rgb, t.color), (depth, image_to_depth_m, t.depth)):
@@ -920,57 +947,21 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None) -> dict[str, 
         "message_count": sum(v["count"] for v in counts.values()),
         "start_ns": first_ns,
         "end_ns": last_ns,
-        "duration_s": (last_ns - first_ns) / 1e9 if first_ns is not None else 0.0,
+        "duration_s": (last_ns - first_ns) / 1e9 if first_ns is not None and last_ns is not None else 0.0,
         "width": int(size[0]) if size is not None else None,
         "height": int(size[1]) if size is not None else None,
         "color_encoding": _encoding_of(color),
         "depth_encoding": _encoding_of(depth),
         "pose_source": t.pose_source,
-        "frame_count": complete - (tf.no_tf if tf is not None else 0),
-        "frames_without_tf": tf.no_tf if tf is not None else None,
-        "no_tf_reason": tf.reason if tf is not None and tf.no_tf else None,
-        "incomplete_stamps": len(stamps) - complete,
+        "frame_count": frames,
+        "frames_without_tf": no_tf if t.uses_tf else None,
+        "no_tf_reason": reason if t.uses_tf and no_tf else None,
+        "frames_refused": refused if decode else None,
+        "refused_reason": refusal if decode and refused else None,
+        "incomplete_stamps": incomplete,
         "missing_topics": missing,
         "realsense_namespace": _realsense_namespace(present) if missing else None,
     }
-
-
-class _TfCheck:
-    """Whether TF poses the complete stamps of a bag read in record order, as :class:`BagReader` decides it.
-
-    A complete stamp waits (at most ``MAX_PENDING_STAMPS`` of them) until the TF messages read so far give
-    its pose; one whose pose never comes is counted in ``no_tf``, the last lookup's error in ``reason``.
-    """
-
-    def __init__(self, topics: CameraTopics) -> None:
-        self.topics = topics
-        self.buffer = TransformBuffer(tolerance_s=topics.tf_tolerance_s)
-        self.waiting: deque[int] = deque()
-        self.no_tf = 0
-        self.reason = ""
-
-    def add(self, msg: Any, static: bool) -> None:
-        """Store one TFMessage (transforms with bad values are refused, as the reader does) and settle frames."""
-        self.buffer.add_message(msg, static=static)
-        self.settle(final=False)
-
-    def frame(self, stamp_ns: int) -> None:
-        """A stamp became complete: it waits for its pose."""
-        self.waiting.append(stamp_ns)
-        self.settle(final=False)
-
-    def settle(self, final: bool) -> None:
-        """Look up the waiting stamps, oldest first; give up those TF will not pose (all unposed when ``final``)."""
-        t = self.topics
-        while self.waiting:
-            try:
-                self.buffer.lookup(t.tf_parent_frame, t.tf_child_frame, self.waiting[0])
-            except TransformUnavailableError as exc:
-                if exc.retry and not final and len(self.waiting) <= MAX_PENDING_STAMPS:
-                    return
-                self.no_tf += 1
-                self.reason = str(exc)
-            self.waiting.popleft()
 
 
 def _topics_as_far_as_present(requested: CameraTopics, present: dict[str, str]) -> tuple[CameraTopics, list[str]]:

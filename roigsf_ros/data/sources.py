@@ -39,9 +39,10 @@ class FrameSequence(Protocol):
 class FrameSource:
     """Posed RGB-D frames from disk, re-iterable; ``len`` is the number of frames after stride and cap.
 
-    A source that skips frames it cannot read (a bag: incomplete stamps, no pose on TF) yields fewer than
-    ``len`` and counts them, of those the stride and cap keep, after each full pass: ``skipped_incomplete``,
-    ``skipped_no_tf`` and why (``no_tf_reason``).
+    A source that skips frames it cannot read (a bag: incomplete stamps, no pose on TF, messages that do not
+    convert) yields fewer than ``len`` and counts them, of those the stride and cap keep, after each full pass:
+    ``skipped_incomplete``, ``skipped_no_tf`` and why (``no_tf_reason``), ``skipped_refused`` and why
+    (``refused_reason``).
     """
 
     kind = "base"
@@ -57,6 +58,10 @@ class FrameSource:
         """Frames skipped on the last full pass because TF never gave their pose."""
         self.no_tf_reason = ""
         """Why TF gave no pose (the last lookup error), when ``skipped_no_tf``."""
+        self.skipped_refused = 0
+        """Frames skipped on the last full pass because their messages did not convert (a bad image, sizes)."""
+        self.refused_reason = ""
+        """The last refused frame's error, when ``skipped_refused``."""
 
     def __len__(self) -> int:
         return self.n_frames
@@ -101,8 +106,9 @@ class BagFrameSource(FrameSource):
 
     A frame's index is its position among all the bag's frames, the sorted distinct header stamps of the
     colour topic (a stamp without colour is no frame), counted once when the source is opened: frames the
-    reader skips (incomplete, no pose on TF) keep their numbers, so the stride, the cap and the ids of
-    the frames given name bag frames. ``len`` counts the frames the stride and cap keep, those skipped too.
+    reader skips (incomplete, no pose on TF, refused: messages that do not convert) keep their numbers, so
+    the stride, the cap and the ids of the frames given name bag frames. ``len`` counts the frames the stride
+    and cap keep, those skipped too.
     """
 
     kind = "bag"
@@ -118,12 +124,13 @@ class BagFrameSource(FrameSource):
         self.stride, self.max_frames, self.size = stride, max_frames, size
         self.topics = topics or CameraTopics()
         native = None
-        with BagReader(path, self.topics) as reader:
+        with BagReader(path, self.topics, skip_refused=True) as reader:
             for bf in reader.frames():
                 native = bf.intrinsics
                 break
             resolved = reader.topics
             why = f" (no pose on TF: {reader.last_tf_error})" if reader.no_tf else ""
+            why += f" ({reader.refused} refused: {reader.last_refusal})" if reader.refused else ""
         if native is None:
             raise InputError(path, f"bag holds no complete RGB-D frame{why}")
         self.native = native
@@ -146,7 +153,7 @@ class BagFrameSource(FrameSource):
         last = self.kept[-1] if len(self.kept) else -1
         expected = {k for k in self.kept if self.complete[k]}  # what the reader should give, unless TF cannot
         given: set[int] = set()
-        with BagReader(self.path, self.topics) as reader:
+        with BagReader(self.path, self.topics, skip_refused=True) as reader:
             for bf in reader.frames():
                 i = self.index_of(bf.stamp_ns)
                 if i > last and reader.topics.uses_tf:
@@ -164,7 +171,8 @@ class BagFrameSource(FrameSource):
                 yield resize_frame(Frame(index=i, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), self.intrinsics)
                 if not expected:
                     break  # the rest of the kept frames are incomplete
-            missing = [k for k in self.kept if k not in given]
+            refused = {self.index_of(stamp) for stamp in reader.refused_stamps}
+            missing = [k for k in self.kept if k not in given and k not in refused]
             incomplete = sum(1 for k in missing if not self.complete[k])
             self.skipped_incomplete, self.skipped_no_tf = incomplete, 0
             if reader.no_tf:  # complete frames not given: TF gave no pose (or the reader gave up waiting)
@@ -172,6 +180,8 @@ class BagFrameSource(FrameSource):
             else:
                 self.skipped_incomplete = len(missing)
             self.no_tf_reason = reader.last_tf_error if self.skipped_no_tf else ""
+            self.skipped_refused = sum(1 for k in self.kept if k in refused)
+            self.refused_reason = reader.last_refusal if self.skipped_refused else ""
 
 
 def _frame_stamps(path: Path, topics: CameraTopics) -> tuple[np.ndarray, np.ndarray]:

@@ -129,8 +129,9 @@ def run_offline(
     Files (written atomically): ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json`` and
     ``strip.png`` (input vs rendered colour and depth of a few evaluated frames). Image metrics are
     over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
-    counted, and so are those the source skips (a bag's frames without a pose on TF, incomplete stamps:
-    ``frames_skipped_no_tf`` with the reason, ``frames_skipped_incomplete``). ``eval_source``: the image
+    counted, and so are those the source skips (a bag's frames without a pose on TF, incomplete stamps, frames
+    whose messages do not convert: ``frames_skipped_no_tf`` and ``frames_skipped_refused`` with the reason,
+    ``frames_skipped_incomplete``). ``eval_source``: the image
     metrics compare with its frames, at its poses, instead of the mapped ones (the same frames in the same
     order and size: e.g. the noise-free render of a simulated sensor's sequence, so that sensor noise is not
     counted as map error). ``test_source``: frames the policy never sees (e.g. poses between the mapped ones,
@@ -177,18 +178,21 @@ def run_offline(
             mapper.add_keyframe(keyframe)
         bar.update(1)
         bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)
-    # Frames the source could not give (a bag: incomplete stamps, no pose on TF), counted by it after the pass.
+    # Frames the source could not give (a bag: incomplete stamps, no pose on TF, messages that do not convert),
+    # counted by it after the pass.
     skipped_no_tf = int(getattr(source, "skipped_no_tf", 0))
     skipped_incomplete = int(getattr(source, "skipped_incomplete", 0))
+    skipped_refused = int(getattr(source, "skipped_refused", 0))
     no_tf_reason = str(getattr(source, "no_tf_reason", "")) if skipped_no_tf else ""
-    if skipped_no_tf or skipped_incomplete:
+    refused_reason = str(getattr(source, "refused_reason", "")) if skipped_refused else ""
+    if skipped_no_tf or skipped_incomplete or skipped_refused:
         log.warning(
-            "%s: %d frames skipped without a pose on TF%s, %d incomplete",
+            "%s: %d frames skipped without a pose on TF%s, %d incomplete, %d refused%s",
             getattr(source, "path", "source"), skipped_no_tf, f" ({no_tf_reason})" if no_tf_reason else "",
-            skipped_incomplete,
+            skipped_incomplete, skipped_refused, f" ({refused_reason})" if refused_reason else "",
         )  # fmt: skip
-        bar.set_postfix(skipped=skipped_no_tf + skipped_incomplete, refresh=False)
-        bar.update(skipped_no_tf + skipped_incomplete)
+        bar.set_postfix(skipped=skipped_no_tf + skipped_incomplete + skipped_refused, refresh=False)
+        bar.update(skipped_no_tf + skipped_incomplete + skipped_refused)
     bar.close()
     for keyframe in policy.finish(mapper):  # what a policy deciding late still holds at the end
         mapper.add_keyframe(keyframe)
@@ -247,6 +251,8 @@ def run_offline(
         "frames_skipped_bad_pose": bad_pose,
         "frames_skipped_no_tf": skipped_no_tf,
         "frames_skipped_no_tf_reason": no_tf_reason or None,
+        "frames_skipped_refused": skipped_refused,
+        "frames_skipped_refused_reason": refused_reason or None,
         "frames_skipped_incomplete": skipped_incomplete,
         "mesh_vertices": len(mesh.vertices),
         "mesh_triangles": len(mesh.triangles),

@@ -11,6 +11,11 @@ publishes as fast as possible), ``loop``, ``wait_for_subscribers`` and ``wait_ti
 ``start_delay_s`` (a pause after that wait), ``topics`` (string list, unset = all), ``progress_period_s``,
 ``qos_depth``, ``ack_timeout_s``.
 
+At rate <= 0 the player does not know how fast its subscribers take messages (``ros2 bag play`` does not either):
+a subscriber slower than the bag loses what overflows its queue. A caller in the same process can pass ``pace``, a
+callable run before each message that returns once the subscribers are ready for it; ``roigsf demo --rate 0``
+plays in lockstep with its nodes that way.
+
 Before the first message the player waits until every topic it plays has ``wait_for_subscribers``
 (default 1; 0 = no wait) matched subscriptions, at most ``wait_timeout_s`` (default 10 s); latched topics
 (``/tf_static``) are not waited for, a later subscriber gets them anyway. Without the
@@ -27,6 +32,8 @@ import importlib
 import sys
 import threading
 import time
+from collections import Counter
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +98,12 @@ class BagPlayer(Node):
     Playback runs in a thread of its own that starts once the subscribers matched (``wait_for_subscribers``,
     ``wait_timeout_s``) and ``start_delay_s`` passed; the node's executor
     only runs the progress timer. ``done`` turns true when playback ends (never with ``loop``, unless
-    stopped); :meth:`destroy_node` stops the thread and joins it. ``published``, ``loops_completed``
-    and ``play_duration_s`` (start of the latest loop to its latest publish) report progress.
+    stopped); :meth:`destroy_node` stops the thread and joins it. ``published`` (``published_by_topic``),
+    ``loops_completed`` and ``play_duration_s`` (start of the latest loop to its latest publish) report progress.
+
+    ``pace`` (rate <= 0 only): called in the playback thread before each message with its topic and the messages
+    published so far per topic; it returns when the subscribers are ready for that message, and promptly once
+    :attr:`stopping` is true.
     """
 
     def __init__(
@@ -101,8 +112,10 @@ class BagPlayer(Node):
         context: Context | None = None,
         parameter_overrides: list[Parameter] | None = None,
         node_name: str = "bag_player",
+        pace: Callable[[str, Mapping[str, int]], None] | None = None,
     ) -> None:
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides)
+        self._pace = pace
         try:
             self._setup(node_name)
         except BaseException:
@@ -215,6 +228,7 @@ class BagPlayer(Node):
         }
         self.total_per_loop = sum(counts[t] for t in types)
         self.published = 0
+        self.published_by_topic: Counter[str] = Counter()
         self.loops_completed = 0
         self.play_duration_s = 0.0
         self.subscriber_wait_s = 0.0
@@ -228,7 +242,9 @@ class BagPlayer(Node):
         self._progress_timer = (
             self.create_timer(progress_period_s, self._report_progress) if progress_period_s > 0 else None
         )
-        mode = "as fast as possible" if self.rate <= 0 else f"at rate x{self.rate:g}"
+        mode = f"at rate x{self.rate:g}"
+        if self.rate <= 0:
+            mode = "as fast as the subscribers take them" if self._pace is not None else "as fast as possible"
         n = self.wait_for_subscribers
         start = f"{n} subscriber(s) on every topic (at most {self.wait_timeout_s:g} s), then " if n > 0 else ""
         self.get_logger().info(
@@ -237,6 +253,11 @@ class BagPlayer(Node):
         )
         self._thread = threading.Thread(target=self._run, name=f"{node_name}_playback", daemon=True)
         self._thread.start()
+
+    @property
+    def stopping(self) -> bool:
+        """True once :meth:`stop` was called: a ``pace`` callable returns at once."""
+        return self._stop.is_set()
 
     @property
     def done(self) -> bool:
@@ -264,6 +285,7 @@ class BagPlayer(Node):
             "bag": str(self.bag_path),
             "topics": sorted(self._publishers_by_topic),
             "published": self.published,
+            "published_by_topic": dict(self.published_by_topic),
             "messages_per_loop": self.total_per_loop,
             "loops_completed": self.loops_completed,
             "play_duration_s": self.play_duration_s,
@@ -353,13 +375,17 @@ class BagPlayer(Node):
                     delay_s = t_start + (stamp_ns - first_ns) / 1e9 / self.rate - time.monotonic()
                     if delay_s > 0 and self._stop.wait(delay_s):
                         return False
-                elif self._stop.is_set():
-                    return False
+                else:
+                    if self._pace is not None:
+                        self._pace(conn.topic, self.published_by_topic)
+                    if self._stop.is_set():
+                        return False
                 self._publishers_by_topic[conn.topic].publish(raw if isinstance(raw, bytes) else bytes(raw))
                 now = time.monotonic()
                 if self._t_first_publish is None:
                     self._t_first_publish = now
                 self.published += 1
+                self.published_by_topic[conn.topic] += 1
                 self.play_duration_s = now - t_start
         return True
 

@@ -219,6 +219,7 @@ class CameraInput:
         self._started = time.monotonic()
         self.received: Counter[str] = Counter()
         """Messages received per topic (every subscribed topic listed, 0 until its first message)."""
+        self._in_callback = 0  # messages received whose callback (and the frame it completed) is still running
         self.tf_rejected = 0
         """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.last_rejection = ""
@@ -269,13 +270,15 @@ class CameraInput:
         ``awaiting_tf`` (complete, waiting for their pose on TF), ``dropped_incomplete``, ``pending``,
         ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its messages
         arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages: ``received``
-        and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``.
+        and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``; ``in_callback``,
+        messages counted in ``received`` whose callback (with the frame it completed) has not returned yet.
         """
         with self._lock:
             counts = self._ledger.counts()
             awaiting = len(self._awaiting)
             return {
                 "received": dict(self.received),
+                "in_callback": self._in_callback,
                 "frames": counts["frames"] - awaiting,
                 "rejected": counts["rejected"],
                 "awaiting_tf": awaiting,
@@ -378,15 +381,25 @@ class CameraInput:
 
     def _callback_for(self, topic: str) -> Callable[[Any], None]:
         def callback(msg: Any) -> None:
-            self._on_message(topic, msg)
+            self._counted(self._on_message, topic, msg)
 
         return callback
 
     def _tf_callback_for(self, topic: str, static: bool) -> Callable[[Any], None]:
         def callback(msg: Any) -> None:
-            self._on_tf(topic, static, msg)
+            self._counted(self._on_tf, topic, static, msg)
 
         return callback
+
+    def _counted(self, handler: Callable[..., None], *args: Any) -> None:
+        """Run a message's handler, counted in ``in_callback`` from before its ``received`` count to its end."""
+        with self._lock:
+            self._in_callback += 1
+        try:
+            handler(*args)
+        finally:
+            with self._lock:
+                self._in_callback -= 1
 
     def _on_message(self, topic: str, msg: Any) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
