@@ -119,6 +119,36 @@ def test_demo_at_rate_0_keeps_pace_with_its_nodes_and_loses_nothing(tmp_path: Pa
     assert metrics["lockstep_stalls"] == 0
 
 
+def test_lockstep_waits_for_delivery_and_room_and_gives_up_on_a_stall() -> None:
+    """The pace of ``--rate 0``: a frame's colour message waits until both camera nodes received everything
+    published before it and no window waits behind a planner request; other topics never wait; when nothing
+    moves for ``stall_s`` the frame goes anyway, counted.
+    """
+    from types import SimpleNamespace
+
+    from roigsf_ros.cli.demo import Lockstep
+
+    sel = {"planner_window_waiting": False, "frames_held_for_map": 0, "frames": 0, "keyframes_published": 0}
+    sel |= {"planner_answers": 0, "planner_failures": 0, "planner_timeouts": 0, "fallbacks": 0}
+    mp = {"pending_keyframes": 0, "waiting_keyframes": 0, "keyframe_msgs": 0, "keyframes": 0}
+    received = {"/c": 1, "/d": 0}
+    cam = SimpleNamespace(stats=lambda: {"in_callback": 0, "received": dict(received)})
+    node = SimpleNamespace(camera=cam)
+    system = SimpleNamespace(mapper=node, selector=node, status=lambda: {"selector": sel, "mapper": mp})
+    pace = Lockstep(system, "/c", stall_s=0.3, poll_s=0.01)  # type: ignore[arg-type]
+    t0 = time.monotonic()
+    pace("/d", {"/c": 1, "/d": 5})  # not a frame's first message: no wait
+    pace("/c", {"/c": 1, "/d": 0})  # everything delivered, room: no wait
+    assert time.monotonic() - t0 < 0.1 and pace.stalls == 0
+    threading.Timer(0.1, lambda: received.update({"/d": 1})).start()
+    pace("/c", {"/c": 1, "/d": 1})  # waits for /d's message, then goes
+    assert 0.05 < time.monotonic() - t0 < 0.3 and pace.stalls == 0
+    sel["planner_window_waiting"] = True  # a window behind a request that never ends: a stall, counted
+    t1 = time.monotonic()
+    pace("/c", {"/c": 1, "/d": 1})
+    assert time.monotonic() - t1 >= 0.3 and pace.stalls == 1
+
+
 def test_demo_counts_the_frames_the_nodes_refuse_and_maps_the_rest(tmp_path: Path) -> None:
     """A frame whose depth image the nodes refuse (an unknown encoding) is counted, not fatal: the nodes map the
     others, and "dropped frames" stays 0 (the frame never was one the nodes could take).

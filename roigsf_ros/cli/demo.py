@@ -605,7 +605,7 @@ class Lockstep:
         self.waited_s = 0.0
 
     def ready(self, published: Mapping[str, int]) -> tuple[bool, object]:
-        """(the nodes can take the next frame without loss, a snapshot of their state to tell progress by)."""
+        """(the nodes can take the next frame without loss, their counters of work done, to tell progress by)."""
         cams = [self.system.mapper.camera.stats(), self.system.selector.camera.stats()]
         status = self.system.status()
         sel, mp = status["selector"], status["mapper"]
@@ -618,8 +618,10 @@ class Lockstep:
             or sel["frames_held_for_map"]
             or mp["pending_keyframes"] + mp["waiting_keyframes"] > 1
         )
-        snapshot = ([cam["received"] for cam in cams], sel, mp)
-        return delivered and free, snapshot
+        progress = [sel[k] for k in ("frames", "keyframes_published", "planner_answers", "planner_failures")]
+        progress += [sel[k] for k in ("planner_timeouts", "fallbacks", "frames_held_for_map")]
+        progress += [mp[k] for k in ("keyframe_msgs", "pending_keyframes", "waiting_keyframes", "keyframes")]
+        return delivered and free, ([cam["received"] for cam in cams], progress)
 
     def __call__(self, topic: str, published: Mapping[str, int]) -> None:
         """Return once the nodes are ready for a message on ``topic`` (at once unless it starts a frame)."""
