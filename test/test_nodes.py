@@ -420,6 +420,36 @@ def _publish_window(cam: _Camera, frames: list[Frame], k: int) -> None:
         cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
 
 
+def test_keyframes_named_before_the_mapper_subscribed_are_held_and_sent_in_order(ros_context: Any, scene: Any) -> None:
+    """Three processes: the selector named the first keyframes before discovery matched the mapper's subscription,
+    and the volatile topic dropped them without a word (every-n lost frames 0, 5 and 10). They are held until a
+    subscriber matches, then sent in order; the status counts those still held.
+    """
+    frames, _ = scene
+    overrides = [Parameter("policy", value="every-n"), Parameter("every_n", value=2)]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    late = Node("test_late_mapper", context=ros_context)
+    got: list[int] = []
+    with _spinning(ros_context, selector, cam.node, late):
+        cam.wait_for()
+        for i in range(5):
+            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
+        _wait(lambda: selector.status()["keyframes_published"] == 3, 10.0, "three keyframes named")
+        time.sleep(0.3)
+        assert selector.status()["keyframes_unsent"] == 3  # nobody subscribed: held, not lost
+        late.create_subscription(
+            PoseStamped, "/roigsf/keyframe", lambda m: got.append(bags.stamp_to_ns(m.header.stamp)), reliable_qos(50)
+        )
+        _wait(lambda: len(got) == 3, 10.0, "the held keyframes")
+        cam.publish(_frame_msgs(frames[5], 6000))
+        cam.publish(_frame_msgs(frames[6], 7000))
+        _wait(lambda: len(got) == 4, 10.0, "a keyframe named after the match")
+        status = selector.status()
+    assert got == [1000, 3000, 5000, 7000] and status["keyframes_unsent"] == 0
+    assert status["keyframes_dropped_unsent"] == 0
+
+
 @contextmanager
 def _stub_planner(ctx: Any, name: str, serve: Callable[..., Any]) -> Iterator[None]:
     """A node ``name`` serving ``~/nbv`` (GetNextBestView) with ``serve`` on its own two-thread executor."""

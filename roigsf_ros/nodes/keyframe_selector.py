@@ -41,7 +41,10 @@ input stops are decided when ``~/finish`` (``std_srvs/Trigger``) is called, as t
 (``roigsf demo`` calls it when the bag ends); without lookahead it does nothing.
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
-the frame by it) and its pose. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
+the frame by it) and its pose. Keyframes named before any subscriber matched the topic are held and sent, in order,
+``MATCH_GRACE_S`` after one has (``keyframes_unsent`` in the status; a warning after 5 s without one): in three
+processes discovery had not matched the mapper when the first keyframes were named, and they were lost without a
+word. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
 planner calls, failures, timeouts, windows that waited for the previous answer (``planner_waited``) and
 fallbacks, and gives the longest wait for an answer to a window of the stream (``max_answer_s``), the slowest
 novelty computation (``max_novelty_s``) and the longest gap between two frames reaching the selector
@@ -104,6 +107,13 @@ PLANNER_POLICIES = MODES
 ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all", "novelty")
 """Policies that decide without the planner (the baselines, and the fallbacks)."""
 PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
+MATCH_GRACE_S = 0.5
+"""Seconds after the keyframe topic's first subscriber matched before keyframes go out: the subscriber's side of
+discovery (as the bag player's ``start_delay_s``)."""
+MAX_UNSENT = 10_000
+"""Keyframes held at most while no subscriber has matched (the oldest are dropped and counted beyond)."""
+HOLD_WARN_S = 5.0
+"""Seconds of holding keyframes without a subscriber before the selector warns."""
 
 
 class KeyframeSelectorNode(SystemNode):
@@ -214,7 +224,7 @@ class KeyframeSelectorNode(SystemNode):
             ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "planner_waited", "fallbacks"),
             0,
         )
-        self.counters |= {"frames_skipped_map_lag": 0, "map_waits_expired": 0}
+        self.counters |= {"frames_skipped_map_lag": 0, "map_waits_expired": 0, "keyframes_dropped_unsent": 0}
         self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
         """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
         live, the mapper inserts them later, and judged at once nearly every frame would render unmapped."""
@@ -245,10 +255,14 @@ class KeyframeSelectorNode(SystemNode):
             tf_wait_frames=camera.tf_wait_frames,
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
+        self._unsent: collections.deque[PoseStamped] = collections.deque()  # named, not yet sent (_send_unsent)
+        self._matched_at: float | None = None
+        self._holding_since: float | None = None
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         self._client = self.create_client(GetNextBestView, self.service_name, callback_group=planner)
         self.create_service(Trigger, "~/finish", self._on_finish, callback_group=planner)
         self.create_timer(0.05, self._check_request, callback_group=planner)
+        self.create_timer(0.05, self._send_unsent, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
         if shared is None and "gaus-slam" in (self.policy, self.fallback):
@@ -592,7 +606,8 @@ class KeyframeSelectorNode(SystemNode):
         self.keyframe_ids.append(int(frame.index))
         if self.waits_for_map:
             self._unmapped[int(frame.index)] = (time.monotonic(), _position_key(*frame.T_wc[:3, 3]))
-        self._pub.publish(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
+        self._unsent.append(pose_stamped(frame.T_wc, int(frame.index), self.frame_id))
+        self._send_unsent()
         if self._observed is None:
             return
         if self._novelty_pool is not None:  # in the pool's thread, before any novelty asked of it later
@@ -602,6 +617,36 @@ class KeyframeSelectorNode(SystemNode):
             except RuntimeError:  # the pool is shut down (the node is being destroyed)
                 pass
         self._add_observed(frame, intr)
+
+    def _send_unsent(self) -> None:
+        """Publish the keyframes named so far, once a subscriber (the mapper) has matched for ``MATCH_GRACE_S``.
+
+        In three processes the first keyframes were named before discovery had matched the mapper's subscription,
+        and a volatile topic drops what it publishes then: every-n lost frames 0, 5 and 10, with no counter saying
+        so. They are held instead (at most ``MAX_UNSENT``, the oldest dropped and counted) and sent in order.
+        """
+        with self._lock:
+            if not self._unsent:
+                return
+            now = time.monotonic()
+            if self._matched_at is None:
+                if self._pub.get_subscription_count() == 0:
+                    self._holding_since = self._holding_since or now
+                    while len(self._unsent) > MAX_UNSENT:
+                        self._unsent.popleft()
+                        self.counters["keyframes_dropped_unsent"] += 1
+                    if now - self._holding_since > HOLD_WARN_S:
+                        self.get_logger().warning(
+                            f"no subscriber on {self._pub.topic_name} yet (is the mapper running?): holding "
+                            f"{len(self._unsent)} keyframe(s) until one matches",
+                            throttle_duration_sec=WARN_THROTTLE_S,
+                        )
+                    return
+                self._matched_at = now  # the reader's side of discovery may still be under way: a grace period
+            if now - self._matched_at < MATCH_GRACE_S:
+                return
+            while self._unsent:
+                self._pub.publish(self._unsent.popleft())
 
     def status(self) -> dict[str, Any]:
         """Counters: frames, keyframes published (stamps in ns), planner calls/answers/failures/timeouts, fallbacks."""
@@ -620,6 +665,7 @@ class KeyframeSelectorNode(SystemNode):
                 "frames_out_of_order": cam["out_of_order"],
                 "frames_missed_estimate": cam["frames_missed_estimate"],
                 "keyframes_published": len(self.keyframe_ids),
+                "keyframes_unsent": len(self._unsent),
                 "keyframe_ids": list(self.keyframe_ids),
                 "window": self._window.pending_ids,
                 "planner_pending": self._request is not None,
