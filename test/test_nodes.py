@@ -244,6 +244,23 @@ def test_service_refuses_more_than_max_candidates_and_serves_on(ros_context: Any
     assert planner.status()["failed"] == 1 and planner.status()["answered"] == 1
 
 
+def test_a_burst_of_requests_is_answered_every_one(ros_context: Any, scene: Any, mapped: Mapper) -> None:
+    """30 requests sent at once: each gets its answer. Before: the service kept the last 10 waiting (rclpy's
+    default), 19 of 30 got none, and a client without a timeout waited forever.
+    """
+    frames, _ = scene
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    client_node = Node("nbv_test_client_burst", context=ros_context)
+    client = client_node.create_client(GetNextBestView, "/nbv_planner/get_next_best_view")
+    with _spinning(ros_context, planner, client_node):
+        assert client.wait_for_service(timeout_sec=10.0)
+        futures = [client.call_async(_request([frames[1 + i % 10].T_wc, frames[2].T_wc])) for i in range(30)]
+        _wait(lambda: all(f.done() for f in futures), 120.0, "30 answers")
+        answers = [f.result() for f in futures]
+    assert all(a.success and len(a.fused_scores) == 2 for a in answers)
+    assert planner.status()["answered"] == 30
+
+
 def test_stop_interrupts_scoring_within_a_candidate(ros_context: Any, scene: Any, mapped: Mapper) -> None:
     """``stop()`` (what Ctrl-C calls) during a long request: it answers ``success: false`` within a candidate's work.
 

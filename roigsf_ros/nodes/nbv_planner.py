@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
@@ -99,6 +100,10 @@ from roigsf_ros.nodes.node_params import (
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
 
 _MAPPER_DEFAULTS = MapperConfig()
+SERVICE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE
+)
+"""The planner's service: every request kept while others are scored (rclpy's services default keeps the last 10)."""
 
 
 class NBVPlannerNode(SystemNode):
@@ -199,7 +204,11 @@ class NBVPlannerNode(SystemNode):
         self._best_pub = self.create_publisher(PoseStamped, "~/best_view", latched_qos())
         self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
         self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())
-        self.create_service(GetNextBestView, "~/get_next_best_view", self._on_request, callback_group=scoring)
+        # Requests wait in the service's queue while one is scored: keep every one. With the services' default
+        # (keep the last 10) a burst of 30 lost 19 without an answer, and a client without a timeout hung.
+        self.create_service(
+            GetNextBestView, "~/get_next_best_view", self._on_request, qos_profile=SERVICE_QOS, callback_group=scoring
+        )
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         if status_hz > 0:  # its own group: published while a request is being scored
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=MutuallyExclusiveCallbackGroup())
