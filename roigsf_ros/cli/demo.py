@@ -944,7 +944,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=DEFAULT_RATE,
         metavar="X",
-        help=f"playback rate factor; 1.0 real time, <= 0 as fast as possible (default {DEFAULT_RATE})",
+        help=f"playback rate factor; 1.0 real time, <= 0 as fast as the nodes take the frames, in lockstep with them "
+        f"(nothing lost; default {DEFAULT_RATE})",
     )
     p.add_argument(
         "--final-iters",
