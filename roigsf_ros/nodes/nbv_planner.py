@@ -34,7 +34,8 @@ were decided by the fallback. With a warm cache it takes about a second.
 
 Requests older than ``max_request_age_s`` (their ``candidates.header.stamp``; 0 = unstamped, always
 served) are refused before scoring, "stale request": the selector has given up on them by then, and
-scoring them would only delay the next window's request.
+scoring them would only delay the next window's request. A stamp ahead of the planner's clock is served (two
+machines' clocks differ by that much without anything being wrong); an empty ``frame_id`` means the map frame.
 
 Service ``~/get_next_best_view`` (``roigsf_interfaces/srv/GetNextBestView``) runs in a callback group of
 its own, so a multi-threaded executor keeps serving the node's other callbacks while it scores. It
