@@ -227,6 +227,14 @@ def test_bad_parameters_name_the_problem(ros_context: Any, bag: Path, tmp_path: 
         _player(ros_context, bag, wait_timeout_s=float("nan"))
 
 
+def test_non_finite_rate_and_times_are_refused_naming_the_parameter(ros_context: Any, bag: Path) -> None:
+    """``rate:=nan`` played everything at once ("at rate xnan"); nan start/ack delays passed as 0, inf ones hung."""
+    for name in ("rate", "start_delay_s", "progress_period_s", "ack_timeout_s"):
+        for value in (float("nan"), float("inf"), float("-inf")):
+            with pytest.raises(InputError, match=rf"^parameter '{name}': must be a finite number, got"):
+                _player(ros_context, bag, **{name: value})
+
+
 def _run_main(*ros_args: str, plain: tuple[str, ...] = (), module: str = "bag_player") -> subprocess.CompletedProcess:
     env = dict(os.environ)
     assert env.get("ROS_DOMAIN_ID") and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
@@ -314,6 +322,14 @@ def test_main_without_subscribers_says_so_after_the_timeout_and_plays(bag: Path)
         assert f"{topic} (0)" in output
     assert "playing anyway" in output and "finished: published 20 messages on 4 topics" in output
     assert time.monotonic() - t0 >= 1.0
+
+
+def test_main_nan_rate_exits_2_naming_the_parameter(bag: Path) -> None:
+    """``-p rate:=nan``: a one-line error naming 'rate' and exit 2 before anything is published (it played)."""
+    proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=nan", "-p", "wait_for_subscribers:=0")
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "parameter 'rate': must be a finite number, got nan" in proc.stderr and "Traceback" not in proc.stderr
+    assert "published" not in proc.stdout + proc.stderr
 
 
 def test_main_bad_path_exits_nonzero_naming_it(tmp_path: Path) -> None:

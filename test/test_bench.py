@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,8 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation import render_metrics
+from roigsf_ros.experiments import bench as bench_module
+from roigsf_ros.experiments import report as report_module
 from roigsf_ros.experiments.bench import (
     BenchConfig,
     PolicySpec,
@@ -309,3 +313,116 @@ def test_stream_bench_test_scene(scene: Path, tmp_path: Path, capsys: pytest.Cap
     argv[argv.index(str(out))] = str(tmp_path / "o2")
     assert main(argv) == 2
     assert "camera differs" in capsys.readouterr().err and not (tmp_path / "o2").exists()
+
+
+# ------------------------------------------------------------------ interrupted and replaced outputs
+def tiny_bench_argv(scene: Path, out: Path, policies: str, seeds: int, *extra: str) -> list[str]:
+    """A stream bench of 8 frames, 2 steps per keyframe and one held-out view per run (about a second a run)."""
+    return ["bench", "--scene", str(scene), "--setting", "stream", "--policies", policies, "--seeds", str(seeds),
+            "--out", str(out), "--no-progress", "--max-frames", "8", "--uncertainty-views", "1",
+            "--uncertainty-maps", "1", *MAPPER_SET, *extra]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def old_bench(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished bench of two policies and two seeds (tests copy it; it stays as built)."""
+    out = tmp_path_factory.mktemp("old") / "bench"
+    assert main(tiny_bench_argv(scene, out, "every-n:n=4,every-n:n=6", 2)) == 0
+    return out
+
+
+def snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every file (hidden ones too) under ``folder`` with its bytes, and every folder (None)."""
+    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None for p in sorted(folder.rglob("*"))}
+
+
+def interrupt_after(fn: Callable, calls: int = 1) -> Callable:
+    """``fn`` that raises KeyboardInterrupt (a Ctrl-C) once it has returned ``calls`` times."""
+    done: list[int] = []
+
+    def wrapped(*args: object, **kwargs: object) -> object:
+        if len(done) >= calls:
+            raise KeyboardInterrupt
+        done.append(1)
+        result = fn(*args, **kwargs)
+        if len(done) >= calls:
+            raise KeyboardInterrupt
+        return result
+
+    return wrapped
+
+
+def overwrite_argv(scene: Path, out: Path) -> list[str]:
+    """``--overwrite`` of :func:`old_bench` (copied to ``out``) by a bench of one policy, one seed, other settings."""
+    return tiny_bench_argv(scene, out, "every-n:n=4", 1, "--set", "iters_per_keyframe=3", "--overwrite")
+
+
+def test_interrupted_overwrite_keeps_the_old_bench(
+    scene: Path, old_bench: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C during ``--overwrite`` (after a run, or while the report is drawn) leaves the old bench byte for byte."""
+    out = tmp_path / "bench"
+    shutil.copytree(old_bench, out)
+    before = snapshot(out)
+    with monkeypatch.context() as m:  # once the first run of the new bench is written
+        m.setattr(bench_module, "_stream_run", interrupt_after(bench_module._stream_run))
+        assert main(overwrite_argv(scene, out)) == 130
+    assert snapshot(out) == before
+    with monkeypatch.context() as m:  # after results.md, before the plots and results.json
+        m.setattr(report_module, "plot_chosen_views", interrupt_after(report_module.plot_chosen_views, 0))
+        assert main(overwrite_argv(scene, out)) == 130
+    assert snapshot(out) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["bench"]  # no temporary folder left beside it
+
+
+def test_overwrite_leaves_no_file_of_the_old_bench(scene: Path, old_bench: Path, tmp_path: Path) -> None:
+    """A completed ``--overwrite`` leaves only what the new bench wrote: no run, seed or plot of the old one."""
+    out = tmp_path / "bench"
+    shutil.copytree(old_bench, out)
+    assert main(overwrite_argv(scene, out)) == 0
+    res = check_md_matches_json(out)
+    assert res["mapper_config"]["iters_per_keyframe"] == 3 and [r["dir"] for r in res["runs"]] == [
+        "runs/every-n_n_4/seed0"
+    ]
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_dir()) == [
+        "runs", "runs/every-n_n_4", "runs/every-n_n_4/seed0"
+    ]  # fmt: skip
+    assert sorted(p.name for p in out.iterdir() if p.is_file()) == [
+        "chosen_views.png", "quality_vs_views.png", "results.json", "results.md", "uncertainty_every-n_n_4.png"
+    ]  # fmt: skip
+    assert [p.name for p in tmp_path.iterdir()] == ["bench"]
+
+
+def test_interrupted_bench_leaves_no_output(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C while the report is drawn (results.md already written) leaves no --out and no temporary folder."""
+    out = tmp_path / "bench"
+    monkeypatch.setattr(report_module, "plot_quality", interrupt_after(report_module.plot_quality, 0))
+    argv = tiny_bench_argv(scene, out, "every-n:n=6", 1)
+    argv[argv.index("--uncertainty-views") + 1] = "0"
+    assert main(argv) == 130
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_rescore_replaces_the_report_only_when_complete(
+    old_bench: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An interrupted ``--rescore-ause`` leaves the bench byte for byte; a completed one keeps the runs and other files
+    and leaves no plot of the old report (here: with no maps drawn, no uncertainty plot)."""
+    out = tmp_path / "bench"
+    shutil.copytree(old_bench, out)
+    (out / "notes.txt").write_text("mine")
+    before = snapshot(out)
+    argv = ["bench", "--rescore-ause", "--out", str(out), "--no-progress", "--uncertainty-maps", "0"]
+    with monkeypatch.context() as m:  # Ctrl-C after results.md, before the plots and results.json
+        m.setattr(report_module, "plot_chosen_views", interrupt_after(report_module.plot_chosen_views, 0))
+        assert main(argv) == 130
+    assert snapshot(out) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["bench"]
+    assert main(argv) == 0
+    res = check_md_matches_json(out)
+    assert res["uncertainty_maps"] == 0 and res["ause_rescore"]["wall_s"] > 0
+    after = snapshot(out)
+    kept = {k: v for k, v in before.items() if k.startswith("runs") or k == "notes.txt"}
+    assert {k: v for k, v in after.items() if k in kept} == kept
+    assert sorted(set(after) - set(kept)) == ["chosen_views.png", "quality_vs_views.png", "results.json", "results.md"]
+    assert [p.name for p in tmp_path.iterdir()] == ["bench"]

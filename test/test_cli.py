@@ -258,3 +258,28 @@ def test_map_empty_gt_mesh_means_none_as_in_demo(
     with pytest.raises(SystemExit):
         main(["bench", str(tiny_scene), "--gt-mesh", ""])
     assert "argument --gt-mesh: '' (no mesh) is not taken here" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["render", "--repeats", "0"], "--repeats"),  # was: StatisticsError after the whole benchmark ran
+        (["render", "--threads", "0"], "--threads"),  # was: RuntimeError from torch.set_num_threads
+        (["render", "--threads", "-2"], "--threads"),
+        (["render", "--torch-threads", "0"], "--torch-threads"),  # was: 0 silently meant --threads
+        (["nbv", "--repeats", "0"], "--repeats"),
+        (["nbv", "--voxel-size", "nan"], "--voxel-size"),
+        (["nbv", "--voxel-size", "inf"], "--voxel-size"),  # was: refused late, naming voxel_size_m
+        (["io", "--messages", "1"], "--messages"),  # was: one message naming three options
+        (["novelty", "--hash-capacity", "0", "--bag", "no_such_bag"], "--hash-capacity"),  # was: hash_capacity
+        (["novelty", "--lookahead", "-1", "--bag", "no_such_bag"], "--lookahead"),  # was: after reading the bag
+    ],
+)
+def test_perf_refuses_bad_numbers_up_front_naming_the_option(
+    argv: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "perf.json"
+    assert main(["perf", *argv, "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"roigsf perf: error: {option}: must be") and captured.err.count("\n") == 1
+    assert captured.out == "" and not out.exists()  # nothing timed, nothing written

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, atomic_path, read_json, write_json
+from roigsf_ros.core.fileio import atomic_dir, atomic_path, deferred_interrupts, read_json, write_json
 
 
 def _write_dir(final: Path, overwrite: bool = True) -> None:
@@ -79,3 +80,13 @@ def test_an_existing_folder_error_says_how_the_caller_overwrites(tmp_path: Path)
     with pytest.raises(FileExistsError, match=want), atomic_dir(final, overwrite_hint=hint) as tmp:
         (tmp / "map.ply").write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map"] and not any(final.iterdir())
+
+
+def test_deferred_interrupts_raise_a_ctrl_c_once_the_block_is_done() -> None:
+    """A Ctrl-C inside the block (the swap of an old output for a new one) is raised only once the block is done."""
+    handler = signal.getsignal(signal.SIGINT)
+    done = []
+    with pytest.raises(KeyboardInterrupt), deferred_interrupts():
+        signal.raise_signal(signal.SIGINT)
+        done.append(1)
+    assert done == [1] and signal.getsignal(signal.SIGINT) is handler

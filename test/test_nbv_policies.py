@@ -365,3 +365,34 @@ def test_make_policy_errors_name_the_policy_not_a_command_line_flag() -> None:
         make_policy("nosuch")
     with pytest.raises(InputError, match=r"^policy 'gaus-slam': takes no parameter\(s\) n$"):
         make_policy("gaus-slam", n=3)
+
+
+def test_every_n_spec_takes_the_node_parameter_name_and_keeps_n_as_an_alias() -> None:
+    """``every-n:every_n=10`` (the node parameter's name, as ``roigsf map --every-n``) was refused with "takes no
+    parameter(s) every_n"; ``every-n:n=10`` (older specs and results) still parses; the name typed is the one named."""
+    from roigsf_ros.experiments.bench import parse_policies
+
+    specs = parse_policies("every-n:every_n=10,every-n:n=4", "stream")
+    assert [make_policy(s.name, **s.params).n for s in specs] == [10, 4]
+    assert make_policy("every-n", every_n=3).params() == {"every_n": 3} and make_policy("every-n").n == 5
+    with pytest.raises(InputError, match=r"^every_n: must be at least 1, got 0$"):
+        make_policy("every-n", every_n=0)
+    with pytest.raises(InputError, match=r"^n: must be at least 1, got 0$"):  # callers rename the alias (--every-n)
+        make_policy("every-n", n=0)
+    with pytest.raises(InputError, match=r"^every_n: given twice"):
+        make_policy("every-n", every_n=3, n=4)
+
+
+def test_a_misspelt_policy_parameter_gets_the_closest_name() -> None:
+    """As the nodes do for an undeclared parameter: ``unseen_wieght`` had no hint; names nothing close stay bare."""
+    from roigsf_ros.experiments.bench import parse_policies
+
+    with pytest.raises(InputError, match=r"takes no parameter\(s\) unseen_wieght \(did you mean 'unseen_weight'\?\)$"):
+        parse_policies("roi-gsurfisher:unseen_wieght=2", "stream")
+    hint = r"^policy 'roi-gsurfisher': takes no parameter\(s\) windw \(did you mean 'window'\?\), zzz$"
+    with pytest.raises(InputError, match=hint):  # a stream policy's own option, not an NBVConfig field
+        make_policy("roi-gsurfisher", windw=3, zzz=1)
+    with pytest.raises(InputError, match=r"^policy 'every-n': takes no parameter\(s\) evry_n \(did you mean 'every_n'"):
+        make_policy("every-n", evry_n=3)
+    with pytest.raises(InputError, match=r"^policy 'gaus-slam': takes no parameter\(s\) tau \(did you mean 'tau_k'"):
+        make_policy("gaus-slam", tau=0.1)

@@ -142,6 +142,44 @@ def test_layer_exports_are_its_modules_public_names() -> None:
         assert set(pkg.__all__) == union, f"roigsf_ros.{name}: {sorted(set(pkg.__all__) ^ union)}"
 
 
+def test_dir_and_help_of_a_layer_list_its_lazy_exports() -> None:
+    """``dir()`` (tab completion) and ``help()`` of a layer showed only ``__getattr__`` and ``lazy_exports``: the
+    exports load on first use, so the package needs a module ``__dir__`` listing them."""
+    import pydoc
+
+    for name in LAYERS[:8]:
+        pkg = importlib.import_module(f"roigsf_ros.{name}")
+        listed = dir(pkg)
+        assert set(pkg.__all__) <= set(listed), f"roigsf_ros.{name}: {sorted(set(pkg.__all__) - set(listed))}"
+        assert {"__name__", "__doc__", "__all__"} <= set(listed) and listed == sorted(listed)
+    nbv = importlib.import_module("roigsf_ros.nbv")
+    assert {"NBVConfig", "NBVScorer", "ScoringState"} <= set(dir(nbv))
+    assert "class NBVScorer" in pydoc.render_doc(nbv, renderer=pydoc.plaintext)
+
+
+def test_config_files_name_only_modules_and_objects_that_exist() -> None:
+    """The params files' comments point to the code (``roigsf_ros.policies.base.make_policy``,
+    ``roigsf_ros/nodes/mapper.py``); keyframe_selector.yaml named ``nbv_policies``, which exists nowhere."""
+    import re
+
+    names = []
+    for path in sorted((PKG.parent / "config").glob("*.yaml")):
+        text = path.read_text()
+        assert "nbv_policies" not in text, f"{path.name} names nbv_policies (the policies are roigsf_ros.policies)"
+        names += [(path.name, n.rstrip(".")) for n in re.findall(r"roigsf_ros[./][\w./]*", text)]
+    assert names
+    for file, name in names:
+        if "/" in name:
+            assert (PKG.parent / name).is_file(), f"{file}: {name}"
+            continue
+        parts = name.split(".")
+        k = max(i for i in range(1, len(parts) + 1) if ".".join(parts[:i]) in MODULES)
+        obj = importlib.import_module(".".join(parts[:k]))
+        for attr in parts[k:]:
+            assert hasattr(obj, attr), f"{file}: {name}"
+            obj = getattr(obj, attr)
+
+
 def test_importing_torch_first_warns_that_openmp_will_spin() -> None:
     """OMP_WAIT_POLICY=PASSIVE only takes effect before torch loads: importing torch first must say so."""
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}

@@ -3,9 +3,11 @@
 Stream setting: each policy maps the sequence in trajectory order (``roigsf map``'s loop). Pool
 setting: FisherRF's "v20seq1" active reconstruction (:mod:`roigsf_ros.experiments.pool`). Writes
 ``runs/<policy>/seed<k>/``, ``results.json``, ``results.md``, ``quality_vs_views.png``,
-``chosen_views.png`` and ``uncertainty_<policy>.png`` into ``--out``. With ``--rescore-ause``,
-recompute the AUSE study of an existing ``--out`` from its saved runs (no training) and rewrite its
-results (``--scene`` overrides the scene path stored in results.json).
+``chosen_views.png`` and ``uncertainty_<policy>.png`` into ``--out``, all built in a hidden temporary folder
+beside it (``.OUT.tmp-*``) that becomes ``--out`` once complete: an interrupted bench leaves no ``--out``, or with
+``--overwrite`` the old one as it was. With ``--rescore-ause``, recompute the AUSE study of an existing ``--out`` from
+its saved runs (no training) and rewrite its results, swapped in the same way (``--scene`` overrides the scene path
+stored in results.json).
 """
 
 from __future__ import annotations
@@ -62,7 +64,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "with --rescore-ause: the bench's)")  # fmt: skip
     p.add_argument("--uncertainty-maps", type=int, help="of those, views drawn per policy (default 3)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder's results")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out folder: all of it, and only once the new bench is complete (until then, and "
+        "if interrupted, the old one stays as it was)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no per-run progress lines")
     p.add_argument(
         "--set",

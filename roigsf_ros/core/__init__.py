@@ -2,7 +2,7 @@
 
 from roigsf_ros.core.exports import lazy_exports
 
-__all__, __getattr__ = lazy_exports(
+__all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "camera": [
@@ -22,7 +22,7 @@ __all__, __getattr__ = lazy_exports(
         "config": ["Config", "annotation_words", "check_annotation", "fits_annotation"],
         "errors": ["InputError"],
         "exports": ["lazy_exports"],
-        "fileio": ["atomic_dir", "atomic_path", "check_writable", "read_json", "write_json"],
+        "fileio": ["atomic_dir", "atomic_path", "check_writable", "deferred_interrupts", "read_json", "write_json"],
         "frame": ["Frame", "resize_frame", "spread_indices"],
     },
 )

@@ -10,7 +10,9 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -47,13 +49,36 @@ def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str |
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if final.exists() or final.is_symlink():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        final.rename(old)
-        tmp.rename(final)
-        _remove(old)
-    else:
-        tmp.rename(final)
+    with deferred_interrupts():  # a Ctrl-C between the renames would leave neither folder at ``final``
+        if final.exists() or final.is_symlink():
+            old = final.with_name(f".{final.name}.old-{os.getpid()}")
+            final.rename(old)
+            tmp.rename(final)
+            _remove(old)
+        else:
+            tmp.rename(final)
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM until the block ends, then deliver them: for steps a Ctrl-C must not split.
+
+    Such as swapping an old output for a new one (two renames). In a thread other than the main one (where Python runs
+    no signal handler) and for a signal whose handler was not set from Python, the block runs as is.
+    """
+    held: list[int] = []
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not None:
+                previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(held):
+            signal.raise_signal(sig)
 
 
 def check_writable(out: str | Path) -> None:
@@ -130,6 +155,7 @@ __all__ = [
     "atomic_dir",
     "atomic_path",
     "check_writable",
+    "deferred_interrupts",
     "read_json",
     "write_json",
 ]

@@ -9,7 +9,9 @@ AUSE (normalised, as FisherRF reports it, and raw in metres), a seeded random or
 the Spearman correlation (see :func:`roigsf_ros.nbv.scorer.depth_error_ause` for why the normalised number
 alone misleads). :func:`run_bench` writes ``results.json`` (every metric per run, mean/std over seeds,
 parameters, versions, wall times), ``results.md`` and plots (see :mod:`roigsf_ros.experiments.report`);
-:func:`rescore_ause` recomputes that study from a finished output folder's saved maps (no training).
+:func:`rescore_ause` recomputes that study from a finished output folder's saved maps (no training). Both build the
+whole folder under a hidden temporary name beside it and rename it into place once complete, so an interrupted or
+failed bench leaves the folder as it was and a finished one holds nothing of the folder it replaced.
 
 Policies are given as ``name[:key=value[:key=value...]]`` (e.g. ``roi-gsurfisher:window=12``); the
 whole spec is the row label, so one policy can appear with several parameter sets.
@@ -17,8 +19,11 @@ whole spec is the row label, so one policy can appear with several parameter set
 
 from __future__ import annotations
 
+import fnmatch
 import logging
+import os
 import platform
+import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -33,7 +38,7 @@ from roigsf_ros import evaluation
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import read_json, write_json
+from roigsf_ros.core.fileio import atomic_dir, check_writable, read_json, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
@@ -440,8 +445,10 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
               command: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Run every policy for every seed; write runs/, results.json, results.md and the plots into ``out_dir``.
 
-    Runs are written one by one into ``runs/<label>/seed<k>/`` (each atomically); ``results.json``,
-    ``results.md`` and the plots are written atomically once all runs are done. Returns the results dict.
+    The whole folder is built under a hidden temporary name beside ``out_dir`` (``.NAME.tmp-*``, removed on an error
+    or Ctrl-C) and renamed to ``out_dir`` once all of it is written; with ``overwrite`` an existing ``out_dir`` is
+    replaced only then, so an interrupted bench leaves it as it was and a finished one leaves no file of it. Runs
+    are not reused: every run is made anew. Returns the results dict.
     """
     from roigsf_ros.experiments import report as bench_report  # matplotlib only when a benchmark runs
 
@@ -457,48 +464,53 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     runs: list[dict[str, Any]] = []
     labels = [p.label for p in cfg.policies]
     total = len(labels) * cfg.seeds
-    for spec in cfg.policies:
-        for seed in range(cfg.seeds):
-            run_dir = out / "runs" / _slug(spec.label) / f"seed{seed}"
-            if progress:
-                print(f"[{len(runs) + 1}/{total}] {cfg.setting} {spec.label} seed {seed} -> {run_dir}", flush=True)
-            t_run = time.perf_counter()
-            fn = _stream_run if cfg.setting == "stream" else _pool_run
-            record = fn(cfg, spec, seed, run_dir, gt)
-            record |= {"label": spec.label, "policy": spec.name, "params": spec.params, "seed": seed,
-                       "dir": str(run_dir.relative_to(out)), "run_wall_s": time.perf_counter() - t_run}  # fmt: skip
-            runs.append(record)
-            if progress:
-                m = record["metrics"]
-                print(f"    views {m.get('n_keyframes')}  PSNR {_fmt(m.get('psnr'))}  R@5cm {_fmt(m.get('recall@5cm'))}"
-                      f"  {record['run_wall_s']:.0f} s", flush=True)  # fmt: skip
+    with atomic_dir(out, overwrite=overwrite) as tmp:
+        if progress:
+            print(f"writing into {tmp}, renamed to {out} when the bench is complete", flush=True)
+        for spec in cfg.policies:
+            for seed in range(cfg.seeds):
+                rel = Path("runs") / _slug(spec.label) / f"seed{seed}"
+                if progress:
+                    print(
+                        f"[{len(runs) + 1}/{total}] {cfg.setting} {spec.label} seed {seed} -> {out / rel}", flush=True
+                    )
+                t_run = time.perf_counter()
+                fn = _stream_run if cfg.setting == "stream" else _pool_run
+                record = fn(cfg, spec, seed, tmp / rel, gt)
+                record |= {"label": spec.label, "policy": spec.name, "params": spec.params, "seed": seed,
+                           "dir": rel.as_posix(), "run_wall_s": time.perf_counter() - t_run}  # fmt: skip
+                runs.append(record)
+                if progress:
+                    m = record["metrics"]
+                    print(f"    views {m.get('n_keyframes')}  PSNR {_fmt(m.get('psnr'))}  R@5cm "
+                          f"{_fmt(m.get('recall@5cm'))}  {record['run_wall_s']:.0f} s", flush=True)  # fmt: skip
 
-    results: dict[str, Any] = {
-        "setting": cfg.setting,
-        "scene": str(cfg.scene),
-        "gt_mesh": str(gt) if gt is not None else None,
-        "command": command,
-        "seeds": list(range(cfg.seeds)),
-        "size": [source.intrinsics.width, source.intrinsics.height],  # as resized (a side given alone is derived)
-        "stride": cfg.stride,
-        "max_frames": cfg.max_frames,
-        "n_frames": len(source),
-        "policies": [{"label": p.label, "name": p.name, "params": p.params} for p in cfg.policies],
-        "mapper_config": cfg.mapper.to_dict(),
-        "pool_config": cfg.pool.to_dict() if cfg.setting == "pool" else None,
-        "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
-        "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
-        "uncertainty_views": cfg.uncertainty_views,
-        "uncertainty_maps": cfg.uncertainty_maps,
-        "versions": versions(),
-        "summary": summarise(runs, labels),
-        "curves": pool_curves(runs, labels) if cfg.setting == "pool" else None,
-        "runs": [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs],
-    }
-    results["wall_s"] = time.perf_counter() - t0
-    results = evaluation.to_json_safe(results)
-    bench_report.write_report(out, results, runs)
-    write_json(out / "results.json", results)
+        results: dict[str, Any] = {
+            "setting": cfg.setting,
+            "scene": str(cfg.scene),
+            "gt_mesh": str(gt) if gt is not None else None,
+            "command": command,
+            "seeds": list(range(cfg.seeds)),
+            "size": [source.intrinsics.width, source.intrinsics.height],  # as resized (a side given alone: derived)
+            "stride": cfg.stride,
+            "max_frames": cfg.max_frames,
+            "n_frames": len(source),
+            "policies": [{"label": p.label, "name": p.name, "params": p.params} for p in cfg.policies],
+            "mapper_config": cfg.mapper.to_dict(),
+            "pool_config": cfg.pool.to_dict() if cfg.setting == "pool" else None,
+            "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
+            "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
+            "uncertainty_views": cfg.uncertainty_views,
+            "uncertainty_maps": cfg.uncertainty_maps,
+            "versions": versions(),
+            "summary": summarise(runs, labels),
+            "curves": pool_curves(runs, labels) if cfg.setting == "pool" else None,
+            "runs": [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs],
+        }
+        results["wall_s"] = time.perf_counter() - t0
+        results = evaluation.to_json_safe(results)
+        bench_report.write_report(tmp, results, runs)
+        write_json(tmp / "results.json", results)
     return results
 
 
@@ -567,14 +579,18 @@ def rescore_ause(out_dir: str | Path, scene: str | Path | None = None, uncertain
     training Fisher (h_train) is recomputed from those poses, and the same held-out views as
     :func:`run_bench` chose (pool: the test views, stream: the non-keyframes) are read from the scene
     (``scene`` overrides the path stored in results.json). Every other metric is kept; the run records'
-    AUSE numbers and ``uncertainty_per_view``, the summary and the report are replaced (each file
-    atomically), and ``ause_rescore`` records when, how long and with which versions. Returns the results.
+    AUSE numbers and ``uncertainty_per_view``, the summary and the report are replaced, and ``ause_rescore``
+    records when, how long and with which versions. The new folder (the old one's files, hard-linked, but its
+    report; the new report) is built beside it and swapped in once complete, so results.json, results.md and the
+    plots are always of one study: an interrupted rescore leaves the folder as it was. Returns the results.
     """
     from roigsf_ros.experiments import report as bench_report
 
     out = Path(out_dir)
+    out = out.resolve() if out.is_symlink() else out  # rescore where the bench is; the link keeps pointing at it
     if not out.is_dir():
         raise InputError(out, "no such bench output folder")
+    check_writable(out)  # the new folder is built beside it: fail now rather than after the study
     t0 = time.perf_counter()
     results = _read_results(out)
     scene_path = Path(scene) if scene is not None else Path(results["scene"])
@@ -628,9 +644,30 @@ def rescore_ause(out_dir: str | Path, scene: str | Path | None = None, uncertain
     results["ause_rescore"] = {"at": time.strftime("%Y-%m-%d %H:%M:%S %z"), "wall_s": time.perf_counter() - t0,
                                "scene": str(scene_path), "versions": versions()}  # fmt: skip
     results = evaluation.to_json_safe(results)
-    bench_report.write_report(out, results, runs)
-    write_json(out / "results.json", results)
+    with atomic_dir(out, overwrite=True) as tmp:
+        _link_all_but_report(out, tmp, bench_report.REPORT_FILES)
+        bench_report.write_report(tmp, results, runs)
+        write_json(tmp / "results.json", results)
     return results
+
+
+def _link_all_but_report(src: Path, dst: Path, report_files: Sequence[str]) -> None:
+    """Copy bench folder ``src`` into ``dst`` but its results.json and report (``report_files``, glob patterns at the
+    top level), as hard links where the file system allows: no map is copied, and no plot of the old report stays.
+    """
+
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    def ignore(folder: str, names: list[str]) -> set[str]:
+        if Path(folder) != src:
+            return set()
+        return {n for n in names if any(fnmatch.fnmatchcase(n, p) for p in ("results.json", *report_files))}
+
+    shutil.copytree(src, dst, symlinks=True, ignore=ignore, copy_function=link, dirs_exist_ok=True)
 
 
 def _slug(label: str) -> str:

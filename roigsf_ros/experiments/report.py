@@ -6,6 +6,7 @@ same metrics against the number of keyframes, one point per policy); ``chosen_vi
 trajectory top-down in XY with the chosen views of seed 0, one panel per policy);
 ``uncertainty_<label>.png`` (for a few held-out views of seed 0: image, |depth error|, Eq. 17
 uncertainty, FisherRF's colour-Fisher map, with each map's normalised / raw AUSE and Spearman rho).
+The bench writes them, with results.json, into a temporary folder that becomes the output folder once complete.
 """
 
 from __future__ import annotations
@@ -265,8 +266,12 @@ def _ause_title(view: dict[str, Any], name: str) -> str:
     return f"AUSE norm. {_f(view.get(f'ause_{name}'))}\nraw {cm} cm (random {rand}), rho {rho}"
 
 
+REPORT_FILES = ("results.md", "quality_vs_views.png", "chosen_views.png", "uncertainty_*.png")
+"""Names (glob patterns) of the files :func:`write_report` may write: those a rescore of the AUSE study replaces."""
+
+
 def write_report(out: Path, results: dict[str, Any], runs: list[dict[str, Any]]) -> list[Path]:
-    """Write results.md and every plot into ``out`` (atomically each); returns the files written."""
+    """Write results.md and every plot into ``out`` (atomically each; see :data:`REPORT_FILES`); returns them."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []

@@ -2,7 +2,7 @@
 
 from roigsf_ros.core.exports import lazy_exports
 
-__all__, __getattr__ = lazy_exports(
+__all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "losses": [

@@ -4,7 +4,7 @@ calls, and a captured frame's observed novelty (stream setting).
 
 from roigsf_ros.core.exports import lazy_exports
 
-__all__, __getattr__ = lazy_exports(
+__all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "close_front": ["CloseFrontMemory", "close_front_gain", "observation_weight", "voxel_keys"],

@@ -29,6 +29,7 @@ and playing into no subscriber at all is a legitimate use (a recorder started la
 from __future__ import annotations
 
 import importlib
+import math
 import sys
 import threading
 import time
@@ -167,13 +168,24 @@ class BagPlayer(Node):
         bag = str(self.get_parameter("bag").value)
         self.rate = float(self.get_parameter("rate").value)
         self.loop = bool(self.get_parameter("loop").value)
-        self.start_delay_s = max(0.0, float(self.get_parameter("start_delay_s").value))
+        start_delay_s = float(self.get_parameter("start_delay_s").value)
         self.wait_for_subscribers = int(self.get_parameter("wait_for_subscribers").value)
         self.wait_timeout_s = float(self.get_parameter("wait_timeout_s").value)
         wanted = topics_param.value  # None when unset (an empty list cannot be typed as a string array)
         progress_period_s = float(self.get_parameter("progress_period_s").value)
         qos_depth = int(self.get_parameter("qos_depth").value)
-        self.ack_timeout_s = max(0.0, float(self.get_parameter("ack_timeout_s").value))
+        ack_timeout_s = float(self.get_parameter("ack_timeout_s").value)
+        # nan/inf: max(0, nan) is 0 and nan <= 0 is false: they passed as "no delay" or "as fast as possible"
+        for name, value in (
+            ("rate", self.rate),
+            ("start_delay_s", start_delay_s),
+            ("progress_period_s", progress_period_s),
+            ("ack_timeout_s", ack_timeout_s),
+        ):
+            if not math.isfinite(value):
+                raise InputError(f"parameter '{name}'", f"must be a finite number, got {value}")
+        self.start_delay_s = max(0.0, start_delay_s)
+        self.ack_timeout_s = max(0.0, ack_timeout_s)
         if not bag:
             raise InputError("parameter 'bag'", "no bag given (use --ros-args -p bag:=PATH)")
         if qos_depth < 1:

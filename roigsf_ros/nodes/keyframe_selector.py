@@ -292,15 +292,14 @@ class KeyframeSelectorNode(SystemNode):
                 "novelty_measure": self.novelty_measure,
                 "lookahead": self.lookahead,
             },
-            "every-n": {"n": self.every_n},
+            "every-n": {"every_n": self.every_n},
             "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
             "all": {},
         }[name]
         try:
             return make_policy(name, **params)
-        except InputError as exc:  # the library names its own field (``n``): name the node's parameter
-            where = {"n": "every_n"}.get(exc.where, exc.where)
-            raise InputError(f"parameter '{where}'", exc.problem) from None
+        except InputError as exc:  # the library names its field: name it as the node's parameter
+            raise InputError(f"parameter '{exc.where}'", exc.problem) from None
 
     # ------------------------------------------------------------------------------ map (gaus-slam)
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -626,23 +625,23 @@ class KeyframeSelectorNode(SystemNode):
         so. They are held instead (at most ``MAX_UNSENT``, the oldest dropped and counted) and sent in order.
         """
         with self._lock:
+            now = time.monotonic()
+            if self._matched_at is None and self._pub.get_subscription_count() > 0:
+                self._matched_at = now  # the reader's side of discovery may still be under way: a grace period
             if not self._unsent:
                 return
-            now = time.monotonic()
             if self._matched_at is None:
-                if self._pub.get_subscription_count() == 0:
-                    self._holding_since = self._holding_since or now
-                    while len(self._unsent) > MAX_UNSENT:
-                        self._unsent.popleft()
-                        self.counters["keyframes_dropped_unsent"] += 1
-                    if now - self._holding_since > HOLD_WARN_S:
-                        self.get_logger().warning(
-                            f"no subscriber on {self._pub.topic_name} yet (is the mapper running?): holding "
-                            f"{len(self._unsent)} keyframe(s) until one matches",
-                            throttle_duration_sec=WARN_THROTTLE_S,
-                        )
-                    return
-                self._matched_at = now  # the reader's side of discovery may still be under way: a grace period
+                self._holding_since = self._holding_since or now
+                while len(self._unsent) > MAX_UNSENT:
+                    self._unsent.popleft()
+                    self.counters["keyframes_dropped_unsent"] += 1
+                if now - self._holding_since > HOLD_WARN_S:
+                    self.get_logger().warning(
+                        f"no subscriber on {self._pub.topic_name} yet (is the mapper running?): holding "
+                        f"{len(self._unsent)} keyframe(s) until one matches",
+                        throttle_duration_sec=WARN_THROTTLE_S,
+                    )
+                return
             if now - self._matched_at < MATCH_GRACE_S:
                 return
             while self._unsent:

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
-from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagReader, CameraTopics, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, write_replica
+from roigsf_ros.perf import check_options
 
 NATIVE_SIZE = (1200, 680)
 SMALL_SIZE = (240, 136)
@@ -217,8 +217,7 @@ def format_table(results: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run the I/O benchmarks, print a table, and write JSON if asked."""
-    if args.frames < 2 or args.messages < 2 or args.repeats < 1:
-        raise InputError("--frames/--messages/--repeats", "need --frames >= 2, --messages >= 2, --repeats >= 1")
+    check_options(args, {"frames": 2, "messages": 2, "repeats": 1})
     results: dict[str, Any] = {"benchmark": "io", "repeats": args.repeats}
     with tempfile.TemporaryDirectory(prefix="roigsf_perf_io_") as tmp:
         results["conversion"] = bench_conversion(Path(tmp), args.frames, args.repeats)

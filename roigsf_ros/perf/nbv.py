@@ -57,6 +57,7 @@ from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
+from roigsf_ros.perf import check_options
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -344,11 +345,8 @@ def _keyframe_counts(text: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     """Build the state, time every (mode, fisher_downsample), print a table, optionally write JSON."""
-    for name in ("repeats", "threads", "surfels", "width", "height", "candidates"):
-        if getattr(args, name) < 1:
-            raise InputError(f"--{name}", f"must be >= 1, got {getattr(args, name)}")
-    if not args.voxel_size > 0:
-        raise InputError("--voxel-size", f"must be > 0, got {args.voxel_size}")
+    least = dict.fromkeys(("repeats", "threads", "surfels", "width", "height", "candidates"), 1)
+    check_options(args, least, positive=("voxel_size",))
     keyframe_counts = _keyframe_counts(args.keyframes)
     torch.set_num_threads(args.threads)
     backend = "torch"

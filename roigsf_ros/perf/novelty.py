@@ -49,6 +49,7 @@ from roigsf_ros.nbv.novelty import (
     frame_points,
     lookahead_new_voxels_plain,
 )
+from roigsf_ros.perf import check_options
 from roigsf_ros.policies.stream import RECOMMENDED_STREAM
 
 DEFAULT_BAG = Path("bags/synth_room")
@@ -152,6 +153,7 @@ def run_windows(
 
 def run(args: argparse.Namespace) -> int:
     """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
+    check_options(args, {"repeats": 1, "window": 1, "lookahead": 0, "hash_capacity": 1, "hash_chunk_rows": 1})
     bag_frames, _ = read_bag_frames(args.bag)
     if not bag_frames:
         raise InputError(args.bag, "no complete frame in the bag")

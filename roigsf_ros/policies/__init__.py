@@ -5,10 +5,17 @@ from roigsf_ros.core.exports import lazy_exports
 # The registry is complete once the package is imported: these modules register their policies.
 from roigsf_ros.policies import rules, stream  # noqa: F401
 
-__all__, __getattr__ = lazy_exports(
+__all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "base": ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy"],
+        "base": [
+            "KeyframeMap",
+            "KeyframePolicy",
+            "make_policy",
+            "policy_names",
+            "register_policy",
+            "unknown_parameters",
+        ],
         "rules": ["AllFrames", "EveryN", "GausSlam"],
         "stream": [
             "CandidateWindow",

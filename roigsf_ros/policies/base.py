@@ -11,9 +11,10 @@ imports every module that registers one (:mod:`~roigsf_ros.policies.rules`,
 
 from __future__ import annotations
 
+import difflib
 import functools
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import numpy as np
@@ -141,6 +142,18 @@ def policy_names() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def unknown_parameters(policy: str, unknown: Iterable[str], known: Iterable[str]) -> InputError:
+    """The InputError of parameters ``policy`` does not take, each followed by the closest names it does take
+    (``windw (did you mean 'window'?)``; difflib, as the nodes' hints for an undeclared parameter).
+    """
+    known = sorted(known)
+    parts = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, known, n=3, cutoff=0.75)
+        parts.append(name + (f" (did you mean {' or '.join(map(repr, close))}?)" if close else ""))
+    return InputError(f"policy {policy!r}", f"takes no parameter(s) {', '.join(parts)}")
+
+
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
     """A policy by registered name; ``None``-valued params are dropped; an unknown one is an InputError naming the
     policy (``policy 'x': ...``, no command-line flag: callers are the CLI, a node parameter, a pool config), and a
@@ -154,8 +167,10 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
     sig = inspect.signature(factory).parameters  # names only: the constructor checks the types
     extra = sorted(set(given) - set(sig))
     if extra and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.values()):
-        raise InputError(f"policy {name!r}", f"takes no parameter(s) {', '.join(extra)}")
+        raise unknown_parameters(
+            name, extra, (k for k, p in sig.items() if p.kind is not inspect.Parameter.VAR_POSITIONAL)
+        )
     return factory(**given)
 
 
-__all__ = ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy"]
+__all__ = ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy", "unknown_parameters"]

@@ -22,12 +22,20 @@ class AllFrames(KeyframePolicy):
 
 @register_policy("every-n")
 class EveryN(KeyframePolicy):
-    """Every ``n``-th frame seen (the 0th, n-th, 2n-th, ...), counted in arrival order."""
+    """Every ``n``-th frame seen (the 0th, n-th, 2n-th, ...), counted in arrival order.
 
-    def __init__(self, n: int = 5) -> None:
-        if int(n) < 1:
-            raise InputError("n", f"must be at least 1, got {n}")
-        self.n = int(n)
+    The parameter's public name is ``every_n`` (the node parameter, ``roigsf map --every-n``, a spec
+    ``every-n:every_n=10``); ``n`` (positional here, and in older specs and results) is an accepted alias.
+    """
+
+    def __init__(self, n: int | None = None, *, every_n: int | None = None) -> None:
+        if n is not None and every_n is not None and n != every_n:
+            raise InputError("every_n", f"given twice, as every_n={every_n} and as its alias n={n}")
+        name, value = ("every_n", every_n) if every_n is not None else ("n", 5 if n is None else n)
+        if int(value) < 1:
+            raise InputError(name, f"must be at least 1, got {value}")
+        self.n = int(value)
+        """Every how many frames: the value of ``every_n`` (or its alias ``n``)."""
         self._seen = 0
 
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
@@ -41,8 +49,8 @@ class EveryN(KeyframePolicy):
         self._seen = 0
 
     def params(self) -> dict[str, Any]:
-        """``{"n": n}``."""
-        return {"n": self.n}
+        """``{"every_n": n}``."""
+        return {"every_n": self.n}
 
 
 @register_policy("gaus-slam")

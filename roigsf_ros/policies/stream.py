@@ -27,6 +27,7 @@ the same state the planner node keeps): a keyframe is fused the first time the p
 
 from __future__ import annotations
 
+import inspect
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import fields
@@ -50,7 +51,7 @@ from roigsf_ros.nbv.novelty import (
 )
 from roigsf_ros.nbv.scorer import NBVResult
 from roigsf_ros.nbv.state import ScoringState, running_h_train_fits
-from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_policy
+from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_policy, unknown_parameters
 
 
 class CandidateWindow:
@@ -258,7 +259,9 @@ class StreamNBVPolicy(KeyframePolicy):
                "phi": phi, "near_m": near_m, "far_m": far_m}  # fmt: skip
         unknown = sorted(set(nbv_options) - {f.name for f in fields(NBVConfig)} | ({"mode"} & set(nbv_options)))
         if unknown:
-            raise InputError(f"policy {self.name!r}", f"takes no parameter(s) {', '.join(unknown)}")
+            own = inspect.signature(StreamNBVPolicy.__init__).parameters  # the names a typo is matched against
+            takes = {k for k, p in own.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and k != "self"}
+            raise unknown_parameters(self.name, unknown, takes | {f.name for f in fields(NBVConfig)} - {"mode"})
         nbv |= nbv_options
         self._nbv_overrides = {k: v for k, v in nbv.items() if v is not None}
         self.config = NBVConfig(mode=self.mode or "roi-gsurfisher", **self._nbv_overrides)

@@ -6,7 +6,7 @@ The plain reference rasteriser every fast path is tested against is the module
 
 from roigsf_ros.core.exports import lazy_exports
 
-__all__, __getattr__ = lazy_exports(
+__all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "fisher": [
