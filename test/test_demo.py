@@ -133,8 +133,9 @@ def test_lockstep_waits_for_delivery_and_room_and_gives_up_on_a_stall() -> None:
     mp = {"pending_keyframes": 0, "waiting_keyframes": 0, "keyframe_msgs": 0, "keyframes": 0}
     received = {"/c": 1, "/d": 0}
     cam = SimpleNamespace(stats=lambda: {"in_callback": 0, "received": dict(received)})
-    node = SimpleNamespace(camera=cam)
-    system = SimpleNamespace(mapper=node, selector=node, status=lambda: {"selector": sel, "mapper": mp})
+    system = SimpleNamespace(
+        mapper=SimpleNamespace(camera=cam, status=lambda: mp), selector=SimpleNamespace(camera=cam, status=lambda: sel)
+    )
     pace = Lockstep(system, "/c", stall_s=0.3, poll_s=0.01)  # type: ignore[arg-type]
     t0 = time.monotonic()
     pace("/d", {"/c": 1, "/d": 5})  # not a frame's first message: no wait

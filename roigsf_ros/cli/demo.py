@@ -607,8 +607,7 @@ class Lockstep:
     def ready(self, published: Mapping[str, int]) -> tuple[bool, object]:
         """(the nodes can take the next frame without loss, their counters of work done, to tell progress by)."""
         cams = [self.system.mapper.camera.stats(), self.system.selector.camera.stats()]
-        status = self.system.status()
-        sel, mp = status["selector"], status["mapper"]
+        sel, mp = self.system.selector.status(), self.system.mapper.status()  # not the planner's: polled often
         delivered = all(
             cam["in_callback"] == 0 and all(cam["received"].get(t, n) >= n for t, n in published.items())
             for cam in cams
