@@ -582,6 +582,14 @@ def system_busy(status: dict[str, Any]) -> bool:
     )
 
 
+def _selector_took(system: ActiveMapping, n_frames: int) -> bool:
+    """Whether the selector has taken ``n_frames`` frames, the last one's callback returned (its ``frames`` count
+    comes before the frame reaches the policy: ``finish`` called in between decided without the last frame).
+    """
+    cam = system.selector.camera.stats()
+    return cam["frames"] >= n_frames and cam["in_callback"] == 0
+
+
 class Lockstep:
     """The player's ``pace`` at ``--rate 0``: as fast as the nodes can go without losing anything.
 
@@ -756,7 +764,7 @@ def run_demo(
         # is not waited for: the refinement below does that work).
         deadline = time.monotonic() + drain_timeout_s
         seen_by = time.monotonic() + min(5.0, drain_timeout_s)
-        while system.selector.status()["frames"] < len(frames) and time.monotonic() < seen_by:
+        while not _selector_took(system, len(frames)) and time.monotonic() < seen_by:
             time.sleep(0.05)
         system.selector.finish()
         settled_since, last = time.monotonic(), None

@@ -247,7 +247,8 @@ class CameraInput:
                 node.create_subscription(
                     tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
                 )
-            node.create_timer(TF_EXPIRE_PERIOD_S, self._expire_awaiting, callback_group=callback_group)
+            expire = lambda: self._counted(self._expire_awaiting)  # noqa: E731 - it delivers frames: counted too
+            node.create_timer(TF_EXPIRE_PERIOD_S, expire, callback_group=callback_group)
         self.received.update(dict.fromkeys(self.subscribed_topics(), 0))
         node.create_timer(INPUT_CHECK_PERIOD_S, self._check_inputs, callback_group=callback_group)
 
@@ -392,7 +393,9 @@ class CameraInput:
         return callback
 
     def _counted(self, handler: Callable[..., None], *args: Any) -> None:
-        """Run a message's handler, counted in ``in_callback`` from before its ``received`` count to its end."""
+        """Run a handler (a message's, or the timer's that delivers frames TF posed late), counted in ``in_callback``
+        from before its ``received`` count to its end (with the ``on_frame`` calls it makes).
+        """
         with self._lock:
             self._in_callback += 1
         try:
