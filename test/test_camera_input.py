@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,23 @@ from roigsf_ros.nodes.camera_input import CameraInput
 
 pytestmark = pytest.mark.ros
 W, H = 8, 6
+
+
+@contextmanager
+def _spinning(ctx: Any, *nodes: Node) -> Iterator[None]:
+    """Spin ``nodes`` on one executor in a thread; shut it down, join the thread and destroy the nodes on exit."""
+    executor = SingleThreadedExecutor(context=ctx)
+    for node in nodes:
+        executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        yield
+    finally:
+        executor.shutdown()
+        spin.join()
+        for node in nodes:
+            node.destroy_node()
 
 
 def _header(msg: Any, stamp_ns: int) -> Any:
@@ -67,12 +85,7 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
         getattr(camera.topics, k): pub_node.create_publisher(v, getattr(camera.topics, k), qos)
         for k, v in types.items()
     }
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    executor.add_node(pub_node)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
+    with _spinning(ros_context, node, pub_node):
         deadline = time.monotonic() + 5.0
         while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
             time.sleep(0.02)
@@ -93,11 +106,6 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
         while camera.stats()["received"].get(camera.topics.pose, 0) < 10 and time.monotonic() < deadline:
             time.sleep(0.02)
         time.sleep(0.1)
-    finally:
-        executor.shutdown()
-        spin.join()
-        node.destroy_node()
-        pub_node.destroy_node()
     stats = camera.stats()
     assert [f.stamp_ns for f in frames] == [1_000, 6_000, 7_000, 8_000, 9_000, 11_000, 12_000]
     # the missing stamp shows as one message lost per topic, one frame (the gap 4 000 -> 6 000 comes
@@ -275,12 +283,7 @@ def test_tf_and_compressed_images_give_the_frames_of_pose_and_raw_images(ros_con
     assert tf_cam.topics.color == "/camera/color/image_raw/compressed"
     assert tf_cam.topics.depth == "/camera/aligned_depth_to_color/image_raw/compressedDepth"
     pub = _Publishers(ros_context, tf_cam.topics, qos)
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (raw_node, tf_node, pub.node):
-        executor.add_node(n)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
+    with _spinning(ros_context, raw_node, tf_node, pub.node):
         pub.wait_for_subscribers()
         pub.publish_static()
         for k, frame in enumerate(seq):
@@ -294,11 +297,6 @@ def test_tf_and_compressed_images_give_the_frames_of_pose_and_raw_images(ros_con
             len(raw_frames) < 8 or sum(tf_cam.stats()["rejected"].values()) + tf_cam.frames < 8
         ):
             time.sleep(0.02)
-    finally:
-        executor.shutdown()
-        spin.join()
-        for n in (raw_node, tf_node, pub.node):
-            n.destroy_node()
     stats = tf_cam.stats()
     assert stats["rejected"] == {"no_tf": 2, "bad_image": 1} and stats["awaiting_tf"] == 0
     assert "within 0.05 s" in stats["last_rejection"] or "in time" in stats["last_rejection"]
@@ -348,12 +346,7 @@ def test_640x480_at_30hz_is_downscaled_on_arrival_and_every_frame_accounted(ros_
     rng = np.random.default_rng(0)
     rgb_bytes = rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8).tobytes()
     depth_bytes = np.full((h, w), 2.0, np.float32).tobytes()
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(mapper)
-    executor.add_node(pub_node)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
+    with _spinning(ros_context, mapper, pub_node):
         deadline = time.monotonic() + 10.0
         while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
             time.sleep(0.02)
@@ -382,11 +375,6 @@ def test_640x480_at_30hz_is_downscaled_on_arrival_and_every_frame_accounted(ros_
         stats, status = mapper.camera.stats(), mapper.status()
         with mapper._lock:
             buffered = list(mapper._frames.values())
-    finally:
-        executor.shutdown()
-        spin.join()
-        mapper.destroy_node()
-        pub_node.destroy_node()
     # every frame sent is in exactly one counter (the last may still wait for a newer stamp to be settled)
     assert accounted() in (n_frames, n_frames - 1) and stats["rejected"] == {}
     assert stats["frames"] > 0 and stats["pending"] <= mapper.camera.max_pending
@@ -419,22 +407,12 @@ def test_bag_player_latches_tf_static_for_late_listeners(ros_context: Any, tmp_p
     player = BagPlayer(context=ros_context, parameter_overrides=[*params, Parameter("start_delay_s", value=0.0)])
     got: list[Any] = []
     late = Node("late_listener", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(player)
-    executor.add_node(late)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
+    with _spinning(ros_context, player, late):
         assert player.wait(10.0)  # played before anyone listened
         late.create_subscription(TFMessage, "/tf_static", got.append, tf_static_qos())
         deadline = time.monotonic() + 5.0
         while not got and time.monotonic() < deadline:
             time.sleep(0.02)
-    finally:
-        executor.shutdown()
-        spin.join()
-        player.destroy_node()
-        late.destroy_node()
     assert len(got) == 1
 
 
@@ -477,12 +455,7 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
     pub = _Publishers(ros_context, published.resolved(), qos)
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
     be_pub = pub.node.create_publisher(Image, "/be/color", best_effort)
-    executor = SingleThreadedExecutor(context=ros_context)
-    for n in (*nodes, pub.node):
-        executor.add_node(n)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
+    with _spinning(ros_context, *nodes, pub.node):
         pub.wait_for_subscribers()
         pub.publish_static()
         for k, frame in enumerate(seq):
@@ -492,11 +465,6 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
         be_pub.publish(_messages(T0_NS)[CameraTopics().color])
         _wait_for(lambda: inputs[3].received["/be/color"] == 1 and inputs[0].stats()["dropped_incomplete"] >= 1)
         silent = [camera.silent_topics() for camera in inputs]
-    finally:
-        executor.shutdown()
-        spin.join()
-        for n in (*nodes, pub.node):
-            n.destroy_node()
     depth = "/camera/aligned_depth_to_color/image_raw"
     assert list(silent[0]) == [depth], silent[0]
     assert silent[0][depth].startswith(f"no publisher; {depth}/compressedDepth is published: set depth_transport: "
@@ -555,21 +523,11 @@ class _TfRig:
 
     def run(self, steps: list[Callable[[], None]], n_frames: int) -> None:
         """Spin, run ``steps`` once every publisher is matched, wait until each input counted ``n_frames``."""
-        executor = SingleThreadedExecutor(context=self.ctx)
-        for n in (*self.nodes, self.pub):
-            executor.add_node(n)
-        spin = threading.Thread(target=executor.spin, daemon=True)
-        spin.start()
-        try:
+        with _spinning(self.ctx, *self.nodes, self.pub):
             _wait_for(lambda: all(p.get_subscription_count() == 2 for p in (self.tf_pub, *self.pubs.values())))
             for step in steps:
                 step()
             _wait_for(lambda: all(c.frames + sum(c.stats()["rejected"].values()) == n_frames for c in self.inputs))
-        finally:
-            executor.shutdown()
-            spin.join()
-            for n in (*self.nodes, self.pub):
-                n.destroy_node()
 
 
 def test_tf_history_as_long_as_tf_cache_s_poses_frames_whose_tf_came_long_before(ros_context: Any) -> None:
