@@ -272,7 +272,8 @@ class CameraInput:
         ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its messages
         arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages: ``received``
         and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``; ``in_callback``,
-        messages counted in ``received`` whose callback (with the frame it completed) has not returned yet.
+        callbacks still running that may deliver a frame (a message's, counted in ``received`` first, or the TF
+        expiry timer's), with the ``on_frame`` calls they make.
         """
         with self._lock:
             counts = self._ledger.counts()
