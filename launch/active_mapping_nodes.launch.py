@@ -15,6 +15,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 
 from launch import LaunchDescription
 
@@ -55,7 +56,13 @@ def generate_launch_description() -> LaunchDescription:
                 package="roigsf_ros",
                 executable="bag_player",
                 output="screen",
-                parameters=[str(config / "bag_player.yaml"), {"bag": bag, "rate": rate}],
+                # Both camera nodes (mapper, selector) before the first message: with the file's one, the first to
+                # match started it, and the other missed the first frames. The rate as a float even when given as
+                # rate:=1 (a float parameter refuses an integer).
+                parameters=[
+                    str(config / "bag_player.yaml"),
+                    {"bag": bag, "rate": ParameterValue(rate, value_type=float), "wait_for_subscribers": 2},
+                ],
                 condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
             ),
         ]

@@ -426,3 +426,55 @@ def test_rescore_replaces_the_report_only_when_complete(
     assert {k: v for k, v in after.items() if k in kept} == kept
     assert sorted(set(after) - set(kept)) == ["chosen_views.png", "quality_vs_views.png", "results.json", "results.md"]
     assert [p.name for p in tmp_path.iterdir()] == ["bench"]
+
+
+# ------------------------------------------------------------------ paths, early checks, report wording
+def test_rescore_finds_a_relative_scene_from_another_working_directory(
+    scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """results.json keeps ``scene`` as given and records ``scene_resolved``, which a rescore from elsewhere uses."""
+    out = tmp_path / "bench"
+    monkeypatch.chdir(scene.parent)
+    assert main(tiny_bench_argv(Path(scene.name), out, "every-n:n=6", 1)) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["scene"] == scene.name and res["scene_resolved"] == str(scene.resolve())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    capsys.readouterr()
+    assert main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 0  # was: scene not found
+    assert json.loads((out / "results.json").read_text())["ause_rescore"]["scene"] == str(scene.resolve())
+    res = json.loads((out / "results.json").read_text())
+    res["scene_resolved"] = str(tmp_path / "moved")  # neither path exists: the error as before
+    (out / "results.json").write_text(json.dumps(res))
+    assert main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 2
+    assert f"{scene.name}: scene of the bench not found (pass --scene" in capsys.readouterr().err
+
+
+def test_pool_larger_than_the_scene_is_refused_before_any_run(
+    scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--pool-set n_views`` above the selectable frames fails up front (it was refused inside the first run)."""
+
+    def no_run(*_args: object, **_kw: object) -> None:
+        raise AssertionError("a run started")
+
+    monkeypatch.setattr(bench_module, "_pool_run", no_run)
+    out = tmp_path / "o"
+    argv = ["bench", "--scene", str(scene), "--setting", "pool", "--policies", "random", "--out", str(out)]
+    assert main([*argv, "--pool-set", "n_views=500"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == (
+        "roigsf bench: error: --pool-set n_views: 21 selectable frames (of 24; test_every=8, pool_stride=1) "
+        "but n_views=500\n"
+    )
+    assert captured.out == "" and list(tmp_path.iterdir()) == []  # no run, no temporary folder
+
+
+def test_pool_report_says_image_metrics() -> None:
+    results = {"setting": "pool", "seeds": [0], "scene": "s", "n_frames": 24, "size": [48, 36], "stride": 1,
+               "wall_s": 1.0, "policies": [], "summary": {}, "curves": None,
+               "pool_config": {"n_views": 6, "n_initial": 4, "test_every": 8, "pool_stride": 1, "schedule": "fixed",
+                               "initial_iters": 4, "iters_per_view": 2, "final_iters": 0}}  # fmt: skip
+    md = report_module.markdown(results)
+    assert "- image metrics over the held-out test views; #views = training views" in md and "images" not in md

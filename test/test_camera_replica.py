@@ -179,6 +179,24 @@ def test_real_sensor_poses_are_reorthonormalised_with_one_warning(
     np.testing.assert_allclose(check_pose(kinect[0], "T_wc"), poses[0], atol=1e-7)
 
 
+@pytest.mark.parametrize("decimals", [6, 8])
+def test_poses_off_only_by_print_rounding_are_reorthonormalised_without_a_warning(
+    decimals: int, seq_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A traj.txt of exact rotations printed to 6 or 8 decimals is off by ~1e-6 or ~1e-8: no warning, still exact."""
+    rng = np.random.default_rng(9)
+    exact = [_random_pose(rng) for _ in range(50)]
+    traj = seq_dir / "traj.txt"
+    traj.write_text("".join(" ".join(f"{v:.{decimals}f}" for v in T.reshape(-1)) + "\n" for T in exact))
+    written = np.loadtxt(traj).reshape(-1, 4, 4)
+    assert max(np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() for T in written) > 1e-9  # re-orthonormalised
+    with caplog.at_level(logging.WARNING, logger="roigsf_ros"):
+        poses = load_traj(traj)
+    assert not [r for r in caplog.records if "orthonormal" in r.getMessage()]
+    for T in poses:
+        np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+
+
 def test_clearly_non_rigid_poses_are_refused_naming_the_line(seq_dir: Path) -> None:
     rng = np.random.default_rng(8)
     good = _random_pose(rng)

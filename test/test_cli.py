@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -283,3 +284,87 @@ def test_perf_refuses_bad_numbers_up_front_naming_the_option(
     captured = capsys.readouterr()
     assert captured.err.startswith(f"roigsf perf: error: {option}: must be") and captured.err.count("\n") == 1
     assert captured.out == "" and not out.exists()  # nothing timed, nothing written
+
+
+def _raises_inside_numba(interrupt: KeyboardInterrupt, link: str) -> Callable[[argparse.Namespace], int]:
+    """A command whose Ctrl-C lands inside a numba dispatch: numba re-raises it wrapped in a SystemError."""
+
+    def command(_args: argparse.Namespace) -> int:
+        try:
+            raise interrupt
+        except KeyboardInterrupt as exc:
+            numba = "CPUDispatcher(<function _k_forward>)" if link == "cause" else "<function _numba_unpickle>"
+            wrapped = SystemError(f"{numba} returned a result with an exception set")
+            if link == "cause":
+                raise wrapped from exc
+            raise wrapped  # noqa: B904 - numba leaves the interrupt as __context__ only
+
+    return command
+
+
+@pytest.mark.parametrize(
+    ("interrupt", "link", "rc"),
+    [(KeyboardInterrupt(), "context", 130), ("SIGINT", "cause", 130), ("SIGTERM", "context", 143)],
+)
+def test_an_interrupt_wrapped_in_another_exception_is_the_interrupt(
+    interrupt: KeyboardInterrupt | str,
+    link: str,
+    rc: int,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import signal
+
+    import roigsf_ros.cli.scene
+    from roigsf_ros.cli import _Interrupted
+
+    if isinstance(interrupt, str):
+        interrupt = _Interrupted(getattr(signal, interrupt))
+    monkeypatch.setattr(roigsf_ros.cli.scene, "_synth", _raises_inside_numba(interrupt, link))
+    assert main(["scene", "synth", "--out", str(tmp_path / "s")]) == rc
+    assert capsys.readouterr().err == "roigsf scene: interrupted\n"  # one line, no traceback
+
+
+def test_other_errors_still_raise_and_memory_errors_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import roigsf_ros.cli.scene
+
+    def fails(exc: Exception) -> Callable[[argparse.Namespace], int]:
+        def command(_args: argparse.Namespace) -> int:
+            raise exc
+
+        return command
+
+    argv = ["scene", "synth", "--out", str(tmp_path / "s")]
+    monkeypatch.setattr(roigsf_ros.cli.scene, "_synth", fails(SystemError("a bug, not an interrupt")))
+    with pytest.raises(SystemError, match="a bug"):
+        main(argv)
+    too_big = MemoryError("Unable to allocate 168. GiB for an array with shape (75000, 100000, 3)")
+    monkeypatch.setattr(roigsf_ros.cli.scene, "_synth", fails(too_big))
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("roigsf scene: error: not enough memory for this command (Unable to allocate 168. GiB")
+    assert err.count("\n") == 1 and "--width/--height" in err
+
+
+def test_image_sizes_beyond_8192_px_a_side_are_refused_up_front(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from roigsf_ros.core.camera import derive_size
+
+    _stub_work(monkeypatch)
+    render = ["scene", "render", "--mesh", str(tmp_path / "no_mesh_read.ply"), "--traj", str(tiny_scene / "traj.txt"),
+              "--cam", str(tiny_scene / "cam_params.json"), "--out", str(tmp_path / "r")]  # fmt: skip
+    for argv, option, size in [
+        ([*render, "--width", "100000"], "--width", "100000x75000"),  # was: numpy's 168 GiB _ArrayMemoryError
+        ([*render, "--width", "9000", "--height", "10"], "--width/--height", "9000x10"),
+        (["scene", "synth", "--out", str(tmp_path / "s"), "--height", "8192"], "--height", "10923x8192"),
+        (["map", str(tiny_scene), "--out", str(tmp_path / "m"), "--width", "8193"], "--width", "8193x6145"),
+    ]:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert f"error: {option}: image size {size} is above 8192 px a side" in err and err.count("\n") == 1, err
+    assert not any(tmp_path.glob("[rsm]"))
+    assert derive_size(8192, None, (640, 480)) == (8192, 6144)  # the limit itself is allowed

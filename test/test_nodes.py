@@ -45,12 +45,13 @@ from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.novelty import ObservedSurface, fuse_novelty
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import TrainFisherCache, carry_rows, match_surfels
+from roigsf_ros.nodes import nbv_planner as nbv_planner_module
 from roigsf_ros.nodes.active_mapping import ActiveMapping, build_nodes
 from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
-from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
+from roigsf_ros.nodes.keyframe_selector import ASK_AGAIN_S, KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.mapper import MapperNode, latched_qos
-from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+from roigsf_ros.nodes.nbv_planner import NBVPlannerNode, map_not_ready
 from roigsf_ros.nodes.node_params import GIL_SWITCH_INTERVAL_S, BackgroundSpin, reduce_gil_switch_interval
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
 from roigsf_ros.policies.base import make_policy
@@ -217,7 +218,8 @@ def test_service_refuses_with_a_reason(ros_context: Any, scene: Any) -> None:
     alone = NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("warm_up", value=False)])
     try:
         assert alone._waiting_for() == (
-            "nothing received yet: a map on /roigsf/map and camera info on /camera/camera_info (camera_info_topic)"
+            "nothing received yet: a map on /roigsf/map and camera info on /roigsf/map_camera_info (the mapper's) or "
+            "/camera/camera_info"
         )
     finally:
         alone.destroy_node()
@@ -480,6 +482,68 @@ def _stub_planner(ctx: Any, name: str, serve: Callable[..., Any]) -> Iterator[No
     finally:
         spin.stop()
         planner.destroy_node()
+
+
+def test_a_window_asks_again_while_the_planners_map_is_not_ready(ros_context: Any, scene: Any) -> None:
+    """Three processes: the first windows came before the mapper had published its first keyframe's map, the planner
+    answered "map: not ready", and they went to the fallback. A window now asks again (``map_wait_s``) and is decided
+    by the planner once its map is in; past ``map_wait_s``, or when a newer window waits, it falls back, and
+    ``map_wait_s`` 0 falls back at once."""
+    frames, _ = scene
+    not_ready = {"left": 2}
+    asks: list[float] = []
+
+    def serve(req: GetNextBestView.Request, res: GetNextBestView.Response) -> GetNextBestView.Response:
+        asks.append(time.monotonic())
+        if not_ready["left"] > 0:
+            not_ready["left"] -= 1
+            res.success, res.best_index = False, -1
+            res.message = str(map_not_ready("nothing received yet: a map on /roigsf/map"))
+            return res
+        res.success, res.best_index = True, 0  # the fallback (random, seed 0) picks the other frame
+        return res
+
+    def run(map_wait_s: float, n_not_ready: int) -> tuple[dict[str, Any], list[int]]:
+        not_ready["left"] = n_not_ready
+        asks.clear()
+        selector, cam, published = _windowed_selector(ros_context, "/test_planner/nbv", map_wait_s=map_wait_s)
+        with _spinning(ros_context, selector, cam.node):
+            _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+            cam.wait_for()
+            cam.publish(_frame_msgs(frames[0], 1000))
+            _publish_window(cam, frames, 0)
+            _wait(lambda: len(published) == 2, 10.0, "the window's keyframe")
+            return selector.status(), published
+
+    with _stub_planner(ros_context, "test_planner", serve):
+        status, published = run(5.0, 2)
+        assert published == [1000, 2000]  # the planner's pick (index 0), not the fallback's
+        assert status["planner_not_ready"] == 2 and status["planner_calls"] == 3 and status["planner_answers"] == 1
+        assert status["fallbacks"] == 0 and status["planner_failures"] == 0
+        assert asks[2] - asks[0] >= 2 * ASK_AGAIN_S - 0.05  # asked again after a pause, not in a busy loop
+        status, _ = run(1.0, 100)  # never ready: falls back once map_wait_s has passed
+        assert status["fallbacks"] == 1 and status["planner_failures"] == 1 and status["planner_answers"] == 0
+        assert status["planner_not_ready"] >= 1 and status["planner_calls"] == status["planner_not_ready"] + 1
+        assert asks[-1] - asks[0] <= 1.0
+        status, _ = run(0.0, 1)  # map_wait_s 0: the old behaviour, at once
+        assert status["fallbacks"] == 1 and status["planner_calls"] == 1 and status["planner_not_ready"] == 0
+        # A newer window comes while the older waits for the map: the older goes to the fallback at once and the
+        # newer is asked (waiting on, the older would hold it back, and a third window would drop the newer).
+        not_ready["left"] = 10_000
+        selector, cam, published = _windowed_selector(ros_context, "/test_planner/nbv", map_wait_s=30.0)
+        with _spinning(ros_context, selector, cam.node):
+            _wait(selector._client.service_is_ready, 10.0, "the stub planner")
+            cam.wait_for()
+            cam.publish(_frame_msgs(frames[0], 1000))
+            _publish_window(cam, frames, 0)
+            _wait(lambda: selector.status()["planner_not_ready"] >= 1, 10.0, "a 'map not ready' answer")
+            _publish_window(cam, frames, 1)
+            _wait(lambda: selector.status()["fallbacks"] == 1, 10.0, "the older window's fallback")
+            not_ready["left"] = 0
+            _wait(lambda: len(published) == 3, 10.0, "the newer window's keyframe")
+            status = selector.status()
+        assert published[0] == 1000 and published[1] in (2000, 3000) and published[2] == 4000  # the planner's pick
+        assert status["planner_answers"] == 1 and status["planner_failures"] == 1 and status["planner_timeouts"] == 0
 
 
 def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scene: Any) -> None:
@@ -1063,6 +1127,30 @@ def test_undeclared_overrides_of_params_files_and_p_are_logged_once_with_the_clo
                                           for w in warnings), err  # fmt: skip
 
 
+def test_active_mapping_warms_the_planner_up_before_any_camera_subscription(
+    ros_context: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The README's one-process command: the planner's warm-up (1 s, a minute with a cold cache) came between the
+    mapper's camera subscriptions and the selector's, and a bag player waiting for one subscriber (its default)
+    started on the mapper's alone: the selector missed the first frames (37 of 40 in a new user's run). Built
+    planner first, the process subscribes to the camera only after the warm-up, mapper and selector together."""
+    probe = Node("test_probe", context=ros_context)
+    seen: list[int] = []
+
+    def warm_up(cfg: Any) -> dict[str, float]:
+        seen.append(probe.count_subscribers("/camera/color/image_raw"))
+        return {"total_s": 0.0}
+
+    monkeypatch.setattr(nbv_planner_module, "warm_up_once", warm_up)
+    nodes = build_nodes(ros_context)
+    try:
+        assert seen == [0]  # nothing subscribed while the planner warmed up
+        _wait(lambda: probe.count_subscribers("/camera/color/image_raw") == 2, 10.0, "the mapper's and selector's")
+    finally:
+        for node in (*nodes, probe):
+            node.destroy_node()
+
+
 def test_an_undeclared_parameter_given_to_a_node_constructor_is_an_error(ros_context: Any, scene: Any) -> None:
     """``parameter_overrides`` (the Python API, ``roigsf demo --set NODE.NAME=VALUE``) name one node, so a name
     it does not declare is an InputError naming it and the closest declared names (before: silently ignored)."""
@@ -1198,6 +1286,55 @@ def test_saved_map_is_resumed_by_a_new_mapper(ros_context: Any, scene: Any, mapp
         status = second.status()
     assert status["keyframe_ids"] == [0, 4, 8, 6]
     assert not bad.success and "not found" in bad.message
+
+
+def test_the_first_keyframes_map_is_published_at_once_not_at_the_next_tick(ros_context: Any, scene: Any) -> None:
+    """The map goes out at most ``map_publish_rate_hz`` times a second, on a timer: a planner in another process waited
+    up to a period more for the first map it can score, and the first windows of a three-process run went to the
+    fallback. The first keyframe's map is published as soon as it is in (here: with a timer of 100 s)."""
+    frames, _ = scene
+    mapper = MapperNode(
+        context=ros_context,
+        parameter_overrides=[Parameter("map_publish_rate_hz", value=0.01), Parameter("iters_per_keyframe", value=1)],
+        node_name="mapper_first",
+    )
+    cam = _Camera(ros_context)
+    clouds: list[PointCloud2] = []
+    cam.node.create_subscription(PointCloud2, "/roigsf/map", clouds.append, latched_qos())
+    with _spinning(ros_context, mapper, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1000))
+        _wait(lambda: mapper.status()["frames_received"] == 1, 10.0, "a frame")
+        cam.keyframes.publish(pose_stamped(frames[0].T_wc, 1000))
+        _wait(lambda: any(c.width > 0 for c in clouds), 30.0, "a map with the first keyframe's surfels")
+        status = mapper.status()
+    assert status["keyframes_inserted"] == 1 and status["map_publishes"] == 1
+
+
+def test_a_planner_in_its_own_process_scores_a_loaded_map_before_any_camera_publishes(
+    ros_context: Any, scene: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    """A mapper resumed from a saved map beside a planner reading topics: the planner had the map and its poses but
+    no intrinsics until a camera published camera info, and answered every request "map: not ready". The mapper now
+    publishes the map's intrinsics (``/roigsf/map_camera_info``), and the planner scores with them."""
+    frames, _ = scene
+    _shared(mapped).save(tmp_path / "map")
+    mapper = MapperNode(
+        context=ros_context, parameter_overrides=[Parameter("load_map", value=str(tmp_path / "map"))],
+        node_name="mapper_loaded",
+    )  # fmt: skip
+    planner = NBVPlannerNode(
+        context=ros_context, parameter_overrides=[Parameter("warm_up", value=False)], node_name="nbv_loaded"
+    )
+    client_node = Node("loaded_map_client", context=ros_context)
+    client = client_node.create_client(GetNextBestView, "/nbv_loaded/get_next_best_view")
+    with _spinning(ros_context, mapper, planner, client_node):
+        _wait(lambda: planner.snapshot() is not None, 20.0, "the loaded map, its poses and intrinsics")
+        res = _call(client, _request([frames[i].T_wc for i in (1, 5, 10)]))
+        snap = planner.snapshot()
+    assert res.success, res.message
+    assert snap is not None and snap.intrinsics == mapped.intr and len(snap.keyframe_poses) == 3
+    assert planner._intr is None  # no camera info was published: the map's intrinsics alone
 
 
 def test_save_map_refusals_name_the_request_field_and_a_file_in_the_path(

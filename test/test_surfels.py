@@ -168,6 +168,19 @@ def test_truncated_and_nan_ply_rejected(tmp_path) -> None:
         SurfelMap.load_ply(path)
 
 
+def test_ply_with_bytes_after_the_vertices_is_refused_naming_the_file(tmp_path) -> None:
+    """A body longer than the header's vertex count x row size is damaged, not silently read in part."""
+    path = tmp_path / "map.ply"
+    random_map(4, 8).save_ply(path)
+    good = path.read_bytes()
+    path.write_bytes(good + b"garbage!")
+    with pytest.raises(InputError, match=r"8 bytes after the 4 vertices of \d+ bytes") as err:
+        SurfelMap.load_ply(path)
+    assert str(path) in str(err.value)
+    path.write_bytes(good)
+    assert len(SurfelMap.load_ply(path)) == 4
+
+
 # ------------------------------------------------------------------------------------ RGB-D
 def plane_scene(width: int = 64, height: int = 48):
     """Depth of the plane n . X = d (camera frame) seen by a pinhole camera, and a camera pose."""

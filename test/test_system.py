@@ -397,10 +397,20 @@ def expected_keyframes(n_frames: int) -> int:
     return 1 + (n_frames - 1) // WINDOW
 
 
-def replay_once(ps: Processes, w: Watcher, bag: Path, rate: float, timeout_s: float = 90.0) -> dict[str, Any]:
-    """Play ``bag`` once and wait until the selector saw every frame and the mapper inserted what it named."""
-    wait_until("mapper and selector status", lambda: bool(w.get("mapper")) and bool(w.get("keyframe_selector")), 60, ps)
-    player = ps.player(bag, rate)
+def replay_once(
+    ps: Processes, w: Watcher, bag: Path, rate: float, timeout_s: float = 90.0, at_once: bool = False
+) -> dict[str, Any]:
+    """Play ``bag`` once and wait until the selector saw every frame and the mapper inserted what it named.
+
+    ``at_once``: the player starts right after the nodes' processes, with its own defaults (it waits for one
+    subscriber, then 0.5 s), as the README's command does; else once the nodes publish their status.
+    """
+    if at_once:
+        player = ps.start("bag_player", {"bag": str(bag), "rate": float(rate), "progress_period_s": 0.0})
+    else:
+        up = lambda: bool(w.get("mapper")) and bool(w.get("keyframe_selector"))  # noqa: E731
+        wait_until("mapper and selector status", up, 60, ps)
+        player = ps.player(bag, rate)
     assert player.wait(timeout_s) == 0, player.log()
     wait_until(
         f"the selector to receive all {N_FRAMES} frames played",
@@ -458,7 +468,7 @@ def in_process_run(bag: Path, watch: Watcher, tmp_path_factory: pytest.TempPathF
             "active_mapping",
             {**as_params("mapper"), **as_params("keyframe_selector"), **as_params("nbv_planner")},
         )
-        out = replay_once(ps, watch, bag, RATE)
+        out = replay_once(ps, watch, bag, RATE, at_once=True)  # the README's one-process command
         out |= check_map_and_mesh(watch, tmp, out["mapper"]["keyframes"])
         out["keyframe_stamps"] = list(watch.keyframe_stamps)
     return out

@@ -344,3 +344,31 @@ def test_mesh_checkpoints_are_not_a_configuration_difference(tmp_path: Path) -> 
     c = bench(tmp_path / "c", "pool", {"random": FOURTH_ROOM["random"]}, pool_config={"n_views": 16})
     with pytest.raises(InputError, match=r"pool_config\.n_views: 20 != 16"):
         check_comparable(load_policy(a), load_policy(c))
+
+
+def test_the_results_json_file_is_taken_for_its_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
+    file = folder / "results.json"
+    assert load_policy(f"{file}#variant") == load_policy(f"{folder}#variant")  # was: .../results.json/results.json
+    argv = ["targets", f"{file}#variant", "--against", f"{folder}#fisherrf", "--against", f"{file}#random"]
+    assert main(argv) == 0 and "fscore@5cm" in capsys.readouterr().out
+    single = bench(tmp_path / "one", "pool", {"random": FOURTH_ROOM["random"]})
+    assert load_policy(single / "results.json").label == "random"
+    other = tmp_path / "other.json"
+    other.write_text((single / "results.json").read_text())
+    with pytest.raises(InputError, match=r"other\.json: a file: give a folder written by `roigsf bench --out`"):
+        load_policy(other)
+
+
+def test_a_policy_against_itself_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
+    for same in (f"{folder}#random", f"{folder}/results.json#random", f"{tmp_path}/./b#random"):
+        argv = ["targets", f"{folder}#random", "--against", f"{folder}#fisherrf", "--against", same]
+        assert main(argv) == 2, same
+        err = capsys.readouterr().err
+        assert err.startswith(f"roigsf targets: error: --against {same}: is the candidate itself ('random' of ")
+        assert err.count("\n") == 1
+    ref = bench(tmp_path / "ref", "stream", {"gaus-slam": {"n_keyframes": (160.0, 0.0)}})
+    assert main(["targets", str(ref), "--against", str(ref)]) == 2
+    assert "is the candidate itself ('gaus-slam' of" in capsys.readouterr().err
+    assert main(["targets", f"{folder}#variant", "--against", f"{folder}#random"]) == 0  # another label: compared

@@ -157,11 +157,35 @@ def _exit_now(signum: int, frame: object) -> None:
     os._exit(128 + signum)
 
 
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C / SIGTERM behind ``exc``: itself, or one in its ``__cause__`` / ``__context__`` chain (numba wraps
+    an interrupt raised inside a dispatch in a SystemError); None when it was no interrupt.
+    """
+    seen: set[int] = set()
+    todo: list[BaseException] = [exc]
+    while todo:
+        e = todo.pop()
+        if id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        todo += [c for c in (e.__cause__, e.__context__) if c is not None]
+    return None
+
+
+def _interrupted(command: str, exc: KeyboardInterrupt) -> int:
+    """The one line and exit status of a stopped command: 128 + the signal (130 for Ctrl-C)."""
+    print(f"roigsf {command}: interrupted", file=sys.stderr)
+    return 128 + exc.signum if isinstance(exc, _Interrupted) else 130
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse, run, and turn bad input into a one-line error and exit code 2.
 
     SIGTERM stops a command as Ctrl-C does (the demo stops its nodes and leaves no ROS shared-memory file; nothing
-    half-written is left under a final name), also when the shell started it with SIGINT ignored (``&``).
+    half-written is left under a final name), also when the shell started it with SIGINT ignored (``&``), and also
+    when a library wrapped the interrupt in another exception. Running out of memory is one line too, exit code 1.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -174,8 +198,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"roigsf {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"roigsf {args.command}: interrupted", file=sys.stderr)
-        return 128 + exc.signum if isinstance(exc, _Interrupted) else 130
+        return _interrupted(args.command, exc)
+    except Exception as exc:
+        interrupt = _interrupt_behind(exc)
+        if interrupt is not None:
+            return _interrupted(args.command, interrupt)
+        if isinstance(exc, MemoryError):  # numpy's says how much: "Unable to allocate 168. GiB for an array ..."
+            hint = "; try a smaller --width/--height" if hasattr(args, "width") else ""
+            why = str(exc) or "MemoryError"
+            print(f"roigsf {args.command}: error: not enough memory for this command ({why}){hint}", file=sys.stderr)
+            return 1
+        raise
     finally:
         for sig, handler in handlers.items():
             if handler is not None:  # None: not set from Python, nothing to put back

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.cli.map import parse_set_value
-from roigsf_ros.core.camera import Intrinsics, derive_size, load_cam_params
+from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size, load_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import load_traj
 from roigsf_ros.data.sensor import CAMERAS, SENSORS, SensorConfig, SensorModel
@@ -222,13 +222,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--width",
         type=int,
         metavar="W",
-        help="output width in px; intrinsics are scaled (alone: the height keeps CAM_JSON's aspect ratio)",
+        help=f"output width in px, at most {MAX_IMAGE_SIDE}; intrinsics are scaled (alone: the height keeps CAM_JSON's "
+        "aspect ratio)",
     )
     p.add_argument(
         "--height",
         type=int,
         metavar="H",
-        help="output height in px; intrinsics are scaled (alone: the width keeps CAM_JSON's aspect ratio)",
+        help=f"output height in px, at most {MAX_IMAGE_SIDE}; intrinsics are scaled (alone: the width keeps CAM_JSON's "
+        "aspect ratio)",
     )
     p.add_argument("--stride", type=int, default=1, metavar="S", help="render every S-th pose of TRAJ (default 1)")
     p.add_argument(
@@ -289,13 +291,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--width",
         type=int,
         metavar="W",
-        help=f"image width in px (default {SYNTH_WIDTH}; alone, the height keeps the default's 4:3 aspect)",
+        help=f"image width in px, at most {MAX_IMAGE_SIDE} (default {SYNTH_WIDTH}; alone, the height keeps the "
+        "default's 4:3 aspect)",
     )
     p.add_argument(
         "--height",
         type=int,
         metavar="H",
-        help=f"image height in px (default {SYNTH_HEIGHT}; alone, the width keeps the default's 4:3 aspect)",
+        help=f"image height in px, at most {MAX_IMAGE_SIDE} (default {SYNTH_HEIGHT}; alone, the width keeps the "
+        "default's 4:3 aspect)",
     )
     p.add_argument(
         "--texture-strength",

@@ -1,10 +1,10 @@
 """``roigsf targets``: is a policy measurably ahead? Issue 10's pool and stream targets from bench results.
 
 Pool: ``roigsf targets runs/A#CANDIDATE --against runs/A#fisherrf --against runs/B#random`` (each ``FOLDER`` written by
-``roigsf bench --out``; ``#LABEL`` picks a policy where the folder holds several). Stream: one ``--against``, the
-reference (``gaus-slam``). Prints a table of every check with its margin, what was required and the slack (pool: then
-with how many views the candidate first reaches each baseline's final mean, from the runs' curves), and with ``--out``
-writes the verdict as JSON. The setting is the candidate bench's.
+``roigsf bench --out``, or its results.json; ``#LABEL`` picks a policy where the folder holds several). Stream: one
+``--against``, the reference (``gaus-slam``); never the candidate itself. Prints a table of every check with its
+margin, what was required and the slack (pool: then with how many views the candidate first reaches each baseline's
+final mean, from the runs' curves), and with ``--out`` writes the verdict as JSON. The setting is the candidate bench's.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from roigsf_ros.experiments.targets import (
     STREAM_MAX_KEYFRAME_RATIO,
     STREAM_PSNR_MARGIN_DB,
     STREAM_RECALL_MARGIN,
+    PolicyResults,
     load_policy,
     pool_target,
     stream_target,
@@ -30,7 +31,11 @@ from roigsf_ros.experiments.targets import (
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``targets`` subcommand."""
     p = sub.add_parser("targets", help="check issue 10's pool / stream targets from bench results", description=__doc__)
-    p.add_argument("candidate", metavar="FOLDER[#LABEL]", help="the candidate policy's bench folder (and label)")
+    p.add_argument(
+        "candidate",
+        metavar="FOLDER[#LABEL]",
+        help="the candidate policy's bench folder or its results.json (and label)",
+    )
     p.add_argument(
         "--against",
         action="append",
@@ -65,12 +70,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _same_policy(a: PolicyResults, b: PolicyResults) -> bool:
+    """Whether two loaded specs are one policy of one bench (the folder however written, or its results.json)."""
+    return a.label == b.label and a.source.resolve() == b.source.resolve()
+
+
 def run(args: argparse.Namespace) -> int:
     """Load, compare, print; write JSON atomically."""
     if args.out is not None:
         check_writable(args.out)
     candidate = load_policy(args.candidate)
     others = [load_policy(spec) for spec in args.against]
+    for spec, other in zip(args.against, others, strict=True):
+        if _same_policy(candidate, other):
+            raise InputError(
+                f"--against {spec}",
+                f"is the candidate itself ({candidate.label!r} of {candidate.source}): compare it with another policy",
+            )
     setting = candidate.bench["setting"]
     if setting == "pool":
         margin = POOL_PSNR_MARGIN_DB if args.psnr_margin_db is None else args.psnr_margin_db

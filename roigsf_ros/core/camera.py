@@ -71,24 +71,39 @@ class Intrinsics:
         }
 
 
+MAX_IMAGE_SIDE = 8192
+"""Largest image side (px) a size given by the user may reach: twice the widest RGB-D camera's colour image (Azure
+Kinect, 4096 px). Larger frames do not fit in memory: one 8192 x 6144 frame's ray directions alone take 1.1 GiB
+(float64), 100000 px wide 168 GiB, so they are refused up front rather than failing in numpy."""
+
+
 def derive_size(width: int | None, height: int | None, default: tuple[int, int]) -> tuple[int, int]:
     """``(width, height)`` with a missing side taken from ``default``'s aspect ratio (both missing: ``default``).
 
-    So ``--width`` alone keeps the picture's shape instead of pairing it with the default height.
+    So ``--width`` alone keeps the picture's shape instead of pairing it with the default height. A given size whose
+    sides exceed :data:`MAX_IMAGE_SIDE` is an InputError naming the option.
     """
     if width is None and height is None:
         return int(default[0]), int(default[1])
-    if width is None:
-        name, given = "--height", height
-    elif height is None:
-        name, given = "--width", width
+    if width is not None and height is not None:
+        name, size = "--width/--height", (int(width), int(height))
+        if min(size) <= 0:
+            raise InputError(name, f"image size must be positive, got {size[0]}x{size[1]}")
     else:
-        return int(width), int(height)
-    if given <= 0:
-        raise InputError(name, f"image size must be positive, got {given}")
-    if width is None:
-        return max(1, round(given * default[0] / default[1])), int(given)
-    return int(given), max(1, round(given * default[1] / default[0]))
+        name, given = ("--height", height) if width is None else ("--width", width)
+        if given <= 0:
+            raise InputError(name, f"image size must be positive, got {given}")
+        if width is None:
+            size = max(1, round(given * default[0] / default[1])), int(given)
+        else:
+            size = int(given), max(1, round(given * default[1] / default[0]))
+    if max(size) > MAX_IMAGE_SIDE:
+        raise InputError(
+            name,
+            f"image size {size[0]}x{size[1]} is above {MAX_IMAGE_SIDE} px a side (twice the widest RGB-D camera's; "
+            "larger frames do not fit in memory)",
+        )
+    return size
 
 
 def load_cam_params(path: str | Path) -> Intrinsics:
@@ -136,7 +151,11 @@ POSE_RIGID_TOL = 1e-2
 Real-sensor trajectories (KinectFusion poses in 7-Scenes, ScanNet) are off by 1e-4 to 4e-4 from
 float round-off accumulated over the sequence; a clearly non-rigid matrix is off by far more."""
 _EXACT_TOL = 1e-9
-"""Below this deviation a rotation is left as it is (nothing worth a warning)."""
+"""Below this deviation a rotation is left as it is."""
+_WARN_TOL = 1e-5
+"""Above this deviation re-orthonormalising is worth a warning. Text rounding cannot reach it: a rotation printed to 6
+decimals (``%f``) or more is off by at most 2 * sqrt(3) * 5e-7 = 1.7e-6 (8 decimals: 1.7e-8), where real-sensor
+trajectories (and ``scene synth --sensor``) are off by 1e-4 or more."""
 _MAX_WARNED_SOURCES = 1024
 _warned_sources: set[str] = set()
 _log = logging.getLogger(__name__)
@@ -184,11 +203,11 @@ def load_pose(T_wc: np.ndarray, where: str, source: str | None = None) -> np.nda
 
     Every pose loader goes through here. ``where`` names the line or message in errors; ``source``
     (the file or topic, default ``where``) is named in a single logged warning when its poses needed
-    re-orthonormalising, not one per frame.
+    re-orthonormalising beyond what printing them to 6+ decimals explains (``_WARN_TOL``), not one per frame.
     """
     T, dev = _rigid_pose(T_wc, where, POSE_RIGID_TOL)
     key = source if source is not None else where
-    if dev > _EXACT_TOL and key not in _warned_sources:
+    if dev > _WARN_TOL and key not in _warned_sources:
         if len(_warned_sources) < _MAX_WARNED_SOURCES:  # bounded: beyond it, warnings repeat rather than grow
             _warned_sources.add(key)
         _log.warning(

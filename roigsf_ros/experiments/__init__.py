@@ -38,6 +38,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "make_pool_policy",
             "pose_only",
             "run_pool",
+            "selectable_positions",
             "split_pool",
         ],
         "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "write_report"],

@@ -42,7 +42,7 @@ from roigsf_ros.core.fileio import atomic_dir, check_writable, read_json, write_
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
-from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool
+from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool, selectable_positions
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer, depth_error_ause, render_surfel_scalar, train_fisher
 from roigsf_ros.policies.base import make_policy, policy_names
@@ -459,6 +459,8 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     source = cfg.source()
+    if cfg.setting == "pool":  # now, not inside the first run (run_pool's split_pool checks it too)
+        selectable_positions(len(source), cfg.pool, where="--pool-set n_views")
     gt = cfg.gt_mesh if cfg.gt_mesh is not None else source.gt_mesh_path
     t0 = time.perf_counter()
     runs: list[dict[str, Any]] = []
@@ -488,6 +490,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
         results: dict[str, Any] = {
             "setting": cfg.setting,
             "scene": str(cfg.scene),
+            "scene_resolved": str(Path(cfg.scene).resolve()),  # for a rescore run from another working directory
             "gt_mesh": str(gt) if gt is not None else None,
             "command": command,
             "seeds": list(range(cfg.seeds)),
@@ -558,6 +561,17 @@ def _read_results(out: Path) -> dict[str, Any]:
     return results
 
 
+def _bench_scene(results: dict[str, Any]) -> Path:
+    """The bench's scene: its ``scene`` as given if that exists from here, else ``scene_resolved``, the absolute path
+    the bench recorded (a relative ``scene`` is of the bench's working directory); else ``scene``, for the error.
+    """
+    given = Path(results["scene"])
+    resolved = results.get("scene_resolved")
+    if not given.exists() and isinstance(resolved, str) and resolved and Path(resolved).exists():
+        return Path(resolved)
+    return given
+
+
 def _open_bench_frames(results: dict[str, Any], scene: Path) -> list[Frame]:
     """The frames the bench ran on: its scene, stride and frame cap, resized only if it was."""
     stride, max_frames = int(results["stride"]), results["max_frames"]
@@ -593,7 +607,7 @@ def rescore_ause(out_dir: str | Path, scene: str | Path | None = None, uncertain
     check_writable(out)  # the new folder is built beside it: fail now rather than after the study
     t0 = time.perf_counter()
     results = _read_results(out)
-    scene_path = Path(scene) if scene is not None else Path(results["scene"])
+    scene_path = Path(scene) if scene is not None else _bench_scene(results)
     if not scene_path.exists():
         raise InputError(scene_path, "scene of the bench not found (pass --scene to point at it)")
     frames = _open_bench_frames(results, scene_path)

@@ -162,17 +162,27 @@ def farthest_point_views(centres_m: np.ndarray, first: int, n: int) -> list[int]
     return chosen
 
 
+def selectable_positions(n_frames: int, config: PoolConfig, where: str = "pool") -> list[int]:
+    """Positions of the pool of a sequence of ``n_frames``: not test views, every ``pool_stride``-th of the rest.
+
+    InputError naming ``where`` when they are fewer than ``n_views``: known from the frame count alone, so a bench
+    checks it before any run starts.
+    """
+    pool = [i for i in range(n_frames) if i % config.test_every][:: config.pool_stride]
+    if len(pool) < config.n_views:
+        raise InputError(
+            where,
+            f"{len(pool)} selectable frames (of {n_frames}; test_every={config.test_every}, "
+            f"pool_stride={config.pool_stride}) but n_views={config.n_views}",
+        )
+    return pool
+
+
 def split_pool(poses: np.ndarray, config: PoolConfig) -> PoolSplit:
     """Test views, pool and initial views of a sequence of ``poses`` [N, 4, 4] under ``config``."""
     n = len(poses)
     test = list(range(0, n, config.test_every))
-    pool = [i for i in range(n) if i % config.test_every][:: config.pool_stride]
-    if len(pool) < config.n_views:
-        raise InputError(
-            "pool",
-            f"{len(pool)} selectable frames (of {n}; test_every={config.test_every}, "
-            f"pool_stride={config.pool_stride}) but n_views={config.n_views}",
-        )
+    pool = selectable_positions(n, config)
     centres = np.asarray(poses, dtype=np.float64)[pool, :3, 3]
     initial = [pool[j] for j in farthest_point_views(centres, 0, config.n_initial)]
     return PoolSplit(test=test, pool=pool, initial=initial)
@@ -446,5 +456,6 @@ __all__ = [
     "make_pool_policy",
     "pose_only",
     "run_pool",
+    "selectable_positions",
     "split_pool",
 ]

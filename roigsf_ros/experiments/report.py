@@ -96,7 +96,7 @@ def markdown(results: dict[str, Any]) -> str:
             f"{pc['test_every']}th frame, pool stride {pc['pool_stride']}, schedule {pc['schedule']}: "
             f"{pc['initial_iters']} initial + {pc['iters_per_view']} per view + {pc['final_iters']} final steps"
         )
-        lines.append("- images metrics over the held-out test views; #views = training views")
+        lines.append("- image metrics over the held-out test views; #views = training views")
     else:
         lines.append("- image metrics over the non-keyframes; #views = keyframes")
         if results.get("test_scene"):

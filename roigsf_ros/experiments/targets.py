@@ -223,16 +223,21 @@ def seed_margins(candidate: PolicyResults, other: PolicyResults, key: str) -> tu
 
 
 def load_policy(spec: str | Path) -> PolicyResults:
-    """``FOLDER`` (a bench of one policy) or ``FOLDER#LABEL``: that policy's results, validated.
+    """``FOLDER`` (a bench of one policy) or ``FOLDER#LABEL``: that policy's results, validated. ``FOLDER`` may also
+    be the bench's ``results.json`` itself.
 
     Errors name the file and the field: no results.json, truncated JSON, no summary, a label the folder does not hold
     (with the ones it does), or a folder of several policies given without a label.
     """
     text = str(spec)
     folder, label = Path(text), None
-    if "#" in text and not folder.is_dir():
+    if "#" in text and not folder.exists():
         head, label = text.rsplit("#", 1)
         folder = Path(head)
+    if folder.is_file():  # the bench's results.json instead of its folder
+        if folder.name != "results.json":
+            raise InputError(folder, "a file: give a folder written by `roigsf bench --out`, or its results.json")
+        folder = folder.parent
     path = folder / "results.json"
     bench = read_json(path, "not found: give a folder written by `roigsf bench --out`")
     summary = bench.get("summary")

@@ -144,39 +144,49 @@ class MapperConfig(Config):
 
     def validate(self) -> MapperConfig:
         """Return self if every field is in range, else raise InputError naming the field."""
-        checks = {
-            "iters_per_keyframe": self.iters_per_keyframe >= 0,
-            "views_per_iteration": self.views_per_iteration >= 1,
-            "newest_keyframe_prob": 0.0 <= self.newest_keyframe_prob <= 1.0,
-            "keyframe_window": self.keyframe_window >= 0,
-            "final_iters": self.final_iters >= 0,
-            "lambda_dssim": 0.0 <= self.lambda_dssim <= 1.0,
-            "near_m": self.near_m > 0,
-            "min_depth_m": self.min_depth_m >= 0,
-            "max_depth_m": self.max_depth_m > max(self.min_depth_m, self.near_m),
-            "init_opacity": 0.0 < self.init_opacity < 1.0,
-            "init_scale_factor": self.init_scale_factor > 0,
-            "init_max_stretch": self.init_max_stretch >= 1.0,
-            "densify_stride": self.densify_stride >= 1,
-            "densify_alpha_threshold": 0.0 < self.densify_alpha_threshold <= 1.0,
-            "densify_depth_margin_m": self.densify_depth_margin_m > 0,
-            "prune_opacity": 0.0 <= self.prune_opacity < 1.0,
-            "prune_max_scale_m": self.prune_max_scale_m > self.prune_min_scale_m >= 0,
-            "prune_every": self.prune_every >= 1,
-            "mesh_voxel_size_m": self.mesh_voxel_size_m > 0,
-            "mesh_sdf_trunc_m": self.mesh_sdf_trunc_m >= self.mesh_voxel_size_m,
-            "mesh_min_alpha": 0.0 <= self.mesh_min_alpha <= 1.0,
-            "mesh_depth": self.mesh_depth in DEPTH_MODES,
-            "eval_depth": self.eval_depth in DEPTH_MODES,
+        checks: dict[str, tuple[bool, str]] = {  # name -> (in range, the range as the error says it)
+            "iters_per_keyframe": (self.iters_per_keyframe >= 0, ">= 0"),
+            "views_per_iteration": (self.views_per_iteration >= 1, ">= 1"),
+            "newest_keyframe_prob": (0.0 <= self.newest_keyframe_prob <= 1.0, "in [0, 1]"),
+            "keyframe_window": (self.keyframe_window >= 0, ">= 0"),
+            "final_iters": (self.final_iters >= 0, ">= 0"),
+            "lambda_dssim": (0.0 <= self.lambda_dssim <= 1.0, "in [0, 1]"),
+            "near_m": (self.near_m > 0, "> 0"),
+            "min_depth_m": (self.min_depth_m >= 0, ">= 0"),
+            "max_depth_m": (
+                self.max_depth_m > max(self.min_depth_m, self.near_m),
+                f"> min_depth_m and near_m ({max(self.min_depth_m, self.near_m)!r})",
+            ),
+            "init_opacity": (0.0 < self.init_opacity < 1.0, "in (0, 1)"),
+            "init_scale_factor": (self.init_scale_factor > 0, "> 0"),
+            "init_max_stretch": (self.init_max_stretch >= 1.0, ">= 1"),
+            "densify_stride": (self.densify_stride >= 1, ">= 1"),
+            "densify_alpha_threshold": (0.0 < self.densify_alpha_threshold <= 1.0, "in (0, 1]"),
+            "densify_depth_margin_m": (self.densify_depth_margin_m > 0, "> 0"),
+            "prune_opacity": (0.0 <= self.prune_opacity < 1.0, "in [0, 1)"),
+            "prune_max_scale_m": (
+                self.prune_max_scale_m > self.prune_min_scale_m >= 0,
+                f"> prune_min_scale_m ({self.prune_min_scale_m!r}), which must be >= 0",
+            ),
+            "prune_every": (self.prune_every >= 1, ">= 1"),
+            "mesh_voxel_size_m": (self.mesh_voxel_size_m > 0, "> 0"),
+            "mesh_sdf_trunc_m": (
+                self.mesh_sdf_trunc_m >= self.mesh_voxel_size_m, f">= mesh_voxel_size_m ({self.mesh_voxel_size_m!r})"
+            ),
+            "mesh_min_alpha": (0.0 <= self.mesh_min_alpha <= 1.0, "in [0, 1]"),
+            "mesh_depth": (self.mesh_depth in DEPTH_MODES, f"one of {', '.join(DEPTH_MODES)}"),
+            "eval_depth": (self.eval_depth in DEPTH_MODES, f"one of {', '.join(DEPTH_MODES)}"),
         }
         for name in ("lr_means", "lr_quats", "lr_log_scales", "lr_opacity_logits", "lr_sh_dc"):
-            checks[name] = getattr(self, name) >= 0
+            checks[name] = (getattr(self, name) >= 0, ">= 0")
         for name in ("weight_colour", "weight_depth", "weight_normal", "weight_distortion"):
-            checks[name] = getattr(self, name) >= 0
-        for name, ok in checks.items():
+            checks[name] = (getattr(self, name) >= 0, ">= 0")
+        for name, (ok, rule) in checks.items():
             value = getattr(self, name)
-            if not ok or (isinstance(value, float) and not math.isfinite(value)):
-                raise InputError(f"mapper.{name}", f"value {value!r} is out of range")
+            finite = not isinstance(value, float) or math.isfinite(value)
+            if not ok or not finite:
+                kind = "" if finite else "a finite number "
+                raise InputError(f"mapper.{name}", f"must be {kind}{rule}, got {value!r}")
         check_device(self.device, "mapper.device")
         return self
 

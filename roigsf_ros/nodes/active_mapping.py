@@ -59,10 +59,13 @@ def build_nodes(
     built: list[Node] = []
     try:
         kw: dict[str, Any] = {"context": context, "shared": shared, "warn_undeclared": False}
-        mapper = MapperNode(parameter_overrides=_as_parameters(params.get("mapper")), **kw)
-        built.append(mapper)
+        # The planner first: its warm-up (1 s, a minute with a cold cache) came between the mapper's camera
+        # subscriptions and the selector's, and a player waiting for one subscriber (its default) started on the
+        # mapper's: the selector missed the first frames of the README's one-process command.
         planner = NBVPlannerNode(parameter_overrides=_as_parameters(params.get("nbv_planner")), **kw)
         built.append(planner)
+        mapper = MapperNode(parameter_overrides=_as_parameters(params.get("mapper")), **kw)
+        built.append(mapper)
         selector = KeyframeSelectorNode(parameter_overrides=_as_parameters(params.get("keyframe_selector")), **kw)
         built.append(selector)
         for node in built:

@@ -52,7 +52,13 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
 from roigsf_ros.data.tf import TF_MESSAGE_TYPE
-from roigsf_ros.nodes.node_params import check_parameter_overrides, init_ros, script_args
+from roigsf_ros.nodes.node_params import (
+    check_parameter_overrides,
+    declare,
+    init_ros,
+    parameter_error,
+    script_args,
+)
 
 
 def message_class(type_name: str, where: str = "message type") -> type:
@@ -119,9 +125,12 @@ class BagPlayer(Node):
         self._pace = pace
         try:
             self._setup(node_name)
-        except BaseException:
+        except BaseException as exc:
+            error = parameter_error(self, exc)  # worded as the other nodes', naming the params file that set it
             super().destroy_node()
-            raise
+            if error is exc:
+                raise
+            raise error from None
         try:  # an unknown name in parameter_overrides raises, one in a params file or -p is logged
             check_parameter_overrides(self, parameter_overrides)
         except BaseException:
@@ -130,40 +139,19 @@ class BagPlayer(Node):
 
     def _setup(self, node_name: str) -> None:
         """Declare and check parameters, open the bag, create publishers, start the playback thread."""
-        self.declare_parameter("bag", "", ParameterDescriptor(description="rosbag2 folder or .mcap file to play"))
-        self.declare_parameter(
-            "rate",
-            1.0,
-            ParameterDescriptor(description="factor on recorded timing; 1.0 real time, <= 0 as fast as possible"),
-        )
-        self.declare_parameter("loop", False, ParameterDescriptor(description="restart from the beginning at the end"))
-        self.declare_parameter(
-            "wait_for_subscribers",
-            1,
-            ParameterDescriptor(description="matched subscriptions every topic needs before playback; 0 = no wait"),
-        )
-        self.declare_parameter(
-            "wait_timeout_s",
-            10.0,
-            ParameterDescriptor(description="seconds to wait for them; then a warning and playback anyway"),
-        )
-        self.declare_parameter(
-            "start_delay_s",
-            0.5,
-            ParameterDescriptor(description="seconds to pause after the subscribers matched (their side of discovery)"),
-        )
+        # declare(): a value of the wrong type is an error in the other nodes' words (the params file named)
+        declare(self, "bag", "", "rosbag2 folder or .mcap file to play")
+        declare(self, "rate", 1.0, "factor on recorded timing; 1.0 real time, <= 0 as fast as possible")
+        declare(self, "loop", False, "restart from the beginning at the end")
+        declare(self, "wait_for_subscribers", 1, "matched subscriptions every topic needs before playback; 0 = no wait")
+        declare(self, "wait_timeout_s", 10.0, "seconds to wait for them; then a warning and playback anyway")
+        declare(self, "start_delay_s", 0.5, "seconds to pause after the subscribers matched (their side of discovery)")
         topics_param = self.declare_parameter(
             "topics", Parameter.Type.STRING_ARRAY, ParameterDescriptor(description="topics to play; unset = all")
         )
-        self.declare_parameter(
-            "progress_period_s", 2.0, ParameterDescriptor(description="seconds between progress lines; <= 0 = none")
-        )
-        self.declare_parameter("qos_depth", 100, ParameterDescriptor(description="keep-last depth of the publishers"))
-        self.declare_parameter(
-            "ack_timeout_s",
-            5.0,
-            ParameterDescriptor(description="at the end, seconds to wait for reliable subscribers to acknowledge"),
-        )
+        declare(self, "progress_period_s", 2.0, "seconds between progress lines; <= 0 = none")
+        declare(self, "qos_depth", 100, "keep-last depth of the publishers")
+        declare(self, "ack_timeout_s", 5.0, "at the end, seconds to wait for reliable subscribers to acknowledge")
 
         bag = str(self.get_parameter("bag").value)
         self.rate = float(self.get_parameter("rate").value)
@@ -421,9 +409,8 @@ def main(args: list[str] | None = None) -> int:
         return 2
     try:
         node = BagPlayer()
-    except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:
-        hint = " (a float parameter needs a decimal point, e.g. rate:=1.0)" if "'DOUBLE'" in str(exc) else ""
-        print(f"bag_player: error: {exc}{hint}", file=sys.stderr)
+    except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:  # as run_nodes does
+        print(f"bag_player: error: {parameter_error(None, exc)}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     try:

@@ -13,7 +13,11 @@ The first frame is always a keyframe. Then, by ``policy``:
   trigger the next window). When the planner is not available, answers
   ``success: false`` or does not answer within ``planner_timeout_s``, the window is decided by
   ``fallback_policy`` instead (logged "planner ... did not answer ...: fallback ..."); the next window
-  asks the planner again, so the selector resumes using it as soon as it answers.
+  asks the planner again, so the selector resumes using it as soon as it answers. An answer "map not ready"
+  (:data:`roigsf_ros.nodes.nbv_planner.MAP_NOT_READY`: no map yet) is not a failure: the window asks again every
+  ``ASK_AGAIN_S`` for up to ``map_wait_s`` from its first ask, or until a newer window waits (``planner_not_ready``).
+  In three processes the first windows came before the mapper had published its first keyframe's map, and all went
+  to the fallback.
 - ``random`` (a seeded pick from the window, as the library's stream baseline), ``every-n``
   (``every_n``), ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the
   mapper's ``/roigsf/map``), ``all`` and ``novelty`` (beyond the paper: per window the frame whose depth shows
@@ -61,6 +65,7 @@ import json
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -96,6 +101,7 @@ from roigsf_ros.nodes.mapper import (
     frame_of,
     latched_qos,
 )
+from roigsf_ros.nodes.nbv_planner import MAP_NOT_READY
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
@@ -114,6 +120,32 @@ MAX_UNSENT = 10_000
 """Keyframes held at most while no subscriber has matched (the oldest are dropped and counted beyond)."""
 HOLD_WARN_S = 5.0
 """Seconds of holding keyframes without a subscriber before the selector warns."""
+ASK_AGAIN_S = 0.25
+"""Seconds between two asks of a window while the planner answers that its map is not ready (within ``map_wait_s``)."""
+
+
+@dataclass
+class PlannerAsk:
+    """A window sent to the planner, from its first ask until its answer is taken or it falls back."""
+
+    candidates: list[Frame]
+    intr: Intrinsics
+    ahead: list[Frame]
+    """The newer frames that judge its novelty (``lookahead``)."""
+    in_stream: bool
+    """False: the frames held at the end of the stream (:meth:`KeyframeSelectorNode.finish`)."""
+    first_s: float
+    """Monotonic time of the first ask: the window waits for the planner's map at most ``map_wait_s`` from it."""
+    future: Future | None = None
+    """The call in flight; None while the window waits to ask again (the map was not ready)."""
+    sent_s: float = 0.0
+    """Monotonic time of the call in flight (``planner_timeout_s`` counts from it)."""
+    ask_at: float = 0.0
+    """Monotonic time of the next ask, while ``future`` is None."""
+    not_ready: str = ""
+    """The planner's last "map not ready" answer about it."""
+    novelty: concurrent.futures.Future | None = None
+    """The window's novelty, computed by the selector's novelty thread while the planner scores."""
 
 
 class KeyframeSelectorNode(SystemNode):
@@ -139,8 +171,9 @@ class KeyframeSelectorNode(SystemNode):
         self.novelty_radius_m = float(declare(self, "novelty_radius_m", NOVELTY_RADIUS_M, "observed within this (m)"))
         self.novelty_measure = str(declare(self, "novelty_measure", "area", "novelty counts: area | pixels"))
         self.lookahead = int(declare(self, "lookahead", 0, "newer frames that judge a window's novelty (0 = off)"))
-        self.map_wait_s = float(declare(self, "map_wait_s", 5.0, "gaus-slam: seconds a frame waits for the map to hold "
-                                        "the keyframes named before it (0 = judge on the map as it is)"))  # fmt: skip
+        self.map_wait_s = float(declare(self, "map_wait_s", 5.0, "seconds a decision waits for the map: gaus-slam's "
+                                        "frame for the keyframes named before it, a planner policy's window for the "
+                                        "planner's first map (0 = decide at once)"))  # fmt: skip
         self.map_wait_frames = int(declare(self, "map_wait_frames", 32, "gaus-slam: frames held meanwhile (beyond: "
                                            "the oldest is skipped, not a keyframe)"))  # fmt: skip
         poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "the map's keyframe poses "
@@ -198,12 +231,8 @@ class KeyframeSelectorNode(SystemNode):
         self._view: tuple[int, Mapper] | None = None
         self._window = CandidateWindow(self.window + self.lookahead, self.trigger_every)
         self._seen = 0
-        self._request: tuple[Future, list[Frame], float] | None = None
-        self._request_intr: Intrinsics | None = None
-        self._request_ahead: list[Frame] = []
-        self._request_in_stream = True
-        self._request_novelty: concurrent.futures.Future | None = None
-        """The request's window's novelty, computed by ``_novelty_pool`` while the planner scores."""
+        self._request: PlannerAsk | None = None
+        """The window the planner is asked about (one at a time)."""
         self._novelty_pool = (
             concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="selector_novelty")
             if self._observed is not None
@@ -224,6 +253,8 @@ class KeyframeSelectorNode(SystemNode):
             ("planner_calls", "planner_answers", "planner_failures", "planner_timeouts", "planner_waited", "fallbacks"),
             0,
         )
+        self.counters["planner_not_ready"] = 0
+        """Answers "map not ready" after which the window asked again (``map_wait_s``)."""
         self.counters |= {"frames_skipped_map_lag": 0, "map_waits_expired": 0, "keyframes_dropped_unsent": 0}
         self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
         """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
@@ -452,22 +483,24 @@ class KeyframeSelectorNode(SystemNode):
             if not self._client.service_is_ready():
                 self._fall_back(candidates, intr, "is not available", ahead)
                 return
-            req = GetNextBestView.Request(mode=self.policy, top_k=0)
-            req.candidates = poses_to_array([f.T_wc for f in candidates], self.get_clock().now().nanoseconds)
-            req.candidates.header.frame_id = self.frame_id
-            self.counters["planner_calls"] += 1
-            self._request = (self._client.call_async(req), candidates, time.monotonic())
-            self._request_intr = intr
-            self._request_ahead = ahead
-            self._request_in_stream = in_stream
+            ask = PlannerAsk(candidates, intr, ahead, in_stream, first_s=time.monotonic())
+            self._call(ask)
             # The window's novelty (against the keyframes published so far, all windows before it being decided)
             # is computed while the planner scores, off the executor: frames keep coming meanwhile.
-            self._request_novelty = None
             if self._novelty_pool is not None and self.novelty_weight > 0:
                 try:
-                    self._request_novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
+                    ask.novelty = self._novelty_pool.submit(self._novelty, candidates, intr, ahead)
                 except RuntimeError:  # the pool is shut down (the node is being destroyed): computed on the answer
-                    self._request_novelty = None
+                    ask.novelty = None
+
+    def _call(self, ask: PlannerAsk) -> None:
+        """Ask the planner about ``ask``'s window (call with the lock held); it is the request in flight."""
+        req = GetNextBestView.Request(mode=self.policy, top_k=0)
+        req.candidates = poses_to_array([f.T_wc for f in ask.candidates], self.get_clock().now().nanoseconds)
+        req.candidates.header.frame_id = self.frame_id
+        self.counters["planner_calls"] += 1
+        ask.future, ask.sent_s = self._client.call_async(req), time.monotonic()
+        self._request = ask
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
@@ -482,44 +515,85 @@ class KeyframeSelectorNode(SystemNode):
                 self._send(candidates, intr, ahead, in_stream)
 
     def _settle_request(self) -> None:
-        """Take the answer of the request in flight, or fall back on a timeout (call with the lock held)."""
+        """Take the answer of the request in flight, or fall back on a timeout (call with the lock held).
+
+        An answer "map not ready" (the planner has no map yet: the first windows of a run in several processes) is
+        not a failure: the window asks again every ``ASK_AGAIN_S`` until ``map_wait_s`` from its first ask has passed,
+        or until a newer window waits (then the older goes to the fallback and the newer is asked: waiting on, the
+        older would only hold the newer back, and a third window would send the newer to the fallback instead).
+        """
         with self._lock:
-            if self._request is None:
+            ask = self._request
+            if ask is None:
                 return
-            future, candidates, t_sent = self._request
-            intr, ahead = self._request_intr, self._request_ahead
+            now = time.monotonic()
+            if ask.future is None:  # waiting to ask again
+                if self._waiting is not None:
+                    self._request = None
+                    self.counters["planner_failures"] += 1
+                    self._fall_back(
+                        ask.candidates,
+                        ask.intr,
+                        f"answered success=false ({ask.not_ready}) and a newer window waits",
+                        ask.ahead,
+                    )
+                    return
+                if now < ask.ask_at:
+                    return
+                if not self._client.service_is_ready():
+                    self._request = None
+                    self._fall_back(ask.candidates, ask.intr, "is not available", ask.ahead)
+                    return
+                self._call(ask)
+                return
+            future = ask.future
             if future.done():
-                if self._request_novelty is not None and not self._request_novelty.done():
+                res = future.result() if future.exception() is None else None
+                if (
+                    res is not None
+                    and not res.success
+                    and res.message.startswith(MAP_NOT_READY)
+                    and now + ASK_AGAIN_S - ask.first_s <= self.map_wait_s
+                    and self._waiting is None
+                ):
+                    self.counters["planner_not_ready"] += 1
+                    if self.counters["planner_not_ready"] == 1:
+                        self.get_logger().info(f"planner {self.service_name}: {res.message}; the window asks again "
+                                               f"for up to {self.map_wait_s:g} s (map_wait_s)")  # fmt: skip
+                    ask.future, ask.ask_at, ask.not_ready = None, now + ASK_AGAIN_S, res.message
+                    return
+                if ask.novelty is not None and not ask.novelty.done():
                     return  # its novelty is still being counted: taken on a later tick, the node not held meanwhile
                 self._request = None
-                res = future.result() if future.exception() is None else None
                 if res is None or not res.success:
                     self.counters["planner_failures"] += 1
                     why = "no answer" if res is None else res.message
-                    self._fall_back(candidates, intr, f"answered success=false ({why})", ahead)
+                    self._fall_back(ask.candidates, ask.intr, f"answered success=false ({why})", ask.ahead)
                     return
-                if not 0 <= res.best_index < len(candidates):
+                if not 0 <= res.best_index < len(ask.candidates):
                     self.counters["planner_failures"] += 1
-                    self._fall_back(candidates, intr, f"answered an invalid best_index {res.best_index}", ahead)
+                    self._fall_back(
+                        ask.candidates, ask.intr, f"answered an invalid best_index {res.best_index}", ask.ahead
+                    )
                     return
                 self.counters["planner_answers"] += 1
-                if self._request_in_stream:
-                    self.slowest_s["answer"] = max(self.slowest_s["answer"], time.monotonic() - t_sent)
+                if ask.in_stream:
+                    self.slowest_s["answer"] = max(self.slowest_s["answer"], now - ask.first_s)
                 if self._planner_down:
                     self._planner_down = False
                     self.get_logger().info(f"planner {self.service_name} answers again: using it")
                 best = res.best_index
                 if self.novelty_weight > 0:
-                    best = self._with_novelty(candidates, intr, res.fused_scores, best, ahead, self._request_novelty)
-                winner = candidates[best]
+                    best = self._with_novelty(ask.candidates, ask.intr, res.fused_scores, best, ask.ahead, ask.novelty)
+                winner = ask.candidates[best]
                 self._window.remove(winner)
-                self._publish(winner, intr)
-            elif time.monotonic() - t_sent > self.timeout_s:
+                self._publish(winner, ask.intr)
+            elif now - ask.sent_s > self.timeout_s:
                 self._request = None
                 self._client.remove_pending_request(future)
                 future.cancel()
                 self.counters["planner_timeouts"] += 1
-                self._fall_back(candidates, intr, f"did not answer within {self.timeout_s:g} s", ahead)
+                self._fall_back(ask.candidates, ask.intr, f"did not answer within {self.timeout_s:g} s", ask.ahead)
 
     def _fall_back(self, candidates: list[Frame], intr: Intrinsics, why: str, ahead: list[Frame]) -> None:
         """Decide a window with ``fallback_policy`` (call with the lock held); logs the first of a run of them."""
@@ -686,10 +760,10 @@ class KeyframeSelectorNode(SystemNode):
         """
         with self._lock:
             self._waiting = None
-            if self._request is not None:
-                self._client.remove_pending_request(self._request[0])
-                self._request[0].cancel()
-                self._request = None
+            if self._request is not None and self._request.future is not None:
+                self._client.remove_pending_request(self._request.future)
+                self._request.future.cancel()
+            self._request = None
         if self._novelty_pool is not None:
             self._novelty_pool.shutdown(wait=True, cancel_futures=True)
         super().destroy_node()

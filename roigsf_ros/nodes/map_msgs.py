@@ -1,4 +1,5 @@
-"""Surfel maps and keyframe poses as ROS messages: ``sensor_msgs/PointCloud2``, ``PoseArray``, mesh ``Marker``.
+"""Surfel maps and keyframe poses as ROS messages: ``sensor_msgs/PointCloud2``, ``PoseArray``, mesh ``Marker``, the
+map's intrinsics as ``CameraInfo``.
 
 The map cloud has one point per surfel with float32 fields (little-endian, packed, ``point_step`` =
 4 x number of fields), all raw 2DGS parameters of :class:`roigsf_ros.render.surfels.SurfelMap`, so a round
@@ -31,11 +32,11 @@ from typing import Any
 import numpy as np
 import torch
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
-from roigsf_ros.core.camera import matrix_to_quat_xyzw
+from roigsf_ros.core.camera import Intrinsics, matrix_to_quat_xyzw
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import pose_to_matrix
 from roigsf_ros.render.surfels import SurfelMap
@@ -76,6 +77,17 @@ def stamp_msg(stamp_ns: int) -> Any:
 def header(stamp_ns: int, frame_id: str = MAP_FRAME_ID) -> Header:
     """A ``std_msgs/Header`` with the stamp in nanoseconds."""
     return Header(stamp=stamp_msg(stamp_ns), frame_id=frame_id)
+
+
+def intrinsics_to_camera_info(intr: Intrinsics, stamp_ns: int, frame_id: str = MAP_FRAME_ID) -> CameraInfo:
+    """Pinhole intrinsics as a ``sensor_msgs/CameraInfo`` (K, P, no distortion; read by camera_info_to_intrinsics)."""
+    k = [intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0]
+    p = [intr.fx, 0.0, intr.cx, 0.0, 0.0, intr.fy, intr.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return CameraInfo(
+        header=header(stamp_ns, frame_id), width=int(intr.width), height=int(intr.height),
+        distortion_model="plumb_bob", d=[0.0] * 5, k=[float(v) for v in k],
+        r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], p=[float(v) for v in p],
+    )  # fmt: skip
 
 
 def _packed_rgb(colour01: np.ndarray) -> np.ndarray:

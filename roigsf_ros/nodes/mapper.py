@@ -14,8 +14,10 @@ the next one: the answer is what the robot waits for, the optimisation can lag a
 Keyframe ids are the frames' header stamps in nanoseconds: unique across processes and restarts.
 
 Outputs: the map as ``sensor_msgs/PointCloud2`` (:mod:`~roigsf_ros.nodes.map_msgs` layout, transient
-local, at most ``map_publish_rate_hz``) and the keyframe poses as ``geometry_msgs/PoseArray`` (same
-QoS); ``~/status`` (``std_msgs/String`` JSON counters); services ``~/save_map``, ``~/load_map``
+local, at most ``map_publish_rate_hz``), the keyframe poses as ``geometry_msgs/PoseArray`` and the intrinsics the
+map is built with (after ``input_width``/``input_height``) as ``sensor_msgs/CameraInfo`` on ``map_camera_info_topic``
+(same QoS; a planner in another process scores with them: with a loaded map it had none until a camera published);
+``~/status`` (``std_msgs/String`` JSON counters); services ``~/save_map``, ``~/load_map``
 (``roigsf_interfaces/srv/SaveMap``, ``LoadMap``) and ``~/publish_mesh`` (``std_srvs/Trigger``: the
 mesh, decimated to at most ``mesh_marker_max_triangles``, as a ``visualization_msgs/Marker`` on
 ``~/mesh``, sent as serialized bytes built in bulk). ``load_map`` at start resumes a saved map.
@@ -45,7 +47,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
@@ -59,7 +61,7 @@ from roigsf_ros.data.tf import DEFAULT_CACHE_S
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
-from roigsf_ros.nodes.map_msgs import mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
+from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import (
     SystemNode,
     check_positive,
@@ -73,6 +75,7 @@ from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
 KEYFRAME_TOPIC = "/roigsf/keyframe"
 MAP_TOPIC = "/roigsf/map"
 KEYFRAME_POSES_TOPIC = "/roigsf/keyframe_poses"
+MAP_CAMERA_INFO_TOPIC = "/roigsf/map_camera_info"
 MISSING_AFTER_NEWER_FRAMES = 3
 """A keyframe waiting for its frame is given up once this many newer frames arrived (or after keyframe_wait_s)."""
 
@@ -167,6 +170,8 @@ class MapperNode(SystemNode):
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes to insert (PoseStamped, stamp)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map output (PointCloud2, transient local)")
         poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "keyframe poses (PoseArray)")
+        map_info_topic = declare(self, "map_camera_info_topic", MAP_CAMERA_INFO_TOPIC, "the map's intrinsics "
+                                 "(CameraInfo, transient local)")  # fmt: skip
         self.frame_id = declare(self, "frame_id", "map", "frame of the map, its cloud and the keyframe poses")
         self.buffer_size = int(declare(self, "frame_buffer_size", 64, "recent frames kept to match keyframes"))
         self.max_pending = int(declare(self, "max_pending_keyframes", 16, "bound of the queue of keyframes"))
@@ -266,9 +271,12 @@ class MapperNode(SystemNode):
         )
         self._map_pub = self.create_publisher(PointCloud2, map_topic, latched_qos())
         self._poses_pub = self.create_publisher(PoseArray, poses_topic, latched_qos())
+        self._map_info_pub = self.create_publisher(CameraInfo, map_info_topic, latched_qos())
         self._mesh_pub = self.create_publisher(Marker, "~/mesh", latched_qos())
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         self._published_version = -1
+        self._publish_lock = threading.Lock()  # the timer publishes, and the worker once: the first keyframe's map
+        self._publishes_maps = publish_hz > 0
         if publish_hz > 0:
             self.create_timer(1.0 / publish_hz, self.publish_map, callback_group=outputs)
         if status_hz > 0:
@@ -457,6 +465,11 @@ class MapperNode(SystemNode):
         with self._lock:
             self.counters["keyframes_inserted"] += 1
             self._idle_left += self.idle_iters
+        if n_kf == 1 and self._publishes_maps:
+            # A planner in another process has nothing to score until a map with a keyframe comes: the first one
+            # goes out now, not at the timer's next tick (up to 1 / map_publish_rate_hz later; the first windows of
+            # a three-process run found no map and went to the fallback).
+            self.publish_map()
         if self.autosave_dir and self.autosave_every and n_kf % self.autosave_every == 0:
             self.save(self.autosave_dir, overwrite=True)
             with self._lock:
@@ -475,16 +488,18 @@ class MapperNode(SystemNode):
     # ------------------------------------------------------------------------------ outputs
     def publish_map(self, force: bool = False) -> bool:
         """Publish the map cloud and keyframe poses if the map changed since the last time; True if published."""
-        if not force and self.shared.version == self._published_version:
-            return False
-        snap = self.shared.snapshot(with_h_train=self.map_with_h_train)
-        if snap is None:
-            return False
-        stamp = self.get_clock().now().nanoseconds
-        outputs = snap.config.fisher_outputs
-        self._map_pub.publish(surfel_map_to_cloud(snap.surfel_map, stamp, self.frame_id, snap.h_train, outputs))
-        self._poses_pub.publish(poses_to_array(snap.keyframe_poses, stamp, self.frame_id))
-        self._published_version = snap.version
+        with self._publish_lock:
+            if not force and self.shared.version == self._published_version:
+                return False
+            snap = self.shared.snapshot(with_h_train=self.map_with_h_train)
+            if snap is None:
+                return False
+            stamp = self.get_clock().now().nanoseconds
+            outputs = snap.config.fisher_outputs
+            self._map_pub.publish(surfel_map_to_cloud(snap.surfel_map, stamp, self.frame_id, snap.h_train, outputs))
+            self._poses_pub.publish(poses_to_array(snap.keyframe_poses, stamp, self.frame_id))
+            self._map_info_pub.publish(intrinsics_to_camera_info(snap.intrinsics, stamp, self.frame_id))
+            self._published_version = snap.version
         with self._lock:
             self.counters["map_publishes"] += 1
         return True

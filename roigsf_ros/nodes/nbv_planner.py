@@ -1,7 +1,10 @@
 """``nbv_planner`` node: scores candidate views against the current map on request (ROI-GSurFisher and ablations).
 
 Holds the map: with ``shared`` (in-process) it snapshots the SharedMapper; otherwise it reads the
-mapper's ``/roigsf/map`` cloud, ``/roigsf/keyframe_poses`` and the camera info (intrinsics). It keeps
+mapper's ``/roigsf/map`` cloud, ``/roigsf/keyframe_poses`` and the intrinsics: the map's, which the mapper publishes
+on ``/roigsf/map_camera_info`` (``map_camera_info_topic``), else the camera's (``camera_info_topic``, scaled to
+``input_width``/``input_height``). A map loaded by the mapper is thus scored before any camera publishes (with the
+camera's only, every request answered "map not ready" until one did). It keeps
 the scoring TSDF, fused (as in the paper and :class:`roigsf_ros.policies.stream.StreamNBVPolicy`) from the
 map's rendered depth at each keyframe pose, incrementally: each keyframe is fused once, when first
 seen (a timer every ``tsdf_sync_period_s`` and every request); a keyframe set that is no longer an
@@ -89,7 +92,7 @@ from roigsf_ros.nodes.map_msgs import (
     matrix_to_pose,
     pose_stamped,
 )
-from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_TOPIC, latched_qos
+from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_CAMERA_INFO_TOPIC, MAP_TOPIC, latched_qos
 from roigsf_ros.nodes.node_params import (
     SystemNode,
     check_positive,
@@ -105,6 +108,14 @@ SERVICE_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE
 )
 """The planner's service: every request kept while others are scored (rclpy's services default keeps the last 10)."""
+MAP_NOT_READY = "map: not ready"
+"""How the message of an answer starts when the planner has no map to score yet (nothing received, or no keyframe):
+not a fault of the request, so a client may ask again shortly (the keyframe selector does, for ``map_wait_s``)."""
+
+
+def map_not_ready(why: str) -> InputError:
+    """The refusal of a request that came before the map did; its message starts with :data:`MAP_NOT_READY`."""
+    return InputError("map", f"not ready: {why}")
 
 
 class NBVPlannerNode(SystemNode):
@@ -129,6 +140,8 @@ class NBVPlannerNode(SystemNode):
         info_topic = declare(
             self, "camera_info_topic", CameraTopics().camera_info, "camera info (intrinsics, topic mode)"
         )
+        map_info_topic = declare(self, "map_camera_info_topic", MAP_CAMERA_INFO_TOPIC, "the map's intrinsics, from "
+                                 "the mapper (topic mode; preferred to camera_info_topic)")  # fmt: skip
         info_qos = camera_qos(10, str(declare(self, "camera_reliability", "reliable", "reliable | best_effort")))
         in_w = int(declare(self, "input_width", 0, "camera info scaled to the mapper's input_width (0 = as sent)"))
         in_h = int(declare(self, "input_height", 0, "camera info scaled to the mapper's input_height (0 = as sent)"))
@@ -169,6 +182,9 @@ class NBVPlannerNode(SystemNode):
         self._cloud_version = 0
         self._poses = np.zeros((0, 4, 4))
         self._intr: Intrinsics | None = None
+        """The camera's intrinsics (``camera_info_topic``), scaled to the input size."""
+        self._map_intr: Intrinsics | None = None
+        """The map's intrinsics (``map_camera_info_topic``): preferred, they are what the map was built with."""
         self._topic_snapshot: MapSnapshot | None = None
         self.state = ScoringState(
             self.nbv, self.voxel_size_m, self.sdf_trunc_m, self.max_depth_m, True, match_tol, refresh,
@@ -197,11 +213,14 @@ class NBVPlannerNode(SystemNode):
 
         scoring = MutuallyExclusiveCallbackGroup()
         inputs = MutuallyExclusiveCallbackGroup()
-        self._map_topic, self._info_topic = map_topic, info_topic
+        self._map_topic, self._info_topic, self._map_info_topic = map_topic, info_topic, map_info_topic
         if shared is None:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
             self.create_subscription(PoseArray, poses_topic, self._on_poses, latched_qos(), callback_group=inputs)
             self.create_subscription(CameraInfo, info_topic, self._on_info, info_qos, callback_group=inputs)
+            self.create_subscription(
+                CameraInfo, map_info_topic, self._on_map_info, latched_qos(), callback_group=inputs
+            )
         self._best_pub = self.create_publisher(PoseStamped, "~/best_view", latched_qos())
         self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
         self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())
@@ -248,13 +267,25 @@ class NBVPlannerNode(SystemNode):
         with self._lock:
             self._intr = intr
 
+    def _on_map_info(self, msg: CameraInfo) -> None:
+        try:
+            intr = camera_info_to_intrinsics(msg, self._map_info_topic)
+        except InputError as exc:
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        with self._lock:
+            if self._map_intr != intr:
+                self._map_intr = intr
+                self._cloud_version += 1
+
     # ------------------------------------------------------------------------------ map and TSDF
     def snapshot(self) -> MapSnapshot | None:
         """The map to score: a shared snapshot, or one built from the latest cloud/poses/intrinsics."""
         if self.shared is not None:
             return self.shared.snapshot()
         with self._lock:
-            cloud, poses, intr, version = self._cloud, self._poses, self._intr, self._cloud_version
+            cloud, poses, version = self._cloud, self._poses, self._cloud_version
+            intr = self._map_intr or self._intr
             cached = self._topic_snapshot
         if cloud is None or intr is None:
             return None
@@ -284,7 +315,8 @@ class NBVPlannerNode(SystemNode):
             return "no keyframe in the shared map yet"
         with self._lock:
             missing = [f"a map on {self._map_topic}"] if self._cloud is None else []
-            missing += [f"camera info on {self._info_topic} (camera_info_topic)"] if self._intr is None else []
+            if self._intr is None and self._map_intr is None:
+                missing.append(f"camera info on {self._map_info_topic} (the mapper's) or {self._info_topic}")
         return "nothing received yet: " + " and ".join(missing) if missing else "the map is not readable"
 
     def _render(self, snap: MapSnapshot):
@@ -393,10 +425,10 @@ class NBVPlannerNode(SystemNode):
         self._check_age(req)
         snap = self.snapshot()
         if snap is None:
-            raise InputError("map", f"not ready: {self._waiting_for()}")
+            raise map_not_ready(self._waiting_for())
         if len(snap.keyframe_poses) == 0 or snap.n_surfels == 0:
             k, n = len(snap.keyframe_poses), snap.n_surfels
-            raise InputError("map", f"not ready: {k} keyframes, {n} surfels")
+            raise map_not_ready(f"{k} keyframes, {n} surfels")
         t_update = time.perf_counter()
         self._update(snap, mode)  # the map work (kept for the next request) may take a while: check the age again
         update_s = time.perf_counter() - t_update

@@ -17,12 +17,14 @@ import difflib
 import functools
 import inspect
 import itertools
+import math
 import os
 import re
 import signal
 import sys
 import textwrap
 import threading
+import weakref
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,7 +36,7 @@ from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedEx
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
+from rclpy.utilities import get_default_context, remove_ros_args
 
 from roigsf_ros.core.errors import InputError
 
@@ -72,33 +74,90 @@ def field_docs(cls: type) -> dict[str, str]:
 _KIND_WORDS = {int: "an int", float: "a float", str: "a string", bool: "a bool", list: "a list"}
 """How :func:`declare`'s error names a parameter's type."""
 
+_RCL_TYPE_WORDS = {
+    "BOOL": "a bool",
+    "INTEGER": "an int",
+    "DOUBLE": "a float",
+    "STRING": "a string",
+    "BYTE_ARRAY": "a list of bytes",
+    "BOOL_ARRAY": "a list of bools",
+    "INTEGER_ARRAY": "a list of ints",
+    "DOUBLE_ARRAY": "a list of floats",
+    "STRING_ARRAY": "a list of strings",
+}
+"""How an error names a parameter type of rclpy's messages (``expecting type 'DOUBLE'``)."""
+
+
+def _notes(*notes: str) -> str:
+    """`` (a; b)`` from the non-empty ``notes``, "" when there are none: the remarks after an error's value."""
+    kept = [n for n in notes if n]
+    return f" ({'; '.join(kept)})" if kept else ""
+
+
+def _float_hint(name: str, given: Any, source: str | None) -> str:
+    """The advice for an int given to a float parameter (``write a float with a point, e.g. 1.0``), with ``-p``'s
+    syntax when the value came from ``-p``.
+    """
+    example = f"{float(given)!r}"
+    return f"write a float with a point, e.g. {f'-p {name}:={example}' if source == '-p' else example}"
+
+
+def _type_error(node: Node, name: str, default: Any) -> InputError:
+    """The InputError for an override of ``name`` whose type is not that of its ``default``: the value given, the
+    params file it came from, and the float hint only for an int given to a float parameter.
+    """
+    override = getattr(node, "_parameter_overrides", {}).get(name)
+    given = None if override is None else override.value
+    source = parameter_source(node, name)
+    int_for_float = isinstance(default, float) and isinstance(given, int) and not isinstance(given, bool)
+    kind = _KIND_WORDS.get(type(default), f"a {type(default).__name__}")
+    problem = f"must be {kind} like its default {default!r}" + ("" if override is None else f", got {given!r}")
+    file_note = f"set in {source}" if source not in (None, "-p") else ""
+    problem += _notes(file_note, _float_hint(name, given, source) if int_for_float else "")
+    return InputError(f"parameter '{node.get_name()}.{name}'", problem)
+
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
     """Declare one parameter with a default and a description; returns its (possibly overridden) value."""
     value = list(default) if isinstance(default, tuple) else default
     try:
         return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
-    except InvalidParameterTypeException as exc:  # e.g. `-p near_m:=0`: an int where the default is a float
-        hint = " (write a float with a point, e.g. 0.0)" if isinstance(default, float) else ""
-        kind = _KIND_WORDS.get(type(default), f"a {type(default).__name__}")
-        raise InputError(
-            f"parameter '{node.get_name()}.{name}'", f"must be {kind} like its default {default!r}{hint}; {exc}"
-        ) from None
+    except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
+        raise _type_error(node, name, default) from None
+
+
+def _config_error(node: Node, values: dict[str, Any], exc: InputError) -> InputError:
+    """A config class's InputError for the parameters ``values`` as a parameter error of ``node``: its field as
+    ``parameter 'node.field'``, with the params file that set the value.
+    """
+    field = exc.where.rsplit(".", 1)[-1]
+    if field not in values:
+        return exc
+    source = parameter_source(node, field)
+    problem = exc.problem + _notes(f"set in {source}" if source not in (None, "-p") else "")
+    return InputError(f"parameter '{node.get_name()}.{field}'", problem)
 
 
 def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str, Any]:
     """Declare every field of the dataclass ``cls`` as a parameter (default = the field's); returns name -> value.
 
-    Arrays come back as tuples, as the dataclasses hold them.
+    Arrays come back as tuples, as the dataclasses hold them. Without ``skip`` the values are checked by building
+    ``cls`` from them: its InputError (which says the allowed range) names the parameter and its params file.
     """
     docs = field_docs(cls)
     defaults = cls()
+    skip = set(skip)
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
         value = declare(node, f.name, getattr(defaults, f.name), docs.get(f.name, f"{cls.__name__}.{f.name}"))
         out[f.name] = tuple(value) if isinstance(value, list | tuple) else value
+    if not skip:  # checked here, where the error can name the node, the allowed range and the params file
+        try:
+            cls(**out)
+        except InputError as exc:
+            raise _config_error(node, out, exc) from None
     return out
 
 
@@ -128,31 +187,224 @@ def _hint(name: str, declared: Iterable[str]) -> str:
 PACKAGE_CONFIG_FILES = ("mapper.yaml", "nbv.yaml", "keyframe_selector.yaml", "bag_player.yaml")
 """The params files of the package's nodes (config/): every parameter each node declares, with its default."""
 
+CHECKOUT_CONFIG = Path(__file__).resolve().parents[2] / "config"
+"""The checkout's config/ (when this module runs from the source tree; installed, no such folder holds the files)."""
+
+ROIGSF_NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector", "bag_player")
+"""The default names of the package's nodes: a params file's section for one of them is no typo of another's."""
+
+
+def package_config_folder() -> Path | None:
+    """The folder with the package's params files: the checkout's config/, else the share dir the ament index names
+    (needs AMENT_PREFIX_PATH), else the one under the interpreter's prefix (``pip install`` puts setup.py's data files
+    there: a node run straight from its venv without a sourced workspace); None when none is found.
+    """
+    if all((CHECKOUT_CONFIG / name).is_file() for name in PACKAGE_CONFIG_FILES):
+        return CHECKOUT_CONFIG
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        folder = Path(get_package_share_directory("roigsf_ros")) / "config"
+        if folder.is_dir():
+            return folder
+    except (ImportError, LookupError, OSError, ValueError):  # no ament index, or the package not in it
+        pass
+    folder = Path(sys.prefix) / "share" / "roigsf_ros" / "config"
+    return folder if folder.is_dir() else None
+
 
 @functools.cache
 def package_parameter_names() -> frozenset[str]:
-    """Every parameter some node of this package declares, read from its params files (the checkout's config/, else
-    the installed share/roigsf_ros/config/); empty when neither is found.
+    """Every parameter some node of this package declares, read from its params files (:func:`package_config_folder`);
+    empty when none is found.
 
     A ``-p NAME:=VALUE`` reaches every node of a process, and the README gives the three processes the same camera
     arguments: a name another node of the package declares is not a typo in a node that runs on its own.
     """
     import yaml
 
-    folder = Path(__file__).resolve().parents[2] / "config"
-    if not all((folder / name).is_file() for name in PACKAGE_CONFIG_FILES):
-        try:
-            from ament_index_python.packages import get_package_share_directory
-
-            folder = Path(get_package_share_directory("roigsf_ros")) / "config"
-        except (ImportError, LookupError, OSError, ValueError):  # no ament index, or the package not in it
-            return frozenset()
+    folder = package_config_folder()
+    if folder is None:
+        return frozenset()
     names: set[str] = set()
     for name in PACKAGE_CONFIG_FILES:
         with contextlib.suppress(OSError, yaml.YAMLError, AttributeError):
             for section in (yaml.safe_load((folder / name).read_text()) or {}).values():
                 names.update(section.get("ros__parameters") or {})
     return frozenset(names)
+
+
+_ROS_ARGS: weakref.WeakKeyDictionary[Context, tuple[str, ...]] = weakref.WeakKeyDictionary()
+"""The arguments each context was initialised with (:func:`remember_ros_args`); rclpy keeps no copy of them."""
+
+_ROS_ARG_VALUE_FLAGS = frozenset(
+    {"-r", "--remap", "-e", "--enclave", "--log-level", "--log-config-file", "--log-file-name"}
+)
+"""ROS arguments (besides ``-p`` and ``--params-file``) that take the next argument as their value."""
+
+
+def remember_ros_args(context: Context, args: Sequence[str]) -> None:
+    """Note the arguments ``context`` was initialised with (:func:`init_ros` does for the console scripts): the
+    params files that a node's parameter errors and its misspelt-section warnings name.
+    """
+    _ROS_ARGS[context] = tuple(args)
+
+
+def ros_parameter_rules(context: Context) -> list[tuple[str, str]]:
+    """The parameter sources in ``context``'s ROS arguments, in order (a later one wins): ``("file", PATH)`` for a
+    ``--params-file``, ``("-p", RULE)`` for a ``-p RULE``; empty when its arguments were not noted.
+    """
+    rules: list[tuple[str, str]] = []
+    in_ros = False
+    args = iter(_ROS_ARGS.get(context, ()))
+    for arg in args:
+        if arg in ("--ros-args", "--"):
+            in_ros = arg == "--ros-args"
+        elif in_ros and arg in ("-p", "--param", "--params-file"):
+            value = next(args, None)
+            if value is not None:
+                rules.append(("file" if arg == "--params-file" else "-p", value))
+        elif in_ros and arg in _ROS_ARG_VALUE_FLAGS:
+            next(args, None)
+    return rules
+
+
+def params_file_sections(path: str | Path) -> list[tuple[str, str, dict[str, Any]]]:
+    """The node sections of a params file as ``(label, pattern, parameters)``: the label as written (``mappr``,
+    ``ns/mapper``), the node pattern (``/mappr``, ``/**``), the parameters with nested names dotted; empty when the
+    file cannot be read.
+    """
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return []
+
+    def flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in values.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+        return out
+
+    sections: list[tuple[str, str, dict[str, Any]]] = []
+
+    def walk(values: dict[Any, Any], label: str, pattern: str) -> None:
+        for key, value in values.items():
+            if not isinstance(value, dict):
+                continue
+            here, below = f"{label}/{key}".lstrip("/"), f"{pattern}/{str(key).strip('/')}"
+            if isinstance(value.get("ros__parameters"), dict):
+                sections.append((here, below, flat(value["ros__parameters"])))
+            else:  # the nested form: a namespace, then the node
+                walk(value, here, below)
+
+    if isinstance(data, dict):
+        walk(data, "", "")
+    return sections
+
+
+def _applies(pattern: str, fully_qualified_name: str) -> bool:
+    """Whether a params file's node pattern (``/mapper``, ``/**``, ``/*/mapper``) names the node, as rcl matches it."""
+    regex = ""
+    for token in pattern.strip("/").split("/"):
+        regex += "(?:/[^/]+)*" if token == "**" else "/" + re.escape(token).replace(r"\*", "[^/]*")
+    return re.fullmatch(regex, fully_qualified_name) is not None
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    """Whether two parameter values are the same value of the same type (``1`` is not ``1.0``; nan is nan)."""
+    if isinstance(a, list | tuple) or isinstance(b, list | tuple) or type(a).__name__ == "array":
+        try:
+            return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b, strict=True))
+        except TypeError:
+            return False
+    if type(a) is not type(b):
+        return False
+    return a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b))
+
+
+def parameter_source(node: Node, name: str) -> str | None:
+    """Where ``node``'s override of ``name`` came from: the params file's path as given, ``"-p"``, or None when not
+    known (no override, arguments not noted by :func:`remember_ros_args`, or a constructor override in its place).
+    """
+    import yaml
+
+    override = getattr(node, "_parameter_overrides", {}).get(name)
+    if override is None:
+        return None
+    fqn = node.get_fully_qualified_name()
+    found: tuple[str, Any] | None = None
+    for kind, arg in ros_parameter_rules(node.context):
+        if kind == "file":
+            for _, pattern, params in params_file_sections(arg):
+                if name in params and _applies(pattern, fqn):
+                    found = (arg, params[name])
+            continue
+        target, _, value = arg.partition(":=")
+        who, _, param = target.rpartition(":")
+        if param == name and (not who or _applies(who, fqn)):
+            try:
+                found = ("-p", yaml.safe_load(value))
+            except yaml.YAMLError:
+                found = ("-p", value)
+    return found[0] if found is not None and _same_value(found[1], override.value) else None
+
+
+def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
+    """``exc`` as the nodes report a bad parameter: rclpy's type and range errors as an InputError in
+    :func:`declare`'s words (the range said), and a ``parameter 'NAME'`` InputError of ``node`` with the params file
+    that set the value; anything else as it is. Call it while ``node`` still exists.
+    """
+    name_of = "" if node is None else f"{node.get_name()}."
+    text = str(exc)
+    if isinstance(exc, InvalidParameterTypeException) and (m := _RCLPY_TYPE_ERROR.search(text)):
+        given = repr(m["value"]) if m["given"] == "STRING" else m["value"]
+        hint = _float_hint(m["name"], float(m["value"]), None) if m["given"] + m["want"] == "INTEGERDOUBLE" else ""
+        want = _RCL_TYPE_WORDS.get(m["want"], m["want"].lower())
+        return InputError(f"parameter '{name_of}{m['name']}'", f"must be {want}, got {given}{_notes(hint)}")
+    if isinstance(exc, InvalidParameterValueException) and (m := _RCLPY_RANGE_ERROR.search(text)):
+        return InputError(
+            f"parameter '{name_of}{m['name']}'", f"must be in [{m['low']}, {m['high']}], got {m['value']}"
+        )
+    if not isinstance(exc, InputError) or node is None:
+        return exc
+    m = re.fullmatch(rf"parameter '(?:{re.escape(node.get_name())}\.)?(?P<name>[^']+)'", exc.where)
+    source = None if m is None else parameter_source(node, m["name"])
+    if source in (None, "-p") or f"set in {source}" in exc.problem:
+        return exc
+    return InputError(exc.where, exc.problem + _notes(f"set in {source}"))
+
+
+_RCLPY_TYPE_ERROR = re.compile(
+    r"Trying to set parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type '(?P<given>\w+)', "
+    r"expecting type '(?:Type\.)?(?P<want>\w+)'",
+    re.DOTALL,
+)
+"""rclpy's InvalidParameterTypeException message."""
+
+_RCLPY_RANGE_ERROR = re.compile(
+    r"Parameter (?P<name>\S+) out of range\.? Min: (?P<low>[^,]+), Max: (?P<high>[^,]+), value: (?P<value>[^:]+)"
+)
+"""rclpy's InvalidParameterValueException message for a value outside its descriptor's range."""
+
+
+def misspelt_sections(node: Node, others: Iterable[str] = ()) -> list[tuple[str, str]]:
+    """``(params file, section)`` for each section of ``node``'s params files whose name is close to the node's own
+    but is not it, nor a wildcard, a roigsf node's or one of ``others`` (the process's other nodes): rcl applies a
+    section only to the node it names, so a misspelt ``mappr:`` leaves every parameter in it unapplied.
+    """
+    name = node.get_name()
+    skip = {name, *ROIGSF_NODE_NAMES, *others}
+    found: list[tuple[str, str]] = []
+    for kind, path in ros_parameter_rules(node.context):
+        if kind != "file":
+            continue
+        for label, pattern, _ in params_file_sections(path):
+            leaf = pattern.rsplit("/", 1)[-1]
+            if "*" not in leaf and leaf not in skip and difflib.get_close_matches(name, [leaf], n=1, cutoff=0.75):
+                found.append((path, label))
+    return found
 
 
 def undeclared_overrides(node: Node, also_declared: Iterable[str] = ()) -> list[str]:
@@ -181,7 +433,8 @@ def check_parameter_overrides(
     siblings: Sequence[Node] = (),
 ) -> list[str]:
     """Call once ``node`` declared all its parameters: an InputError for an undeclared one in ``explicit``, else
-    ONE warning naming the other undeclared overrides (with the closest declared names); returns those names.
+    ONE warning naming the other undeclared overrides (with the closest declared names) and one per misspelt section
+    of its params files (:func:`misspelt_sections`); returns the undeclared names.
 
     ``explicit``: the ``parameter_overrides`` given to the node's constructor, a call naming this node, so an
     unknown name there is an error; a params file or ``-p`` may carry other nodes' parameters (ROS ignores
@@ -204,6 +457,12 @@ def check_parameter_overrides(
         by = " nor by " + ", ".join(n.get_name() for n in others) if others else " nor by any other roigsf node"
         names = ", ".join(f"{name}{_hint(name, declared + also)}" for name in ignored)
         node.get_logger().warning(f"ignored parameter(s) not declared by this node{by}: {names}")
+    if warn:
+        for path, section in misspelt_sections(node, [n.get_name() for n in others]):
+            node.get_logger().warning(
+                f"section '{section}' in {path} looks like a misspelling of '{node.get_name()}': "
+                "its parameters are not applied"
+            )
     return ignored
 
 
@@ -211,7 +470,8 @@ class SystemNode(Node):
     """A node of the active-mapping system; ``shared``: the in-process map (None: the node runs on its own).
 
     Subclasses set :attr:`default_name` and build everything in :meth:`_setup`. A set-up that raises
-    destroys the half-built node (rclpy's part only: a subclass's ``destroy_node`` expects a whole node).
+    destroys the half-built node (rclpy's part only: a subclass's ``destroy_node`` expects a whole node); a bad
+    parameter's error names its params file (:func:`parameter_error`).
     Then :func:`check_parameter_overrides` runs: an unknown name in ``parameter_overrides`` raises (the
     whole node destroyed), one in a params file or ``-p`` is logged, unless ``warn_undeclared`` is false (a
     process of several nodes checks them together, see ``active_mapping.build_nodes``).
@@ -231,9 +491,12 @@ class SystemNode(Node):
         super().__init__(node_name or self.default_name, context=context, parameter_overrides=parameter_overrides)
         try:
             self._setup(shared)
-        except BaseException:
+        except BaseException as exc:
+            error = parameter_error(self, exc)  # the params file named, while the node can still say its name
             Node.destroy_node(self)
-            raise
+            if error is exc:
+                raise
+            raise error from None
         try:  # the overrides addressed to this node that it does not declare (logged unless warn_undeclared is off)
             self.ignored_parameters = check_parameter_overrides(self, parameter_overrides, warn=warn_undeclared)
         except BaseException:
@@ -362,7 +625,8 @@ def init_ros(args: list[str] | None = None) -> None:
     """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
 
     Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`). ROS arguments rclpy cannot
-    parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` does.
+    parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` does. The arguments
+    are noted (:func:`remember_ros_args`): the nodes' errors and warnings name their params files.
 
     rclpy's own handlers shut the context down inside the signal handler, under the executor's feet:
     callbacks still running then fail ("publisher's context is invalid", printed by rclpy as "exception
@@ -375,6 +639,7 @@ def init_ros(args: list[str] | None = None) -> None:
         rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
     except ROS_ARGS_ERRORS as exc:
         raise ros_args_error(exc) from None
+    remember_ros_args(get_default_context(), sys.argv if args is None else args)
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
 
@@ -462,10 +727,8 @@ def run_nodes(
     try:  # Ctrl-C may come at any point, also while the nodes or the executor are being built
         try:
             nodes = build()
-        except BAD_PARAMETER_ERRORS as exc:
-            float_hint = "expecting type 'DOUBLE'" in str(exc)
-            hint = " (a float parameter needs a decimal point, e.g. 1.0)" if float_hint else ""
-            print(f"{program}: error: {exc}{hint}", file=sys.stderr)
+        except BAD_PARAMETER_ERRORS as exc:  # the nodes word their own; rclpy's are put in the same words
+            print(f"{program}: error: {parameter_error(None, exc)}", file=sys.stderr)
             return 2
         executor = MultiThreadedExecutor(num_threads=threads)
         for node in nodes:
@@ -501,8 +764,15 @@ __all__ = [
     "declare_config",
     "field_docs",
     "init_ros",
+    "misspelt_sections",
+    "package_config_folder",
+    "parameter_error",
+    "parameter_source",
+    "params_file_sections",
     "reduce_gil_switch_interval",
+    "remember_ros_args",
     "ros_args_error",
+    "ros_parameter_rules",
     "run_nodes",
     "script_args",
     "settings_text",

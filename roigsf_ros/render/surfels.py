@@ -334,6 +334,12 @@ def _load_ply(path: Path, device: torch.device | str | None, dtype: torch.dtype)
     rec = np.dtype(props)
     if len(body) < rec.itemsize * n_vertex:
         raise InputError(path, f"truncated: {n_vertex} vertices need {rec.itemsize * n_vertex} bytes, got {len(body)}")
+    if elements == ["vertex"] and len(body) > rec.itemsize * n_vertex:  # the body is the vertices, nothing more
+        raise InputError(
+            path,
+            f"{len(body) - rec.itemsize * n_vertex} bytes after the {n_vertex} vertices of {rec.itemsize} bytes "
+            "(the header's count): a damaged or mis-written file",
+        )
     v = np.frombuffer(body, dtype=rec, count=n_vertex)
     col = lambda *ns: np.stack([np.asarray(v[k], dtype=np.float64) for k in ns], axis=1)  # noqa: E731
     rest_names = sorted((k for k in names if re.fullmatch(r"f_rest_\d+", k)), key=lambda k: int(k[7:]))

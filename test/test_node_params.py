@@ -1,0 +1,206 @@
+"""The nodes' parameter checks (node_params.py): where the package's params files are found, how a bad value's error
+reads (its type, its range, the params file that set it), and the warning for a params file's misspelt node section."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+import rclpy
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.mapping.mapper import MapperConfig
+from roigsf_ros.nodes import node_params
+from roigsf_ros.nodes.bag_player import BagPlayer
+from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
+from roigsf_ros.nodes.mapper import MapperNode
+from roigsf_ros.nodes.node_params import (
+    PACKAGE_CONFIG_FILES,
+    package_parameter_names,
+    parameter_error,
+    remember_ros_args,
+)
+
+pytestmark = pytest.mark.ros
+REPO = Path(__file__).resolve().parents[1]
+
+
+@contextmanager
+def _context(*ros_args: str) -> Iterator[Any]:
+    """A fresh rclpy Context on this run's domain, started with ``--ros-args ROS_ARGS`` as a console script is (its
+    arguments noted, as ``init_ros`` notes them), shut down on exit."""
+    args = ["test", "--ros-args", *ros_args]
+    ctx = rclpy.Context()
+    rclpy.init(args=args, context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    remember_ros_args(ctx, args)
+    try:
+        yield ctx
+    finally:
+        ctx.try_shutdown()
+
+
+def _params(path: Path, node: str, **values: Any) -> str:
+    """Write a params file setting ``values`` for ``node``; returns its path as a string."""
+    lines = [f"{node}:", "  ros__parameters:", *(f"    {k}: {v}" for k, v in values.items())]
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def _error(build: Any) -> str:
+    """The message of the InputError ``build()`` raises."""
+    with pytest.raises(InputError) as caught:
+        build()
+    return str(caught.value)
+
+
+# ---------------------------------------------------------------------------------------- 1: installed, no ament env
+def test_package_parameter_names_are_found_in_the_share_dir_under_the_interpreters_prefix(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``.venv/bin/mapper --ros-args -p unseen_weight:=2.0`` without AMENT_PREFIX_PATH warned that no roigsf node
+    declares unseen_weight: installed, the module has no checkout's config/ beside it and the ament index needs the
+    variable, so the names came back empty. setup.py installs config/*.yaml to share/roigsf_ros/config under the
+    interpreter's prefix (the venv), which is now read as well."""
+    monkeypatch.setattr(node_params, "CHECKOUT_CONFIG", tmp_path / "no_checkout" / "config")
+    monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
+    monkeypatch.setattr(sys, "prefix", str(tmp_path / "prefix"))
+    share = tmp_path / "prefix" / "share" / "roigsf_ros" / "config"
+    package_parameter_names.cache_clear()
+    try:
+        assert package_parameter_names() == frozenset()  # nothing anywhere: no names (every override then warns)
+        share.mkdir(parents=True)
+        for name in PACKAGE_CONFIG_FILES:
+            shutil.copy(REPO / "config" / name, share / name)
+        package_parameter_names.cache_clear()
+        names = package_parameter_names()
+        assert {"unseen_weight", "iters_per_keyframe", "window", "rate"} <= names, sorted(names)
+    finally:
+        package_parameter_names.cache_clear()
+
+
+# ---------------------------------------------------------------------------------------- 2: the errors' words
+def test_a_type_error_hints_at_a_decimal_point_only_for_an_int_and_names_its_params_file(tmp_path: Path) -> None:
+    """``lr_means: fast`` was told "(a float parameter needs a decimal point, e.g. 1.0)", twice over; that hint is
+    now for an int given to a float parameter only, in ``-p``'s syntax where ``-p`` gave it, and a value from a
+    params file names the file."""
+    fast = _params(tmp_path / "fast.yaml", "mapper", lr_means="fast")
+    with _context("--params-file", fast) as ctx:
+        said = _error(lambda: MapperNode(context=ctx))
+    assert said == f"parameter 'mapper.lr_means': must be a float like its default 0.0002, got 'fast' (set in {fast})"
+    with _context("-p", "lr_means:=1") as ctx:
+        said = _error(lambda: MapperNode(context=ctx))
+    assert said == (
+        "parameter 'mapper.lr_means': must be a float like its default 0.0002, got 1 "
+        "(write a float with a point, e.g. -p lr_means:=1.0)"
+    )
+    one = _params(tmp_path / "one.yaml", "mapper", lr_means=1)
+    with _context("--params-file", one, "-p", "lr_means:=2") as ctx:  # the later one sets it: not the file
+        said = _error(lambda: MapperNode(context=ctx))
+    assert said.endswith("got 2 (write a float with a point, e.g. -p lr_means:=2.0)") and one not in said
+    with _context("-p", "lr_means:=2", "--params-file", one) as ctx:
+        said = _error(lambda: MapperNode(context=ctx))
+    assert said.endswith(f"got 1 (set in {one}; write a float with a point, e.g. 1.0)")
+
+
+def test_an_out_of_range_value_says_the_allowed_range_and_its_params_file(tmp_path: Path) -> None:
+    """ "mapper.iters_per_keyframe: value -5 is out of range" said neither what is allowed nor, from a params file,
+    which file set it; the nodes' own checks (check_positive) named no file either."""
+    bad = _params(tmp_path / "bad.yaml", "mapper", iters_per_keyframe=-5)
+    with _context("--params-file", bad) as ctx:
+        said = _error(lambda: MapperNode(context=ctx))
+    assert said == f"parameter 'mapper.iters_per_keyframe': must be >= 0, got -5 (set in {bad})"
+    with _context("-p", "init_opacity:=1.0") as ctx:
+        assert _error(lambda: MapperNode(context=ctx)) == "parameter 'mapper.init_opacity': must be in (0, 1), got 1.0"
+    depth = _params(tmp_path / "depth.yaml", "/**", qos_depth=-5)
+    with _context("--params-file", depth) as ctx:
+        assert _error(lambda: MapperNode(context=ctx)) == f"parameter 'qos_depth': must be > 0, got -5 (set in {depth})"
+    with pytest.raises(InputError, match=r"^mapper\.prune_opacity: must be in \[0, 1\), got 1\.0$"):
+        MapperConfig(prune_opacity=1.0)
+    with pytest.raises(InputError, match=r"^mapper\.max_depth_m: must be > min_depth_m and near_m \(0\.5\), got 0\.4$"):
+        MapperConfig(near_m=0.5, max_depth_m=0.4)  # a bound set by other fields
+    with pytest.raises(InputError, match=r"^mapper\.lr_means: must be a finite number >= 0, got nan$"):
+        MapperConfig(lr_means=float("nan"))
+
+
+def test_rclpy_parameter_errors_read_as_the_nodes_own(ros_context: Any) -> None:
+    """rclpy's own errors (a descriptor's range, a type refused outside :func:`declare`) in the nodes' words: the range
+    said ("Parameter depth out of range. Min: 1, Max: 10" before), the float hint only for an int."""
+    node = Node("ranged", context=ros_context, parameter_overrides=[Parameter("depth", value=-5)])
+    one_to_ten = ParameterDescriptor(integer_range=[IntegerRange(from_value=1, to_value=10)])
+    try:
+        with pytest.raises(InvalidParameterValueException) as caught:
+            node.declare_parameter("depth", 5, one_to_ten)
+        assert str(parameter_error(node, caught.value)) == "parameter 'ranged.depth': must be in [1, 10], got -5"
+    finally:
+        node.destroy_node()
+    as_int = InvalidParameterTypeException(Parameter("rate", value=1), Parameter.Type.DOUBLE)
+    assert str(parameter_error(None, as_int)) == (
+        "parameter 'rate': must be a float, got 1 (write a float with a point, e.g. 1.0)"
+    )
+    word = InvalidParameterTypeException(Parameter("rate", value="fast"), Parameter.Type.DOUBLE)
+    assert str(parameter_error(None, word)) == "parameter 'rate': must be a float, got 'fast'"
+
+
+def test_bag_player_errors_are_worded_as_the_other_nodes(ros_context: Any, tmp_path: Path) -> None:
+    """The player's type errors were rclpy's ("Trying to set parameter 'rate' to '1' ...") with "e.g. rate:=1.0"
+    even for a value from a YAML file; now as the other nodes' (its console script's too, which notes its
+    arguments: the file named)."""
+    with pytest.raises(InputError, match=r"^parameter 'bag_player\.rate': must be a float like its default 1\.0, got "
+                       r"'fast'$"):  # fmt: skip
+        BagPlayer(context=ros_context, parameter_overrides=[Parameter("rate", value="fast")])
+    one = _params(tmp_path / "player.yaml", "bag_player", rate=1)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    cmd = [sys.executable, "-m", "roigsf_ros.nodes.bag_player", "--ros-args", "--params-file", one]
+    proc = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.strip() == (
+        f"bag_player: error: parameter 'bag_player.rate': must be a float like its default 1.0, got 1 (set in {one}; "
+        "write a float with a point, e.g. 1.0)"
+    )
+
+
+# ---------------------------------------------------------------------------------------- 3: a misspelt section
+def test_a_params_file_section_close_to_the_nodes_name_is_warned_about(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """``mappr:`` in a params file was ignored without a word (a section applies only to the node it names): the
+    node now warns at start-up, once per such section, naming the file; a wildcard, the node's own section and
+    another roigsf node's are no misspellings."""
+    params = tmp_path / "typo.yaml"
+    params.write_text(
+        "mappr:\n  ros__parameters:\n    iters_per_keyframe: 5\n"
+        "/**:\n  ros__parameters:\n    frame_id: map\n"
+        "mapper:\n  ros__parameters:\n    final_iters: 0\n"
+        "nbv_planner:\n  ros__parameters:\n    top_k: 3\n"
+        "keyframe_selecter:\n  ros__parameters:\n    window: 3\n"
+    )
+    with _context("--params-file", str(params)) as ctx:
+        mapper = MapperNode(context=ctx)
+        selector = KeyframeSelectorNode(context=ctx)
+        try:
+            assert mapper.config.iters_per_keyframe == MapperConfig().iters_per_keyframe  # not applied
+            assert selector.window == 8
+        finally:
+            mapper.destroy_node()
+            selector.destroy_node()
+    err = capfd.readouterr().err
+    warnings = [line.split("]: ", 1)[1] for line in err.splitlines() if "looks like a misspelling" in line]
+    assert warnings == [
+        f"section 'mappr' in {params} looks like a misspelling of 'mapper': its parameters are not applied",
+        f"section 'keyframe_selecter' in {params} looks like a misspelling of 'keyframe_selector': its parameters "
+        "are not applied",
+    ], err
