@@ -595,7 +595,9 @@ class Lockstep:
 
     A frame's first message (on ``frame_topic``, the colour topic) waits until both camera nodes received and
     handled every message published before it, and until going on would lose work: while a window already waits
-    behind a planner request (the next one would go to the fallback), while gaus-slam holds frames for the map,
+    behind a planner request (the next one would go to the fallback), while the window asked waits for the planner's
+    first map or may have to (asked while the map has no keyframe: the next window would send it to the fallback),
+    while gaus-slam holds frames for the map,
     or while the mapper has more than one keyframe to insert (its queue and frame buffer would overflow). The nodes'
     work otherwise overlaps the stream, as in real time. When nothing in the nodes' status moves for ``stall_s``
     while a frame waits (a message lost on a best-effort subscription, a stuck node), it goes anyway and
@@ -622,11 +624,13 @@ class Lockstep:
         )
         free = not (
             sel["planner_window_waiting"]
+            or sel["planner_waits_for_map"]
+            or (sel["planner_pending"] and mp["keyframes"] == 0)
             or sel["frames_held_for_map"]
             or mp["pending_keyframes"] + mp["waiting_keyframes"] > 1
         )
         progress = [sel[k] for k in ("frames", "keyframes_published", "planner_answers", "planner_failures")]
-        progress += [sel[k] for k in ("planner_timeouts", "fallbacks", "frames_held_for_map")]
+        progress += [sel[k] for k in ("planner_timeouts", "fallbacks", "frames_held_for_map", "planner_not_ready")]
         progress += [mp[k] for k in ("keyframe_msgs", "pending_keyframes", "waiting_keyframes", "keyframes")]
         return delivered and free, ([cam["received"] for cam in cams], progress)
 
@@ -836,6 +840,7 @@ def run_demo(
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],
         "planner_failures": sel["planner_failures"],
+        "planner_not_ready": sel["planner_not_ready"],  # asked again: the map had no keyframe yet
         "planner_timeouts": sel["planner_timeouts"],
         "fallbacks": sel["fallbacks"],
         "warm_up_s": status["nbv_planner"]["warm_up_s"],

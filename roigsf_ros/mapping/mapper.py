@@ -171,7 +171,8 @@ class MapperConfig(Config):
             "prune_every": (self.prune_every >= 1, ">= 1"),
             "mesh_voxel_size_m": (self.mesh_voxel_size_m > 0, "> 0"),
             "mesh_sdf_trunc_m": (
-                self.mesh_sdf_trunc_m >= self.mesh_voxel_size_m, f">= mesh_voxel_size_m ({self.mesh_voxel_size_m!r})"
+                self.mesh_sdf_trunc_m >= self.mesh_voxel_size_m,
+                f">= mesh_voxel_size_m ({self.mesh_voxel_size_m!r})",
             ),
             "mesh_min_alpha": (0.0 <= self.mesh_min_alpha <= 1.0, "in [0, 1]"),
             "mesh_depth": (self.mesh_depth in DEPTH_MODES, f"one of {', '.join(DEPTH_MODES)}"),

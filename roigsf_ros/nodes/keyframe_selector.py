@@ -744,6 +744,7 @@ class KeyframeSelectorNode(SystemNode):
                 "planner_pending": self._request is not None,
                 "frames_held_for_map": len(self._held_for_map),
                 "planner_window_waiting": self._waiting is not None,
+                "planner_waits_for_map": self._request is not None and bool(self._request.not_ready),
                 **self.counters,
                 "max_answer_s": self.slowest_s["answer"],
                 "max_novelty_s": self.slowest_s["novelty"],
