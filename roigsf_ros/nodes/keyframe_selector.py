@@ -480,11 +480,9 @@ class KeyframeSelectorNode(SystemNode):
         newer frames that judge its novelty (``lookahead``); ``in_stream`` false: the frames held at the end.
         """
         with self._lock:
-            if not self._client.service_is_ready():
-                self._fall_back(candidates, intr, "is not available", ahead)
-                return
             ask = PlannerAsk(candidates, intr, ahead, in_stream, first_s=time.monotonic())
-            self._call(ask)
+            if not self._call(ask):
+                return
             # The window's novelty (against the keyframes published so far, all windows before it being decided)
             # is computed while the planner scores, off the executor: frames keep coming meanwhile.
             if self._novelty_pool is not None and self.novelty_weight > 0:
@@ -493,14 +491,21 @@ class KeyframeSelectorNode(SystemNode):
                 except RuntimeError:  # the pool is shut down (the node is being destroyed): computed on the answer
                     ask.novelty = None
 
-    def _call(self, ask: PlannerAsk) -> None:
-        """Ask the planner about ``ask``'s window (call with the lock held); it is the request in flight."""
+    def _call(self, ask: PlannerAsk) -> bool:
+        """Ask the planner about ``ask``'s window (call with the lock held): it is the request in flight. False when
+        the planner is not available: the window went to the fallback and no request is in flight.
+        """
+        if not self._client.service_is_ready():
+            self._request = None
+            self._fall_back(ask.candidates, ask.intr, "is not available", ask.ahead)
+            return False
         req = GetNextBestView.Request(mode=self.policy, top_k=0)
         req.candidates = poses_to_array([f.T_wc for f in ask.candidates], self.get_clock().now().nanoseconds)
         req.candidates.header.frame_id = self.frame_id
         self.counters["planner_calls"] += 1
         ask.future, ask.sent_s = self._client.call_async(req), time.monotonic()
         self._request = ask
+        return True
 
     def _check_request(self) -> None:
         """Timer: take the planner's answer when it came, or fall back once ``planner_timeout_s`` passed.
@@ -538,13 +543,8 @@ class KeyframeSelectorNode(SystemNode):
                         ask.ahead,
                     )
                     return
-                if now < ask.ask_at:
-                    return
-                if not self._client.service_is_ready():
-                    self._request = None
-                    self._fall_back(ask.candidates, ask.intr, "is not available", ask.ahead)
-                    return
-                self._call(ask)
+                if now >= ask.ask_at:
+                    self._call(ask)
                 return
             future = ask.future
             if future.done():

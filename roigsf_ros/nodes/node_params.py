@@ -221,17 +221,11 @@ def package_parameter_names() -> frozenset[str]:
     A ``-p NAME:=VALUE`` reaches every node of a process, and the README gives the three processes the same camera
     arguments: a name another node of the package declares is not a typo in a node that runs on its own.
     """
-    import yaml
-
     folder = package_config_folder()
     if folder is None:
         return frozenset()
-    names: set[str] = set()
-    for name in PACKAGE_CONFIG_FILES:
-        with contextlib.suppress(OSError, yaml.YAMLError, AttributeError):
-            for section in (yaml.safe_load((folder / name).read_text()) or {}).values():
-                names.update(section.get("ros__parameters") or {})
-    return frozenset(names)
+    return frozenset(key for name in PACKAGE_CONFIG_FILES for *_, params in params_file_sections(folder / name)
+                     for key in params)  # fmt: skip
 
 
 _ROS_ARGS: weakref.WeakKeyDictionary[Context, tuple[str, ...]] = weakref.WeakKeyDictionary()
