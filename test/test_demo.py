@@ -248,14 +248,26 @@ def test_demo_takes_params_files_in_order_and_policy_over_them(
     assert main([*args, "--params-file", str(bad)]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "'keyframe_selector/policy': needs a 'ros__parameters' mapping" in err, err
-    from roigsf_ros.cli.demo import check_params_file
+    from roigsf_ros.nodes.node_params import params_file_sections
 
     namespaced = tmp_path / "namespaced.yaml"  # ROS's other layouts: a wildcard and a namespace level
     namespaced.write_text("/**:\n  ros__parameters:\n    seed: 1\n/ns:\n  mapper:\n    ros__parameters: {}\n")
-    check_params_file(namespaced)
+    assert params_file_sections(namespaced, strict=True) == [
+        ("/**", "/**", {"seed": 1}),
+        ("/ns/mapper", "/ns/mapper", {}),
+    ]
     namespaced.write_text("/ns:\n  mapper:\n    policy: every-n\n")
     with pytest.raises(InputError, match=r"'/ns/mapper/policy': needs a 'ros__parameters' mapping"):
-        check_params_file(namespaced)
+        params_file_sections(namespaced, strict=True)
+    assert params_file_sections(namespaced) == []  # not strict (the nodes' own reading): what could be read
+    for text, why in (
+        ("[1, 2]\n", "a params file maps node names"),
+        ("mapper: {ros__parameters: 3}\n", "'mapper': 'ros__parameters' is not a mapping"),
+        ("a: [\n", "not a readable YAML params file"),
+    ):
+        namespaced.write_text(text)
+        with pytest.raises(InputError, match=re.escape(why)):
+            params_file_sections(namespaced, strict=True)
 
 
 def test_fallback_hint_says_why_windows_went_to_the_fallback() -> None:

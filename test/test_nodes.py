@@ -41,10 +41,12 @@ from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig, valid_depth_mask
+from roigsf_ros.nbv import warmup
 from roigsf_ros.nbv.config import NBVConfig
 from roigsf_ros.nbv.novelty import ObservedSurface, fuse_novelty
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import TrainFisherCache, carry_rows, match_surfels
+from roigsf_ros.nodes import mapper as mapper_module
 from roigsf_ros.nodes import nbv_planner as nbv_planner_module
 from roigsf_ros.nodes.active_mapping import ActiveMapping, build_nodes
 from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
@@ -445,7 +447,12 @@ def test_keyframes_named_before_the_mapper_subscribed_are_held_and_sent_in_order
     subscriber matches, then sent in order; the status counts those still held.
     """
     frames, _ = scene
-    overrides = [Parameter("policy", value="every-n"), Parameter("every_n", value=2)]
+    # startup_wait_s 0: the camera read before any keyframe subscriber (as after the start-up wait ran out)
+    overrides = [
+        Parameter("policy", value="every-n"),
+        Parameter("every_n", value=2),
+        Parameter("startup_wait_s", value=0.0),
+    ]
     selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
     cam = _Camera(ros_context)
     late = Node("test_late_mapper", context=ros_context)
@@ -482,6 +489,40 @@ def _stub_planner(ctx: Any, name: str, serve: Callable[..., Any]) -> Iterator[No
     finally:
         spin.stop()
         planner.destroy_node()
+
+
+def test_selector_reads_the_camera_once_its_keyframe_subscriber_and_planner_are_there(ros_context: Any) -> None:
+    """Three processes: in a third of the runs the mapper's discovery came 2.5-3 s after the player's, and the
+    selector, reading frames already, held its first keyframe that long and asked a planner with no map about its
+    first windows (fallbacks). It now subscribes to the camera only once a keyframe subscriber and (planner policy)
+    the planner's service are there, so a player waiting for its subscribers waits for the whole pipeline; without
+    them it reads the camera after ``startup_wait_s``, saying what is missing."""
+    color = "/camera/color/image_raw"
+    probe = Node("test_gate_probe", context=ros_context)
+    params = [Parameter("policy", value="roi-fisher"), Parameter("planner_service", value="/test_gate/nbv")]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=params, node_name="gate_selector")
+    alone = KeyframeSelectorNode(
+        context=ros_context,
+        parameter_overrides=[Parameter("policy", value="every-n"), Parameter("startup_wait_s", value=0.5),
+                             Parameter("keyframe_topic", value="/test_gate/nobody")],
+        node_name="gate_alone",
+    )  # fmt: skip
+    with _spinning(ros_context, selector, alone, probe):
+        _wait(lambda: alone.status()["reading_camera"], 5.0, "the lone selector giving up waiting")
+        time.sleep(0.5)
+        assert probe.count_subscribers(color) == 1  # the lone one only
+        assert not selector.status()["reading_camera"]
+        assert selector.outputs_missing() == [
+            "a subscriber on /roigsf/keyframe (the mapper)",
+            "the planner's service /test_gate/nbv",
+        ]
+        probe.create_subscription(PoseStamped, "/roigsf/keyframe", lambda m: None, reliable_qos(10))
+        _wait(lambda: len(selector.outputs_missing()) == 1, 10.0, "the keyframe subscriber")
+        time.sleep(0.3)
+        assert probe.count_subscribers(color) == 1  # still no planner: still not reading
+        with _stub_planner(ros_context, "test_gate", lambda req, res: res):
+            _wait(lambda: probe.count_subscribers(color) == 2, 10.0, "the selector's camera subscription")
+            assert selector.status()["reading_camera"] and selector.outputs_missing() == []
 
 
 def test_a_window_asks_again_while_the_planners_map_is_not_ready(ros_context: Any, scene: Any) -> None:
@@ -548,7 +589,7 @@ def test_a_window_asks_again_while_the_planners_map_is_not_ready(ros_context: An
 
 def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scene: Any) -> None:
     frames, _ = scene
-    selector, cam, published = _windowed_selector(ros_context, "/test_planner/nbv", 0.3)
+    selector, cam, published = _windowed_selector(ros_context, "/test_planner/nbv", 0.3, startup_wait_s=0.0)
     mode = {"answer": True}
     seen: list[str] = []
 
@@ -669,6 +710,7 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
         Parameter("window", value=2),
         Parameter("fallback_policy", value="novelty"),
         Parameter("planner_service", value="/no_planner_here/nbv"),
+        Parameter("startup_wait_s", value=0.0),  # no mapper, no planner: read the camera at once
     ]
     selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
     cam = _Camera(ros_context)
@@ -712,6 +754,7 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
         Parameter("fallback_policy", value="novelty"),
         Parameter("novelty_weight", value=1.0 if policy != "novelty" else 0.0),
         Parameter("planner_service", value="/no_planner_here/nbv"),
+        Parameter("startup_wait_s", value=0.0),  # no mapper, no planner: read the camera at once
     ]
     selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
     cam = _Camera(ros_context)
@@ -1143,12 +1186,48 @@ def test_active_mapping_warms_the_planner_up_before_any_camera_subscription(
 
     monkeypatch.setattr(nbv_planner_module, "warm_up_once", warm_up)
     nodes = build_nodes(ros_context)
-    try:
-        assert seen == [0]  # nothing subscribed while the planner warmed up
+    assert seen == [0]  # nothing subscribed while the planner warmed up
+    with _spinning(ros_context, *nodes, probe):  # the selector subscribes once its keyframe topic and planner are up
         _wait(lambda: probe.count_subscribers("/camera/color/image_raw") == 2, 10.0, "the mapper's and selector's")
+
+
+def test_mapper_warms_its_kernels_up_before_it_subscribes(ros_context: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three processes: the mapper's first 640x480 keyframe took 1.2 s against 0.6 s for the next (its kernels
+    loading), and the planner's first map came that much later. The mapper node now maps a tiny scene first, before
+    any subscription (so a player waiting for its subscribers waits for it), and says how long it took."""
+    probe = Node("test_warm_probe", context=ros_context)
+    seen: list[tuple[int, bool]] = []
+
+    def warm_up(nbv: Any = None, scoring: bool = True) -> dict[str, float]:
+        seen.append((probe.count_subscribers("/camera/color/image_raw"), scoring))
+        return {"mapping_s": 0.25, "total_s": 0.25}
+
+    monkeypatch.setattr(mapper_module, "warm_up_once", warm_up)
+    mapper = MapperNode(context=ros_context, node_name="warm_mapper")
+    cold = MapperNode(context=ros_context, parameter_overrides=[Parameter("warm_up", value=False)], node_name="cold")
+    try:
+        assert seen == [(0, False)]  # once (not for warm_up false), mapping only, before any subscription
+        assert mapper.status()["warm_up_s"] == 0.25 and cold.status()["warm_up_s"] == 0.0
+        assert probe.count_subscribers("/camera/color/image_raw") == 2
     finally:
-        for node in (*nodes, probe):
+        for node in (mapper, cold, probe):
             node.destroy_node()
+
+
+def test_warm_up_once_runs_each_phase_once_per_process(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mapper node warms mapping up, the planner mapping and scoring: in one process (``roigsf demo``, the
+    one-process node) the planner's warm-up covers the mapper's, and a mapping warm-up first does not skip scoring."""
+    calls: list[str] = []
+    monkeypatch.setattr(warmup, "_WARMED", set())
+    monkeypatch.setattr(warmup, "warm_up_mapping", lambda: (calls.append("mapping"), 0.5))
+    monkeypatch.setattr(warmup, "warm_up_kernels", lambda nbv=None: calls.append("both") or {"total_s": 1.0})
+    assert warmup.warm_up_once(scoring=False) == {"mapping_s": 0.5, "total_s": 0.5}
+    assert warmup.warm_up_once(scoring=False) is None
+    assert warmup.warm_up_once() == {"total_s": 1.0}
+    assert warmup.warm_up_once() is None and warmup.warm_up_once(scoring=False) is None
+    assert calls == ["mapping", "both"]
+    monkeypatch.setattr(warmup, "_WARMED", set())
+    assert warmup.warm_up_once() is not None and warmup.warm_up_once(scoring=False) is None  # planner first
 
 
 def test_an_undeclared_parameter_given_to_a_node_constructor_is_an_error(ros_context: Any, scene: Any) -> None:

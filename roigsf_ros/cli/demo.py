@@ -535,35 +535,6 @@ def mapping_hint(metrics: dict[str, Any]) -> str | None:
     return line
 
 
-def check_params_file(path: Path) -> None:
-    """InputError naming ``path`` (and the key) unless it is a ROS params file: a YAML mapping of node names to
-    ``ros__parameters`` mappings (rclpy's own error on a bad file names neither).
-    """
-    import yaml
-
-    if not path.is_file():
-        raise InputError(path, "params file not found")
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not a YAML params file ({exc})") from None
-    if not isinstance(doc, dict) or not doc:
-        raise InputError(path, "a params file maps node names to {ros__parameters: {...}}")
-
-    def check(name: str, body: object) -> None:  # a node's entry, or a namespace of entries ("/ns: {node: ...}")
-        if isinstance(body, dict) and "ros__parameters" in body:
-            if not isinstance(body["ros__parameters"], dict):
-                raise InputError(path, f"{name!r}: 'ros__parameters' is not a mapping")
-            return
-        if not isinstance(body, dict) or not body:
-            raise InputError(path, f"{name!r}: needs a 'ros__parameters' mapping")
-        for key, inner in body.items():
-            check(f"{name}/{key}", inner)
-
-    for node, body in doc.items():
-        check(str(node), body)
-
-
 def system_busy(status: dict[str, Any]) -> bool:
     """Whether the nodes still work on what they received: a planner request or a window waiting for one, frames
     held until the map catches up (gaus-slam), or keyframes named and not yet inserted, dropped or refused.
@@ -885,8 +856,10 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(out, "exists and is not a folder")
     check_writable(out)  # the run folder is written at the end: fail now, not after the replay
     params_files = [Path(f) for f in args.params_file]
+    from roigsf_ros.nodes.node_params import params_file_sections  # rclpy: imported once a demo runs
+
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
-        check_params_file(f)
+        params_file_sections(f, strict=True)
     # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
     camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, args.domain_id)
     info = bag_info(bag, camera.topics)

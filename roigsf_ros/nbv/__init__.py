@@ -105,6 +105,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "parse_signature",
             "split_by_cost",
             "warm_up_kernels",
+            "warm_up_mapping",
             "warm_up_once",
         ],
     },

@@ -204,6 +204,7 @@ class CameraInput:
         tf_wait_s: float = 1.0,
         tf_cache_s: float = DEFAULT_CACHE_S,
         tf_wait_frames: int = 64,
+        subscribe: bool = True,
     ) -> None:
         self.node = node
         self.on_frame = on_frame
@@ -233,6 +234,23 @@ class CameraInput:
         self._awaiting: deque[_AwaitingPose] = deque()
         self._last_silent_warning = -float("inf")
         self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
+        self._qos = qos
+        self._group = callback_group
+        self._tf_cache_s = tf_cache_s
+        self.subscribed = False
+        """Whether the subscriptions exist (``subscribe=False`` defers them to :meth:`subscribe`)."""
+        if subscribe:
+            self.subscribe()
+
+    def subscribe(self) -> None:
+        """Create the camera's subscriptions (once): a node that must not read frames before its outputs are
+        connected (the keyframe selector) creates the input with ``subscribe=False`` and calls this later.
+        """
+        if self.subscribed:
+            return
+        self.subscribed = True
+        self._started = time.monotonic()
+        node, qos, callback_group = self.node, self._qos, self._group
         t = self.topics
         for topic, type_name in t.types().items():
             cls = _MESSAGE_CLASSES[type_name]
@@ -242,14 +260,15 @@ class CameraInput:
             )
         if t.uses_tf:
             tf_cls = tf_message_class()
-            self._tf = TransformBuffer(cache_s=tf_cache_s, tolerance_s=t.tf_tolerance_s)
+            self._tf = TransformBuffer(cache_s=self._tf_cache_s, tolerance_s=t.tf_tolerance_s)
             for topic, static, tqos in ((t.tf_topic, False, tf_qos()), (t.tf_static_topic, True, tf_static_qos())):
                 node.create_subscription(
                     tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
                 )
             expire = lambda: self._counted(self._expire_awaiting)  # noqa: E731 - it delivers frames: counted too
             node.create_timer(TF_EXPIRE_PERIOD_S, expire, callback_group=callback_group)
-        self.received.update(dict.fromkeys(self.subscribed_topics(), 0))
+        with self._lock:
+            self.received.update(dict.fromkeys(self.subscribed_topics(), 0))
         node.create_timer(INPUT_CHECK_PERIOD_S, self._check_inputs, callback_group=callback_group)
 
     @property

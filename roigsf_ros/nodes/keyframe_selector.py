@@ -184,6 +184,9 @@ class KeyframeSelectorNode(SystemNode):
         self.frame_id = str(declare(self, "frame_id", "map", "frame of the published poses"))
         qos_depth = int(declare(self, "qos_depth", 100, "keep-last depth of the camera subscriptions"))
         status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
+        self.startup_wait_s = float(declare(self, "startup_wait_s", 10.0, "seconds the camera subscriptions wait at "
+                                            "start-up for a keyframe subscriber (the mapper) and, with a planner "
+                                            "policy, the planner's service (0 = subscribe at once)"))  # fmt: skip
         if self.policy not in names:
             raise InputError("parameter 'policy'", f"unknown policy '{self.policy}' (choose from {', '.join(names)})")
         if self.fallback not in ALONE_POLICIES:
@@ -213,6 +216,7 @@ class KeyframeSelectorNode(SystemNode):
         check_positive("map_wait_s", self.map_wait_s, allow_zero=True)
         check_positive("map_wait_frames", self.map_wait_frames)
         check_positive("status_rate_hz", status_hz, allow_zero=True)
+        check_positive("startup_wait_s", self.startup_wait_s, allow_zero=True)
         self.trigger_every = trigger or self.window
         self.uses_planner = self.policy in PLANNER_POLICIES
         self._alone = self._make_alone(self.policy) if not self.uses_planner else None
@@ -284,6 +288,7 @@ class KeyframeSelectorNode(SystemNode):
             tf_wait_s=camera.tf_wait_s,
             tf_cache_s=camera.tf_cache_s,
             tf_wait_frames=camera.tf_wait_frames,
+            subscribe=self.startup_wait_s == 0,  # else once the outputs are connected: _start_camera
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._unsent: collections.deque[PoseStamped] = collections.deque()  # named, not yet sent (_send_unsent)
@@ -294,6 +299,9 @@ class KeyframeSelectorNode(SystemNode):
         self.create_service(Trigger, "~/finish", self._on_finish, callback_group=planner)
         self.create_timer(0.05, self._check_request, callback_group=planner)
         self.create_timer(0.05, self._send_unsent, callback_group=inputs)
+        self._created_at = time.monotonic()
+        if not self.camera.subscribed:
+            self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
         if shared is None and "gaus-slam" in (self.policy, self.fallback):
@@ -311,6 +319,40 @@ class KeyframeSelectorNode(SystemNode):
             f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}; camera: "
             f"{describe_topics(self.camera.topics)}, {camera.reliability}"
         )
+
+    def outputs_missing(self) -> list[str]:
+        """What the selector's decisions would not reach yet: the keyframe topic's subscriber, the planner's service."""
+        missing = []
+        if self._pub.get_subscription_count() == 0:
+            missing.append(f"a subscriber on {self._pub.topic_name} (the mapper)")
+        if self.uses_planner and not self._client.service_is_ready():
+            missing.append(f"the planner's service {self.service_name}")
+        return missing
+
+    def _start_camera(self) -> None:
+        """Subscribe to the camera once the outputs are connected, or ``startup_wait_s`` after start-up.
+
+        In three processes the discovery of the mapper took 2.5-3 s longer in a third of the runs: the selector,
+        reading frames already, held its first keyframe that long and asked about its first windows a planner with
+        no map, and they went to the fallback. Subscribing only then, it makes the bag player (which waits for the
+        camera's subscribers) wait for the whole pipeline instead.
+        """
+        missing = self.outputs_missing()
+        waited = time.monotonic() - self._created_at
+        if missing and waited < self.startup_wait_s:
+            return
+        self._startup_timer.cancel()
+        if self.camera.subscribed:
+            return
+        if missing:
+            self.get_logger().warning(
+                f"no {' and no '.join(missing)} after {waited:.1f} s (startup_wait_s): reading the camera anyway "
+                "(keyframes are held until a subscriber matches; windows go to the fallback until the planner answers)"
+            )
+        else:
+            self.get_logger().info(f"keyframe subscriber{' and planner' if self.uses_planner else ''} found after "
+                                   f"{waited:.1f} s: reading the camera")  # fmt: skip
+        self.camera.subscribe()
 
     def _make_alone(self, name: str) -> KeyframePolicy:
         params: dict[str, Any] = {
@@ -727,6 +769,7 @@ class KeyframeSelectorNode(SystemNode):
         with self._lock:
             return {
                 "policy": self.policy,
+                "reading_camera": self.camera.subscribed,
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],
                 "frames_pending": cam["pending"],

@@ -263,17 +263,27 @@ def ros_parameter_rules(context: Context) -> list[tuple[str, str]]:
     return rules
 
 
-def params_file_sections(path: str | Path) -> list[tuple[str, str, dict[str, Any]]]:
+def params_file_sections(path: str | Path, strict: bool = False) -> list[tuple[str, str, dict[str, Any]]]:
     """The node sections of a params file as ``(label, pattern, parameters)``: the label as written (``mappr``,
-    ``ns/mapper``), the node pattern (``/mappr``, ``/**``), the parameters with nested names dotted; empty when the
-    file cannot be read.
+    ``/ns/mapper``), the node pattern (``/mappr``, ``/**``), the parameters with nested names dotted.
+
+    A file that is not a ROS params file (a YAML mapping of node names, or namespaces of them, to
+    ``ros__parameters`` mappings) gives what could be read (empty when nothing), or with ``strict`` an InputError
+    naming the file and the entry (rclpy's own error on a bad file names neither).
     """
     import yaml
 
+    where = Path(path)
     try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError, UnicodeDecodeError):
-        return []
+        data = yaml.safe_load(where.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
+        if not strict:
+            return []
+        if isinstance(exc, FileNotFoundError):
+            raise InputError(where, "params file not found") from None
+        raise InputError(where, f"not a readable YAML params file ({exc})") from None
+    if strict and (not isinstance(data, dict) or not data):
+        raise InputError(where, "a params file maps node names to {ros__parameters: {...}}")
 
     def flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -285,13 +295,18 @@ def params_file_sections(path: str | Path) -> list[tuple[str, str, dict[str, Any
 
     def walk(values: dict[Any, Any], label: str, pattern: str) -> None:
         for key, value in values.items():
-            if not isinstance(value, dict):
+            here, below = f"{label}/{key}" if label else str(key), f"{pattern}/{str(key).strip('/')}"
+            if isinstance(value, dict) and "ros__parameters" in value:
+                if isinstance(value["ros__parameters"], dict):
+                    sections.append((here, below, flat(value["ros__parameters"])))
+                    continue
+                if strict:
+                    raise InputError(where, f"{here!r}: 'ros__parameters' is not a mapping")
+            if not isinstance(value, dict) or not value:
+                if strict:
+                    raise InputError(where, f"{here!r}: needs a 'ros__parameters' mapping")
                 continue
-            here, below = f"{label}/{key}".lstrip("/"), f"{pattern}/{str(key).strip('/')}"
-            if isinstance(value.get("ros__parameters"), dict):
-                sections.append((here, below, flat(value["ros__parameters"])))
-            else:  # the nested form: a namespace, then the node
-                walk(value, here, below)
+            walk(value, here, below)  # the nested form: a namespace, then the node
 
     if isinstance(data, dict):
         walk(data, "", "")
