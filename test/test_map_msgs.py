@@ -158,3 +158,23 @@ def test_cloud_carries_the_training_fisher() -> None:
         cloud_h_train(surfel_map_to_cloud(m, 7, h_train=bad, fisher_outputs=("color",)))
     with pytest.raises(ValueError, match="rows"):
         surfel_map_to_cloud(m, 7, h_train={"means": torch.zeros(5, 3)}, fisher_outputs=("color",))
+
+
+def test_camera_info_of_the_nodes_and_of_the_bags_carry_the_same_intrinsics() -> None:
+    """The mapper's ``/roigsf/map_camera_info`` (an rclpy message) and the bags' camera info (a rosbags one) are built
+    from one set of fields; each reads back to the intrinsics it was made of, and the bag's survives a CDR round trip.
+    """
+    from roigsf_ros.core.camera import Intrinsics
+    from roigsf_ros.data.bags import CAMERA_INFO_TYPE, TYPESTORE, camera_info_msg, camera_info_to_intrinsics
+    from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info
+
+    intr = Intrinsics(width=160, height=120, fx=151.25, fy=149.5, cx=79.25, cy=60.75)
+    node_msg = intrinsics_to_camera_info(intr, 5, "map")
+    bag_msg = TYPESTORE.deserialize_cdr(TYPESTORE.serialize_cdr(camera_info_msg(5, intr), CAMERA_INFO_TYPE),
+                                        CAMERA_INFO_TYPE)  # fmt: skip
+    for msg in (node_msg, bag_msg):
+        assert camera_info_to_intrinsics(msg) == intr
+        assert (msg.width, msg.height, msg.distortion_model) == (160, 120, "plumb_bob")
+    for name in ("d", "k", "r", "p"):
+        assert np.array_equal(np.asarray(getattr(node_msg, name)), np.asarray(getattr(bag_msg, name))), name
+    assert np.asarray(node_msg.p).reshape(3, 4)[:, 3].tolist() == [0.0, 0.0, 0.0]

@@ -35,6 +35,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "assemble_images",
             "bag_info",
             "bag_topic_types",
+            "camera_info_fields",
             "camera_info_msg",
             "camera_info_to_intrinsics",
             "compressed_to_depth_m",

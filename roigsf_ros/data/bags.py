@@ -536,25 +536,30 @@ def depth_to_image_data(depth_m: np.ndarray, encoding: str) -> np.ndarray:
     raise InputError("depth_encoding", f"'{encoding}' is not one of {', '.join(DEPTH_ENCODINGS)}")
 
 
+def camera_info_fields(intr: Intrinsics) -> dict[str, Any]:
+    """The ``sensor_msgs/CameraInfo`` fields of pinhole intrinsics: the size, ``plumb_bob`` with no distortion, K,
+    R = I and P = [K | 0] (float64 arrays), for the bags' (rosbags) message class and the nodes' (rclpy) alike;
+    :func:`camera_info_to_intrinsics` reads them back.
+    """
+    p = np.zeros((3, 4))
+    p[:, :3] = intr.K
+    return {
+        "height": int(intr.height),
+        "width": int(intr.width),
+        "distortion_model": "plumb_bob",
+        "d": np.zeros(5),
+        "k": intr.K.reshape(-1),
+        "r": np.eye(3).reshape(-1),
+        "p": p.reshape(-1),
+    }
+
+
 def camera_info_msg(stamp_ns: int, intr: Intrinsics) -> Any:
     """A ``sensor_msgs/CameraInfo`` (rosbags type) of pinhole intrinsics, no distortion, in the optical frame."""
     t = TYPESTORE.types
-    k = intr.K.reshape(-1)
-    p = np.zeros((3, 4))
-    p[:, :3] = intr.K
     roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return t[CAMERA_INFO_TYPE](
-        header=header_msg(stamp_ns, CAMERA_FRAME_ID),
-        height=intr.height,
-        width=intr.width,
-        distortion_model="plumb_bob",
-        d=np.zeros(5),
-        k=k,
-        r=np.eye(3).reshape(-1),
-        p=p.reshape(-1),
-        binning_x=0,
-        binning_y=0,
-        roi=roi,
+        header=header_msg(stamp_ns, CAMERA_FRAME_ID), **camera_info_fields(intr), binning_x=0, binning_y=0, roi=roi
     )
 
 
@@ -1029,6 +1034,7 @@ __all__ = [
     "assemble_images",
     "bag_info",
     "bag_topic_types",
+    "camera_info_fields",
     "camera_info_msg",
     "camera_info_to_intrinsics",
     "compressed_to_depth_m",

@@ -61,7 +61,7 @@ def warm_up_mapping() -> tuple[Mapper, float]:
     """Map two keyframes of the tiny wall (densify, forward + backward, prune, the keyframes' Fisher): the mapping
     kernels compiled or loaded; the mapper and the seconds it took.
 
-    The mapper node runs this alone at start-up: a process's first 640x480 keyframe took 1.2 s against 0.6 s for
+    The mapper node runs this alone at start-up: a process's first 640x480 keyframe took 1.1 s against 0.5 s for
     the next (the kernels loading from the disk cache), and in three processes the planner's first map came late.
     """
     t0 = time.perf_counter()

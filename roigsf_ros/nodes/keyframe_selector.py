@@ -44,6 +44,13 @@ is asked about the window's frames only. A stream has no end a node could see, s
 input stops are decided when ``~/finish`` (``std_srvs/Trigger``) is called, as the library's ``finish`` decides them
 (``roigsf demo`` calls it when the bag ends); without lookahead it does nothing.
 
+In a process of its own the selector subscribes to the camera only once its keyframe topic has a subscriber (the
+mapper) and, with a planner policy, the planner's service is there, or ``startup_wait_s`` after start-up (then saying
+what is missing; 0 = at once; ``reading_camera`` in the status): a bag player that waits for its subscribers then
+waits for the whole pipeline. With the shared map (one process) it subscribes at once. In three processes the
+mapper's discovery came 2.5-3 s late in about a third of the runs, and the selector, reading frames already, held its
+first keyframe that long while its first windows went to the fallback.
+
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. Keyframes named before any subscriber matched the topic are held and sent, in order,
 ``MATCH_GRACE_S`` after one has (``keyframes_unsent`` in the status; a warning after 5 s without one): in three
@@ -288,7 +295,9 @@ class KeyframeSelectorNode(SystemNode):
             tf_wait_s=camera.tf_wait_s,
             tf_cache_s=camera.tf_cache_s,
             tf_wait_frames=camera.tf_wait_frames,
-            subscribe=self.startup_wait_s == 0,  # else once the outputs are connected: _start_camera
+            # In one process (the shared map) mapper and planner are there already, and a player waiting for one
+            # subscriber must find the mapper's and the selector's together; else once they are: _start_camera.
+            subscribe=self.startup_wait_s == 0 or shared is not None,
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._unsent: collections.deque[PoseStamped] = collections.deque()  # named, not yet sent (_send_unsent)
@@ -324,19 +333,13 @@ class KeyframeSelectorNode(SystemNode):
         """What the selector's decisions would not reach yet: the keyframe topic's subscriber, the planner's service."""
         missing = []
         if self._pub.get_subscription_count() == 0:
-            missing.append(f"a subscriber on {self._pub.topic_name} (the mapper)")
+            missing.append(f"subscriber on {self._pub.topic_name} (the mapper)")
         if self.uses_planner and not self._client.service_is_ready():
-            missing.append(f"the planner's service {self.service_name}")
+            missing.append(f"planner service {self.service_name}")
         return missing
 
     def _start_camera(self) -> None:
-        """Subscribe to the camera once the outputs are connected, or ``startup_wait_s`` after start-up.
-
-        In three processes the discovery of the mapper took 2.5-3 s longer in a third of the runs: the selector,
-        reading frames already, held its first keyframe that long and asked about its first windows a planner with
-        no map, and they went to the fallback. Subscribing only then, it makes the bag player (which waits for the
-        camera's subscribers) wait for the whole pipeline instead.
-        """
+        """Read the camera once the outputs are connected, or ``startup_wait_s`` after start-up (module docstring)."""
         missing = self.outputs_missing()
         waited = time.monotonic() - self._created_at
         if missing and waited < self.startup_wait_s:
@@ -346,7 +349,7 @@ class KeyframeSelectorNode(SystemNode):
             return
         if missing:
             self.get_logger().warning(
-                f"no {' and no '.join(missing)} after {waited:.1f} s (startup_wait_s): reading the camera anyway "
+                f"still no {' and no '.join(missing)} after {waited:.1f} s (startup_wait_s): reading the camera anyway "
                 "(keyframes are held until a subscriber matches; windows go to the fallback until the planner answers)"
             )
         else:

@@ -38,7 +38,7 @@ from visualization_msgs.msg import Marker
 
 from roigsf_ros.core.camera import Intrinsics, matrix_to_quat_xyzw
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import pose_to_matrix
+from roigsf_ros.data.bags import camera_info_fields, pose_to_matrix
 from roigsf_ros.render.surfels import SurfelMap
 
 MAP_FRAME_ID = "map"
@@ -80,14 +80,9 @@ def header(stamp_ns: int, frame_id: str = MAP_FRAME_ID) -> Header:
 
 
 def intrinsics_to_camera_info(intr: Intrinsics, stamp_ns: int, frame_id: str = MAP_FRAME_ID) -> CameraInfo:
-    """Pinhole intrinsics as a ``sensor_msgs/CameraInfo`` (K, P, no distortion; read by camera_info_to_intrinsics)."""
-    k = [intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0]
-    p = [intr.fx, 0.0, intr.cx, 0.0, 0.0, intr.fy, intr.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-    return CameraInfo(
-        header=header(stamp_ns, frame_id), width=int(intr.width), height=int(intr.height),
-        distortion_model="plumb_bob", d=[0.0] * 5, k=[float(v) for v in k],
-        r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], p=[float(v) for v in p],
-    )  # fmt: skip
+    """Pinhole intrinsics as a ``sensor_msgs/CameraInfo`` (:func:`~roigsf_ros.data.bags.camera_info_fields`)."""
+    fields = {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in camera_info_fields(intr).items()}
+    return CameraInfo(header=header(stamp_ns, frame_id), **fields)
 
 
 def _packed_rgb(colour01: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ Keyframe ids are the frames' header stamps in nanoseconds: unique across process
 
 At start-up (``warm_up``, default true), before it subscribes to anything, the node maps a tiny scene once
 (:func:`roigsf_ros.nbv.warmup.warm_up_once` with ``scoring=False``; nothing when an in-process planner warmed up
-already): a process's first 640x480 keyframe took 1.2 s against 0.6 s for the next while the kernels loaded, and a
+already): a process's first 640x480 keyframe took 1.1 s against 0.5 s for the next while the kernels loaded, and a
 planner in another process waited that long for its first map. With a warm cache it takes about half a second.
 
 Outputs: the map as ``sensor_msgs/PointCloud2`` (:mod:`~roigsf_ros.nodes.map_msgs` layout, transient
