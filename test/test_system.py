@@ -249,7 +249,7 @@ class Watcher:
             self.node.create_subscription(
                 String, f"/{name}/status", lambda msg, name=name: self._on_status(name, msg), 10
             )
-        self.node.create_subscription(PoseStamped, "/roigsf/keyframe", self._on_keyframe, 100)
+        self._keyframes = self.node.create_subscription(PoseStamped, "/roigsf/keyframe", self._on_keyframe, 100)
         self.node.create_subscription(PointCloud2, "/roigsf/map", self._on_map, latched_qos())
         self.node.create_subscription(Marker, "/mapper/mesh", self._on_mesh, latched_qos())
         self.executor = SingleThreadedExecutor(context=context)
@@ -274,6 +274,10 @@ class Watcher:
     def _on_mesh(self, msg: Any) -> None:
         with self._lock:
             self.mesh = msg
+
+    def sees_keyframes(self) -> bool:
+        """Whether this watcher's ``/roigsf/keyframe`` subscription has matched a publisher (the selector)."""
+        return self._keyframes.get_publisher_count() > 0
 
     def get(self, name: str) -> dict[str, Any]:
         """The latest status of node ``name`` ({} before the first)."""
@@ -405,6 +409,9 @@ def replay_once(
     ``at_once``: the player starts right after the nodes' processes, with its own defaults (it waits for one
     subscriber, then 0.5 s), as the README's command does; else once the nodes publish their status.
     """
+    # The watcher is no node of the system: the selector sends its first keyframes once the mapper matched, and
+    # a watcher discovered later missed them. It waits for its own match (not the nodes' readiness) first.
+    wait_until("the watcher to match the selector's keyframe topic", w.sees_keyframes, 60, ps)
     if at_once:
         player = ps.start("bag_player", {"bag": str(bag), "rate": float(rate), "progress_period_s": 0.0})
     else:
@@ -749,7 +756,8 @@ class TestFaultTolerance:
 
         ps = looping_system
         sel = lambda: watch.get("keyframe_selector")  # noqa: E731
-        wait_until("a selector status", lambda: bool(sel()), 30, ps)
+        # Frames held: the class's tests may run on another worker, this one first, right after the player started.
+        wait_until("frames at the selector", lambda: sel().get("frames", 0) >= 16, 60, ps)
         res = watch.call(Trigger, "/keyframe_selector/finish", Trigger.Request())
         assert res.success and res.message.startswith("decided among ") and "held frames" in res.message
         assert 0 < int(res.message.split()[2]) <= 16  # window + lookahead frames at most
