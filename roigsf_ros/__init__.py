@@ -1,7 +1,9 @@
 """roigsf_ros: active mapping with 2D Gaussian surfels (ROI-GSurFisher).
 
-The math lives in ROS-free modules (``camera``, ``replica``, ``scene``, ``bags``, ``render``,
-``mapping``, ``nbv``, ...); ``roigsf_ros.nodes`` holds the thin ROS 2 adapters.
+The math lives in ROS-free layers, each a subpackage (docs/architecture.md): ``core`` (``core.camera``, ``core.frame``,
+...), ``data`` (``data.replica``, ``data.scene``, ``data.bags``, ...), ``render``, ``evaluation``, ``mapping``, ``nbv``,
+``policies`` and ``experiments``; ``roigsf_ros.nodes`` holds the thin ROS 2 adapters, ``roigsf_ros.cli`` the ``roigsf``
+command.
 """
 
 import os

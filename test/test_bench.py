@@ -95,6 +95,50 @@ def test_bench_config_errors(scene: Path, tmp_path: Path) -> None:
         BenchConfig(scene=scene, setting="pool", policies=[PolicySpec("all")]).validate()
 
 
+def test_a_broken_ground_truth_mesh_is_refused_before_any_work(
+    scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--gt-mesh`` that is truncated, holds no triangle, is a point cloud or has a NaN vertex: ``roigsf map`` mapped
+    every frame and ``roigsf bench`` trained its first run before failing as "gt_mesh: ground-truth mesh has no
+    surface" (a NaN vertex passed); now refused first, naming the file, and no run starts."""
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box()
+    good = tmp_path / "good.ply"
+    o3d.io.write_triangle_mesh(str(good), box)
+    cloud = o3d.geometry.PointCloud(box.vertices)
+    nan_box = o3d.geometry.TriangleMesh(box)
+    nan_box.vertices[0] = [float("nan"), 0.0, 0.0]
+    broken = {"truncated.ply": good.read_bytes()[:-40], "text.ply": b"not a mesh\n"}
+    for name, data in broken.items():
+        (tmp_path / name).write_bytes(data)
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), cloud)
+    o3d.io.write_triangle_mesh(str(tmp_path / "nan.ply"), nan_box)
+    for name in ("truncated.ply", "text.ply", "cloud.ply", "nan.ply"):
+        mesh = tmp_path / name
+        for args in (["map", str(scene), "--policy", "every-n", "--out", str(tmp_path / "m")],
+                     ["bench", "--scene", str(scene), "--setting", "pool", "--policies", "random",
+                      "--out", str(tmp_path / "b")]):  # fmt: skip
+            assert main([*args, "--gt-mesh", str(mesh)]) == 2, name
+            err = capsys.readouterr().err
+            assert f"{mesh}: " in err and any(w in err for w in ("triangles", "non-finite", "truncated")), err
+    assert not (tmp_path / "m").exists() and not (tmp_path / "b").exists()
+
+
+def test_an_image_too_small_to_evaluate_is_refused_before_any_work(
+    scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf map --width 4`` mapped every frame, then failed in skimage's SSIM ("win_size exceeds image extent");
+    ``roigsf bench`` the same after its first run. Both now refuse a side under 11 px first, and write nothing."""
+    for args in (["map", str(scene), "--policy", "every-n", "--out", str(tmp_path / "m")],
+                 ["bench", "--scene", str(scene), "--setting", "pool", "--policies", "random", "--out",
+                  str(tmp_path / "b")]):  # fmt: skip
+        assert main([*args, "--width", "10"]) == 2
+        err = capsys.readouterr().err
+        assert "10x" in err and "at least 11 px a side" in err and "mapping:" not in err, err
+    assert not (tmp_path / "m").exists() and not (tmp_path / "b").exists()
+
+
 def test_cli_bad_input(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     base = ["bench", "--scene", str(scene), "--setting", "pool", "--out", str(tmp_path / "o")]
     for extra, msg in (

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -254,3 +255,42 @@ def test_office0_sample_is_readable(office0: Path) -> None:
     fr = seq.frame(3)
     assert fr.rgb.shape == (680, 1200, 3) and fr.depth_m.dtype == np.float32
     assert 0.1 < float(np.median(fr.depth_m)) < 10.0
+
+
+def test_intrinsics_no_camera_could_have_are_refused_where_they_are_made() -> None:
+    """A negative width built a Mapper and failed later as numpy's "negative dimensions"; a NaN focal length or a
+    width of 0 scored every view 0 ("no candidate sees any surface"). The library's Intrinsics now refuses them."""
+    good = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    for change, what in (
+        ({"width": -1}, "width and height"),
+        ({"height": 0}, "width and height"),
+        ({"width": 64.5}, "width and height"),
+        ({"fx": float("nan")}, "fx, fy and depth_scale"),
+        ({"fy": 0.0}, "fx, fy and depth_scale"),
+        ({"depth_scale": -1.0}, "fx, fy and depth_scale"),
+        ({"cx": float("inf")}, "cx and cy"),
+    ):
+        with pytest.raises(InputError, match=rf"^intrinsics: {what}"):
+            replace(good, **change)
+    assert replace(good, cx=-3.0).cx == -3.0  # a principal point outside the image is a camera (a crop)
+
+
+def test_a_frame_missing_between_others_is_named_and_a_flat_folder_is_read(
+    seq_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One missing ``frame000001.jpg`` of three was reported as ``traj.txt: has 3 poses but results/ holds 2
+    frames ... --allow-partial``, and following that advice mapped the others without a word about it. A partial
+    download stops early, a gap is a frame lost: named (an error; with allow_partial a warning). A flat folder
+    (images beside traj.txt and cam_params.json, no results/) was read with its parent as the sequence root."""
+    flat = tmp_path / "flat"
+    shutil.copytree(seq_dir / "results", flat)
+    for name in ("traj.txt", "cam_params.json"):
+        shutil.copy(seq_dir / name, flat / name)
+    assert len(ReplicaSequence(flat)) == 3 and ReplicaSequence(flat).root == flat
+    (seq_dir / "results" / "frame000001.jpg").unlink()
+    (seq_dir / "results" / "depth000001.png").unlink()
+    with pytest.raises(InputError, match=r"results: 1 frame\(s\) missing between frame 0 and frame 2: frame000001"):
+        ReplicaSequence(seq_dir)
+    with caplog.at_level(logging.WARNING):  # left out on purpose: read, with a word about it
+        assert ReplicaSequence(seq_dir, allow_partial=True).indices == [0, 2]
+    assert "1 frame(s) missing between frame 0 and frame 2: frame000001.jpg" in caplog.text

@@ -368,3 +368,16 @@ def test_image_sizes_beyond_8192_px_a_side_are_refused_up_front(
         assert f"error: {option}: image size {size} is above 8192 px a side" in err and err.count("\n") == 1, err
     assert not any(tmp_path.glob("[rsm]"))
     assert derive_size(8192, None, (640, 480)) == (8192, 6144)  # the limit itself is allowed
+
+
+def test_options_are_taken_only_as_spelt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """argparse took any unique prefix of an option: ``roigsf map --cam FILE`` (``--cam`` is an option of ``bag`` and
+    ``scene render``, not of ``map``) was read as ``--camera-info-topic`` and silently ignored for a scene folder."""
+    scene, o, b = str(tmp_path), str(tmp_path / "o"), str(tmp_path / "b")
+    for bad, args in (("--cam", ["map", scene, "--cam", "cam.json", "--out", o]),
+                      ("--polic", ["bench", "--scene", scene, "--polic", "random", "--out", b])):  # fmt: skip
+        with pytest.raises(SystemExit) as exc:
+            main(args)
+        assert exc.value.code == 2
+        assert f"unrecognized arguments: {bad}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "b").exists()

@@ -372,3 +372,22 @@ def test_a_policy_against_itself_is_refused(tmp_path: Path, capsys: pytest.Captu
     assert main(["targets", str(ref), "--against", str(ref)]) == 2
     assert "is the candidate itself ('gaus-slam' of" in capsys.readouterr().err
     assert main(["targets", f"{folder}#variant", "--against", f"{folder}#random"]) == 0  # another label: compared
+
+
+def test_the_scene_is_compared_by_its_resolved_path_where_both_benches_have_it(tmp_path: Path) -> None:
+    """One scene given as ``office0`` from one folder and as its absolute path from another was refused as "not the
+    same benchmark", and two scenes both given as ``office0`` from different folders were compared. Where both
+    results.json carry ``scene_resolved`` (written since session 57), that decides; older ones compare ``scene``."""
+    one = {"v": FOURTH_ROOM["variant"]}
+    fisherrf = {"fisherrf": FOURTH_ROOM["fisherrf"]}
+    here = "/data/runs/synth_room3_240"
+    cand = load_policy(bench(tmp_path / "cand", "pool", one, scene="synth_room3_240", scene_resolved=here))
+    same = load_policy(bench(tmp_path / "same", "pool", fisherrf, scene=here, scene_resolved=here))
+    assert pool_target(cand, [same]).differences == {}
+    elsewhere = "/other/synth_room3_240"
+    other = load_policy(bench(tmp_path / "other", "pool", fisherrf, scene="synth_room3_240", scene_resolved=elsewhere))
+    with pytest.raises(InputError, match=r"other/results.json: field 'scene_resolved' is '/other/synth_room3_240'"):
+        pool_target(cand, [other])
+    old = load_policy(bench(tmp_path / "old", "pool", fisherrf, scene=here))  # no scene_resolved: compares 'scene'
+    with pytest.raises(InputError, match=r"old/results.json: field 'scene'"):
+        pool_target(cand, [old])

@@ -134,7 +134,19 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in _COMMAND_MODULES:
         importlib.import_module(f"roigsf_ros.cli.{name}").register(sub)
+    _no_abbreviations(parser)
     return parser
+
+
+def _no_abbreviations(parser: argparse.ArgumentParser) -> None:
+    """Options only as spelt, in every subcommand: argparse's default takes a unique prefix, and ``roigsf map --cam``
+    (an option of other commands) was read as ``--camera-info-topic`` and ignored for a scene folder.
+    """
+    parser.allow_abbrev = False
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                _no_abbreviations(child)
 
 
 class _Interrupted(KeyboardInterrupt):

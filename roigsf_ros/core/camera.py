@@ -31,6 +31,20 @@ class Intrinsics:
     cy: float
     depth_scale: float = REPLICA_DEPTH_SCALE
 
+    def __post_init__(self) -> None:
+        """Refuse what no image has: a size below 1 px, a focal length that is not a positive number, a NaN centre
+        (a negative width failed later as numpy's "negative dimensions", a NaN focal length scored every view 0).
+        """
+        if not all(isinstance(v, int | np.integer) and v >= 1 for v in (self.width, self.height)):
+            raise InputError(
+                "intrinsics", f"width and height must be whole numbers >= 1, got {self.width}x{self.height}"
+            )
+        if not all(np.isfinite(v) and v > 0 for v in (self.fx, self.fy, self.depth_scale)):
+            raise InputError("intrinsics", f"fx, fy and depth_scale must be finite and > 0, got fx={self.fx}, "
+                             f"fy={self.fy}, depth_scale={self.depth_scale}")  # fmt: skip
+        if not all(np.isfinite(v) for v in (self.cx, self.cy)):
+            raise InputError("intrinsics", f"cx and cy must be finite, got cx={self.cx}, cy={self.cy}")
+
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the conventional name
         """The 3x3 calibration matrix."""
@@ -131,12 +145,10 @@ def load_cam_params(path: str | Path) -> Intrinsics:
             cy=float(cam["cy"]),
             depth_scale=float(cam.get("scale", REPLICA_DEPTH_SCALE)),
         )
+    except InputError as exc:  # a number, but no camera's (Intrinsics checks them)
+        raise InputError(path, f"invalid camera parameters {cam}: {exc.problem}") from None
     except (TypeError, ValueError) as exc:
         raise InputError(path, f"camera field is not a number: {exc}") from None
-    values = np.array([intr.fx, intr.fy, intr.cx, intr.cy, intr.depth_scale])
-    positive = min(intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale) > 0
-    if not positive or not np.all(np.isfinite(values)):
-        raise InputError(path, f"invalid camera parameters {cam}")
     return intr
 
 

@@ -81,14 +81,18 @@ def deferred_interrupts() -> Iterator[None]:
             signal.raise_signal(sig)
 
 
-def check_writable(out: str | Path) -> None:
+def check_writable(out: str | Path, file: bool = False) -> None:
     """Fail before any work if ``out`` cannot be created: its parent is read-only, not writable or not a folder.
 
     Outputs are written beside their final name and renamed (:func:`atomic_dir`, :func:`atomic_path`), so the test
     is to create and remove a temporary file in the parent (or the nearest existing ancestor, as missing parents
     are created); a run would otherwise fail only at its end, and a path under a regular file with a bare
-    ``[Errno 17] File exists``. The one check of the command line and of the mapper's ``~/save_map``.
+    ``[Errno 17] File exists``. The one check of the command line and of the mapper's ``~/save_map``. With ``file``
+    (the caller writes one file, such as ``--out FILE.json``) an existing folder at ``out`` is refused too, as
+    :func:`atomic_path` would refuse it only after the work.
     """
+    if file and Path(out).is_dir():
+        raise InputError(out, "is a folder; give a file name")
     folder = Path(os.path.abspath(out)).parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
@@ -112,19 +116,35 @@ def _remove(path: Path) -> None:
 
 @contextlib.contextmanager
 def atomic_path(final: str | Path) -> Iterator[Path]:
-    """Yield a temporary file path beside ``final``; ``os.replace`` it onto ``final`` on success."""
+    """Yield a temporary file path beside ``final``; ``os.replace`` it onto ``final`` on success.
+
+    The temporary file is removed whatever fails, the rename included; an existing folder at ``final`` (which the
+    rename cannot replace) or a regular file where a parent folder should be is an ``InputError`` naming it, raised
+    before the temporary file is made.
+    """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
+    if final.is_dir():
+        raise InputError(final, "is a folder; give a file name")
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = final.parent
+        while not blocker.exists() and blocker != blocker.parent:
+            blocker = blocker.parent
+        raise InputError(blocker, f"is not a folder, so the output {final} cannot be created there") from None
     fd, name = tempfile.mkstemp(prefix=f".{final.stem}.tmp-", suffix=final.suffix, dir=final.parent)
     os.close(fd)
     tmp = Path(name)
-    tmp.chmod(0o666 & ~_umask())  # mkstemp makes 0600
     try:
+        tmp.chmod(0o666 & ~_umask())  # mkstemp makes 0600
         yield tmp
+        try:
+            os.replace(tmp, final)
+        except IsADirectoryError:  # a folder made there meanwhile
+            raise InputError(final, "is a folder; give a file name") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    os.replace(tmp, final)
 
 
 def write_json(path: str | Path, data: Any) -> None:

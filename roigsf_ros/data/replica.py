@@ -14,6 +14,7 @@ Layout (``DIR`` is one scene, e.g. ``Replica/office0``)::
 
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -24,6 +25,8 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics, load_cam_params, load_pose, save_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
+
+_LOG = logging.getLogger(__name__)
 
 _FRAME_RE = re.compile(r"^frame(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
 MAX_DEPTH_M = 65535 / 6553.5
@@ -145,8 +148,9 @@ class ReplicaSequence:
             raise InputError(root, "scene folder not found")
         if (root / "results").is_dir():
             self.root, self.results = root, root / "results"
-        elif any(_FRAME_RE.match(p.name) for p in root.iterdir()):
-            self.root, self.results = root.parent, root
+        elif any(_FRAME_RE.match(p.name) for p in root.iterdir()):  # results/ itself, or a flat folder
+            self.root = root if (root / "traj.txt").is_file() else root.parent
+            self.results = root
         else:
             raise InputError(root, "no 'results/' folder with frameNNNNNN.jpg files (NICE-SLAM Replica layout)")
 
@@ -184,6 +188,14 @@ class ReplicaSequence:
                 traj_path,
                 f"has {len(all_poses)} poses but results/ holds frame number {self.indices[-1]}",
             )
+        gaps = sorted(set(range(self.indices[-1])) - set(self.indices))  # frames missing between those on disk
+        if gaps:  # a partial download stops early: a gap is a frame lost (or left out on purpose), named
+            shown = ", ".join(f"frame{i:0{digits}d}.jpg" for i in gaps[:5]) + (" ..." if len(gaps) > 5 else "")
+            why = f"{len(gaps)} frame(s) missing between frame 0 and frame {self.indices[-1]}: {shown}"
+            if not allow_partial:
+                raise InputError(self.results, f"{why} (frames left out on purpose need allow_partial=True, on the "
+                                 "command line --allow-partial)")  # fmt: skip
+            _LOG.warning("%s: %s; read without them (allow_partial)", self.results, why)
         if len(all_poses) != len(self.indices) and not allow_partial:
             raise InputError(
                 traj_path,

@@ -52,6 +52,23 @@ an integer-centre reader. Synthetic sequences use 0 so that their ``cam_params.j
 # --------------------------------------------------------------------------------------------
 
 
+def _ply_element_counts(path: Path) -> dict[str, int]:
+    """The element counts (``vertex``, ``face``, ...) a PLY file's header declares; empty for another format.
+
+    Open3D reads a truncated PLY up to the break and only prints a warning: the counts tell a part from the whole.
+    """
+    with path.open("rb") as f:
+        head = f.read(65536)
+    if not head.startswith(b"ply"):
+        return {}
+    counts: dict[str, int] = {}
+    for line in head.split(b"end_header", 1)[0].splitlines():
+        words = line.split()
+        if len(words) == 3 and words[0] == b"element" and words[2].isdigit():
+            counts[words[1].decode("ascii", "replace")] = int(words[2])
+    return counts
+
+
 def load_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
     """Read a triangle mesh (PLY/OBJ/...); InputError naming the file if missing, unreadable or empty."""
     path = Path(path)
@@ -63,6 +80,12 @@ def load_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
         raise InputError(path, f"cannot read mesh: {exc}") from None
     if len(mesh.triangles) == 0:
         raise InputError(path, "mesh has no triangles (unreadable or not a triangle mesh)")
+    declared = _ply_element_counts(path)
+    read = {"vertex": len(mesh.vertices), "face": len(mesh.triangles)}  # a quad face reads as two triangles
+    for element, count in read.items():
+        if count < declared.get(element, 0):
+            raise InputError(path, f"truncated or corrupt: {count} of the {declared[element]} {element} elements "
+                             "its header declares were read")  # fmt: skip
     vertices = np.asarray(mesh.vertices)
     if not np.all(np.isfinite(vertices)):
         raise InputError(path, "mesh has non-finite vertex coordinates")

@@ -7,11 +7,14 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "metrics": [
             "COMPLETION_RATIO_TAU_M",
+            "MIN_EVAL_SIDE",
             "MeshLike",
             "RenderMetrics",
             "RenderRGBDepth",
             "as_legacy_mesh",
             "ause",
+            "check_eval_size",
+            "check_gt_mesh",
             "colorize_depth",
             "depth_l1",
             "gt_visible_mask",

@@ -28,7 +28,7 @@ from skimage.metrics import structural_similarity
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path
-from roigsf_ros.data.scene import camera_rays
+from roigsf_ros.data.scene import camera_rays, load_mesh
 
 o3c = o3d.core
 
@@ -91,6 +91,19 @@ def _psnr_of_mse(mse: float) -> float:
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
+MIN_EVAL_SIDE = 11
+"""Smallest image side (px) of a sequence that is mapped and evaluated: SSIM's 11x11 Gaussian window."""
+
+
+def check_eval_size(intr: Intrinsics, where: str = "image size") -> None:
+    """InputError before any work when ``intr``'s image is too small to evaluate (``roigsf map --width 4`` mapped every
+    frame, then failed in skimage's SSIM).
+    """
+    if min(intr.width, intr.height) < MIN_EVAL_SIDE:
+        raise InputError(where, f"{intr.width}x{intr.height} px: evaluating a map needs at least {MIN_EVAL_SIDE} px a "
+                         "side (SSIM's 11x11 window); give a larger --width/--height")  # fmt: skip
+
+
 def ssim(pred_rgb: Any, gt_rgb: Any) -> float:
     """Structural similarity of two colour images, the standard setting of Wang et al. (2004).
 
@@ -144,10 +157,17 @@ def as_legacy_mesh(mesh: MeshLike, where: str = "mesh") -> o3d.geometry.Triangle
     if isinstance(mesh, o3d.t.geometry.TriangleMesh):
         return mesh.to_legacy()
     if isinstance(mesh, str | Path):
-        if not Path(mesh).is_file():
-            raise InputError(mesh, "mesh file not found")
-        return o3d.io.read_triangle_mesh(str(mesh))
+        return load_mesh(mesh)  # refused, naming the file: missing, unreadable, no triangles, non-finite vertices
     raise InputError(where, f"expected an open3d TriangleMesh or a path, got {type(mesh).__name__}")
+
+
+def check_gt_mesh(path: str | Path) -> None:
+    """InputError naming ``path`` unless it is a readable triangle mesh with finite vertices: checked before a run
+    (a truncated or empty PLY was refused only when the run's last frame was evaluated, as ``gt_mesh``).
+    """
+    if not Path(path).is_file():
+        raise InputError(path, "ground-truth mesh not found")
+    load_mesh(path)
 
 
 def _triangles(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -573,11 +593,14 @@ def render_metrics(
 
 __all__ = [
     "COMPLETION_RATIO_TAU_M",
+    "MIN_EVAL_SIDE",
     "MeshLike",
     "RenderMetrics",
     "RenderRGBDepth",
     "as_legacy_mesh",
     "ause",
+    "check_eval_size",
+    "check_gt_mesh",
     "colorize_depth",
     "depth_l1",
     "gt_visible_mask",

@@ -306,8 +306,8 @@ class BenchConfig(Config):
                 raise InputError("--policies", f"stream-only rule(s) {', '.join(bad)} in the pool setting")
         if not Path(self.scene).exists():
             raise InputError(self.scene, "no such bag or scene folder")
-        if self.gt_mesh is not None and not Path(self.gt_mesh).is_file():
-            raise InputError(self.gt_mesh, "ground-truth mesh not found")
+        if self.gt_mesh is not None:
+            evaluation.check_gt_mesh(self.gt_mesh)
         for name in ("eval_every", "stride"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"--{name.replace('_', '-')}", f"must be at least 1, got {getattr(self, name)}")
@@ -455,7 +455,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     cfg.validate()
     out = Path(out_dir)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
+        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it; on the command line --overwrite)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     source = cfg.source()

@@ -146,12 +146,15 @@ def run_offline(
     if test_source is not None and test_source.intrinsics != source.intrinsics:
         raise InputError(getattr(test_source, "path", "test_source"), "its camera differs from the mapped sequence's")
     ev = eval_config or EvalConfig()
+    evaluation.check_eval_size(source.intrinsics)
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
-    if gt_path is not None and not gt_path.is_file():
-        raise InputError(gt_path, "ground-truth mesh not found")
+    if gt_path is not None:
+        evaluation.check_gt_mesh(gt_path)
     out_final = Path(out_dir)
     if out_final.exists() and not overwrite:
-        raise FileExistsError(f"{out_final}: already exists (pass --overwrite to replace it)")
+        raise FileExistsError(
+            f"{out_final}: already exists (overwrite=True replaces it; on the command line --overwrite)"
+        )
     cfg = config or MapperConfig()
     mapper = Mapper(source.intrinsics, cfg)
     policy.reset()

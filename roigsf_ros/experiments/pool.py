@@ -290,11 +290,14 @@ def run_pool(
     metrics then name it by its ``name`` attribute); ``config.seed`` still seeds the mapper.
     """
     t_start = time.perf_counter()
+    evaluation.check_eval_size(source.intrinsics)
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
-    if gt_path is not None and not gt_path.is_file():
-        raise InputError(gt_path, "ground-truth mesh not found")
+    if gt_path is not None:
+        evaluation.check_gt_mesh(gt_path)
     if out_dir is not None and Path(out_dir).exists() and not overwrite:
-        raise FileExistsError(f"{out_dir}: already exists (pass --overwrite to replace it)")
+        raise FileExistsError(
+            f"{out_dir}: already exists (overwrite=True replaces it; on the command line --overwrite)"
+        )
     mcfg = replace(mapper_config or MapperConfig(), seed=config.seed)
     policy_name = config.policy if policy is None else str(getattr(policy, "name", type(policy).__name__))
     if policy is None:

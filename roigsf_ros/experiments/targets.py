@@ -280,6 +280,8 @@ def check_comparable(
     """
     path = other.source / "results.json"
     for key in MUST_MATCH:
+        if key == "scene" and candidate.bench.get("scene_resolved") and other.bench.get("scene_resolved"):
+            key = "scene_resolved"  # the same scene given from two folders, or two scenes of one relative name
         if candidate.bench.get(key) != other.bench.get(key):
             raise InputError(
                 path,

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import check_writable
 
 
 def check_options(args: argparse.Namespace, least: dict[str, int], positive: tuple[str, ...] = ()) -> None:
@@ -25,4 +27,12 @@ def check_options(args: argparse.Namespace, least: dict[str, int], positive: tup
             raise InputError(f"--{name.replace('_', '-')}", f"must be a finite number > 0, got {value}")
 
 
-__all__ = ["check_options"]
+def check_out_file(out: str | Path | None) -> None:
+    """Refuse ``--out FILE.json`` before any work: an existing folder, a path under a regular file or an unwritable
+    folder would otherwise fail only when the results are written, after the whole benchmark.
+    """
+    if out is not None:
+        check_writable(out, file=True)
+
+
+__all__ = ["check_options", "check_out_file"]

@@ -3,7 +3,8 @@
 Conversion runs on a synthetic Replica folder made in a temporary folder (deterministic noise colour,
 smooth depth, rigid poses) at 1200x680 (native) and 240x136 (resized on load). The player is timed
 in-process: a bag of small frames recorded at 10 Hz played at rate 1.0 and as fast as possible, with
-a subscriber on a fresh rclpy context on its own ROS domain. Every number is a median over repeats.
+a subscriber on a fresh rclpy context on the ROS domain of ``--domain-id`` (default ``ROS_DOMAIN_ID``, else a random
+one; discovery on localhost). Every number is a median over repeats.
 """
 
 from __future__ import annotations
@@ -22,26 +23,59 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagReader, CameraTopics, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, write_replica
-from roigsf_ros.perf import check_options
+from roigsf_ros.perf import check_options, check_out_file
 
 NATIVE_SIZE = (1200, 680)
 SMALL_SIZE = (240, 136)
 PLAYER_RATE_HZ = 10.0
+MAX_DOMAIN_ID = 232
+"""The largest ROS 2 domain id (on Linux; 0..101 are the portable ones)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``roigsf perf io``."""
     parser.add_argument("--out", type=Path, metavar="FILE.json", help="also write the results as JSON here")
-    parser.add_argument("--frames", type=int, default=20, metavar="N", help="frames converted per run (default 20)")
     parser.add_argument(
-        "--messages", type=int, default=30, metavar="M", help="frames in the 10 Hz player bag (default 30, 4 msgs each)"
+        "--frames", type=int, default=20, metavar="N", help="frames converted per run (default 20, at least 2)"
     )
-    parser.add_argument("--repeats", type=int, default=3, metavar="R", help="repeats; medians reported (default 3)")
+    parser.add_argument(
+        "--messages", type=int, default=30, metavar="M",
+        help="frames in the 10 Hz player bag (default 30, at least 2; 4 msgs each)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--repeats", type=int, default=3, metavar="R", help="repeats; medians reported (default 3, at least 1)"
+    )
     parser.add_argument("--skip-player", action="store_true", help="skip the ROS player timing (no rclpy needed)")
+    parser.add_argument(
+        "--domain-id", type=int, default=None, metavar="N",
+        help="ROS domain id of the player timing (default: ROS_DOMAIN_ID, else a random one of 1..99); discovery "
+        "stays on localhost",
+    )  # fmt: skip
+
+
+def choose_domain_id(given: int | None, environ: dict[str, str] | None = None) -> int:
+    """The player timing's ROS domain id: ``--domain-id``, else ``ROS_DOMAIN_ID``, else a random one of 1..99 (so two
+    runs on one machine rarely hear each other); an id out of 0..232 is an InputError naming where it came from.
+    """
+    env = os.environ if environ is None else environ
+    if given is not None:
+        where, value = "--domain-id", given
+    elif env.get("ROS_DOMAIN_ID", "").strip():
+        where = "ROS_DOMAIN_ID"
+        try:
+            value = int(env["ROS_DOMAIN_ID"])
+        except ValueError:
+            raise InputError(where, f"not an integer: {env['ROS_DOMAIN_ID']!r}") from None
+    else:
+        return random.SystemRandom().randrange(1, 100)
+    if not 0 <= value <= MAX_DOMAIN_ID:
+        raise InputError(where, f"must be a ROS domain id in 0..{MAX_DOMAIN_ID}, got {value}")
+    return value
 
 
 def synthetic_frames(intr: Intrinsics, n_frames: int, seed: int = 0) -> Iterator[Frame]:
@@ -163,10 +197,11 @@ def _play_and_listen(bag: Path, rate: float, domain_id: int) -> dict[str, Any]:
     return {"arrivals": arrivals, "expected": expected, "lost": expected - received, "summary": summary}
 
 
-def bench_player(root: Path, n_frames: int, repeats: int) -> dict[str, Any]:
-    """Inter-arrival error and achieved rate of bag_player at rate 1.0 (10 Hz bag) and unthrottled."""
+def bench_player(root: Path, n_frames: int, repeats: int, domain_id: int) -> dict[str, Any]:
+    """Inter-arrival error and achieved rate of bag_player at rate 1.0 (10 Hz bag) and unthrottled, on ``domain_id``
+    (:func:`choose_domain_id`).
+    """
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    domain_id = random.SystemRandom().randrange(1, 100)
     scene = root / "player_replica"
     make_synthetic_replica(scene, 32, 24, n_frames, seed=1)
     bag = root / "player_bag"
@@ -218,11 +253,13 @@ def format_table(results: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run the I/O benchmarks, print a table, and write JSON if asked."""
     check_options(args, {"frames": 2, "messages": 2, "repeats": 1})
+    check_out_file(args.out)
+    domain_id = None if args.skip_player else choose_domain_id(args.domain_id)
     results: dict[str, Any] = {"benchmark": "io", "repeats": args.repeats}
     with tempfile.TemporaryDirectory(prefix="roigsf_perf_io_") as tmp:
         results["conversion"] = bench_conversion(Path(tmp), args.frames, args.repeats)
-        if not args.skip_player:
-            results["player"] = bench_player(Path(tmp), args.messages, args.repeats)
+        if domain_id is not None:
+            results["player"] = bench_player(Path(tmp), args.messages, args.repeats, domain_id)
     print(format_table(results))
     if args.out is not None:
         write_json(args.out, results)

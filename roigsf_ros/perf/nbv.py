@@ -57,7 +57,7 @@ from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
-from roigsf_ros.perf import check_options
+from roigsf_ros.perf import check_options, check_out_file
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -85,6 +85,10 @@ REQUEST_VARIANTS: dict[str, dict[str, Any]] = {
 }
 """The planner requests timed by keyframe count: the paper's score, the recommended variant (F3) rendering its grid at
 every request, and F3 with the grid kept between requests."""
+MIN_WIDTH, MIN_HEIGHT = 8, 6
+"""The smallest image the benchmark takes: Open3D's TSDF fusion samples the depth sparsely and stops when it finds no
+surface: at 4x3 and smaller with the default surfels, and with tens of surfels at sizes under 8x6 more often than at
+8x6 and over; a handful of surfels can fail at any size (:func:`build_state` then names ``--surfels``)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,8 +97,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, metavar="N", help="timed repeats; medians (default 5)")
     parser.add_argument("--threads", type=int, default=2, metavar="T", help="numba and torch threads (default 2)")
     parser.add_argument("--surfels", type=int, default=20_000, metavar="N", help="surfels in the room (default 20000)")
-    parser.add_argument("--width", type=int, default=160, metavar="W", help="image width (default 160)")
-    parser.add_argument("--height", type=int, default=120, metavar="H", help="image height (default 120)")
+    parser.add_argument(
+        "--width", type=int, default=160, metavar="W", help=f"image width (default 160, at least {MIN_WIDTH})"
+    )
+    parser.add_argument(
+        "--height", type=int, default=120, metavar="H", help=f"image height (default 120, at least {MIN_HEIGHT})"
+    )
     parser.add_argument("--candidates", type=int, default=50, metavar="M", help="candidates per score() (default 50)")
     parser.add_argument(
         "--voxel-size", type=float, default=0.02, metavar="M", help="TSDF voxel size in metres (default 0.02)"
@@ -175,7 +183,16 @@ def build_state(
     tsdf = TSDFVolume(voxel_size_m=voxel_size_m, sdf_trunc_m=max(4 * voxel_size_m, 0.08))
     for T in train:
         depth, rgb = map_rgbd(m, T, intr)
-        tsdf.integrate(depth, T, intr, rgb)
+        try:
+            tsdf.integrate(depth, T, intr, rgb)
+        except RuntimeError as exc:  # Open3D: "No block is touched in TSDF volume": too few pixels saw a surface
+            if "No block is touched" not in str(exc):
+                raise
+            raise InputError(
+                "--surfels",
+                f"the training views at {width}x{height} with {n_surfels} surfels saw too little surface to fuse a "
+                "TSDF; give more --surfels or a larger --width/--height",
+            ) from None
     h = {mode: scorer.train_fisher(m, train, intr, mode) for mode in MODES}
     return State(m, intr, train, tsdf, h, room_candidates(n_candidates), view)
 
@@ -345,9 +362,13 @@ def _keyframe_counts(text: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     """Build the state, time every (mode, fisher_downsample), print a table, optionally write JSON."""
-    least = dict.fromkeys(("repeats", "threads", "surfels", "width", "height", "candidates"), 1)
+    least = dict.fromkeys(("repeats", "threads", "surfels", "candidates"), 1) | {
+        "width": MIN_WIDTH,
+        "height": MIN_HEIGHT,
+    }
     check_options(args, least, positive=("voxel_size",))
     keyframe_counts = _keyframe_counts(args.keyframes)
+    check_out_file(args.out)
     torch.set_num_threads(args.threads)
     backend = "torch"
     if numba_available():

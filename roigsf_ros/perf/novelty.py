@@ -49,15 +49,22 @@ from roigsf_ros.nbv.novelty import (
     frame_points,
     lookahead_new_voxels_plain,
 )
-from roigsf_ros.perf import check_options
+from roigsf_ros.perf import check_options, check_out_file
 from roigsf_ros.policies.stream import RECOMMENDED_STREAM
 
 DEFAULT_BAG = Path("bags/synth_room")
+"""The shipped bag, relative to the repository root, where the README's commands run."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``roigsf perf novelty``."""
-    parser.add_argument("--bag", type=Path, default=DEFAULT_BAG, metavar="BAG", help=f"frames (default {DEFAULT_BAG})")
+    parser.add_argument(
+        "--bag",
+        type=Path,
+        default=DEFAULT_BAG,
+        metavar="BAG",
+        help=f"frames (default {DEFAULT_BAG}, the shipped bag, from the repository root)",
+    )
     parser.add_argument("--out", type=Path, metavar="FILE.json", help="also write the results as JSON here")
     parser.add_argument("--repeats", type=int, default=3, metavar="R", help="timed repeats per window (default 3)")
     window, lookahead = int(RECOMMENDED_STREAM["window"]), int(RECOMMENDED_STREAM["lookahead"])
@@ -154,9 +161,13 @@ def run_windows(
 def run(args: argparse.Namespace) -> int:
     """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
     check_options(args, {"repeats": 1, "window": 1, "lookahead": 0, "hash_capacity": 1, "hash_chunk_rows": 1})
-    bag_frames, _ = read_bag_frames(args.bag)
+    check_out_file(args.out)
+    bag = args.bag
+    if bag == DEFAULT_BAG and not bag.exists():
+        raise InputError(bag, "the shipped bag is not here: run from the repository root, or give --bag")
+    bag_frames, _ = read_bag_frames(bag)
     if not bag_frames:
-        raise InputError(args.bag, "no complete frame in the bag")
+        raise InputError(bag, "no complete frame in the bag")
     frames = [Frame(i, f.rgb, f.depth_m, f.T_wc) for i, f in enumerate(bag_frames)]
     surface = ObservedSurface(hash_capacity=args.hash_capacity, hash_chunk_rows=args.hash_chunk_rows)
     rows = run_windows(frames, bag_frames[0].intrinsics, args.window, args.lookahead, args.repeats, surface)
@@ -173,10 +184,10 @@ def run(args: argparse.Namespace) -> int:
         "max_stall_s": max(r["stall_s"] for r in rows),
         "all_equal": all(r["equal"] for r in rows),
     }
-    result = {"bag": str(args.bag), "window": args.window, "lookahead": args.lookahead, "repeats": args.repeats,
+    result = {"bag": str(bag), "window": args.window, "lookahead": args.lookahead, "repeats": args.repeats,
               "hash_capacity": args.hash_capacity, "hash_chunk_rows": args.hash_chunk_rows,
               "machine": platform.processor() or platform.machine(), "windows": rows, "summary": summary}  # fmt: skip
-    print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({args.bag})")
+    print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({bag})")
     print(f"  {'':22s}{'median (s)':>12s}{'largest (s)':>13s}")
     print(f"  {'fast (the selector)':22s}{summary['fast_median_s']:12.3f}{summary['fast_max_s']:13.3f}")
     print(f"  {'plain (k-d trees)':22s}{summary['plain_median_s']:12.3f}{summary['plain_max_s']:13.3f}")

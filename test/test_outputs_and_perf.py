@@ -1,0 +1,181 @@
+"""Single-file outputs and ``roigsf perf``: a folder or a path under a file is refused before any work, no temporary
+file is left behind, the player's ROS domain follows ``--domain-id`` / ``ROS_DOMAIN_ID``, the novelty benchmark says
+where its default bag is, and ``perf nbv`` refuses images too small to fuse a TSDF."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roigsf_ros.cli import main
+from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import atomic_path, check_writable, write_json
+
+# The work each benchmark does first, once its options are checked: replaced here by a function that fails the test.
+FIRST_WORK = {
+    "render": ("roigsf_ros.perf.render", "bench_case"),
+    "nbv": ("roigsf_ros.perf.nbv", "build_state"),
+    "novelty": ("roigsf_ros.perf.novelty", "read_bag_frames"),
+    "io": ("roigsf_ros.perf.io", "bench_conversion"),
+}
+
+
+def _no_work(*_args: Any, **_kwargs: Any) -> Any:
+    raise AssertionError("the benchmark ran before --out was checked")
+
+
+def test_atomic_path_refuses_a_folder_up_front_and_leaves_no_temporary(tmp_path: Path) -> None:
+    """A folder at the target was a raw IsADirectoryError from the rename, after the work, with the temporary left."""
+    final = tmp_path / "results.json"
+    final.mkdir()
+    (final / "keep.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"results\.json: is a folder; give a file name"):
+        write_json(final, {"a": 1})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]  # no .results.tmp-* beside it
+    assert (final / "keep.txt").read_text() == "mine"
+
+
+def test_atomic_path_removes_its_temporary_when_the_rename_fails(tmp_path: Path) -> None:
+    """A folder made at the target while the file was being written: the rename fails, the temporary goes."""
+    final = tmp_path / "results.json"
+    with pytest.raises(InputError, match="is a folder"), atomic_path(final) as tmp:
+        tmp.write_text("{}")
+        final.mkdir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"] and final.is_dir()
+
+
+def test_atomic_path_under_a_regular_file_names_that_file(tmp_path: Path) -> None:
+    """Was a bare ``[Errno 17] File exists``."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(InputError) as err:
+        write_json(afile / "sub" / "x.json", {})
+    assert str(err.value).startswith(f"{afile}: is not a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"] and afile.read_text() == "x"
+
+
+def test_check_writable_refuses_a_folder_only_for_a_file_output(tmp_path: Path) -> None:
+    """``file=True``: the caller writes one file there; the default (a folder output, replaced) still takes it."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    check_writable(folder)
+    with pytest.raises(InputError, match=r"out: is a folder; give a file name"):
+        check_writable(folder, file=True)
+    check_writable(tmp_path / "new.json", file=True)
+    (tmp_path / "old.json").write_text("{}")
+    check_writable(tmp_path / "old.json", file=True)  # an existing file is replaced
+
+
+@pytest.mark.parametrize("benchmark", sorted(FIRST_WORK))
+@pytest.mark.parametrize("where", ["folder", "under a file"])
+def test_perf_checks_out_before_any_work(
+    benchmark: str, where: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: the whole benchmark ran, then a traceback (folder) or ``[Errno 17] File exists`` (under a file)."""
+    module, name = FIRST_WORK[benchmark]
+    monkeypatch.setattr(f"{module}.{name}", _no_work)
+    if where == "folder":
+        out = tmp_path / "results"
+        out.mkdir()
+        words = f"{out}: is a folder; give a file name"
+    else:
+        (tmp_path / "afile").write_text("x")
+        out = tmp_path / "afile" / "x.json"
+        words = f"{tmp_path / 'afile'}: is not a folder"
+    assert main(["perf", benchmark, "--repeats", "1", "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"roigsf perf: error: {words}")
+    assert captured.err.count("\n") == 1 and captured.out == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name if where == "folder" else "afile"]
+
+
+def _fake_player(seen: list[int]) -> Any:
+    """A ``_play_and_listen`` that records the domain id and returns two pose arrivals 0.1 s apart."""
+
+    def play(_bag: Path, _rate: float, domain_id: int) -> dict[str, Any]:
+        seen.append(domain_id)
+        return {"arrivals": {"/camera/pose": [0.0, 0.1]}, "expected": 2, "lost": 0, "summary": {}}
+
+    return play
+
+
+@pytest.mark.parametrize(("argv", "env", "want"), [(["--domain-id", "7"], "150", 7), ([], "150", 150)])
+def test_perf_io_player_runs_on_the_domain_given(
+    argv: list[str], env: str, want: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--domain-id``, else ROS_DOMAIN_ID (was: always a random id of 1..99, no option)."""
+    seen: list[int] = []
+    monkeypatch.setenv("ROS_DOMAIN_ID", env)
+    monkeypatch.setattr("roigsf_ros.perf.io.bench_conversion", lambda *_a: {})
+    monkeypatch.setattr("roigsf_ros.perf.io._play_and_listen", _fake_player(seen))
+    out = tmp_path / "io.json"
+    argv = ["perf", "io", "--repeats", "1", "--messages", "2", "--out", str(out), *argv]
+    assert main(argv) == 0
+    assert seen == [want, want] and json.loads(out.read_text())["player"]["domain_id"] == want
+
+
+def test_choose_domain_id_order_and_range() -> None:
+    """The option over the environment; random 1..99 without either; a bad id names where it came from."""
+    from roigsf_ros.perf.io import choose_domain_id
+
+    assert choose_domain_id(0, {"ROS_DOMAIN_ID": "42"}) == 0
+    assert choose_domain_id(None, {"ROS_DOMAIN_ID": " 42 "}) == 42
+    assert all(1 <= choose_domain_id(None, {"ROS_DOMAIN_ID": ""}) <= 99 for _ in range(20))
+    for given, env, words in ((233, {}, "--domain-id: must be"), (None, {"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID: not")):
+        with pytest.raises(InputError, match=words):
+            choose_domain_id(given, env)
+
+
+def test_perf_io_refuses_a_bad_domain_id_before_any_work(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr("roigsf_ros.perf.io.bench_conversion", _no_work)
+    assert main(["perf", "io", "--domain-id", "-1"]) == 2
+    assert capsys.readouterr().err.startswith("roigsf perf: error: --domain-id: must be a ROS domain id in 0..232")
+
+
+def test_perf_io_help_states_the_minimum_frames(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["perf", "io", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "frames converted per run (default 20, at least 2)" in help_text
+    assert "--domain-id N" in help_text
+
+
+def test_perf_novelty_says_where_its_default_bag_is_from_another_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: ``bags/synth_room: bag not found``, though the help said the default is the shipped bag: the default is
+    the repository root's (as every README command runs there), and the error and the help now say so."""
+    monkeypatch.setattr("roigsf_ros.perf.novelty.read_bag_frames", _no_work)
+    monkeypatch.chdir(tmp_path)
+    assert main(["perf", "novelty"]) == 2
+    err = capsys.readouterr().err
+    assert "bags/synth_room: the shipped bag is not here: run from the repository root, or give --bag" in err, err
+    with pytest.raises(SystemExit):
+        main(["perf", "novelty", "--help"])
+    assert "the shipped bag, from the repository root" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize(("width", "height", "option"), [(1, 1, "--width"), (7, 6, "--width"), (8, 5, "--height")])
+def test_perf_nbv_refuses_images_too_small_up_front(
+    width: int, height: int, option: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: an Open3D traceback ``No block is touched in TSDF volume`` from the TSDF fusion in build_state."""
+    monkeypatch.setattr("roigsf_ros.perf.nbv.build_state", _no_work)
+    assert main(["perf", "nbv", "--width", str(width), "--height", str(height)]) == 2
+    least = 8 if option == "--width" else 6
+    got = width if option == "--width" else height
+    assert capsys.readouterr().err == f"roigsf perf: error: {option}: must be at least {least}, got {got}\n"
+
+
+def test_perf_nbv_build_state_names_the_options_when_nothing_is_seen() -> None:
+    """Two surfels at 8x6: the training views see no surface; an InputError, not Open3D's RuntimeError."""
+    from roigsf_ros.nbv.scorer import NBVScorer
+    from roigsf_ros.perf.nbv import build_state
+
+    with pytest.raises(InputError, match=r"--surfels: the training views at 8x6 with 2 surfels saw too little"):
+        build_state(2, 8, 6, 2, 0.02, NBVScorer())
