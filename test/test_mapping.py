@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import warnings
 
 import numpy as np
 import open3d as o3d
@@ -287,6 +288,15 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     a = loaded.render(frames[3].T_wc).alpha
     assert float(a.mean()) > 0.9
     assert len(loaded.mesh().triangles) > 100  # meshed at the saved keyframe poses
+    # Its running h_train lacks the loaded keyframes (no images saved): zeros that ranked views wrongly, without a
+    # word; reading it now warns (once), and the stream policies recompute it from the poses instead.
+    with pytest.warns(RuntimeWarning, match=r"not of the 4 read by load\(\).*h_train=None"):
+        h = loaded.h_train
+    assert all(float(v.abs().sum()) == 0.0 for v in h.values())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loaded.h_train  # noqa: B018 - once per mapper
+    assert make_policy("roi-gsurfisher")._h_train(loaded) is None
 
 
 def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import warnings
 from collections.abc import Generator, Iterable
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
@@ -387,6 +388,7 @@ class Mapper:
         """Keyframe ids of a map read by :meth:`load` (its images are not stored, so not keyframes here)."""
         self.loaded_keyframe_poses = np.zeros((0, 4, 4))
         """Keyframe poses [K, 4, 4] of a map read by :meth:`load`."""
+        self._warned_loaded_h_train = False
         self._rng = np.random.default_rng(self.config.seed)
         self._adam = _SparseAdam(self.config.learning_rates())
         self._version = 0  # bumped whenever the map changes (invalidates the render cache)
@@ -735,8 +737,19 @@ class Mapper:
     def h_train(self) -> dict[str, Tensor]:
         """Diagonal Fisher of the training views, ``{param: tensor shaped like map.<param>}``.
 
-        Kept aligned with the surfel set through densify/prune (new surfels start at zero).
+        Kept aligned with the surfel set through densify/prune (new surfels start at zero). After :meth:`load` it
+        holds only the keyframes inserted since (the loaded ones have no images here): a warning says so, and
+        ``NBVScorer.score(..., h_train=None)`` recomputes the Fisher from every keyframe pose instead.
         """
+        if self.loaded_keyframe_ids and not self._warned_loaded_h_train:
+            self._warned_loaded_h_train = True
+            warnings.warn(
+                f"Mapper.h_train holds the Fisher of the {len(self.keyframes)} keyframe(s) inserted here, not of the "
+                f"{len(self.loaded_keyframe_ids)} read by load() (their images are not saved): give NBVScorer.score "
+                "h_train=None to recompute it from every keyframe pose",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         self._flush_fisher()
         return self._h_train
 
