@@ -381,3 +381,17 @@ def test_options_are_taken_only_as_spelt(tmp_path: Path, capsys: pytest.CaptureF
         assert exc.value.code == 2
         assert f"unrecognized arguments: {bad}" in capsys.readouterr().err
     assert not (tmp_path / "o").exists() and not (tmp_path / "b").exists()
+
+
+def test_ctrl_c_while_the_commands_import_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C in the first seconds of a command, while its modules import (torch, open3d), printed a traceback."""
+    import roigsf_ros.cli as cli
+
+    def interrupted_import() -> argparse.ArgumentParser:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted_import)
+    assert main(["map", "x", "--out", "y"]) == 130
+    assert capsys.readouterr().err == "roigsf: interrupted\n"

@@ -545,3 +545,18 @@ def test_a_loaded_map_saved_again_keeps_its_keyframes_and_adds_the_new_ones(fram
     ids_d, poses_d = ids_poses(tmp_path / "d")
     assert ids_d == ids_c
     np.testing.assert_array_equal(poses_d, poses_c)
+
+
+def test_run_offline_names_an_argument_of_the_wrong_kind(frames: list[Frame], tmp_path) -> None:
+    """``run_offline(config={...})`` and ``run_offline(policy="gaus-slam")`` failed as bare AttributeErrors deep in
+    the mapper; the library's own errors named the CLI's flags only (``--stride``)."""
+    scene = tmp_path / "scene"
+    write_replica(scene, INTR, frames[:2])
+    source = open_frames(scene)
+    with pytest.raises(InputError, match=r"^config: must be a MapperConfig .*got a dict"):
+        run_offline(source, make_policy("all"), {"iters_per_keyframe": 2}, tmp_path / "a", progress=False)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^policy: must be a keyframe policy .*got 'gaus-slam'"):
+        run_offline(source, "gaus-slam", small_config(), tmp_path / "b", progress=False)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^stride \(--stride\): must be at least 1"):
+        open_frames(scene, stride=0)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -188,7 +188,7 @@ def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
 
 def _interrupted(command: str, exc: KeyboardInterrupt) -> int:
     """The one line and exit status of a stopped command: 128 + the signal (130 for Ctrl-C)."""
-    print(f"roigsf {command}: interrupted", file=sys.stderr)
+    print(f"roigsf{' ' + command if command else ''}: interrupted", file=sys.stderr)
     return 128 + exc.signum if isinstance(exc, _Interrupted) else 130
 
 
@@ -199,8 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     half-written is left under a final name), also when the shell started it with SIGINT ignored (``&``), and also
     when a library wrapped the interrupt in another exception. Running out of memory is one line too, exit code 1.
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()  # imports every command's module: the first seconds of a run
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt as exc:  # Ctrl-C then printed a traceback of the import under way
+        return _interrupted("", exc)
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         handlers = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}

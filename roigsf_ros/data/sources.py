@@ -248,11 +248,11 @@ def open_frames(
     if not path.exists():
         raise InputError(path, "no such bag or scene folder")
     if int(stride) < 1:
-        raise InputError("--stride", f"must be at least 1, got {stride}")
+        raise InputError("stride (--stride)", f"must be at least 1, got {stride}")
     if max_frames is not None and int(max_frames) < 1:
-        raise InputError("--max-frames", f"must be at least 1, got {max_frames}")
+        raise InputError("max_frames (--max-frames)", f"must be at least 1, got {max_frames}")
     if size is not None and any(v is not None and int(v) <= 0 for v in size):
-        raise InputError("--width/--height", f"image size must be positive, got {size[0]}x{size[1]}")
+        raise InputError("size (--width/--height)", f"image size must be positive, got {size[0]}x{size[1]}")
     if _is_bag(path):
         return BagFrameSource(path, size, int(stride), max_frames, topics)
     return ReplicaFrameSource(path, size, int(stride), max_frames, allow_partial)

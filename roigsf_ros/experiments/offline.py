@@ -138,6 +138,10 @@ def run_offline(
     ``roigsf scene render --offset``), the same set for every policy, also evaluated (``test_scene_*`` metrics;
     the non-keyframes differ from one policy to the next). Returns the metrics dict.
     """
+    if not isinstance(config, MapperConfig | None):  # a dict gave a bare AttributeError deep in the Mapper
+        raise InputError("config", f"must be a MapperConfig (MapperConfig(**values)), got a {type(config).__name__}")
+    if not callable(getattr(policy, "observe", None)):  # a policy's name gave a bare AttributeError
+        raise InputError("policy", f"must be a keyframe policy (make_policy(name, ...)), got {policy!r}")
     if eval_source is not None:
         if len(eval_source) != len(source):
             raise InputError("eval_source", f"has {len(eval_source)} frames, the mapped sequence {len(source)}")
