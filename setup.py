@@ -17,6 +17,9 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/recommended", glob("config/recommended/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        # the sample bag and its mesh: the demo's defaults, found from any folder (data.bags.sample_path)
+        (f"share/{PACKAGE}/bags", ["bags/README.md", "bags/synth_room_mesh.ply"]),
+        (f"share/{PACKAGE}/bags/synth_room", glob("bags/synth_room/*")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -1,6 +1,7 @@
 """Launch active mapping in one process (mapper + NBV planner + keyframe selector sharing one map), and the bag.
 
-    ros2 launch roigsf_ros active_mapping.launch.py bag:=bags/synth_room policy:=roi-gsurfisher
+    BAGS=$(ros2 pkg prefix roigsf_ros)/share/roigsf_ros/bags  # the sample bag, installed with the package
+    ros2 launch roigsf_ros active_mapping.launch.py bag:=$BAGS/synth_room policy:=roi-gsurfisher
 
 Needs launch and launch_ros (a full ROS 2 install); without them run ``active_mapping`` and
 ``bag_player`` directly (the README shows how). Parameters come from the package's config/*.yaml.

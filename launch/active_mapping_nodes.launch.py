@@ -1,6 +1,7 @@
 """Launch the mapper, NBV planner and keyframe selector as three processes (the map travels on /roigsf/map).
 
-    ros2 launch roigsf_ros active_mapping_nodes.launch.py bag:=bags/synth_room
+    BAGS=$(ros2 pkg prefix roigsf_ros)/share/roigsf_ros/bags  # the sample bag, installed with the package
+    ros2 launch roigsf_ros active_mapping_nodes.launch.py bag:=$BAGS/synth_room
 
 Same topics and parameters as active_mapping.launch.py; use it to run the nodes on different
 machines or to restart one of them alone (a restarted mapper resumes with ``load_map``).

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.cli import demo
+from roigsf_ros.data.bags import SAMPLE_BAG, SAMPLE_GT_MESH, sample_path
 from roigsf_ros.nodes import camera_input, keyframe_selector, mapper, nbv_planner
 
 Event = tuple[str, str, float, float]
@@ -67,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the demo with the callbacks timed and print the report."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True, help="the demo's run folder (replaced)")
-    parser.add_argument("--bag", type=Path, default=demo.DEFAULT_BAG)
+    parser.add_argument("--bag", type=Path, default=None, help="bag to replay (default: the shipped sample)")
+    parser.add_argument("--gt-mesh", type=Path, default=None, help="its mesh (default: the sample's)")
     parser.add_argument("--params-file", type=Path, action="append", default=[])
     parser.add_argument("--gaps", type=int, default=6, help="how many of the longest frame gaps to show")
     args = parser.parse_args(argv)
@@ -78,7 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         for name in names:
             if hasattr(cls, name):
                 setattr(cls, name, _timed(f"{cls.__name__}.{name}", getattr(cls, name), events, lock))
-    m = demo.run_demo(args.bag, args.out, params_files=args.params_file, progress=False)
+    bag = args.bag if args.bag is not None else sample_path(SAMPLE_BAG)
+    gt_mesh = args.gt_mesh if args.gt_mesh is not None else sample_path(SAMPLE_GT_MESH)
+    m = demo.run_demo(bag, args.out, gt_mesh=gt_mesh, params_files=args.params_file, progress=False)
     keys = ("keyframes_published", "planner", "fallbacks", "recall@5cm", "psnr", "selector_max_frame_gap_s",
             "selector_max_novelty_s", "selector_max_answer_s")  # fmt: skip
     print("run:", ", ".join(f"{k} {m.get(k):.3g}" if isinstance(m.get(k), float) else f"{k} {m.get(k)}" for k in keys))

@@ -48,8 +48,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, type=Path, help="folder for results.json and table.md")
     parser.add_argument("--runs", type=int, default=3, help="processes of each kind (default 3)")
-    parser.add_argument("--bag", default=str(REPO / "bags" / "synth_room"), help="bag whose frames are mapped")
+    parser.add_argument("--bag", default=None, help="bag whose frames are mapped (default: the shipped sample)")
     args = parser.parse_args(argv)
+    if args.bag is None:
+        from roigsf_ros.data.bags import sample_path
+
+        args.bag = str(sample_path())
     if args.runs < 1:
         parser.error("--runs must be >= 1")
     runs: dict[str, list[dict[str, float]]] = {"cold": [], "warm": []}

@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, type=Path, help="folder for results.json, table.md and the logs")
     parser.add_argument("--runs", type=int, default=3, help="runs, one after the other (default 3)")
-    parser.add_argument("--bag", default="bags/synth_room", help="bag to play (default bags/synth_room)")
+    parser.add_argument("--bag", default=None, help="bag to play (default: the shipped sample)")
     parser.add_argument("--rate", type=float, default=1.0, help="playback rate (default 1.0)")
     parser.add_argument("--selector", action="append", default=[], metavar="NAME=VALUE", help="selector parameter")
     parser.add_argument("--planner", action="append", default=[], metavar="NAME=VALUE", help="planner parameter")
@@ -143,6 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--domain-id", type=int, default=57, help="ROS_DOMAIN_ID of the run (default 57)")
     parser.add_argument("--timeout-s", type=float, default=300.0, help="longest a playback may take (default 300)")
     args = parser.parse_args(argv)
+    if args.bag is None:
+        from roigsf_ros.data.bags import sample_path
+
+        args.bag = str(sample_path())
     if args.runs < 1 or args.rate <= 0:
         parser.error("--runs must be >= 1 and --rate > 0 (the player's rate 0 is lossy across processes)")
     for p in (*args.selector, *args.planner, *args.mapper):

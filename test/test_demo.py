@@ -437,3 +437,48 @@ def test_demo_refuses_camera_settings_with_which_a_node_reads_nothing(
     err = capsys.readouterr().err
     assert "parameter 'keyframe_selector.tf_parent_frame': tf_parent_frame=world (the mapper's: map)" in err, err
     assert "without a pose on TF" in err and not run.exists(), err
+
+
+def test_demo_defaults_to_the_sample_bag_and_mesh_from_any_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf demo`` run outside the repository root failed with ``bags/synth_room: bag not found``: the default
+    bag and mesh were relative to the working folder. They are now the checkout's sample, else the installed one
+    (setup.py puts bags/ into share/roigsf_ros/)."""
+    from roigsf_ros.cli import demo, main
+    from roigsf_ros.core import package_files
+
+    used: dict[str, Any] = {}
+
+    def fake_run_demo(bag: Path, out: Path, **kwargs: Any) -> dict[str, Any]:
+        used.update(bag=bag, gt_mesh=kwargs["gt_mesh"])
+        return {"policy": "every-n", "frames_received": 150, "fallbacks": 0, "keyframes_not_mapped": 0}
+
+    monkeypatch.setattr(demo, "run_demo", fake_run_demo)
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--out", str(tmp_path / "run"), "--no-progress"]) == 0
+    assert used == {"bag": REPO / "bags" / "synth_room", "gt_mesh": REPO / "bags" / "synth_room_mesh.ply"}
+    # installed (no checkout beside the modules): the share folder's copy
+    share = tmp_path / "share" / "roigsf_ros"
+    (share / "bags").mkdir(parents=True)
+    (share / "bags" / "synth_room").symlink_to(REPO / "bags" / "synth_room")
+    (share / "bags" / "synth_room_mesh.ply").symlink_to(REPO / "bags" / "synth_room_mesh.ply")
+    monkeypatch.setattr(package_files, "CHECKOUT_ROOT", tmp_path / "site-packages")
+    monkeypatch.setattr(package_files, "share_folders", lambda: [share])
+    assert main(["demo", "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", ""]) == 0
+    assert used == {"bag": share / "bags" / "synth_room", "gt_mesh": None}
+    assert "bag " + str(share / "bags" / "synth_room") + ": 150 frames" in capsys.readouterr().out
+
+
+def test_the_installed_package_carries_the_sample_bag_and_mesh() -> None:
+    """setup.py's data files put the sample into the interpreter's share folder (where ``sample_path`` looks when no
+    checkout is beside the modules): the same files as the checkout's."""
+    share = Path(sys.prefix) / "share" / "roigsf_ros"
+    if not (share / "package.xml").is_file():
+        pytest.skip(
+            f"roigsf_ros is not pip-installed into this interpreter ({share} is missing; scripts/setup.sh does it)"
+        )
+    for name in ("synth_room/metadata.yaml", "synth_room/synth_room.mcap", "synth_room_mesh.ply"):
+        installed, checkout = share / "bags" / name, REPO / "bags" / name
+        assert installed.is_file(), f"{installed} missing: setup.py's data_files do not install the sample"
+        assert installed.read_bytes() == checkout.read_bytes(), f"{installed} differs from {checkout}: reinstall"

@@ -22,9 +22,9 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from roigsf_ros.core import package_files
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.mapping.mapper import MapperConfig
-from roigsf_ros.nodes import node_params
 from roigsf_ros.nodes.bag_player import BagPlayer
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
@@ -75,7 +75,7 @@ def test_package_parameter_names_are_found_in_the_share_dir_under_the_interprete
     declares unseen_weight: installed, the module has no checkout's config/ beside it and the ament index needs the
     variable, so the names came back empty. setup.py installs config/*.yaml to share/roigsf_ros/config under the
     interpreter's prefix (the venv), which is now read as well."""
-    monkeypatch.setattr(node_params, "CHECKOUT_CONFIG", tmp_path / "no_checkout" / "config")
+    monkeypatch.setattr(package_files, "CHECKOUT_ROOT", tmp_path / "no_checkout")
     monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
     monkeypatch.setattr(sys, "prefix", str(tmp_path / "prefix"))
     share = tmp_path / "prefix" / "share" / "roigsf_ros" / "config"

@@ -5,12 +5,14 @@ where its default bag is, and ``perf nbv`` refuses images too small to fuse a TS
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from roigsf_ros.cli import main
+from roigsf_ros.core import package_files
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path, check_writable, write_json
 
@@ -21,6 +23,9 @@ FIRST_WORK = {
     "novelty": ("roigsf_ros.perf.novelty", "read_bag_frames"),
     "io": ("roigsf_ros.perf.io", "bench_conversion"),
 }
+
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _no_work(*_args: Any, **_kwargs: Any) -> Any:
@@ -145,19 +150,30 @@ def test_perf_io_help_states_the_minimum_frames(capsys: pytest.CaptureFixture[st
     assert "--domain-id N" in help_text
 
 
-def test_perf_novelty_says_where_its_default_bag_is_from_another_folder(
+def test_perf_novelty_reads_the_installed_sample_bag_from_another_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Was: ``bags/synth_room: bag not found``, though the help said the default is the shipped bag: the default is
-    the repository root's (as every README command runs there), and the error and the help now say so."""
-    monkeypatch.setattr("roigsf_ros.perf.novelty.read_bag_frames", _no_work)
+    """Was: ``bags/synth_room: bag not found`` from any folder but the repository root. The default is now the
+    shipped sample found as the params files are (the checkout's, else the installed share folder's); only where
+    neither has it the error says where it looked."""
+    read: list[Path] = []
+
+    def record(bag: Path) -> Any:
+        read.append(bag)
+        raise InputError(bag, "read")
+
+    monkeypatch.setattr("roigsf_ros.perf.novelty.read_bag_frames", record)
     monkeypatch.chdir(tmp_path)
     assert main(["perf", "novelty"]) == 2
+    assert read == [REPO / "bags" / "synth_room"], read  # the checkout's, from another folder
+    monkeypatch.setattr(package_files, "CHECKOUT_ROOT", tmp_path / "installed")
+    monkeypatch.setattr(package_files, "share_folders", lambda: [])
+    assert main(["perf", "novelty"]) == 2
     err = capsys.readouterr().err
-    assert "bags/synth_room: the shipped bag is not here: run from the repository root, or give --bag" in err, err
+    assert f"bags/synth_room: the package's sample is not installed (looked in {sys.prefix}/share/roigsf_ros/" in err
     with pytest.raises(SystemExit):
         main(["perf", "novelty", "--help"])
-    assert "the shipped bag, from the repository root" in " ".join(capsys.readouterr().out.split())
+    assert "the shipped sample, bags/synth_room of the checkout, else of" in " ".join(capsys.readouterr().out.split())
 
 
 @pytest.mark.parametrize(("width", "height", "option"), [(1, 1, "--width"), (7, 6, "--width"), (8, 5, "--height")])

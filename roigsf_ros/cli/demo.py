@@ -43,7 +43,18 @@ import numpy as np
 
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import AUTO, BagFrame, BagReader, CameraTopics, bag_info, bag_topic_types, realsense_topics
+from roigsf_ros.data.bags import (
+    AUTO,
+    SAMPLE_BAG,
+    SAMPLE_GT_MESH,
+    BagFrame,
+    BagReader,
+    CameraTopics,
+    bag_info,
+    bag_topic_types,
+    realsense_topics,
+    sample_path,
+)
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -54,8 +65,6 @@ if TYPE_CHECKING:
     from roigsf_ros.nodes.active_mapping import ActiveMapping
     from roigsf_ros.nodes.bag_player import BagPlayer
 
-DEFAULT_BAG = Path("bags/synth_room")
-DEFAULT_GT_MESH = Path("bags/synth_room_mesh.ply")
 DEFAULT_RATE = 1.0
 """Playback rate of the demo: real time, a window of 8 frames every 0.8 s. A planner call (ROI, Fisher of 8
 candidates, the chosen view's uncertainty) takes 0.3-0.7 s at 160x120 on 2 cores beside the mapper; a window
@@ -661,7 +670,7 @@ def run_demo(
     policy: str | None = None,
     rate: float = DEFAULT_RATE,
     final_iters: int = DEFAULT_FINAL_ITERS,
-    gt_mesh: Path | None = DEFAULT_GT_MESH,
+    gt_mesh: Path | None = None,
     domain_id: int | None = None,
     params: dict[str, dict[str, Any]] | None = None,
     params_files: Sequence[Path] = (),
@@ -672,8 +681,10 @@ def run_demo(
 ) -> dict[str, Any]:
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
 
-    ``camera``: the bag's camera as :func:`demo_camera` resolved it (its ``params`` then replace ``params`` and
-    ``realsense``); None resolves it here. Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
+    ``gt_mesh``: the mesh the map's mesh metrics are taken against (None: none; the sample bag's is
+    ``sample_path(SAMPLE_GT_MESH)``). ``camera``: the bag's camera as :func:`demo_camera` resolved it (its
+    ``params`` then replace ``params`` and ``realsense``); None resolves it here. Raises KeyboardInterrupt after a
+    clean stop on Ctrl-C (nothing written).
     """
     import rclpy
     from rclpy.parameter import Parameter
@@ -850,7 +861,9 @@ def run_demo(
 
 
 def _run(args: argparse.Namespace) -> int:
-    bag = Path(args.bag)
+    bag = Path(args.bag) if args.bag is not None else sample_path(SAMPLE_BAG)
+    # None: the sample's mesh (also right for a bag made from the sample by bag to-robot); '': none
+    gt_mesh = sample_path(SAMPLE_GT_MESH) if args.gt_mesh is None else Path(args.gt_mesh) if args.gt_mesh else None
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
@@ -881,7 +894,7 @@ def _run(args: argparse.Namespace) -> int:
         policy=args.policy,
         rate=args.rate,
         final_iters=args.final_iters,
-        gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None,
+        gt_mesh=gt_mesh,
         domain_id=args.domain_id,
         params_files=params_files,
         progress=not args.no_progress,
@@ -913,7 +926,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--bag", default=str(DEFAULT_BAG), metavar="BAG", help=f"bag to replay (default {DEFAULT_BAG})")
+    p.add_argument(
+        "--bag",
+        default=None,
+        metavar="BAG",
+        help=f"bag to replay (default: the shipped sample, {SAMPLE_BAG} of the checkout, else of the installed "
+        "package's share folder)",
+    )
     p.add_argument(
         "--out", default="runs/demo", metavar="RUN", help="run folder, replaced when done (default runs/demo)"
     )
@@ -973,9 +992,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--gt-mesh",
-        default=str(DEFAULT_GT_MESH),
+        default=None,
         metavar="PLY",
-        help=f"ground-truth mesh for the mesh metrics (default {DEFAULT_GT_MESH}; '' for none)",
+        help=f"ground-truth mesh for the mesh metrics (default: the sample's, {SAMPLE_GT_MESH}, found as --bag's; "
+        "'' for none)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress display")
     p.set_defaults(func=_run)

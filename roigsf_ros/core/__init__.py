@@ -1,4 +1,6 @@
-"""The lowest layer: errors, atomic file output, the pinhole camera, the Frame type, configs, lazy exports."""
+"""The lowest layer: errors, atomic file output, the pinhole camera, the Frame type, configs, lazy exports, where the
+package's own files are.
+"""
 
 from roigsf_ros.core.exports import lazy_exports
 
@@ -24,5 +26,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "exports": ["lazy_exports"],
         "fileio": ["atomic_dir", "atomic_path", "check_writable", "deferred_interrupts", "read_json", "write_json"],
         "frame": ["Frame", "resize_frame", "spread_indices"],
+        "package_files": ["CHECKOUT_ROOT", "PACKAGE", "package_path", "package_path_places", "share_folders"],
     },
 )

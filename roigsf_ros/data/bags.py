@@ -39,6 +39,7 @@ from tqdm import tqdm
 from roigsf_ros.core.camera import Intrinsics, load_pose, matrix_to_quat_xyzw, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
+from roigsf_ros.core.package_files import package_path, package_path_places
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.sync import StampMatcher
 from roigsf_ros.data.tf import (
@@ -73,6 +74,22 @@ DEFAULT_T0_NS = 1_700_000_000 * 10**9
 """Stamp of frame 0 in written bags (2023-11-14 22:13:20 UTC): fixed, so bags are reproducible."""
 MAX_PENDING_STAMPS = 64
 """The reader holds at most this many incomplete frames while it waits for their other messages."""
+
+SAMPLE_BAG = "bags/synth_room"
+"""The shipped sample bag (bags/README.md), relative to the checkout or to the installed package's share folder."""
+SAMPLE_GT_MESH = "bags/synth_room_mesh.ply"
+"""The sample bag's ground-truth mesh, relative as :data:`SAMPLE_BAG`."""
+
+
+def sample_path(relative: str = SAMPLE_BAG) -> Path:
+    """The shipped :data:`SAMPLE_BAG` (or :data:`SAMPLE_GT_MESH`): the checkout's when this runs from one, else the
+    installed copy (setup.py puts bags/ into share/roigsf_ros/), so the defaults work from any folder.
+    """
+    path = package_path(relative, lambda p: p.is_file() or (p / "metadata.yaml").is_file())
+    if path is None:
+        raise InputError(relative, f"the package's sample is not installed (looked in {package_path_places(relative)})")
+    return path
+
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 QOS_RELIABLE = Qos(

@@ -39,6 +39,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import get_default_context, remove_ros_args
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.package_files import package_path
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -187,30 +188,15 @@ def _hint(name: str, declared: Iterable[str]) -> str:
 PACKAGE_CONFIG_FILES = ("mapper.yaml", "nbv.yaml", "keyframe_selector.yaml", "bag_player.yaml")
 """The params files of the package's nodes (config/): every parameter each node declares, with its default."""
 
-CHECKOUT_CONFIG = Path(__file__).resolve().parents[2] / "config"
-"""The checkout's config/ (when this module runs from the source tree; installed, no such folder holds the files)."""
-
 ROIGSF_NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector", "bag_player")
 """The default names of the package's nodes: a params file's section for one of them is no typo of another's."""
 
 
 def package_config_folder() -> Path | None:
-    """The folder with the package's params files: the checkout's config/, else the share dir the ament index names
-    (needs AMENT_PREFIX_PATH), else the one under the interpreter's prefix (``pip install`` puts setup.py's data files
-    there: a node run straight from its venv without a sourced workspace); None when none is found.
+    """The folder with the package's params files (:func:`~roigsf_ros.core.package_files.package_path`: the
+    checkout's config/, else the installed one); None when none holds them all.
     """
-    if all((CHECKOUT_CONFIG / name).is_file() for name in PACKAGE_CONFIG_FILES):
-        return CHECKOUT_CONFIG
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        folder = Path(get_package_share_directory("roigsf_ros")) / "config"
-        if folder.is_dir():
-            return folder
-    except (ImportError, LookupError, OSError, ValueError):  # no ament index, or the package not in it
-        pass
-    folder = Path(sys.prefix) / "share" / "roigsf_ros" / "config"
-    return folder if folder.is_dir() else None
+    return package_path("config", lambda folder: all((folder / name).is_file() for name in PACKAGE_CONFIG_FILES))
 
 
 @functools.cache

@@ -40,7 +40,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
-from roigsf_ros.data.bags import read_bag_frames
+from roigsf_ros.data.bags import SAMPLE_BAG, read_bag_frames, sample_path
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nbv.novelty import (
     HASH_CAPACITY,
@@ -52,18 +52,16 @@ from roigsf_ros.nbv.novelty import (
 from roigsf_ros.perf import check_options, check_out_file
 from roigsf_ros.policies.stream import RECOMMENDED_STREAM
 
-DEFAULT_BAG = Path("bags/synth_room")
-"""The shipped bag, relative to the repository root, where the README's commands run."""
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``roigsf perf novelty``."""
     parser.add_argument(
         "--bag",
         type=Path,
-        default=DEFAULT_BAG,
+        default=None,
         metavar="BAG",
-        help=f"frames (default {DEFAULT_BAG}, the shipped bag, from the repository root)",
+        help=f"frames (default: the shipped sample, {SAMPLE_BAG} of the checkout, else of the installed package's "
+        "share folder)",
     )
     parser.add_argument("--out", type=Path, metavar="FILE.json", help="also write the results as JSON here")
     parser.add_argument("--repeats", type=int, default=3, metavar="R", help="timed repeats per window (default 3)")
@@ -162,9 +160,7 @@ def run(args: argparse.Namespace) -> int:
     """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
     check_options(args, {"repeats": 1, "window": 1, "lookahead": 0, "hash_capacity": 1, "hash_chunk_rows": 1})
     check_out_file(args.out)
-    bag = args.bag
-    if bag == DEFAULT_BAG and not bag.exists():
-        raise InputError(bag, "the shipped bag is not here: run from the repository root, or give --bag")
+    bag = args.bag if args.bag is not None else sample_path(SAMPLE_BAG)
     bag_frames, _ = read_bag_frames(bag)
     if not bag_frames:
         raise InputError(bag, "no complete frame in the bag")
