@@ -496,9 +496,11 @@ def test_selector_reads_the_camera_once_its_keyframe_subscriber_and_planner_are_
     selector, reading frames already, held its first keyframe that long and asked a planner with no map about its
     first windows (fallbacks). It now subscribes to the camera only once a keyframe subscriber and (planner policy)
     the planner's service are there, so a player waiting for its subscribers waits for the whole pipeline; without
-    them it reads the camera after ``startup_wait_s``, saying what is missing."""
+    them it reads the camera after ``startup_wait_s``, saying what is missing. A hidden node's subscriber (a
+    ``ros2 topic echo``) opened the gate too; it no longer does."""
     color = "/camera/color/image_raw"
     probe = Node("test_gate_probe", context=ros_context)
+    echo = Node("_test_gate_echo", context=ros_context)
     params = [Parameter("policy", value="roi-fisher"), Parameter("planner_service", value="/test_gate/nbv")]
     selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=params, node_name="gate_selector")
     alone = KeyframeSelectorNode(
@@ -507,7 +509,7 @@ def test_selector_reads_the_camera_once_its_keyframe_subscriber_and_planner_are_
                              Parameter("keyframe_topic", value="/test_gate/nobody")],
         node_name="gate_alone",
     )  # fmt: skip
-    with _spinning(ros_context, selector, alone, probe):
+    with _spinning(ros_context, selector, alone, probe, echo):
         _wait(lambda: alone.status()["reading_camera"], 5.0, "the lone selector giving up waiting")
         time.sleep(0.5)
         assert probe.count_subscribers(color) == 1  # the lone one only
@@ -516,6 +518,11 @@ def test_selector_reads_the_camera_once_its_keyframe_subscriber_and_planner_are_
             "subscriber on /roigsf/keyframe (the mapper)",
             "planner service /test_gate/nbv",
         ]
+        # a hidden node's subscriber (``ros2 topic echo /roigsf/keyframe`` is one) is not the mapper
+        echo.create_subscription(PoseStamped, "/roigsf/keyframe", lambda m: None, reliable_qos(10))
+        _wait(lambda: selector._pub.get_subscription_count() == 1, 10.0, "the hidden subscriber's match")
+        time.sleep(0.3)
+        assert len(selector.outputs_missing()) == 2 and not selector.status()["reading_camera"]
         probe.create_subscription(PoseStamped, "/roigsf/keyframe", lambda m: None, reliable_qos(10))
         _wait(lambda: len(selector.outputs_missing()) == 1, 10.0, "the keyframe subscriber")
         time.sleep(0.3)

@@ -192,8 +192,9 @@ class KeyframeSelectorNode(SystemNode):
         qos_depth = int(declare(self, "qos_depth", 100, "keep-last depth of the camera subscriptions"))
         status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
         self.startup_wait_s = float(declare(self, "startup_wait_s", 10.0, "seconds the camera subscriptions wait at "
-                                            "start-up for a keyframe subscriber (the mapper) and, with a planner "
-                                            "policy, the planner's service (0 = subscribe at once)"))  # fmt: skip
+                                            "start-up for a keyframe subscriber (the mapper; not a hidden node's) "
+                                            "and, with a planner policy, the planner's service (0 = subscribe at "
+                                            "once)"))  # fmt: skip
         if self.policy not in names:
             raise InputError("parameter 'policy'", f"unknown policy '{self.policy}' (choose from {', '.join(names)})")
         if self.fallback not in ALONE_POLICIES:
@@ -330,9 +331,15 @@ class KeyframeSelectorNode(SystemNode):
         )
 
     def outputs_missing(self) -> list[str]:
-        """What the selector's decisions would not reach yet: the keyframe topic's subscriber, the planner's service."""
+        """What the selector's decisions would not reach yet: the keyframe topic's subscriber, the planner's service.
+
+        A subscriber of a hidden node (name starting with '_', as the ros2 CLI names its own, e.g. for ``ros2 topic
+        echo``) is not the mapper: the matched subscriptions must outnumber the hidden nodes' ones.
+        """
         missing = []
-        if self._pub.get_subscription_count() == 0:
+        subscribers = self.get_subscriptions_info_by_topic(self._pub.topic_name)
+        hidden = sum(info.node_name.startswith("_") for info in subscribers)
+        if self._pub.get_subscription_count() <= hidden:
             missing.append(f"subscriber on {self._pub.topic_name} (the mapper)")
         if self.uses_planner and not self._client.service_is_ready():
             missing.append(f"planner service {self.service_name}")
