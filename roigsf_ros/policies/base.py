@@ -34,6 +34,8 @@ class KeyframeMap(Protocol):
     intr: Intrinsics
     config: MapperConfig
     map: SurfelMap
+    loaded_keyframe_ids: list[int]
+    """Frame ids of the keyframes a resumed map read from disk (poses only, no images; empty for a map built here)."""
 
     @property
     def n_surfels(self) -> int:

@@ -365,7 +365,7 @@ class StreamNBVPolicy(KeyframePolicy):
     def _h_train(self, keyframe_map: KeyframeMap) -> dict[str, torch.Tensor] | None:
         """The map's running h_train when it matches what the scorer needs, else None (recompute)."""
         mcfg = keyframe_map.config
-        if not mcfg.track_h_train or self.mode is None or getattr(keyframe_map, "loaded_keyframe_ids", None):
+        if not mcfg.track_h_train or self.mode is None or keyframe_map.loaded_keyframe_ids:
             return None  # a loaded map's running h_train lacks the loaded keyframes: recomputed from the poses
         h = keyframe_map.h_train
         fits = running_h_train_fits(h, tuple(mcfg.fisher_outputs), self.config, self.mode)
