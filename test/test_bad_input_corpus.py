@@ -57,7 +57,7 @@ from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import header, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import BackgroundSpin
+from roigsf_ros.nodes.node_process import BackgroundSpin
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 pytestmark = pytest.mark.ros

@@ -54,7 +54,7 @@ from roigsf_ros.nodes.keyframe_selector import ASK_AGAIN_S, KeyframeSelectorNode
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, header, pose_stamped, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.mapper import MapperNode, latched_qos
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode, map_not_ready
-from roigsf_ros.nodes.node_params import GIL_SWITCH_INTERVAL_S, BackgroundSpin, reduce_gil_switch_interval
+from roigsf_ros.nodes.node_process import GIL_SWITCH_INTERVAL_S, BackgroundSpin, reduce_gil_switch_interval
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, read_keyframe_ids
 from roigsf_ros.policies.base import make_policy
 

@@ -118,7 +118,7 @@ def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: b
 
     from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
     from roigsf_ros.nodes.camera_input import CameraInput
-    from roigsf_ros.nodes.node_params import BackgroundSpin
+    from roigsf_ros.nodes.node_process import BackgroundSpin
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     context = rclpy.Context()

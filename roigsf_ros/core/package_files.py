@@ -54,3 +54,6 @@ def package_path_places(relative: str) -> str:
     """Where :func:`package_path` looks for ``relative``, for an error message."""
     places = _candidates(relative) or [Path(sys.prefix) / "share" / PACKAGE / relative]
     return ", ".join(str(p) for p in places)
+
+
+__all__ = ["CHECKOUT_ROOT", "PACKAGE", "package_path", "package_path_places", "share_folders"]

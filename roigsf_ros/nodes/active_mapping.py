@@ -23,13 +23,8 @@ from rclpy.parameter import Parameter
 from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
 from roigsf_ros.nodes.mapper import MapperNode
 from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
-from roigsf_ros.nodes.node_params import (
-    BackgroundSpin,
-    check_parameter_overrides,
-    reduce_gil_switch_interval,
-    run_nodes,
-    shutdown_executor,
-)
+from roigsf_ros.nodes.node_params import check_parameter_overrides
+from roigsf_ros.nodes.node_process import BackgroundSpin, reduce_gil_switch_interval, run_nodes, shutdown_executor
 from roigsf_ros.nodes.shared_map import SharedMapper
 
 NODE_NAMES = ("mapper", "nbv_planner", "keyframe_selector")
@@ -100,7 +95,7 @@ class ActiveMapping:
         """Spin the executor in a background thread; returns self.
 
         Lowers the process's thread switch interval, as the console scripts do (see
-        :func:`~roigsf_ros.nodes.node_params.reduce_gil_switch_interval`).
+        :func:`~roigsf_ros.nodes.node_process.reduce_gil_switch_interval`).
         """
         reduce_gil_switch_interval()
         self._spin = BackgroundSpin(self.executor, "active_mapping_executor").start()

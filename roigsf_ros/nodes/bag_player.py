@@ -52,13 +52,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
 from roigsf_ros.data.tf import TF_MESSAGE_TYPE
-from roigsf_ros.nodes.node_params import (
-    check_parameter_overrides,
-    declare,
-    init_ros,
-    parameter_error,
-    script_args,
-)
+from roigsf_ros.nodes.node_params import check_parameter_overrides, declare, parameter_error
+from roigsf_ros.nodes.node_process import init_ros, script_args
 
 
 def message_class(type_name: str, where: str = "message type") -> type:

@@ -14,7 +14,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-from roigsf_ros.nodes.node_params import script_args
+from roigsf_ros.nodes.node_process import script_args
 
 PROGRAMS = {
     "bag_player": "roigsf_ros.nodes.bag_player",

@@ -109,7 +109,8 @@ from roigsf_ros.nodes.mapper import (
     latched_qos,
 )
 from roigsf_ros.nodes.nbv_planner import MAP_NOT_READY
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, run_nodes
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare
+from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import KeyframePolicy, make_policy
 from roigsf_ros.policies.stream import CandidateWindow, StreamNBVPolicy, split_lookahead

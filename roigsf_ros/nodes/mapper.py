@@ -68,14 +68,8 @@ from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
 from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
-from roigsf_ros.nodes.node_params import (
-    SystemNode,
-    check_positive,
-    declare,
-    declare_config,
-    run_nodes,
-    settings_text,
-)
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, settings_text
+from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
 
 KEYFRAME_TOPIC = "/roigsf/keyframe"

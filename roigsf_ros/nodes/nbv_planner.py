@@ -93,14 +93,8 @@ from roigsf_ros.nodes.map_msgs import (
     pose_stamped,
 )
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_CAMERA_INFO_TOPIC, MAP_TOPIC, latched_qos
-from roigsf_ros.nodes.node_params import (
-    SystemNode,
-    check_positive,
-    declare,
-    declare_config,
-    run_nodes,
-    settings_text,
-)
+from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, settings_text
+from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
 
 _MAPPER_DEFAULTS = MapperConfig()
