@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, atomic_path, deferred_interrupts, read_json, write_json
+from roigsf_ros.core.fileio import atomic_dir, atomic_path, check_writable, deferred_interrupts, read_json, write_json
 
 
 def _write_dir(final: Path, overwrite: bool = True) -> None:
@@ -90,3 +90,42 @@ def test_deferred_interrupts_raise_a_ctrl_c_once_the_block_is_done() -> None:
         signal.raise_signal(signal.SIGINT)
         done.append(1)
     assert done == [1] and signal.getsignal(signal.SIGINT) is handler
+
+
+@pytest.mark.parametrize("name", [".", "..", "sub/..", "/"])
+def test_an_output_naming_no_entry_of_its_own_is_refused_before_anything_is_made(
+    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``roigsf map BAG --out . --overwrite`` mapped the whole bag, then failed in the rename with a traceback
+    (``PosixPath('.') has an empty name``) and left a complete-looking ``..tmp-*`` map; ``--out ..`` left
+    ``....tmp-*`` (EBUSY). Refused first, naming the path; the working folder given by its full name too."""
+    monkeypatch.chdir(tmp_path)
+    for out in (name, str(tmp_path)):
+        for check in (lambda o: check_writable(o), lambda o: atomic_dir(o, overwrite=True).__enter__()):
+            with pytest.raises(InputError) as caught:
+                check(out)
+            assert str(caught.value).startswith(f"{out}: "), str(caught.value)
+            assert "names no folder or file of its own" in str(caught.value) or "working folder" in str(caught.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_final_rename_removes_the_temporary_and_restores_the_old_output(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The final renames were outside the clean-up: a rename that failed left the finished temporary folder beside
+    the output (looking complete) and, when replacing, the old output renamed away."""
+    final = tmp_path / "run"
+    final.mkdir()
+    (final / "old.txt").write_text("old")
+    real_rename = Path.rename
+
+    def failing_rename(self: Path, target: Path) -> Path:
+        if self.name.startswith(".run.tmp-"):
+            raise OSError(16, "Device or resource busy")
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", failing_rename)
+    with pytest.raises(OSError, match="busy"), atomic_dir(final, overwrite=True) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert [p.name for p in final.iterdir()] == ["old.txt"]

@@ -127,7 +127,10 @@ def test_an_out_of_range_value_says_the_allowed_range_and_its_params_file(tmp_pa
         assert _error(lambda: MapperNode(context=ctx)) == "parameter 'mapper.init_opacity': must be in (0, 1), got 1.0"
     depth = _params(tmp_path / "depth.yaml", "/**", qos_depth=-5)
     with _context("--params-file", depth) as ctx:
-        assert _error(lambda: MapperNode(context=ctx)) == f"parameter 'qos_depth': must be > 0, got -5 (set in {depth})"
+        assert (
+            _error(lambda: MapperNode(context=ctx))
+            == f"parameter 'mapper.qos_depth': must be > 0, got -5 (set in {depth})"
+        )
     with pytest.raises(InputError, match=r"^mapper\.prune_opacity: must be in \[0, 1\), got 1\.0$"):
         MapperConfig(prune_opacity=1.0)
     with pytest.raises(InputError, match=r"^mapper\.max_depth_m: must be > min_depth_m and near_m \(0\.5\), got 0\.4$"):
@@ -204,3 +207,66 @@ def test_a_params_file_section_close_to_the_nodes_name_is_warned_about(
         f"section 'keyframe_selecter' in {params} looks like a misspelling of 'keyframe_selector': its parameters "
         "are not applied",
     ], err
+
+
+# ---------------------------------------------------------------------------------------- 3: checked at start-up
+@pytest.mark.parametrize(
+    ("node", "name", "value", "why"),
+    [
+        ("mapper", "color_topic", "bad//topic", "must not contain repeated '/'"),
+        ("mapper", "keyframe_topic", "1bad", "must not start with a number"),
+        ("mapper", "camera_info_topic", "~x//y", "tilde '~' that is not followed by a forward slash"),
+        ("nbv_planner", "map_topic", "bad//x", "must not contain repeated '/'"),
+        ("keyframe_selector", "color_topic", "bad//topic", "must not contain repeated '/'"),
+        ("keyframe_selector", "planner_service", "bad//s", "must not contain repeated '/'"),
+    ],
+)
+def test_an_invalid_topic_or_service_name_is_refused_at_start_up_naming_the_parameter(
+    node: str, name: str, value: str, why: str, tmp_path: Path
+) -> None:
+    """A topic that ROS cannot expand was a traceback (rc 1) when the node made the subscription, and the keyframe
+    selector, which subscribes to the camera only after ``startup_wait_s``, started and died 10 s later."""
+    from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+
+    build = {"mapper": MapperNode, "nbv_planner": NBVPlannerNode, "keyframe_selector": KeyframeSelectorNode}[node]
+    params = _params(tmp_path / "p.yaml", node, **{name: f"'{value}'"})
+    with _context("--params-file", params) as ctx:
+        said = _error(lambda: build(context=ctx))
+    assert said.startswith(f"parameter '{node}.{name}': '{value}' is no valid ROS name: "), said
+    assert why in said and said.endswith(f"(set in {params})"), said
+
+
+def test_an_input_size_above_the_largest_image_is_refused_at_start_up() -> None:
+    """``input_width:=100000`` was accepted; then every frame was dropped with "--width: image size ... is above 8192
+    px a side", naming a command-line option the node does not have."""
+    from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+
+    for build in (MapperNode, KeyframeSelectorNode, NBVPlannerNode):
+        with _context("-p", "input_width:=100000") as ctx:
+            said = _error(lambda b=build: b(context=ctx))
+        assert said.endswith(".input_width': must be at most 8192 px, got 100000"), said
+
+
+def test_a_range_error_names_the_node_and_the_params_file(tmp_path: Path) -> None:
+    """``parameter 'max_candidates': must be > 0`` named no node (in active_mapping three nodes share parameter names)
+    and, unlike a type error, no params file."""
+    from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+
+    params = _params(tmp_path / "zero.yaml", "nbv_planner", max_candidates=0)
+    with _context("--params-file", params) as ctx:
+        said = _error(lambda: NBVPlannerNode(context=ctx))
+    assert said == f"parameter 'nbv_planner.max_candidates': must be > 0, got 0 (set in {params})", said
+
+
+def test_ctrl_c_while_a_console_scripts_node_module_imports_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A Ctrl-C in the first seconds of ``mapper`` (torch and open3d importing) printed an import traceback."""
+    from roigsf_ros.nodes import console
+
+    def interrupted(name: str) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(console.importlib, "import_module", interrupted)
+    assert console.run("mapper", ["mapper"]) == 130
+    assert capsys.readouterr().err == "mapper: interrupted\n"

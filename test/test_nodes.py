@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -1048,7 +1049,7 @@ def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
     assert rc == 0, "".join(lines)
     bad = _console("roigsf_ros.nodes.keyframe_selector", "-p", "policy:=nope")
     out, _ = bad.communicate(timeout=60)
-    assert bad.returncode == 2 and "parameter 'policy'" in out and "unknown policy 'nope'" in out
+    assert bad.returncode == 2 and "parameter 'keyframe_selector.policy'" in out and "unknown policy 'nope'" in out
 
 
 def test_planner_process_takes_the_recommended_overlay_and_says_so() -> None:
@@ -1445,6 +1446,108 @@ def test_save_map_refusals_name_the_request_field_and_a_file_in_the_path(
     assert "--overwrite" not in exists.message
     assert not under.success and f"{blocker}: is not a folder" in under.message and "Errno" not in under.message
     assert replaced.success and read_keyframe_ids(tmp_path / "map") == [0, 4, 8], replaced.message
+
+
+def test_save_map_refuses_a_path_naming_no_folder_replaces_only_a_map_and_expands_home(
+    ros_context: Any, mapped: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``directory: "."`` with ``overwrite: true`` raised a ValueError out of the callback: the mapper died (rc 1) and
+    left a hidden temporary map in its working folder (``..`` failed on the rename, leaving a complete-looking one).
+    ``overwrite`` replaced a regular file or a folder of other things without a word, and ``~/x`` made a folder named
+    ``~``. Now: refused naming the path, only a saved map (or
+    an empty folder) is replaced, ``~`` is the home folder and the reply names the absolute path."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    node = MapperNode(context=ros_context, shared=_shared(mapped), node_name="mapper_dot")
+    client_node = Node("save_dot_client", context=ros_context)
+    save = client_node.create_client(SaveMap, "/mapper_dot/save_map")
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "keep.txt").write_text("mine")
+    (tmp_path / "file.txt").write_text("mine")
+    with _spinning(ros_context, node, client_node):
+        answers = {d: _call(save, SaveMap.Request(directory=d, overwrite=True)) for d in (".", "..", "sub/..")}
+        not_map = _call(save, SaveMap.Request(directory="notes", overwrite=True))
+        a_file = _call(save, SaveMap.Request(directory="file.txt", overwrite=True))
+        home = _call(save, SaveMap.Request(directory="~/maps/m"))
+        twice = _call(save, SaveMap.Request(directory="~/maps/m", overwrite=True))  # a map: replaced
+    for d, res in answers.items():  # made absolute first: the node's working folder or its parent
+        assert not res.success and "is the working folder or one above it" in res.message, (d, res.message)
+    assert not not_map.success and "notes: is a folder without keyframes.json, not a saved map" in not_map.message
+    assert (tmp_path / "notes" / "keep.txt").read_text() == "mine"
+    assert not a_file.success and "file.txt: is not a folder, not a saved map" in a_file.message
+    assert (tmp_path / "file.txt").read_text() == "mine"
+    assert home.success and f"to {tmp_path / 'home' / 'maps' / 'm'}" in home.message, home.message
+    assert twice.success and read_keyframe_ids(tmp_path / "home" / "maps" / "m") == [0, 4, 8]
+    assert not (tmp_path / "~").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt", "home", "notes"]  # no temporary left
+
+
+def test_an_autosave_dir_that_cannot_hold_a_map_is_refused_at_start_and_a_failed_autosave_is_no_failed_keyframe(
+    ros_context: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    """``autosave_dir`` under a regular file was accepted; each autosave then failed inside the keyframe step, logged
+    as "mapping step failed: [Errno 17]" and counted in ``keyframes_failed`` though the keyframe was mapped."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for bad, why in ((blocker / "x", "is not a folder"), (tmp_path, "not a saved map")):
+        (tmp_path / "other.txt").write_text("mine")  # tmp_path itself: a folder of other things
+        with pytest.raises(InputError) as caught:
+            MapperNode(context=ros_context, parameter_overrides=[Parameter("autosave_dir", value=str(bad))])
+        assert str(caught.value).startswith("parameter 'mapper.autosave_dir':") and why in str(caught.value)
+    node = MapperNode(
+        context=ros_context,
+        shared=_shared(mapped),
+        parameter_overrides=[
+            Parameter("autosave_dir", value=str(tmp_path / "auto")),
+            Parameter("autosave_every", value=1),
+        ],
+    )
+    try:
+        assert node.autosave() and read_keyframe_ids(tmp_path / "auto") == [0, 4, 8]
+        shutil.rmtree(tmp_path / "auto")
+        (tmp_path / "auto").write_text("in the way")  # e.g. another program wrote there meanwhile
+        assert not node.autosave()
+        assert node.counters["autosaves"] == 1 and node.counters["autosaves_failed"] == 1
+        assert node.counters["keyframes_failed"] == 0 and (tmp_path / "auto").read_text() == "in the way"
+    finally:
+        node.destroy_node()
+
+
+def test_destroy_node_waits_for_service_work_the_shutdown_abandoned(ros_context: Any, mapped: Mapper) -> None:
+    """Ctrl-C during ``~/publish_mesh``: the request was answered "shutting down" at once (kept), but the process
+    then exited with the mesh thread still inside Open3D and aborted (rc 134) or failed (rc 1). destroy_node now
+    waits for that work."""
+    mapper = MapperNode(context=ros_context, shared=_shared(mapped), node_name="mapper_wait")
+    client_node = Node("mesh_wait_client", context=ros_context)
+    client = client_node.create_client(Trigger, "/mapper_wait/publish_mesh")
+    release, finished = threading.Event(), threading.Event()
+
+    def slow_mesh() -> str:
+        release.wait(60.0)
+        finished.set()
+        return "done"
+
+    mapper.publish_mesh = slow_mesh  # type: ignore[method-assign] - a mesh that takes long
+    executor = MultiThreadedExecutor(num_threads=4, context=ros_context)
+    for n in (mapper, client_node):
+        executor.add_node(n)
+    spin = BackgroundSpin(executor, "test_executor").start()
+    try:
+        pending = client.call_async(Trigger.Request())
+        _wait(lambda: any(t.is_alive() for t in mapper._service_threads), 10.0, "the mesh work")
+        mapper.stop()
+        _wait(pending.done, 5.0, "the abandoned mesh request")
+    finally:
+        spin.stop()
+    destroyer = threading.Thread(target=mapper.destroy_node)
+    destroyer.start()
+    destroyer.join(0.5)
+    waited = destroyer.is_alive()
+    release.set()
+    destroyer.join(30.0)
+    client_node.destroy_node()
+    assert "shutting down" in pending.result().message
+    assert waited and not destroyer.is_alive() and finished.is_set()
 
 
 def test_load_map_of_a_malformed_folder_answers_false_and_keeps_the_map(

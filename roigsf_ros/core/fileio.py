@@ -38,6 +38,7 @@ def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str |
     ``pass --overwrite`` by default, a request field for a service (``set overwrite: true in the request``).
     """
     final = Path(final)
+    check_output_name(final)
     if final.exists() and not overwrite:
         hint = "pass --overwrite" if overwrite_hint is None else overwrite_hint
         raise FileExistsError(f"{final}: already exists ({hint} to replace it)")
@@ -46,17 +47,33 @@ def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str |
     tmp.chmod(0o777 & ~_umask())  # mkdtemp makes 0700; the result should look like any new folder
     try:
         yield tmp
+        with deferred_interrupts():  # a Ctrl-C between the renames would leave neither folder at ``final``
+            if final.exists() or final.is_symlink():
+                old = final.with_name(f".{final.name}.old-{os.getpid()}")
+                final.rename(old)
+                try:
+                    tmp.rename(final)
+                except BaseException:
+                    old.rename(final)  # the old output back where it was
+                    raise
+                _remove(old)
+            else:
+                tmp.rename(final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    with deferred_interrupts():  # a Ctrl-C between the renames would leave neither folder at ``final``
-        if final.exists() or final.is_symlink():
-            old = final.with_name(f".{final.name}.old-{os.getpid()}")
-            final.rename(old)
-            tmp.rename(final)
-            _remove(old)
-        else:
-            tmp.rename(final)
+
+
+def check_output_name(out: str | Path) -> None:
+    """Refuse an output path that names no entry of its own: ``.``, ``..``, ``/``, ``x/..``, or the working folder
+    or one above it (written beside and renamed, the output would replace the folder the process runs in).
+    """
+    path = Path(out)
+    if path.name in ("", ".", ".."):
+        raise InputError(out, "names no folder or file of its own (give a new name, e.g. runs/out)")
+    resolved, cwd = Path(os.path.abspath(path)), Path.cwd()
+    if resolved == cwd or resolved in cwd.parents:
+        raise InputError(out, "is the working folder or one above it; give a new name inside it")
 
 
 @contextlib.contextmanager
@@ -91,6 +108,7 @@ def check_writable(out: str | Path, file: bool = False) -> None:
     (the caller writes one file, such as ``--out FILE.json``) an existing folder at ``out`` is refused too, as
     :func:`atomic_path` would refuse it only after the work.
     """
+    check_output_name(out)
     if file and Path(out).is_dir():
         raise InputError(out, "is a folder; give a file name")
     folder = Path(os.path.abspath(out)).parent
@@ -123,6 +141,7 @@ def atomic_path(final: str | Path) -> Iterator[Path]:
     before the temporary file is made.
     """
     final = Path(final)
+    check_output_name(final)
     if final.is_dir():
         raise InputError(final, "is a folder; give a file name")
     try:
@@ -174,6 +193,7 @@ def read_json(path: str | Path, missing: str = "not found") -> dict[str, Any]:
 __all__ = [
     "atomic_dir",
     "atomic_path",
+    "check_output_name",
     "check_writable",
     "deferred_interrupts",
     "read_json",

@@ -35,10 +35,19 @@ def module_doc(module: str) -> str:
 
 
 def run(program: str, args: list[str] | None = None) -> int:
-    """Run console script ``program``: ``--help`` (exit 0) and bad plain arguments (exit 2) before its module loads."""
+    """Run console script ``program``: ``--help`` (exit 0) and bad plain arguments (exit 2) before its module loads.
+
+    A Ctrl-C while the module imports (torch, open3d: seconds), before the node handles signals, is one line and
+    exit 130, not an import traceback.
+    """
     module = PROGRAMS[program]
     script_args(program, module_doc(module), args, bag=program == "bag_player")  # may exit
-    return int(importlib.import_module(module).main(args))
+    try:
+        main = importlib.import_module(module).main
+    except KeyboardInterrupt:
+        print(f"{program}: interrupted", file=sys.stderr)
+        return 130
+    return int(main(args))
 
 
 def bag_player() -> int:

@@ -39,6 +39,7 @@ in the executor's thread pool would hold the process at exit).
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -68,9 +69,16 @@ from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
 from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, settings_text
+from roigsf_ros.nodes.node_params import (
+    SystemNode,
+    check_input_size,
+    check_positive,
+    declare,
+    declare_config,
+    settings_text,
+)
 from roigsf_ros.nodes.node_process import run_nodes
-from roigsf_ros.nodes.shared_map import SharedMapper, decimate_mesh, same_camera
+from roigsf_ros.nodes.shared_map import SharedMapper, check_replaceable_map, decimate_mesh, same_camera
 
 KEYFRAME_TOPIC = "/roigsf/keyframe"
 MAP_TOPIC = "/roigsf/map"
@@ -132,11 +140,10 @@ def camera_params(node: Node) -> CameraSettings:
     tf_wait_frames = int(declare(node, "tf_wait_frames", 64, "tf: at most this many frames wait for their pose"))
     check_positive("tf_cache_s", tf_cache_s)
     check_positive("tf_wait_frames", tf_wait_frames)
-    width = int(declare(node, "input_width", 0, "frames downscaled on arrival to this width (0 = camera's)"))
-    height = int(declare(node, "input_height", 0, "frames downscaled on arrival to this height (0 = camera's)"))
+    width = int(declare(node, "input_width", 0, "frames resized on arrival to this width (0 = camera's)"))
+    height = int(declare(node, "input_height", 0, "frames resized on arrival to this height (0 = camera's)"))
     check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
-    check_positive("input_width", width, allow_zero=True)
-    check_positive("input_height", height, allow_zero=True)
+    size = check_input_size(width, height)
     try:
         topics = CameraTopics(**fields)
     except InputError as exc:
@@ -147,9 +154,15 @@ def camera_params(node: Node) -> CameraSettings:
             "pose": "pose_topic",
         }
         raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
-    size = None if not width and not height else (width or None, height or None)
     camera_qos(1, reliability)  # an unknown value: an error naming the parameter
     return CameraSettings(topics, size, tf_wait_s, reliability, tf_wait_frames, tf_cache_s)
+
+
+def request_folder(directory: str) -> Path:
+    """A service request's folder with ``~`` expanded, made absolute (a relative one is in the node's working folder),
+    so that the reply says where the map went.
+    """
+    return Path(os.path.abspath(Path(directory).expanduser()))
 
 
 def frame_of(bf: BagFrame) -> Frame:
@@ -208,6 +221,13 @@ class MapperNode(SystemNode):
         check_positive("map_publish_rate_hz", publish_hz, allow_zero=True)
         check_positive("status_rate_hz", status_hz, allow_zero=True)
         check_positive("autosave_every", self.autosave_every, allow_zero=True)
+        if self.autosave_dir:  # now, naming the parameter, not at the first autosave
+            self.autosave_dir = str(request_folder(self.autosave_dir))
+            try:
+                check_writable(self.autosave_dir)
+                check_replaceable_map(self.autosave_dir)
+            except InputError as exc:
+                raise InputError("parameter 'autosave_dir'", str(exc)) from None
         check_positive("mesh_marker_max_triangles", self.mesh_max_triangles, allow_zero=True)
 
         self.in_process = shared is not None
@@ -225,6 +245,7 @@ class MapperNode(SystemNode):
         self._lock = threading.Lock()  # node state below (not the map: that is shared.lock)
         self._wake = threading.Condition(self._lock)
         self._stop = threading.Event()
+        self._service_threads: list[threading.Thread] = []  # service work still running (_run_interruptible)
         self._frames: OrderedDict[int, Frame] = OrderedDict()
         self._pending: deque[Frame] = deque()
         self._waiting: dict[int, list[float]] = {}  # stamp -> [time received, newer frames seen since]
@@ -245,6 +266,7 @@ class MapperNode(SystemNode):
                 "frames_bad_intrinsics",
                 "map_publishes",
                 "autosaves",
+                "autosaves_failed",
             ),
             0,
         )
@@ -482,9 +504,22 @@ class MapperNode(SystemNode):
             # a three-process run found no map and went to the fallback).
             self.publish_map()
         if self.autosave_dir and self.autosave_every and n_kf % self.autosave_every == 0:
+            self.autosave()
+
+    def autosave(self) -> bool:
+        """Save the map to ``autosave_dir`` (replacing the last autosave); a failure is logged and counted as a failed
+        autosave (``autosaves_failed``), not as a failed keyframe: the keyframe is mapped.
+        """
+        try:
             self.save(self.autosave_dir, overwrite=True)
+        except (InputError, OSError) as exc:
+            self.get_logger().error(f"autosave to {self.autosave_dir} (autosave_dir) failed: {exc}")
             with self._lock:
-                self.counters["autosaves"] += 1
+                self.counters["autosaves_failed"] += 1
+            return False
+        with self._lock:
+            self.counters["autosaves"] += 1
+        return True
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Block until no keyframe is queued or waiting and the worker is idle; False on timeout."""
@@ -565,16 +600,20 @@ class MapperNode(SystemNode):
         try:
             if not req.directory:
                 raise InputError("directory", "no folder given")
-            check_writable(req.directory)  # as the command line: a path under a file "is not a folder", not Errno 17
+            directory = request_folder(req.directory)
+            check_writable(directory)  # as the command line: a path under a file "is not a folder", not Errno 17
             # An existing folder's error names the request field, not the command line's --overwrite.
             hint = "set overwrite: true in the request"
-            res.keyframes, res.surfels = self.save(req.directory, req.with_mesh, req.overwrite, overwrite_hint=hint)
+            res.keyframes, res.surfels = self.save(str(directory), req.with_mesh, req.overwrite, overwrite_hint=hint)
             res.success = True
-            res.message = f"saved {res.keyframes} keyframes, {res.surfels} surfels to {req.directory}"
+            res.message = f"saved {res.keyframes} keyframes, {res.surfels} surfels to {directory}"
             self.get_logger().info(res.message)
         except (InputError, OSError) as exc:
             res.success, res.message = False, str(exc)
             self.get_logger().warning(f"save_map failed: {exc}")
+        except Exception as exc:  # a service callback that raises ends the node's executor: answer instead
+            res.success, res.message = False, f"directory {req.directory!r}: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"save_map failed: {res.message}")
         return res
 
     def _on_load(self, req: LoadMap.Request, res: LoadMap.Response) -> LoadMap.Response:
@@ -583,18 +622,22 @@ class MapperNode(SystemNode):
                 raise InputError("directory", "no folder given")
             with self.shared.lock:
                 current = self.shared.mapper.intr if self.shared.mapper is not None else None
-            loaded = self.shared.load(Path(req.directory), expect_intr=current)
+            directory = request_folder(req.directory)
+            loaded = self.shared.load(directory, expect_intr=current)
             self._intr = loaded.intr
             ids = set(self.shared.keyframe_ids())  # map lock first, then node lock (as status does)
             with self._lock:
                 self._queued_ids = ids
             res.success = True
             res.keyframes, res.surfels = len(loaded.loaded_keyframe_ids), loaded.n_surfels
-            res.message = f"loaded {res.keyframes} keyframes, {res.surfels} surfels from {req.directory}"
+            res.message = f"loaded {res.keyframes} keyframes, {res.surfels} surfels from {directory}"
             self.get_logger().info(res.message)
         except (InputError, OSError, ValueError, KeyError) as exc:
             res.success, res.message = False, str(exc)
             self.get_logger().warning(f"load_map failed: {exc}")
+        except Exception as exc:  # a service callback that raises ends the node's executor: answer instead
+            res.success, res.message = False, f"directory {req.directory!r}: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"load_map failed: {res.message}")
         return res
 
     def _on_mesh(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
@@ -622,7 +665,11 @@ class MapperNode(SystemNode):
         )
 
     def _run_interruptible(self, work: Callable[[], str], poll_s: float = 0.1) -> str:
-        """Run ``work`` in a daemon thread and wait for it, giving up (InputError) when the node stops."""
+        """Run ``work`` in a daemon thread and wait for it, giving up (InputError) when the node stops.
+
+        The request is answered at once then, but the thread runs on (Open3D's mesh extraction cannot be cut short):
+        :meth:`destroy_node` waits for it, as a process that exits with a thread inside Open3D aborted (rc 134).
+        """
         box: dict[str, Any] = {}
 
         def target() -> None:
@@ -632,6 +679,8 @@ class MapperNode(SystemNode):
                 box["error"] = exc
 
         thread = threading.Thread(target=target, name=f"{self.get_name()}_service_work", daemon=True)
+        with self._lock:
+            self._service_threads = [t for t in self._service_threads if t.is_alive()] + [thread]
         thread.start()
         while thread.is_alive():
             thread.join(poll_s)
@@ -649,8 +698,13 @@ class MapperNode(SystemNode):
             self._wake.notify_all()
 
     def destroy_node(self) -> None:
-        """Stop and join the worker thread, then destroy the node."""
+        """Stop and join the worker thread and any service work still running, then destroy the node."""
         self._stop_worker()
+        with self._lock:
+            service_threads, self._service_threads = self._service_threads, []
+        for thread in service_threads:
+            if thread is not threading.current_thread():
+                thread.join()
         super().destroy_node()
 
     def _stop_worker(self) -> None:

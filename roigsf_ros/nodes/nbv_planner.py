@@ -93,7 +93,14 @@ from roigsf_ros.nodes.map_msgs import (
     pose_stamped,
 )
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_CAMERA_INFO_TOPIC, MAP_TOPIC, latched_qos
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare, declare_config, settings_text
+from roigsf_ros.nodes.node_params import (
+    SystemNode,
+    check_input_size,
+    check_positive,
+    declare,
+    declare_config,
+    settings_text,
+)
 from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import MapSnapshot, SharedMapper, view_mapper
 
@@ -139,9 +146,7 @@ class NBVPlannerNode(SystemNode):
         info_qos = camera_qos(10, str(declare(self, "camera_reliability", "reliable", "reliable | best_effort")))
         in_w = int(declare(self, "input_width", 0, "camera info scaled to the mapper's input_width (0 = as sent)"))
         in_h = int(declare(self, "input_height", 0, "camera info scaled to the mapper's input_height (0 = as sent)"))
-        check_positive("input_width", in_w, allow_zero=True)
-        check_positive("input_height", in_h, allow_zero=True)
-        self.input_size = None if not in_w and not in_h else (in_w or None, in_h or None)
+        self.input_size = check_input_size(in_w, in_h)
         self.frame_id = str(declare(self, "frame_id", "map", "frame of candidate poses and outputs"))
         sync_s = float(declare(self, "tsdf_sync_period_s", 1.0, "seconds between TSDF updates (0 = at requests only)"))
         self.publish_uncertainty = bool(declare(self, "publish_uncertainty", True, "publish Eq. 17 of the best view"))

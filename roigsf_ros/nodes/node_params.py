@@ -22,9 +22,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    InvalidServiceNameException,
+    InvalidTopicNameException,
+)
+from rclpy.expand_topic_name import expand_topic_name
 from rclpy.node import Node
+from rclpy.validate_full_topic_name import validate_full_topic_name
 
+from roigsf_ros.core.camera import MAX_IMAGE_SIDE
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.package_files import package_path
 
@@ -82,6 +90,12 @@ def _notes(*notes: str) -> str:
     return f" ({'; '.join(kept)})" if kept else ""
 
 
+def _set_in(node: Node, name: str) -> str:
+    """``"set in FILE"`` for a parameter of ``node`` a params file set, else ""."""
+    source = parameter_source(node, name)
+    return f"set in {source}" if source not in (None, "-p") else ""
+
+
 def _float_hint(name: str, given: Any, source: str | None) -> str:
     """The advice for an int given to a float parameter (``write a float with a point, e.g. 1.0``), with ``-p``'s
     syntax when the value came from ``-p``.
@@ -106,12 +120,34 @@ def _type_error(node: Node, name: str, default: Any) -> InputError:
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
-    """Declare one parameter with a default and a description; returns its (possibly overridden) value."""
+    """Declare one parameter with a default and a description; returns its (possibly overridden) value.
+
+    A ``*_topic`` or ``*_service`` parameter's name is checked as ROS will expand it (:func:`check_ros_name`).
+    """
     value = list(default) if isinstance(default, tuple) else default
     try:
-        return node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
+        got = node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
     except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
         raise _type_error(node, name, default) from None
+    if isinstance(got, str) and got and name.endswith(("_topic", "_service")):
+        check_ros_name(node, name, got)
+    return got
+
+
+def check_ros_name(node: Node, name: str, value: str) -> str:
+    """``value`` (a topic or service name, given as parameter ``name``) expanded for ``node``; an InputError naming
+    the parameter (and its params file) when ROS would refuse it: at start-up, not as a traceback when the
+    subscription is made (the keyframe selector makes its camera subscriptions only after ``startup_wait_s``).
+    """
+    try:
+        full = expand_topic_name(value, node.get_name(), node.get_namespace())
+        validate_full_topic_name(full, is_service=name.endswith("_service"))
+    except (InvalidTopicNameException, InvalidServiceNameException, ValueError) as exc:
+        why = str(exc).split(", at /")[0].split("\n")[0].rstrip(":")  # rcl's source location; the caret lines
+        why = re.sub(r"^(Invalid (topic|service) name: |topic name '.*' is invalid: )", "", why)
+        why += _notes(_set_in(node, name))
+        raise InputError(f"parameter '{node.get_name()}.{name}'", f"{value!r} is no valid ROS name: {why}") from None
+    return full
 
 
 def _config_error(node: Node, values: dict[str, Any], exc: InputError) -> InputError:
@@ -121,8 +157,7 @@ def _config_error(node: Node, values: dict[str, Any], exc: InputError) -> InputE
     field = exc.where.rsplit(".", 1)[-1]
     if field not in values:
         return exc
-    source = parameter_source(node, field)
-    problem = exc.problem + _notes(f"set in {source}" if source not in (None, "-p") else "")
+    problem = exc.problem + _notes(_set_in(node, field))
     return InputError(f"parameter '{node.get_name()}.{field}'", problem)
 
 
@@ -335,8 +370,8 @@ def parameter_source(node: Node, name: str) -> str | None:
 
 def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
     """``exc`` as the nodes report a bad parameter: rclpy's type and range errors as an InputError in
-    :func:`declare`'s words (the range said), and a ``parameter 'NAME'`` InputError of ``node`` with the params file
-    that set the value; anything else as it is. Call it while ``node`` still exists.
+    :func:`declare`'s words (the range said), and a ``parameter 'NAME'`` InputError of ``node`` as ``'node.NAME'``
+    with the params file that set the value; anything else as it is. Call it while ``node`` still exists.
     """
     name_of = "" if node is None else f"{node.get_name()}."
     text = str(exc)
@@ -352,10 +387,15 @@ def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
     if not isinstance(exc, InputError) or node is None:
         return exc
     m = re.fullmatch(rf"parameter '(?:{re.escape(node.get_name())}\.)?(?P<name>[^']+)'", exc.where)
-    source = None if m is None else parameter_source(node, m["name"])
-    if source in (None, "-p") or f"set in {source}" in exc.problem:
+    if m is None:
         return exc
-    return InputError(exc.where, exc.problem + _notes(f"set in {source}"))
+    # the node's name in front (in active_mapping three nodes share parameter names), the params file behind
+    where = f"parameter '{node.get_name()}.{m['name']}'" if node.has_parameter(m["name"]) else exc.where
+    source = parameter_source(node, m["name"])
+    problem = exc.problem
+    if source not in (None, "-p") and f"set in {source}" not in problem:
+        problem += _notes(f"set in {source}")
+    return exc if (where, problem) == (exc.where, exc.problem) else InputError(where, problem)
 
 
 _RCLPY_TYPE_ERROR = re.compile(
@@ -437,7 +477,7 @@ def check_parameter_overrides(
     ignored = undeclared_overrides(node, also if others else package_parameter_names())
     if warn and ignored:
         by = " nor by " + ", ".join(n.get_name() for n in others) if others else " nor by any other roigsf node"
-        names = ", ".join(f"{name}{_hint(name, declared + also)}" for name in ignored)
+        names = ", ".join(f"{name}{_hint(name, declared + also)}{_notes(_set_in(node, name))}" for name in ignored)
         node.get_logger().warning(f"ignored parameter(s) not declared by this node{by}: {names}")
     if warn:
         for path, section in misspelt_sections(node, [n.get_name() for n in others]):
@@ -504,13 +544,26 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     return value
 
 
+def check_input_size(width: int, height: int) -> tuple[int | None, int | None] | None:
+    """The ``input_width`` / ``input_height`` parameters as a size (0 = the camera's side; None: both 0), each side
+    checked now (>= 0, at most :data:`MAX_IMAGE_SIDE`), not as a drop of every frame once the camera publishes.
+    """
+    for name, value in (("input_width", width), ("input_height", height)):
+        check_positive(name, value, allow_zero=True)
+        if value > MAX_IMAGE_SIDE:
+            raise InputError(f"parameter '{name}'", f"must be at most {MAX_IMAGE_SIDE} px, got {value}")
+    return None if not width and not height else (width or None, height or None)
+
+
 __all__ = [
     "BAD_PARAMETER_ERRORS",
     "RCLPY_PARAMETERS",
     "RCLPY_PARAMETER_PREFIXES",
     "SystemNode",
+    "check_input_size",
     "check_parameter_overrides",
     "check_positive",
+    "check_ros_name",
     "declare",
     "declare_config",
     "field_docs",

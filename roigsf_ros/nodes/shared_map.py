@@ -210,8 +210,11 @@ class SharedMapper:
         """Write map.ply + keyframes.json (+ mesh.ply) atomically from a snapshot (lock not held while writing).
 
         An existing ``directory`` without ``overwrite`` is a FileExistsError whose ``overwrite_hint`` tells the
-        caller's user how to replace it (default: the command line's ``--overwrite``; :func:`atomic_dir`).
+        caller's user how to replace it (default: the command line's ``--overwrite``; :func:`atomic_dir`). With it, only
+        an earlier map (or an empty folder) is replaced: a file or a folder of other things is refused, not deleted.
         """
+        if overwrite:
+            check_replaceable_map(directory)
         snap = self.snapshot(with_h_train=False)
         if snap is None:
             raise InputError(directory, "nothing to save: the mapper has no map yet")
@@ -255,6 +258,19 @@ def decimate_mesh(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
     raise InputError("mesh", f"could not decimate {n} triangles to {max_triangles}")
 
 
+def check_replaceable_map(directory: str | Path) -> None:
+    """Refuse to replace anything at ``directory`` but a saved map (a folder with keyframes.json) or an empty folder:
+    a mistyped ``overwrite: true`` save must not delete a file or a folder of other things.
+    """
+    path = Path(directory)
+    if not (path.exists() or path.is_symlink()):
+        return
+    if path.is_dir() and not path.is_symlink() and ((path / "keyframes.json").is_file() or not any(path.iterdir())):
+        return
+    what = "a folder without keyframes.json" if path.is_dir() else "not a folder"
+    raise InputError(directory, f"is {what}, not a saved map: overwrite replaces only a map")
+
+
 def save_snapshot(snap: MapSnapshot, directory: Path, with_mesh: bool = False) -> None:
     """Write a snapshot into an existing folder in :meth:`Mapper.save`'s layout (readable by :meth:`Mapper.load`)."""
     snap.surfel_map.save_ply(directory / "map.ply")
@@ -277,6 +293,7 @@ def read_keyframe_ids(directory: str | Path) -> list[int]:
 __all__ = [
     "MapSnapshot",
     "SharedMapper",
+    "check_replaceable_map",
     "decimate_mesh",
     "read_keyframe_ids",
     "same_camera",
