@@ -231,7 +231,7 @@ def test_non_finite_rate_and_times_are_refused_naming_the_parameter(ros_context:
     """``rate:=nan`` played everything at once ("at rate xnan"); nan start/ack delays passed as 0, inf ones hung."""
     for name in ("rate", "start_delay_s", "progress_period_s", "ack_timeout_s"):
         for value in (float("nan"), float("inf"), float("-inf")):
-            with pytest.raises(InputError, match=rf"^parameter '{name}': must be a finite number, got"):
+            with pytest.raises(InputError, match=rf"^parameter 'bag_player.{name}': must be a finite number, got"):
                 _player(ros_context, bag, **{name: value})
 
 
@@ -328,7 +328,7 @@ def test_main_nan_rate_exits_2_naming_the_parameter(bag: Path) -> None:
     """``-p rate:=nan``: a one-line error naming 'rate' and exit 2 before anything is published (it played)."""
     proc = _run_main("-p", f"bag:={bag}", "-p", "rate:=nan", "-p", "wait_for_subscribers:=0")
     assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert "parameter 'rate': must be a finite number, got nan" in proc.stderr and "Traceback" not in proc.stderr
+    assert "parameter 'bag_player.rate': must be a finite number, got nan" in proc.stderr and "Traceback" not in proc.stderr
     assert "published" not in proc.stdout + proc.stderr
 
 

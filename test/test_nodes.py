@@ -783,18 +783,18 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
         status = selector.status()
     assert status["keyframe_ids"] == expected + last
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
-    with pytest.raises(InputError, match=r"parameter 'novelty_measure'.*area, pixels"):
+    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_measure'.*area, pixels"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_measure", value="volume")])
-    with pytest.raises(InputError, match=r"parameter 'novelty_measure'.*counts the observed novelty"):
+    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_measure'.*counts the observed novelty"):
         pixels_alone = [Parameter("policy", value="random"), Parameter("novelty_measure", value="pixels")]
         KeyframeSelectorNode(context=ros_context, parameter_overrides=pixels_alone)
-    with pytest.raises(InputError, match=r"parameter 'novelty_voxel_m'.*> 0"):  # checked though nothing counts novelty
+    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_voxel_m'.*> 0"):  # checked though nothing counts novelty
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_voxel_m", value=0.0)])
     # a policy's range error names the node's parameter, not the library's field or a CLI flag (--every-n, --tau-k)
-    with pytest.raises(InputError, match=r"^parameter 'every_n': must be at least 1, got 0$"):
+    with pytest.raises(InputError, match=r"^parameter 'keyframe_selector.every_n': must be at least 1, got 0$"):
         every_n0 = [Parameter("policy", value="every-n"), Parameter("every_n", value=0)]
         KeyframeSelectorNode(context=ros_context, parameter_overrides=every_n0)
-    with pytest.raises(InputError, match=r"^parameter 'tau_k': must be in \[0, 1\), got 1\.5$"):
+    with pytest.raises(InputError, match=r"^parameter 'keyframe_selector.tau_k': must be in \[0, 1\), got 1\.5$"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("fallback_policy", value="gaus-slam"),
                                                                        Parameter("tau_k", value=1.5)])  # fmt: skip
     with pytest.raises(InputError, match="lookahead"):  # it judges the novelty: none to judge here
