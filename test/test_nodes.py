@@ -408,6 +408,15 @@ def test_a_keyframe_whose_frame_is_gone_says_why(ros_context: Any, scene: Any, c
         cam.keyframes.publish(pose_stamped(frames[0].T_wc, 2_000))  # the buffer holds 3_000 and 4_000 only
         _wait(lambda: mapper.status()["keyframes_missing"] == 2, 10.0, "the old frame's keyframe")
         old = mapper.status()["last_keyframe_drop"]  # in ~/status: the second warning is throttled
+        other_camera = _frame_msgs(frames[3], 5_000)
+        other_camera[bags.CameraTopics().camera_info].k[0] *= 1.5  # another focal length than the map's
+        cam.publish(other_camera)
+        _wait(lambda: mapper.status()["frames_bad_intrinsics"] == 1, 10.0, "the other camera's frame")
+        cam.keyframes.publish(pose_stamped(frames[3].T_wc, 5_000))
+        _wait(lambda: mapper.status()["keyframes_missing"] == 3, 10.0, "the other camera's keyframe")
+        other = mapper.status()["last_keyframe_drop"]
+    # was: "their frames did not arrive within 10 s", for frames that came with another camera's intrinsics
+    assert other.startswith("keyframe 5000: its frame was refused (bad_intrinsics: camera_info: intrinsics "), other
     assert refused.startswith("keyframe 1000: its frame was refused (bad_encoding: "), refused
     assert "keyframe 1000: its frame was refused (bad_encoding: " in capfd.readouterr().err
     assert old.startswith("keyframe 2000: its frame was already out of the buffer, which holds the last 2 frames"), old
@@ -788,7 +797,8 @@ def test_selector_lookahead_decides_each_window_as_the_library_does(
     with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_measure'.*counts the observed novelty"):
         pixels_alone = [Parameter("policy", value="random"), Parameter("novelty_measure", value="pixels")]
         KeyframeSelectorNode(context=ros_context, parameter_overrides=pixels_alone)
-    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_voxel_m'.*> 0"):  # checked though nothing counts novelty
+    # checked though nothing counts novelty
+    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.novelty_voxel_m'.*> 0"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("novelty_voxel_m", value=0.0)])
     # a policy's range error names the node's parameter, not the library's field or a CLI flag (--every-n, --tau-k)
     with pytest.raises(InputError, match=r"^parameter 'keyframe_selector.every_n': must be at least 1, got 0$"):

@@ -246,6 +246,7 @@ class MapperNode(SystemNode):
         self._wake = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._service_threads: list[threading.Thread] = []  # service work still running (_run_interruptible)
+        self._intrinsics_refusals: OrderedDict[int, str] = OrderedDict()  # stamp -> why (the last buffer_size)
         self._frames: OrderedDict[int, Frame] = OrderedDict()
         self._pending: deque[Frame] = deque()
         self._waiting: dict[int, list[float]] = {}  # stamp -> [time received, newer frames seen since]
@@ -339,6 +340,9 @@ class MapperNode(SystemNode):
         except InputError as exc:
             with self._lock:
                 self.counters["frames_bad_intrinsics"] += 1
+                self._intrinsics_refusals[bf.stamp_ns] = f"bad_intrinsics: {exc}"
+                while len(self._intrinsics_refusals) > self.buffer_size:
+                    self._intrinsics_refusals.popitem(last=False)
             self.get_logger().warning(f"dropped frame {bf.stamp_ns}: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
             return
         frame = frame_of(bf)
@@ -373,6 +377,9 @@ class MapperNode(SystemNode):
             self.counters["keyframe_msgs"] += 1
             if stamp in self._queued_ids or stamp in self._waiting:
                 self.counters["keyframes_duplicate"] += 1
+            elif stamp in self._intrinsics_refusals:  # its frame came, but not for this map
+                self.counters["keyframes_missing"] += 1
+                warn = f"keyframe {stamp}: its frame was refused ({self._intrinsics_refusals[stamp]}); dropped"
             elif stamp in self._frames:
                 self._enqueue(self._frames[stamp])
             elif not self._frames or stamp > next(reversed(self._frames)):
@@ -421,7 +428,13 @@ class MapperNode(SystemNode):
                 del self._waiting[s]
             self.counters["keyframes_missing"] += len(expired)
         if expired:
-            refused = [why for s in expired if (why := self.camera.rejection_of(s))]
+            with self._lock:
+                late_refusals = [self._intrinsics_refusals.get(s) for s in expired]
+            refused = [
+                why
+                for s, late in zip(expired, late_refusals, strict=True)
+                if (why := self.camera.rejection_of(s) or late)
+            ]
             because = f" ({len(refused)} refused, the last: {refused[-1]})" if refused else ""
             with self._lock:
                 total = self.counters["keyframes_missing"]
