@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.cli import demo
-from roigsf_ros.data.bags import SAMPLE_BAG, SAMPLE_GT_MESH, sample_path
+from roigsf_ros.data.bags import SAMPLE_BAG, sample_path
 from roigsf_ros.nodes import camera_input, keyframe_selector, mapper, nbv_planner
 
 Event = tuple[str, str, float, float]
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True, help="the demo's run folder (replaced)")
     parser.add_argument("--bag", type=Path, default=None, help="bag to replay (default: the shipped sample)")
-    parser.add_argument("--gt-mesh", type=Path, default=None, help="its mesh (default: the sample's)")
+    parser.add_argument("--gt-mesh", default=None, help="its mesh (default: the sample's for the sample bag)")
     parser.add_argument("--params-file", type=Path, action="append", default=[])
     parser.add_argument("--gaps", type=int, default=6, help="how many of the longest frame gaps to show")
     args = parser.parse_args(argv)
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             if hasattr(cls, name):
                 setattr(cls, name, _timed(f"{cls.__name__}.{name}", getattr(cls, name), events, lock))
     bag = args.bag if args.bag is not None else sample_path(SAMPLE_BAG)
-    gt_mesh = args.gt_mesh if args.gt_mesh is not None else sample_path(SAMPLE_GT_MESH)
+    gt_mesh, _ = demo.default_gt_mesh(bag, args.gt_mesh)
     m = demo.run_demo(bag, args.out, gt_mesh=gt_mesh, params_files=args.params_file, progress=False)
     keys = ("keyframes_published", "planner", "fallbacks", "recall@5cm", "psnr", "selector_max_frame_gap_s",
             "selector_max_novelty_s", "selector_max_answer_s")  # fmt: skip

@@ -1,28 +1,28 @@
 """The ``roigsf`` command line: the front door for everything offline.
 
-Each subcommand group lives in its own module with a ``register(subparsers)`` function.
+Each subcommand group lives in its own module with a ``register(subparsers)`` function. This module imports only the
+light ``core`` modules at its top: everything heavier (numpy, rosbags, open3d) comes in :func:`main`, where a Ctrl-C
+during those first seconds is one line, not a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_writable
-from roigsf_ros.data.bags import (
-    AUTO,
-    COLOR_TRANSPORTS,
-    DEPTH_TRANSPORTS,
-    POSE_SOURCES,
-    CameraTopics,
-    realsense_topics,
-)
+
+if TYPE_CHECKING:
+    from roigsf_ros.data.bags import CameraTopics
 
 # Subcommand modules, in the order `roigsf --help` lists them.
 _COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "targets", "perf")
@@ -59,6 +59,8 @@ _CAMERA_OPTIONS = {
 
 def add_camera_options(parser: argparse.ArgumentParser) -> None:
     """Options that say how a bag's camera is read: topics, transports, pose from a topic or TF, RealSense names."""
+    from roigsf_ros.data.bags import AUTO, COLOR_TRANSPORTS, DEPTH_TRANSPORTS, POSE_SOURCES, CameraTopics
+
     d = CameraTopics()
     g = parser.add_argument_group("camera topics (bags)")
     g.add_argument(
@@ -104,6 +106,8 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
 
 def camera_topics(args: argparse.Namespace) -> CameraTopics:
     """The :class:`CameraTopics` of :func:`add_camera_options`' options; errors name the option typed."""
+    from roigsf_ros.data.bags import AUTO, CameraTopics, realsense_topics
+
     given = {field: getattr(args, opt[2:].replace("-", "_")) for field, opt in _CAMERA_OPTIONS.items()}
     given = {k: v for k, v in given.items() if v is not None}
     given.setdefault("color_transport", AUTO)
@@ -116,6 +120,30 @@ def camera_topics(args: argparse.Namespace) -> CameraTopics:
         raise InputError(_CAMERA_OPTIONS.get(exc.where, exc.where), exc.problem) from None
 
 
+def realsense_hint(bag: Path, present: dict[str, str], given: str | None, named: tuple[str, ...] = ()) -> str:
+    """``; the bag has a RealSense camera's topics under NS: try --realsense NS`` when the bag (its ``{topic: type}``
+    ``present``) holds a RealSense camera's topics not under ``given`` (the ``--realsense`` typed), else "": the hint of
+    ``roigsf demo`` and ``roigsf map`` when they read no frame. ``named``: options typed that would override the
+    RealSense names or transports (``--color-transport``), which the hint says to leave out.
+    """
+    from roigsf_ros.data.bags import AUTO, realsense_topics
+
+    suffix = "/color/camera_info"
+    for topic in sorted(present):
+        if topic.endswith(suffix):
+            ns = topic[: -len(suffix)] or "/"
+            if given is not None and ns.strip("/") == given.strip("/"):
+                continue
+            try:
+                realsense_topics(ns, color_transport=AUTO, depth_transport=AUTO).in_bag(present, bag)
+            except InputError:
+                continue
+            option = "--realsense" if ns == "/camera" else f"--realsense {ns}"
+            drop = f" without {', '.join(named)}" if named else ""
+            return f"; the bag has a RealSense camera's topics under {ns}: try {option}{drop}"
+    return ""
+
+
 def check_out(out: Path, overwrite: bool) -> None:
     """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written."""
     if out.exists() and not overwrite:
@@ -125,8 +153,31 @@ def check_out(out: Path, overwrite: bool) -> None:
     check_writable(out)
 
 
+_UNINTERRUPTIBLE_IMPORTS = ("open3d",)
+"""Modules imported with Ctrl-C held back (:func:`build_parser`): open3d's pybind11 module init turns a Ctrl-C into
+"ImportError: initialization failed" and leaves a half-made library whose exit then fails (status 1 after the one
+line, and a memory-leak report on stdout).
+"""
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held while the block runs and delivered when it ends (main thread only: elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every subcommand registered."""
+    for name in _UNINTERRUPTIBLE_IMPORTS:  # a Ctrl-C meanwhile comes just after: one line, exit 130 (main)
+        with _signals_held(), contextlib.suppress(ImportError):  # missing: the command that needs it says so
+            importlib.import_module(name)
     parser = argparse.ArgumentParser(
         prog="roigsf",
         description="Active mapping with 2D Gaussian surfels: scenes, bags, mapping and NBV benchmarks.",
@@ -198,15 +249,31 @@ def main(argv: list[str] | None = None) -> int:
     SIGTERM stops a command as Ctrl-C does (the demo stops its nodes and leaves no ROS shared-memory file; nothing
     half-written is left under a final name), also when the shell started it with SIGINT ignored (``&``), and also
     when a library wrapped the interrupt in another exception. Running out of memory is one line too, exit code 1.
+    A Ctrl-C from the first import on (:func:`build_parser`) to the command's end is ``roigsf ...: interrupted``.
     """
-    try:
-        parser = build_parser()  # imports every command's module: the first seconds of a run
-        args = parser.parse_args(argv)
-    except KeyboardInterrupt as exc:  # Ctrl-C then printed a traceback of the import under way
-        return _interrupted("", exc)
     handlers = {}
-    if threading.current_thread() is threading.main_thread():
+    if threading.current_thread() is threading.main_thread():  # before the imports: no gap for a traceback
         handlers = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            parser = build_parser()  # imports every command's module: the first seconds of a run
+            args = parser.parse_args(argv)
+        except KeyboardInterrupt as exc:  # Ctrl-C then printed a traceback of the import under way
+            return _interrupted("", exc)
+        except Exception as exc:  # open3d's module init turns a Ctrl-C into "ImportError: initialization failed"
+            interrupt = _interrupt_behind(exc)
+            if interrupt is None:
+                raise
+            return _interrupted("", interrupt)
+        return _run_command(args)
+    finally:
+        for sig, handler in handlers.items():
+            if handler is not None:  # None: not set from Python, nothing to put back
+                signal.signal(sig, handler)
+
+
+def _run_command(args: argparse.Namespace) -> int:
+    """Run the parsed command: bad input one line and 2, an interrupt one line and 128 + signal, memory one line."""
     try:
         return int(args.func(args) or 0)
     except (InputError, FileExistsError, FileNotFoundError) as exc:
@@ -224,10 +291,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"roigsf {args.command}: error: not enough memory for this command ({why}){hint}", file=sys.stderr)
             return 1
         raise
-    finally:
-        for sig, handler in handlers.items():
-            if handler is not None:  # None: not set from Python, nothing to put back
-                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

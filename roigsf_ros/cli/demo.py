@@ -30,6 +30,7 @@ came before its images were decoded.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -41,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roigsf_ros.cli import check_writable
+from roigsf_ros.cli import check_writable, realsense_hint
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import (
     AUTO,
@@ -55,6 +56,7 @@ from roigsf_ros.data.bags import (
     realsense_topics,
     sample_path,
 )
+from roigsf_ros.perf.io import check_domain_id, domain_id_from_env
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -221,13 +223,16 @@ def node_camera(context: Context, node: str, overrides: dict[str, Any]) -> Camer
     from rclpy.parameter import Parameter
 
     from roigsf_ros.nodes.mapper import camera_params
+    from roigsf_ros.nodes.node_params import parameter_error
 
     given = [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in overrides.items() if k in _PROBED]
     probe = Node(node, context=context, parameter_overrides=given, start_parameter_services=False, enable_rosout=False)
     try:
         return camera_params(probe).topics
     except InputError as exc:
-        raise InputError(_node_parameter(node, exc.where), exc.problem) from None
+        named = parameter_error(probe, exc)  # "(set in FILE)" as the node itself says it
+        named = named if isinstance(named, InputError) else exc
+        raise InputError(_node_parameter(node, named.where), named.problem) from None
     finally:
         probe.destroy_node()
 
@@ -249,23 +254,6 @@ def first_frame(bag: Path, topics: CameraTopics, present: dict[str, str]) -> tup
     return resolved, InputError(bag, f"no complete frame on {', '.join(resolved.types())} ({why})")
 
 
-def _realsense_hint(bag: Path, present: dict[str, str], given: str | None) -> str:
-    """``; ... try --realsense NS`` when the bag holds a RealSense camera's topics (not under ``given``), else ""."""
-    suffix = "/color/camera_info"
-    for topic in sorted(present):
-        if topic.endswith(suffix):
-            ns = topic[: -len(suffix)] or "/"
-            if given is not None and ns.strip("/") == given.strip("/"):
-                continue
-            try:
-                realsense_topics(ns, color_transport=AUTO, depth_transport=AUTO).in_bag(present, bag)
-            except InputError:
-                continue
-            option = "--realsense" if ns == "/camera" else f"--realsense {ns}"
-            return f"; the bag has a RealSense camera's topics under {ns}: try {option}"
-    return ""
-
-
 def demo_camera(
     bag: Path,
     params: dict[str, dict[str, Any]] | None = None,
@@ -280,8 +268,6 @@ def demo_camera(
     RealSense names), or naming the parameters when the mapper's and the selector's settings differ so that one of
     them would read nothing.
     """
-    import rclpy
-
     node_params = {k: dict(v) for k, v in (params or {}).items()}
     if realsense is not None:
         rs = realsense_parameters(realsense)
@@ -290,8 +276,7 @@ def demo_camera(
         node_params.setdefault("nbv_planner", {}).setdefault("camera_info_topic", rs["camera_info_topic"])
     present = bag_topic_types(bag)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)
+    context = ros_context(params_files, domain_id)
     try:
         wanted = {node: node_camera(context, node, node_params.get(node, {})) for node in CAMERA_NODES}
     finally:
@@ -317,7 +302,7 @@ def demo_camera(
             f"{mine} (the {peer}'s: {theirs_all}): the {node} would read no frame of the bag: {error}",
         )
     if mapper_error is not None:
-        hint = _realsense_hint(bag, present, realsense)
+        hint = realsense_hint(bag, present, realsense)
         raise InputError(mapper_error.where, f"{mapper_error.problem}{hint}")
     for node, resolved in zip(CAMERA_NODES, (mapper, selector), strict=True):
         for stream in ("color", "depth"):
@@ -332,6 +317,23 @@ def _ros_args(params_files: Sequence[Path]) -> list[str] | None:
     if not params_files:
         return None
     return ["roigsf_demo", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
+
+
+def ros_context(params_files: Sequence[Path], domain_id: int | None) -> Context:
+    """A fresh rclpy context with the params files, its arguments noted as ``active_mapping``'s are
+    (:func:`~roigsf_ros.nodes.node_params.remember_ros_args`): the nodes then warn of a misspelt section
+    (``mappr:``) and a bad value's error says ``(set in FILE)``, as with ``--ros-args --params-file FILE``.
+    """
+    import rclpy
+
+    from roigsf_ros.nodes.node_params import remember_ros_args
+
+    args = _ros_args(params_files)
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context, domain_id=domain_id)
+    if args is not None:
+        remember_ros_args(context, args)
+    return context
 
 
 # ------------------------------------------------------------------------------------ evaluation
@@ -678,15 +680,15 @@ def run_demo(
     drain_timeout_s: float = 120.0,
     realsense: str | None = None,
     camera: DemoCamera | None = None,
+    no_gt_mesh_reason: str = "no ground-truth mesh given",
 ) -> dict[str, Any]:
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
 
-    ``gt_mesh``: the mesh the map's mesh metrics are taken against (None: none; the sample bag's is
-    ``sample_path(SAMPLE_GT_MESH)``). ``camera``: the bag's camera as :func:`demo_camera` resolved it (its
-    ``params`` then replace ``params`` and ``realsense``); None resolves it here. Raises KeyboardInterrupt after a
-    clean stop on Ctrl-C (nothing written).
+    ``gt_mesh``: the mesh the map's mesh metrics are taken against (None: none, and ``no_gt_mesh_reason`` says why in
+    metrics.json; the sample bag's is ``sample_path(SAMPLE_GT_MESH)``: :func:`default_gt_mesh`). ``camera``: the
+    bag's camera as :func:`demo_camera` resolved it (its ``params`` then replace ``params`` and ``realsense``); None
+    resolves it here. Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
     """
-    import rclpy
     from rclpy.parameter import Parameter
 
     from roigsf_ros import evaluation
@@ -714,9 +716,8 @@ def run_demo(
         node_params.setdefault("keyframe_selector", {}).setdefault("policy", policy)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if domain_id is None:
-        domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
-    context = rclpy.Context()
-    rclpy.init(args=_ros_args(params_files), context=context, domain_id=domain_id)
+        domain_id = domain_id_from_env() or 0
+    context = ros_context(params_files, domain_id)
     system: ActiveMapping | None = None
     player: BagPlayer | None = None
     lockstep: Lockstep | None = None
@@ -808,6 +809,8 @@ def run_demo(
     metrics |= {
         "policy": sel["policy"],  # the selector's: --policy, a --set or a params file, else its default
         "bag": str(bag),
+        "gt_mesh": None if gt_mesh is None else str(gt_mesh),  # what the mesh metrics were taken against
+        "no_gt_mesh_reason": no_gt_mesh_reason if gt_mesh is None else None,
         "rate": rate,
         "lockstep_stalls": None if lockstep is None else lockstep.stalls,  # frames played before the nodes were ready
         "lockstep_wait_s": None if lockstep is None else lockstep.waited_s,
@@ -860,10 +863,68 @@ def run_demo(
     return metrics
 
 
+def is_sample_bag(bag: Path) -> bool:
+    """Whether ``bag`` is the shipped sample (:data:`SAMPLE_BAG`, its folder or its .mcap): by resolved path, else as a
+    byte-identical copy of it; False when the sample is not installed.
+
+    The copy counts because the installed ``roigsf`` finds the share folder's sample while ``scripts/demo.sh`` names the
+    checkout's ``bags/synth_room``: the same bag, which must keep its mesh metrics.
+    """
+    try:
+        sample = sample_path(SAMPLE_BAG).resolve()
+    except InputError:
+        return False
+    here = bag.resolve()
+    if here == sample or (here.parent == sample and here.suffix == ".mcap"):
+        return True
+    files = sorted(f for f in sample.iterdir() if f.is_file())
+    if here.is_file():  # a .mcap given as the bag: one of the sample's files, byte for byte
+        return any(f.suffix == ".mcap" and _same_file(here, f) for f in files)
+    theirs = sorted(f for f in here.iterdir() if f.is_file()) if here.is_dir() else []
+    return [f.name for f in theirs] == [f.name for f in files] and all(map(_same_file, theirs, files))
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two files hold the same bytes (the sizes first: a bag of another scene differs at once)."""
+    import filecmp
+
+    return a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
+
+
+def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
+    """The mesh the demo's mesh metrics are taken against, from ``--gt-mesh`` (``option``), and why there is none.
+
+    Not given: the sample's mesh for the sample bag only; any other bag (another scene, or one made from the sample by
+    ``bag to-robot``, whose frames may differ) gets none, rather than being scored against a mesh it never saw.
+    ``''``: none. Returns (the mesh or None, the reason when None, else "").
+    """
+    if option is not None:
+        return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
+    if is_sample_bag(bag):
+        return sample_path(SAMPLE_GT_MESH), ""
+    return None, "no --gt-mesh for this bag"
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Refuse the demo's numeric options that make no sense, naming the option, before anything is read or started
+    (a negative ``--rate`` is meaningful: <= 0 plays in lockstep).
+    """
+    if not math.isfinite(args.rate):
+        raise InputError("--rate", f"must be a finite number (<= 0: as fast as the nodes take it), got {args.rate}")
+    if args.final_iters < 0:
+        raise InputError("--final-iters", f"must be >= 0, got {args.final_iters}")
+    if args.domain_id is not None:
+        check_domain_id(args.domain_id)
+
+
 def _run(args: argparse.Namespace) -> int:
+    _check_numbers(args)
+    domain_id = args.domain_id if args.domain_id is not None else domain_id_from_env()
     bag = Path(args.bag) if args.bag is not None else sample_path(SAMPLE_BAG)
-    # None: the sample's mesh (also right for a bag made from the sample by bag to-robot); '': none
-    gt_mesh = sample_path(SAMPLE_GT_MESH) if args.gt_mesh is None else Path(args.gt_mesh) if args.gt_mesh else None
+    gt_mesh, no_mesh = default_gt_mesh(bag, args.gt_mesh)
+    if gt_mesh is not None and not gt_mesh.is_file():  # now, not after the replay
+        raise InputError(gt_mesh, "ground-truth mesh not found (--gt-mesh)")
+    mesh_note = f"mesh metrics against {gt_mesh}" if gt_mesh is not None else f"no mesh metrics ({no_mesh})"
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
@@ -874,7 +935,7 @@ def _run(args: argparse.Namespace) -> int:
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
         params_file_sections(f, strict=True)
     # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
-    camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, args.domain_id)
+    camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, domain_id)
     info = bag_info(bag, camera.topics)
     given = f" (policy {args.policy})" if args.policy is not None else ""
     size = f"{info['width']}x{info['height']}" if info["width"] is not None else "an undecoded size"
@@ -886,7 +947,7 @@ def _run(args: argparse.Namespace) -> int:
     print(
         f"bag {bag}: {info['frame_count']} frames{unposed} of {size}, depth {info['depth_encoding']}, pose from "
         f"{info['pose_source']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
-        f"{given}, then {args.final_iters} refinement steps"
+        f"{given}, then {args.final_iters} refinement steps; {mesh_note}"
     )
     metrics = run_demo(
         bag,
@@ -895,13 +956,15 @@ def _run(args: argparse.Namespace) -> int:
         rate=args.rate,
         final_iters=args.final_iters,
         gt_mesh=gt_mesh,
-        domain_id=args.domain_id,
+        domain_id=domain_id,
         params_files=params_files,
         progress=not args.no_progress,
         camera=camera,
+        no_gt_mesh_reason=no_mesh,
     )
     print(f"\nactive-mapping demo on {bag} (policy {metrics['policy']}) -> {out}")
     print(format_table(metrics))
+    print(f"  {mesh_note}")
     for hint in (fallback_hint(metrics), mapping_hint(metrics)):
         if hint:
             print(hint)
@@ -994,8 +1057,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--gt-mesh",
         default=None,
         metavar="PLY",
-        help=f"ground-truth mesh for the mesh metrics (default: the sample's, {SAMPLE_GT_MESH}, found as --bag's; "
-        "'' for none)",
+        help=f"ground-truth mesh for the mesh metrics (default: for the shipped sample bag its mesh, {SAMPLE_GT_MESH}; "
+        "for any other bag none, so no mesh metrics, also for one made from the sample by `bag to-robot`: pass "
+        f"--gt-mesh {SAMPLE_GT_MESH} there; '' for none)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress display")
     p.set_defaults(func=_run)

@@ -9,9 +9,10 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
+from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size, realsense_hint
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.sources import open_frames
+from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
+from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names
@@ -190,13 +191,13 @@ def run(args: argparse.Namespace) -> int:
     check_out(args.out, args.overwrite)
     policy = policy_from_args(args)
     cfg = config_from_args(args)
-    source = open_frames(args.source, size=size, stride=args.stride, max_frames=args.max_frames,
-                         allow_partial=args.allow_partial, topics=topics)  # fmt: skip
+    source = _open(args, args.source, topics, size=size, stride=args.stride, max_frames=args.max_frames,
+                   allow_partial=args.allow_partial)  # fmt: skip
     eval_source = None
     if args.eval_against is not None:
-        eval_source = open_frames(args.eval_against, size=size, stride=args.stride, max_frames=args.max_frames,
-                                  allow_partial=args.allow_partial, topics=topics)  # fmt: skip
-    test_source = open_frames(args.test_scene, size=size, topics=topics) if args.test_scene is not None else None
+        eval_source = _open(args, args.eval_against, topics, size=size, stride=args.stride,
+                            max_frames=args.max_frames, allow_partial=args.allow_partial)  # fmt: skip
+    test_source = _open(args, args.test_scene, topics, size=size) if args.test_scene is not None else None
     gt_mesh = gt_mesh_of(args.gt_mesh, source.gt_mesh_path)
     metrics = run_offline(
         source,
@@ -218,6 +219,28 @@ def run(args: argparse.Namespace) -> int:
         hint = "" if args.gt_mesh == "" else "; pass --gt-mesh"
         print(f"  (no ground-truth mesh: mesh metrics skipped{hint})")
     return 0
+
+
+_OVERRIDING_OPTIONS = ("color_topic", "depth_topic", "camera_info_topic", "color_transport", "depth_transport")
+"""The camera options that would override the names or transports ``--realsense`` sets."""
+
+
+def _open(args: argparse.Namespace, path: str | Path, topics: CameraTopics, **kwargs: Any) -> FrameSource:
+    """:func:`open_frames` of ``path``; a bag it reads no frame of gets ``roigsf demo``'s and ``roigsf bag info``'s
+    hint when it holds a RealSense camera's topics: ``try --realsense`` (without the options that would override it).
+    """
+    try:
+        return open_frames(path, topics=topics, **kwargs)
+    except InputError as exc:
+        try:
+            present = bag_topic_types(path)
+        except (InputError, OSError):  # no bag (a scene folder, a path that does not exist): no hint
+            raise exc from None
+        named = tuple(f"--{o.replace('_', '-')}" for o in _OVERRIDING_OPTIONS if getattr(args, o) not in (None, AUTO))
+        hint = realsense_hint(Path(path), present, args.realsense, named)
+        if not hint:
+            raise
+        raise InputError(exc.where, exc.problem + hint) from None
 
 
 def gt_mesh_of(option: str | None, default: Path | None) -> Path | None:

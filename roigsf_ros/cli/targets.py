@@ -22,6 +22,7 @@ from roigsf_ros.experiments.targets import (
     STREAM_PSNR_MARGIN_DB,
     STREAM_RECALL_MARGIN,
     PolicyResults,
+    check_margin,
     load_policy,
     pool_target,
     stream_target,
@@ -46,19 +47,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--psnr-margin-db",
         type=float,
-        help=f"PSNR it may trail by (default pool {POOL_PSNR_MARGIN_DB}, stream {STREAM_PSNR_MARGIN_DB})",
+        help=f"PSNR (dB) it may trail by, >= 0 (default pool {POOL_PSNR_MARGIN_DB}, stream {STREAM_PSNR_MARGIN_DB})",
     )
     p.add_argument(
         "--recall-margin",
         type=float,
         default=STREAM_RECALL_MARGIN,
-        help=f"stream: R@5cm it may trail by (default {STREAM_RECALL_MARGIN})",
+        help=f"stream: R@5cm it may trail by, >= 0 (default {STREAM_RECALL_MARGIN})",
     )
     p.add_argument(
         "--max-keyframe-ratio",
         type=float,
         default=STREAM_MAX_KEYFRAME_RATIO,
-        help=f"stream: its keyframes / the reference's (default {STREAM_MAX_KEYFRAME_RATIO})",
+        help=f"stream: its keyframes / the reference's at most, > 0 (default {STREAM_MAX_KEYFRAME_RATIO})",
     )
     p.add_argument(
         "--allow-config-difference",
@@ -75,8 +76,20 @@ def _same_policy(a: PolicyResults, b: PolicyResults) -> bool:
     return a.label == b.label and a.source.resolve() == b.source.resolve()
 
 
+def _check_margins(args: argparse.Namespace) -> None:
+    """Refuse a nan, infinite or negative margin (a ratio also 0) before anything is read, naming the option: nan
+    printed "at most nan%" and inf made every check "met".
+    """
+    options = (("--psnr-margin-db", args.psnr_margin_db, False), ("--recall-margin", args.recall_margin, False),
+               ("--max-keyframe-ratio", args.max_keyframe_ratio, True))  # fmt: skip
+    for option, value, positive in options:
+        if value is not None:
+            check_margin(value, option, positive)
+
+
 def run(args: argparse.Namespace) -> int:
     """Load, compare, print; write JSON atomically."""
+    _check_margins(args)
     if args.out is not None:
         check_writable(args.out)
     candidate = load_policy(args.candidate)

@@ -943,8 +943,11 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         any_message = sum(c.msgcount for c in conns) > 0
         first_ns = reader.start_time if any_message else None
         last_ns = reader.end_time - 1 if any_message else None  # rosbags' end is one past the last message
-        if missing:  # no frame is complete: the stamps of the topics present are all incomplete
-            incomplete = len({header_stamp_ns(raw) for _, _, raw in reader.messages(connections=camera)})
+        if missing:  # no frame is complete: the stamps of the camera topics present are all incomplete
+            # (none present: none; rosbags reads EVERY topic for an empty connection list, and /tf's TFMessages, which
+            # have no header, counted as "166 incomplete stamps" of a 150-frame bag read with a wrong --realsense)
+            stamps = reader.messages(connections=camera) if camera else ()
+            incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
     frames = refused = no_tf = 0
     reason = refusal = ""
     if not missing:

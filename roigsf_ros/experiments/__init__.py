@@ -56,6 +56,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "Verdict",
             "ViewsToMatch",
             "check_comparable",
+            "check_margin",
             "config_differences",
             "curve_by_seed",
             "load_policy",

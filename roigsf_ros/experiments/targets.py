@@ -298,6 +298,17 @@ def check_comparable(
     return diffs
 
 
+def check_margin(value: float, where: str, positive: bool = False) -> float:
+    """``value`` if it is a finite number >= 0 (``positive``: > 0), else an InputError naming the argument ``where``:
+    a nan margin printed "at most nan%" and an infinite one made every check "met" (``roigsf targets`` checks its
+    options with it, naming them).
+    """
+    ok = math.isfinite(value) and (value > 0 if positive else value >= 0)
+    if not ok:
+        raise InputError(where, f"must be a finite number {'> 0' if positive else '>= 0'}, got {value}")
+    return value
+
+
 @dataclass(frozen=True)
 class Check:
     """One condition of a target: ``margin`` (the candidate's side, positive = better) against ``required``."""
@@ -449,6 +460,7 @@ def pool_target(
     allow_config_difference: bool = False,
 ) -> Verdict:
     """Issue 10's pool target: ahead of each baseline by the larger std on ``metrics``, PSNR within the margin."""
+    check_margin(psnr_margin_db, "psnr_margin_db")
     if not baselines:
         raise InputError("baselines", "the pool target needs at least one baseline (fisherrf, random)")
     _require_setting(candidate, "pool")
@@ -487,6 +499,9 @@ def stream_target(
     The keyframe check's margin is the keyframes to spare: the ratio times the reference's mean count, less the
     candidate's (31 against 160 at 20 % leaves 1.0 to spare), so that, as in every check, a positive slack passes.
     """
+    check_margin(max_keyframe_ratio, "max_keyframe_ratio", positive=True)
+    check_margin(recall_margin, "recall_margin")
+    check_margin(psnr_margin_db, "psnr_margin_db")
     _require_setting(candidate, "stream")
     diffs = check_comparable(candidate, reference, allow_config_difference)
     kf, ref_kf = candidate.stat("n_keyframes"), reference.stat("n_keyframes")
@@ -517,6 +532,7 @@ __all__ = [
     "Verdict",
     "ViewsToMatch",
     "check_comparable",
+    "check_margin",
     "config_differences",
     "curve_by_seed",
     "load_policy",

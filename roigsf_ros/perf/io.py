@@ -16,7 +16,7 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,11 @@ NATIVE_SIZE = (1200, 680)
 SMALL_SIZE = (240, 136)
 PLAYER_RATE_HZ = 10.0
 MAX_DOMAIN_ID = 232
-"""The largest ROS 2 domain id (on Linux; 0..101 are the portable ones)."""
+"""The largest ROS 2 domain id (on Linux; 0..101 are the portable ones): the largest whose DDS ports fit in 16 bits with
+Fast DDS's defaults (port base 7400 + domain gain 250 x id + offsets: 7400 + 250 x 232 = 65400 leaves room for the
+participants' ports below 65536, 233 gives 65650). Past it Fast DDS fails with "port number is too high" after the
+nodes' shared-memory files are made, and leaves them in /dev/shm.
+"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,24 +62,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def choose_domain_id(given: int | None, environ: dict[str, str] | None = None) -> int:
-    """The player timing's ROS domain id: ``--domain-id``, else ``ROS_DOMAIN_ID``, else a random one of 1..99 (so two
-    runs on one machine rarely hear each other); an id out of 0..232 is an InputError naming where it came from.
+def check_domain_id(value: int, where: str = "--domain-id") -> int:
+    """``value`` if it is a ROS domain id in 0..:data:`MAX_DOMAIN_ID`, else an InputError naming ``where`` (the
+    option or variable it came from): the one check of every ``roigsf`` command with ``--domain-id``, made before
+    any ROS context exists, since Fast DDS refuses a larger one only after leaving files in /dev/shm.
     """
-    env = os.environ if environ is None else environ
-    if given is not None:
-        where, value = "--domain-id", given
-    elif env.get("ROS_DOMAIN_ID", "").strip():
-        where = "ROS_DOMAIN_ID"
-        try:
-            value = int(env["ROS_DOMAIN_ID"])
-        except ValueError:
-            raise InputError(where, f"not an integer: {env['ROS_DOMAIN_ID']!r}") from None
-    else:
-        return random.SystemRandom().randrange(1, 100)
     if not 0 <= value <= MAX_DOMAIN_ID:
         raise InputError(where, f"must be a ROS domain id in 0..{MAX_DOMAIN_ID}, got {value}")
     return value
+
+
+def domain_id_from_env(environ: Mapping[str, str] | None = None) -> int | None:
+    """``ROS_DOMAIN_ID`` checked as :func:`check_domain_id` does (errors name the variable); None when it is unset."""
+    env = os.environ if environ is None else environ
+    text = env.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise InputError("ROS_DOMAIN_ID", f"not an integer: {env['ROS_DOMAIN_ID']!r}") from None
+    return check_domain_id(value, "ROS_DOMAIN_ID")
+
+
+def choose_domain_id(given: int | None, environ: Mapping[str, str] | None = None) -> int:
+    """The player timing's ROS domain id: ``--domain-id``, else ``ROS_DOMAIN_ID``, else a random one of 1..99 (so two
+    runs on one machine rarely hear each other); an id out of 0..232 is an InputError naming where it came from.
+    """
+    if given is not None:
+        return check_domain_id(given)
+    from_env = domain_id_from_env(environ)
+    return random.SystemRandom().randrange(1, 100) if from_env is None else from_env
 
 
 def synthetic_frames(intr: Intrinsics, n_frames: int, seed: int = 0) -> Iterator[Frame]:
@@ -253,6 +270,8 @@ def format_table(results: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run the I/O benchmarks, print a table, and write JSON if asked."""
     check_options(args, {"frames": 2, "messages": 2, "repeats": 1})
+    if args.domain_id is not None:  # also with --skip-player: a nonsense id is refused wherever it is typed
+        check_domain_id(args.domain_id)
     check_out_file(args.out)
     domain_id = None if args.skip_player else choose_domain_id(args.domain_id)
     results: dict[str, Any] = {"benchmark": "io", "repeats": args.repeats}
