@@ -128,8 +128,10 @@ def test_pace_runs_before_each_message_at_rate_0_with_the_counts_so_far(ros_cont
     """
     calls: list[tuple[str, dict[str, int]]] = []
     player: BagPlayer | None = None
+    built = threading.Event()  # the playback thread starts in the constructor: it may pace before ``player`` is set
 
     def pace(topic: str, published: Any) -> None:
+        assert built.wait(10.0), "the player's constructor did not return"
         assert player is not None and player.published == sum(published.values())  # nothing goes before we return
         calls.append((topic, dict(published)))
         time.sleep(0.002)
@@ -137,6 +139,7 @@ def test_pace_runs_before_each_message_at_rate_0_with_the_counts_so_far(ros_cont
     overrides = [Parameter("bag", value=str(bag)), Parameter("rate", value=0.0)]
     overrides += [Parameter("wait_for_subscribers", value=0), Parameter("start_delay_s", value=0.0)]
     player = BagPlayer(context=ros_context, parameter_overrides=overrides, pace=pace)
+    built.set()
     with _spinning(ros_context, player):
         assert player.wait(30.0), "playback did not finish"
         summary = player.summary()
