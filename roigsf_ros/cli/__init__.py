@@ -14,12 +14,11 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import check_writable
+from roigsf_ros.core.fileio import check_writable, deferred_interrupts
 
 if TYPE_CHECKING:
     from roigsf_ros.data.bags import CameraTopics
@@ -154,29 +153,16 @@ def check_out(out: Path, overwrite: bool) -> None:
 
 
 _UNINTERRUPTIBLE_IMPORTS = ("open3d",)
-"""Modules imported with Ctrl-C held back (:func:`build_parser`): open3d's pybind11 module init turns a Ctrl-C into
-"ImportError: initialization failed" and leaves a half-made library whose exit then fails (status 1 after the one
-line, and a memory-leak report on stdout).
+"""Modules imported with Ctrl-C held back (:func:`build_parser`, :func:`~roigsf_ros.core.fileio.deferred_interrupts`):
+open3d's pybind11 module init turns a Ctrl-C into "ImportError: initialization failed" and leaves a half-made library
+whose exit then fails (status 1 after the one line, and a memory-leak report on stdout).
 """
-
-
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM held while the block runs and delivered when it ends (main thread only: elsewhere a no-op)."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every subcommand registered."""
     for name in _UNINTERRUPTIBLE_IMPORTS:  # a Ctrl-C meanwhile comes just after: one line, exit 130 (main)
-        with _signals_held(), contextlib.suppress(ImportError):  # missing: the command that needs it says so
+        with deferred_interrupts(), contextlib.suppress(ImportError):  # missing: the command that needs it says so
             importlib.import_module(name)
     parser = argparse.ArgumentParser(
         prog="roigsf",
@@ -258,10 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             parser = build_parser()  # imports every command's module: the first seconds of a run
             args = parser.parse_args(argv)
-        except KeyboardInterrupt as exc:  # Ctrl-C then printed a traceback of the import under way
-            return _interrupted("", exc)
-        except Exception as exc:  # open3d's module init turns a Ctrl-C into "ImportError: initialization failed"
-            interrupt = _interrupt_behind(exc)
+        except (KeyboardInterrupt, Exception) as exc:  # Ctrl-C then printed a traceback of the import under way
+            interrupt = _interrupt_behind(exc)  # also one a library wrapped ("ImportError: initialization failed")
             if interrupt is None:
                 raise
             return _interrupted("", interrupt)

@@ -391,10 +391,8 @@ def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
         return exc
     # the node's name in front (in active_mapping three nodes share parameter names), the params file behind
     where = f"parameter '{node.get_name()}.{m['name']}'" if node.has_parameter(m["name"]) else exc.where
-    source = parameter_source(node, m["name"])
-    problem = exc.problem
-    if source not in (None, "-p") and f"set in {source}" not in problem:
-        problem += _notes(f"set in {source}")
+    note = _set_in(node, m["name"])
+    problem = exc.problem if note in exc.problem else exc.problem + _notes(note)
     return exc if (where, problem) == (exc.where, exc.problem) else InputError(where, problem)
 
 
