@@ -230,6 +230,46 @@ def test_bag_info_counts_the_frames_the_reader_refuses_with_the_reason(
     assert metrics["keyframe_ids"] == [0, 2, 4] and "mono8" in metrics["frames_skipped_refused_reason"]
 
 
+def test_repeated_and_backward_stamps_are_counted_by_bag_info_and_map(
+    bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Frame 2 carries frame 1's stamp and frame 4 a stamp between frames 0 and 1 (every message of each): ``bag
+    info`` and ``roigsf map`` agree on 4 frames, the repeat skipped and counted, the stamp gone back said.
+
+    Before (session 60's walk): ``bag info`` said 5 complete frames, ``roigsf map`` mapped 4 without a word.
+    """
+    t0 = bags.DEFAULT_T0_NS
+
+    def edit(topic: str, k: int, msg: Any) -> Any:
+        stamp = {2: t0 + 100_000_000, 4: t0 + 50_000_000}.get(k)
+        if stamp is not None:
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        return msg
+
+    out = tmp_path / "stamps"
+    _rewrite_bag(bag32, out, edit)
+    with bags.BagReader(out) as reader:
+        got = [f.stamp_ns - t0 for f in reader.frames()]
+        assert reader.repeated_stamps == [t0 + 100_000_000] and reader.stamps_back == 1
+        assert reader.first_back == (3, t0 + 50_000_000, t0 + 300_000_000)
+    assert got == [0, 100_000_000, 300_000_000, 50_000_000]
+    info = bags.bag_info(out)
+    assert (info["frame_count"], info["frames_repeating_stamp"], info["frames_stamped_back"]) == (4, 1, 1)
+    assert cli_main(["bag", "info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "repeated:     1 more frame(s) with an earlier frame's header stamp" in text, text
+    assert "stamps back:  1 frame(s) stamped before the frame before them (first: frame 3" in text, text
+    argv = ["map", str(out), "--policy", "all", "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", ""]
+    assert cli_main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"skipped: repeated stamp\s+1$", text, re.MULTILINE), text
+    assert re.search(r"stamps gone back\s+1$", text, re.MULTILINE), text
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_skipped_repeated_stamp"], metrics["frames_stamped_back"]) == (4, 1, 1)
+    # frames mapped in the bag's order; ids are places in stamp order (0, 50, 100, 300 ms)
+    assert metrics["keyframe_ids"] == [0, 2, 3, 1]
+
+
 def test_cli_from_replica_resize_scales_intrinsics(replica: Path, tmp_path: Path) -> None:
     out = tmp_path / "small"
     argv = ["bag", "from-replica", str(replica), "--out", str(out), "--width", "32", "--height", "24"]

@@ -578,3 +578,46 @@ def test_frames_wait_for_late_tf_up_to_tf_wait_frames(ros_context: Any) -> None:
     assert len(rig.got[0]) == 21 and rig.inputs[0].stats()["rejected"] == {}
     assert rig.inputs[1].stats()["rejected"] == {"no_tf": 5} and len(rig.got[1]) == 16
     assert "before 16 newer frames were (tf_wait_frames)" in rig.inputs[1].stats()["last_rejection"]
+
+
+def test_repeated_and_backward_stamps_are_said_not_only_counted(ros_context: Any) -> None:
+    """A frame dropped for its stamp (a repeat, or gone back) is named in a warning, as other drops are (session
+    60's walk: only ~/status showed them)."""
+    frames: list[BagFrame] = []
+    node = Node("camera_input_stamps", context=ros_context)
+    warnings: list[str] = []
+    logger = node.get_logger()
+
+    class _Logger:
+        def warning(self, text: str, **kwargs: Any) -> None:
+            warnings.append(text)
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(logger, name)
+
+    node.get_logger = _Logger  # type: ignore[method-assign]
+    qos = reliable_qos(50)
+    camera = CameraInput(node, frames.append, qos)
+    pub_node = Node("camera_input_stamps_pub", context=ros_context)
+    types = {"color": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped}
+    pubs = {
+        getattr(camera.topics, k): pub_node.create_publisher(v, getattr(camera.topics, k), qos)
+        for k, v in types.items()
+    }
+    with _spinning(ros_context, node, pub_node):
+        deadline = time.monotonic() + 5.0
+        while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        for k in (1, 2, 3, 3, 4, 5, 2.5, 6, 7):  # 3 twice; 2.5 after 5
+            for topic, msg in _messages(int(k * 1_000)).items():
+                pubs[topic].publish(msg)
+        deadline = time.monotonic() + 5.0
+        while camera.stats()["received"].get(camera.topics.pose, 0) < 9 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.1)
+    stats = camera.stats()
+    assert [f.stamp_ns for f in frames] == [1_000, 2_000, 3_000, 4_000, 5_000, 6_000, 7_000]
+    assert (stats["duplicate_stamp"], stats["out_of_order"]) == (1, 1)
+    said = [w for w in warnings if w.startswith("dropped frame at stamp")]
+    assert any("0.000003000 s" in w and "repeats the stamp of a frame already received (1 so far)" in w for w in said)
+    assert any("0.000002500 s" in w and "the stamps went back (1 so far)" in w for w in said), said

@@ -147,6 +147,26 @@ def test_bad_pose_line_is_named(seq_dir: Path) -> None:
         load_traj(traj)
 
 
+def test_a_blank_line_among_the_poses_is_refused_not_skipped(seq_dir: Path) -> None:
+    """Line k is frame k's pose: a blank line in the middle used to be skipped, so every later frame took the next
+    frame's pose without a word (session 60's walk). Blank lines at the end stay harmless."""
+    traj = seq_dir / "traj.txt"
+    lines = traj.read_text().splitlines()
+    traj.write_text("\n".join(lines) + "\n\n\n")
+    assert len(load_traj(traj)) == len(lines)
+    traj.write_text("\n".join([lines[0], "", *lines[1:]]) + "\n")
+    with pytest.raises(InputError, match=r"traj\.txt:2: blank line among the poses"):
+        ReplicaSequence(seq_dir)
+
+
+def test_a_camera_field_that_is_no_number_is_named(seq_dir: Path) -> None:
+    cam = json.loads((seq_dir / "cam_params.json").read_text())
+    cam["camera"]["fy"] = "abc"
+    (seq_dir / "cam_params.json").write_text(json.dumps(cam))
+    with pytest.raises(InputError, match=r"cam_params\.json: camera field 'fy' is not a number: 'abc'"):
+        ReplicaSequence(seq_dir)
+
+
 def _kinect_like(T: np.ndarray, rng: np.random.Generator, off: float) -> np.ndarray:
     """``T`` with its rotation off orthonormal by about ``off`` (KinectFusion poses in 7-Scenes/ScanNet)."""
     bad = T.copy()

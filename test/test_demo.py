@@ -353,6 +353,15 @@ def test_demo_says_why_it_fails_when_frames_did_not_reach_the_nodes(
     assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 1
     err = capsys.readouterr().err
     assert "error: 1 of the bag's 4 frames did not reach the nodes complete and valid (at rate x0" in err, err
+    real_info = demo.bag_info  # the same bag, read as if its stamps went back once: said as the likely cause
+
+    def stamps_back(*args: Any, **kwargs: Any) -> dict[str, Any]:
+        return {**real_info(*args, **kwargs), "frames_stamped_back": 1, "first_stamped_back": "frame 3 (...)"}
+
+    monkeypatch.setattr(demo, "bag_info", stamps_back)
+    assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "the bag's stamps go back at 1 frame(s), first at frame 3 (...), and the nodes drop a frame older" in err
     metrics["frames_received"] = 4
     assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 0
 

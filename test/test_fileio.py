@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -129,3 +132,22 @@ def test_a_failed_final_rename_removes_the_temporary_and_restores_the_old_output
         (tmp / "new.txt").write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
     assert [p.name for p in final.iterdir()] == ["old.txt"]
+
+
+def test_a_killed_writers_temporaries_are_removed_by_the_next_write(tmp_path: Path) -> None:
+    """A mapper killed with SIGKILL during an autosave left ``.autosave.tmp-*`` beside the map for good (session 60's
+    walk). Temporaries name their writer's process; the next write of that output removes those of a process that is
+    gone, and leaves a running writer's, an older unnamed one and an interrupted replacement's old copy alone."""
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = int(gone.stdout)  # that process has exited
+    alive = os.getpid()
+    for name in (f".auto.tmp-{dead}-k1", f".auto.tmp-{alive}-k2", ".auto.tmp-abc12", f".auto.old-{dead}"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "keyframes.json").write_text("{}")
+    (tmp_path / f".metrics.tmp-{dead}-z9.json").write_text("{")
+    with atomic_dir(tmp_path / "auto") as tmp:
+        assert tmp.name.startswith(f".auto.tmp-{alive}-")
+        (tmp / "keyframes.json").write_text("{}")
+    write_json(tmp_path / "metrics.json", {"a": 1})
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted([f".auto.old-{dead}", ".auto.tmp-abc12", f".auto.tmp-{alive}-k2", "auto", "metrics.json"])

@@ -270,3 +270,20 @@ def test_ctrl_c_while_a_console_scripts_node_module_imports_is_one_line(
     monkeypatch.setattr(console.importlib, "import_module", interrupted)
     assert console.run("mapper", ["mapper"]) == 130
     assert capsys.readouterr().err == "mapper: interrupted\n"
+
+
+def test_an_empty_parameter_value_error_shows_how_to_give_one() -> None:
+    """``-p load_map:=`` (an empty value) is refused by rcl; the message said only "set as -p NAME:=VALUE", which is
+    what the user typed (session 60's walk). It now shows the quoted empty string rcl takes."""
+    from rclpy.utilities import remove_ros_args
+
+    from roigsf_ros.nodes.node_process import ROS_ARGS_ERRORS, ros_args_error
+
+    for typed, said in (
+        ("load_map:=", "'-p load_map:=': a parameter is set as -p NAME:=VALUE; an empty string is -p \"load_map:=''\""),
+        ("load_map", "'-p load_map': a parameter is set as -p NAME:=VALUE"),
+    ):
+        with pytest.raises(ROS_ARGS_ERRORS) as caught:
+            remove_ros_args(["mapper", "--ros-args", "-p", typed])
+        assert str(ros_args_error(caught.value)) == said
+    assert remove_ros_args(["mapper", "--ros-args", "-p", "load_map:=''"]) == ["mapper"]

@@ -382,7 +382,10 @@ def test_bad_camera_messages_are_dropped_and_counted(ros_context: Any, scene: An
         cam.keyframes.publish(pose_stamped(frames[1].T_wc, 4_000))  # its frame never completed: missing
         _wait(lambda: mapper.status()["keyframes"] == 1, 30.0, "the keyframe")
         _wait(lambda: mapper.status()["keyframes_missing"] == 1, 30.0, "the missing keyframe counted")
+        cam.keyframes.publish(pose_stamped(frames[1].T_wc, 5_000))  # named again (a looped bag): said, not only counted
+        _wait(lambda: mapper.status()["keyframes_duplicate"] == 1, 30.0, "the repeated keyframe counted")
         status = mapper.status()
+    assert status["last_keyframe_drop"].startswith("keyframe 5000: named before (in the map or on its way), not ")
     assert status["frames_rejected"] == {"bad_encoding": 1, "size_mismatch": 1, "bad_pose": 1}  # short categories
     assert mapper.camera.stats()["pending"] == 1  # the colourless stamp waits, bounded
     assert status["keyframe_ids"] == [5_000] and status["surfels"] > 0 and status["keyframes_failed"] == 0
@@ -1521,6 +1524,25 @@ def test_an_autosave_dir_that_cannot_hold_a_map_is_refused_at_start_and_a_failed
         assert node.counters["keyframes_failed"] == 0 and (tmp_path / "auto").read_text() == "in the way"
     finally:
         node.destroy_node()
+
+
+def test_a_restarted_mapper_does_not_replace_the_map_its_last_run_autosaved(
+    ros_context: Any, mapped: Mapper, tmp_path: Path
+) -> None:
+    """Restarting a mapper with the same ``autosave_dir`` (the usual restart after a crash) replaced the last run's
+    autosave at the new run's first keyframe without a word (session 60's walk). Start-up now refuses it unless
+    ``load_map`` resumes that map or ``autosave_overwrite`` says to replace it."""
+    auto = tmp_path / "auto"
+    mapped.save(auto)
+    with pytest.raises(InputError) as caught:
+        MapperNode(context=ros_context, parameter_overrides=[Parameter("autosave_dir", value=str(auto))])
+    text = str(caught.value)
+    assert text.startswith("parameter 'mapper.autosave_dir':") and f"load_map:={auto}" in text, text
+    assert "autosave_overwrite:=true" in text and read_keyframe_ids(auto) == [0, 4, 8]
+    for extra in (Parameter("load_map", value=str(auto)), Parameter("autosave_overwrite", value=True)):
+        node = MapperNode(context=ros_context, parameter_overrides=[Parameter("autosave_dir", value=str(auto)), extra])
+        node.destroy_node()
+    assert read_keyframe_ids(auto) == [0, 4, 8]  # nothing replaced before a keyframe is mapped
 
 
 def test_destroy_node_waits_for_service_work_the_shutdown_abandoned(ros_context: Any, mapped: Mapper) -> None:

@@ -200,3 +200,31 @@ def test_gap_counter_ignores_a_stray_zero_and_implausible_jumps() -> None:
     for k in [*range(20), 23, *range(24, 30)]:  # a real loss is still counted
         h.add(_stamp(k))
     assert h.missed == 3  # 20, 21, 22
+
+
+def test_ledger_a_frame_stamped_as_the_one_before_is_not_also_counted_missed() -> None:
+    """A frame that carries its predecessor's stamp (a recorder's repeated stamp): its own stamp never comes, and
+    the gap it leaves is that frame, already counted as a duplicate (walk of session 60: 152 for 150 sent)."""
+    ledger: FrameLedger[int] = FrameLedger(KEYS)
+    msgs = [m for k in range(150) for m in _frame(k - 1 if k in (41, 91) else k)]
+    delivered = _feed(ledger, msgs)
+    _check(ledger, 150, duplicate_stamp=2, missed_estimate=0)
+    assert len(delivered) == 148
+
+
+def test_ledger_a_block_sent_in_reverse_stamp_order_is_counted_once() -> None:
+    """Frames 60-69 sent newest first: the forward jump is counted missed until the frames of the block come in
+    (out of order or, once the stamps kept going back, as a restarted sequence); 158 for 150 before session 60."""
+    ledger: FrameLedger[int] = FrameLedger(KEYS)
+    order = [*range(60), *range(69, 59, -1), *range(70, 150)]
+    delivered = _feed(ledger, [m for k in order for m in _frame(k)])
+    _check(ledger, 150, missed_estimate=0, duplicate_stamp=0)
+    assert len(delivered) + ledger.out_of_order == 150
+
+
+def test_ledger_a_loss_before_a_loop_restarts_stays_counted() -> None:
+    """A frame lost near the end of the first loop is still counted missed after the loop replays its stamp."""
+    ledger: FrameLedger[int] = FrameLedger(KEYS)
+    msgs = [m for loop in range(3) for k in range(40) if (loop, k) != (0, 37) for m in _frame(k)]
+    _feed(ledger, msgs)
+    _check(ledger, 120, missed_estimate=1)

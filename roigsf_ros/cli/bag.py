@@ -181,7 +181,7 @@ def format_info(info: dict[str, Any]) -> str:
     if info["start_ns"] is not None:
         lines.append(
             f"duration:     {info['duration_s']:.3f} s "
-            f"(stamps {info['start_ns'] / 1e9:.3f} .. {info['end_ns'] / 1e9:.3f} s)"
+            f"(logged {info['start_ns'] / 1e9:.3f} .. {info['end_ns'] / 1e9:.3f} s)"
         )
     else:
         lines.append("duration:     empty bag")
@@ -200,6 +200,17 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"no TF pose:   {info['no_tf_reason']}")
     if refused:
         lines.append(f"refused:      {info['refused_reason']}")
+    if info.get("frames_repeating_stamp"):
+        lines.append(
+            f"repeated:     {info['frames_repeating_stamp']} more frame(s) with an earlier frame's header stamp, not "
+            "counted above (roigsf map and the nodes read one frame a stamp)"
+        )
+    if info.get("frames_stamped_back"):
+        lines.append(
+            f"stamps back:  {info['frames_stamped_back']} frame(s) stamped before the frame before them (first: "
+            f"{info['first_stamped_back']}): roigsf map maps them in the bag's order with ids in stamp order; the "
+            "nodes drop a frame older than one they delivered"
+        )
     for problem in info.get("missing_topics") or []:
         lines.append(f"missing:      {problem}")
     if info.get("hint"):

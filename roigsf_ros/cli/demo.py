@@ -971,10 +971,13 @@ def _run(args: argparse.Namespace) -> int:
     print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, keyframes.json, plot.png, strip.png, replay.json")
     missed = info["frame_count"] - metrics["frames_received"]
     if missed:  # the map and its figures are of the frames that came: say so, and fail
+        back = info.get("frames_stamped_back") or 0
+        why = (f"; the bag's stamps go back at {back} frame(s), first at {info['first_stamped_back']}, and the nodes "
+               "drop a frame older than one they delivered" if back else "")  # fmt: skip
         print(
             f"roigsf demo: error: {missed} of the bag's {info['frame_count']} frames did not reach the nodes complete "
-            f"and valid (at rate x{args.rate:g}; replay.json has the player's and the nodes' counts): the results are "
-            "of the rest",
+            f"and valid (at rate x{args.rate:g}; replay.json has the player's and the nodes' counts{why}): the "
+            "results are of the rest",
             file=sys.stderr,
         )
         return 1

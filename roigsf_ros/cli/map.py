@@ -255,6 +255,8 @@ _SKIPPED_KEYS = (
     ("skipped: incomplete", "frames_skipped_incomplete", None),
     ("skipped: refused", "frames_skipped_refused", "frames_skipped_refused_reason"),
     ("skipped: bad pose", "frames_skipped_bad_pose", None),
+    ("skipped: repeated stamp", "frames_skipped_repeated_stamp", None),
+    ("stamps gone back", "frames_stamped_back", None),
 )
 """Summary lines printed only when frames were skipped: (label, count key, reason key)."""
 
@@ -262,8 +264,8 @@ _SKIPPED_KEYS = (
 def print_summary(metrics: dict) -> None:
     """The short table of a run's metrics (frames, keyframes, PSNR, mesh precision/recall, wall time).
 
-    Frames skipped (no pose on TF, incomplete, refused, bad pose) get a line each, with the reason, so a run that mapped
-    fewer frames than the source holds says why.
+    Frames skipped (no pose on TF, incomplete, refused, bad pose, a repeated stamp) get a line each, with the reason, so
+    a run that mapped fewer frames than the source holds says why; so do frames whose stamps went back.
     """
     for label, key, fmt in _SUMMARY_KEYS:
         value = metrics.get(key)

@@ -31,6 +31,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "check_writable",
             "deferred_interrupts",
             "read_json",
+            "remove_stale_temporaries",
             "write_json",
         ],
         "frame": ["Frame", "resize_frame", "spread_indices"],

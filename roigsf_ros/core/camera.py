@@ -135,21 +135,25 @@ def load_cam_params(path: str | Path) -> Intrinsics:
     missing = [k for k in ("w", "h", "fx", "fy", "cx", "cy") if k not in cam]
     if missing:
         raise InputError(path, f"missing camera field(s) {', '.join(missing)}")
+    values: dict[str, float] = {}
+    for key in ("w", "h", "fx", "fy", "cx", "cy", "scale"):
+        value = cam.get(key, REPLICA_DEPTH_SCALE)
+        try:
+            values[key] = int(value) if key in ("w", "h") else float(value)
+        except (TypeError, ValueError):
+            raise InputError(path, f"camera field '{key}' is not a number: {value!r}") from None
     try:
-        intr = Intrinsics(
-            width=int(cam["w"]),
-            height=int(cam["h"]),
-            fx=float(cam["fx"]),
-            fy=float(cam["fy"]),
-            cx=float(cam["cx"]),
-            cy=float(cam["cy"]),
-            depth_scale=float(cam.get("scale", REPLICA_DEPTH_SCALE)),
+        return Intrinsics(
+            width=int(values["w"]),
+            height=int(values["h"]),
+            fx=values["fx"],
+            fy=values["fy"],
+            cx=values["cx"],
+            cy=values["cy"],
+            depth_scale=values["scale"],
         )
     except InputError as exc:  # a number, but no camera's (Intrinsics checks them)
         raise InputError(path, f"invalid camera parameters {cam}: {exc.problem}") from None
-    except (TypeError, ValueError) as exc:
-        raise InputError(path, f"camera field is not a number: {exc}") from None
-    return intr
 
 
 def save_cam_params(path: str | Path, intr: Intrinsics) -> None:

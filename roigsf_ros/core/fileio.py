@@ -43,7 +43,8 @@ def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str |
         hint = "pass --overwrite" if overwrite_hint is None else overwrite_hint
         raise FileExistsError(f"{final}: already exists ({hint} to replace it)")
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+    remove_stale_temporaries(final, final.name)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-{os.getpid()}-", dir=final.parent))
     tmp.chmod(0o777 & ~_umask())  # mkdtemp makes 0700; the result should look like any new folder
     try:
         yield tmp
@@ -124,6 +125,40 @@ def check_writable(out: str | Path, file: bool = False) -> None:
         raise InputError(folder, f"output folder is not writable ({exc.strerror or exc}); choose another one") from None
 
 
+def remove_stale_temporaries(final: str | Path, stem: str) -> list[Path]:
+    """Remove the temporaries of ``final`` (``.STEM.tmp-PID-*`` beside it) whose writer process is gone.
+
+    A process killed outright (SIGKILL, power loss) cannot clean up; its hidden temporary stays beside the output
+    until the next write of that output, which removes it here. One whose process still runs is left alone, and
+    so is the ``.NAME.old-PID`` of an interrupted replacement (it may be the only copy of the old output).
+    """
+    final = Path(final)
+    prefix = f".{stem}.tmp-"
+    removed = []
+    try:
+        entries = [e for e in final.parent.iterdir() if e.name.startswith(prefix)]
+    except OSError:
+        return removed
+    for entry in entries:
+        pid, sep, _ = entry.name[len(prefix) :].partition("-")
+        if not (sep and pid.isdigit()) or _process_runs(int(pid)):
+            continue
+        _remove(entry)
+        removed.append(entry)
+    return removed
+
+
+def _process_runs(pid: int) -> bool:
+    """Whether a process with this id runs on this machine (one we may not signal runs too)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
 def _remove(path: Path) -> None:
     """Delete what was replaced: a folder with its contents, or a file or symlink (never a link's target)."""
     if path.is_dir() and not path.is_symlink():
@@ -151,7 +186,8 @@ def atomic_path(final: str | Path) -> Iterator[Path]:
         while not blocker.exists() and blocker != blocker.parent:
             blocker = blocker.parent
         raise InputError(blocker, f"is not a folder, so the output {final} cannot be created there") from None
-    fd, name = tempfile.mkstemp(prefix=f".{final.stem}.tmp-", suffix=final.suffix, dir=final.parent)
+    remove_stale_temporaries(final, final.stem)
+    fd, name = tempfile.mkstemp(prefix=f".{final.stem}.tmp-{os.getpid()}-", suffix=final.suffix, dir=final.parent)
     os.close(fd)
     tmp = Path(name)
     try:
@@ -197,5 +233,6 @@ __all__ = [
     "check_writable",
     "deferred_interrupts",
     "read_json",
+    "remove_stale_temporaries",
     "write_json",
 ]

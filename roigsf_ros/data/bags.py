@@ -701,7 +701,11 @@ class BagReader:
     never comes is skipped and counted in ``no_tf`` (the reason in ``last_tf_error``). A complete, posed
     frame whose messages do not convert (a JPEG depth image, sizes that disagree, a pose that is no rotation)
     raises InputError naming the topic and stamp, or with ``skip_refused`` is skipped and its stamp kept in
-    ``refused_stamps`` (the reason in ``last_refusal``). :meth:`stamps` gives the frames' stamps undecoded.
+    ``refused_stamps`` (the reason in ``last_refusal``). A frame whose stamp a frame read before it already had
+    is skipped (``repeated_stamps``: a recorder's repeated stamp; the nodes skip it too), and one stamped before
+    the frame read before it is read but counted (``stamps_back``, the first in ``first_back``), since frame ids
+    (:class:`roigsf_ros.data.sources.BagFrameSource`) follow the stamps. :meth:`stamps` gives the frames' stamps
+    undecoded.
     """
 
     def __init__(self, path: str | Path, topics: CameraTopics | None = None, skip_refused: bool = False) -> None:
@@ -720,6 +724,12 @@ class BagReader:
         self.tf_rejected = 0
         """Transforms refused (bad values); the rest of their messages is kept."""
         self.last_tf_error = ""
+        self.repeated_stamps: list[int] = []
+        """Stamps of the complete, posed frames skipped because a frame read before had the same stamp."""
+        self.stamps_back = 0
+        """Frames read whose stamp is older than the frame read before them (the recording's order)."""
+        self.first_back: tuple[int, int, int] | None = None
+        """The first of those: (its place among the frames read, 0-based; its stamp; the stamp before it) in ns."""
         self._reader = open_any_reader(self.path)
         self._open = False
 
@@ -778,6 +788,22 @@ class BagReader:
             yield stamp
 
     def _matched(self) -> Iterator[tuple[int, dict[str, tuple[Any, bytes]], np.ndarray | None]]:
+        """:meth:`_completed` without the frames whose stamp was read before (counted), those going back counted."""
+        seen: set[int] = set()
+        last: int | None = None
+        for stamp, parts, T_wc in self._completed():
+            if stamp in seen:
+                self.repeated_stamps.append(stamp)
+                continue
+            if last is not None and stamp < last:
+                self.stamps_back += 1
+                if self.first_back is None:
+                    self.first_back = (len(seen), stamp, last)
+            seen.add(stamp)
+            last = stamp
+            yield stamp, parts, T_wc
+
+    def _completed(self) -> Iterator[tuple[int, dict[str, tuple[Any, bytes]], np.ndarray | None]]:
         """``(stamp, {topic: (connection, raw)}, T_wc or None)`` of each complete frame TF poses, as it completes."""
         if not self._open:
             raise RuntimeError("BagReader.frames() needs an open reader: use it in a `with` block")
@@ -917,11 +943,14 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
     complete stamps TF does not pose (None with poses from a topic), ``no_tf_reason`` says why (the last
     error); ``frames_refused`` the complete, posed frames whose messages do not convert (a JPEG depth image,
     sizes that disagree; None without ``decode``, whose count then includes them), ``refused_reason`` the
-    last one's error; ``incomplete_stamps`` the other stamps. ``missing_topics`` names each topic the bag
-    lacks or holds with another type (empty when all are there; no frame is then complete, and the stamps of
-    the topics it has count as incomplete); ``realsense_namespace`` is then the namespace of a RealSense
-    camera the bag does hold in full (:func:`realsense_topics`), else None. Image fields are None when the bag
-    has no such topic; a compressed stream's encoding is its ``format``.
+    last one's error; ``incomplete_stamps`` the other stamps. ``frames_repeating_stamp`` counts the frames
+    skipped because a frame before them had their stamp; ``frames_stamped_back`` those stamped before the frame
+    before them, ``first_stamped_back`` where the first is (both as :class:`BagReader` counts them).
+    ``missing_topics`` names each topic the bag lacks or holds with another type (empty when all are there; no
+    frame is then complete, and the stamps of the topics it has count as incomplete); ``realsense_namespace``
+    is then the namespace of a RealSense camera the bag does hold in full (:func:`realsense_topics`), else
+    None. Image fields are None when the bag has no such topic; a compressed stream's encoding is its
+    ``format``.
     """
     requested = topics or CameraTopics()
     with opened_bag(path) as reader:
@@ -948,13 +977,17 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             # have no header, counted as "166 incomplete stamps" of a 150-frame bag read with a wrong --realsense)
             stamps = reader.messages(connections=camera) if camera else ()
             incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
-    frames = refused = no_tf = 0
-    reason = refusal = ""
+    frames = refused = no_tf = repeated = back = 0
+    reason = refusal = first_back = ""
     if not missing:
         with BagReader(path, requested, skip_refused=True) as frame_reader:
             frames = sum(1 for _ in (frame_reader.frames() if decode else frame_reader.stamps()))
             incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
             reason, refusal = frame_reader.last_tf_error, frame_reader.last_refusal
+            repeated, back = len(frame_reader.repeated_stamps), frame_reader.stamps_back
+            if frame_reader.first_back is not None:
+                place, stamp, before = frame_reader.first_back
+                first_back = f"frame {place} (in the bag's order) at {stamp / 1e9:.3f} s, after {before / 1e9:.3f} s"
     color, depth = first_msgs.get(t.color), first_msgs.get(t.depth)
     size = None
     for msg, convert, topic in ((color, image_to_rgb, t.color), (depth, image_to_depth_m, t.depth)):
@@ -984,6 +1017,9 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         "frames_refused": refused if decode else None,
         "refused_reason": refusal if decode and refused else None,
         "incomplete_stamps": incomplete,
+        "frames_repeating_stamp": repeated,
+        "frames_stamped_back": back,
+        "first_stamped_back": first_back or None,
         "missing_topics": missing,
         "realsense_namespace": _realsense_namespace(present) if missing else None,
     }

@@ -34,7 +34,8 @@ MAX_DEPTH_M = 65535 / 6553.5
 
 
 def load_traj(path: str | Path) -> np.ndarray:
-    """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid.
+    """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid, one a line (line k is
+    frame k's: a blank line among them is refused, blank lines at the end are ignored).
 
     Rotations slightly off orthonormal (real-sensor trajectories) are re-orthonormalised with one
     warning for the file (:func:`roigsf_ros.core.camera.load_pose`).
@@ -46,10 +47,12 @@ def load_traj(path: str | Path) -> np.ndarray:
         raise InputError(path, "trajectory file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, f"cannot read trajectory: {exc}") from None
+    while lines and not lines[-1].strip():  # blank lines at the end are only the end
+        lines.pop()
     poses = []
     for lineno, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
+        if not line.strip():  # frame k pairs with pose line k: a skipped blank line would shift the later frames
+            raise InputError(f"{path}:{lineno}", "blank line among the poses (line k is frame k's pose)")
         try:
             values = np.array([float(v) for v in line.split()], dtype=np.float64)
         except ValueError:
@@ -162,7 +165,7 @@ class ReplicaSequence:
                 raise InputError(
                     self.root,
                     "no cam_params.json here or in the parent folder: put Replica's there, or give the camera "
-                    "(cam=; on the command line --cam of roigsf bag from-replica and scene render)",
+                    "file (--cam on the command line; cam= in Python)",
                 )
             native = load_cam_params(cam_path)
 
@@ -186,7 +189,8 @@ class ReplicaSequence:
         if self.indices[-1] >= len(all_poses):
             raise InputError(
                 traj_path,
-                f"has {len(all_poses)} poses but results/ holds frame number {self.indices[-1]}",
+                f"has {len(all_poses)} poses, too few: results/ holds frame number {self.indices[-1]} (line k "
+                f"is frame k's pose: at least {self.indices[-1] + 1} lines needed)",
             )
         gaps = sorted(set(range(self.indices[-1])) - set(self.indices))  # frames missing between those on disk
         if gaps:  # a partial download stops early: a gap is a frame lost (or left out on purpose), named

@@ -108,7 +108,9 @@ class BagFrameSource(FrameSource):
     colour topic (a stamp without colour is no frame), counted once when the source is opened: frames the
     reader skips (incomplete, no pose on TF, refused: messages that do not convert) keep their numbers, so
     the stride, the cap and the ids of the frames given name bag frames. ``len`` counts the frames the stride
-    and cap keep, those skipped too.
+    and cap keep, those skipped too. Frames come in the bag's order: where their stamps go back, ids do too
+    (``given_back`` counts those frames, ``first_given_back`` says where the first was); a frame whose stamp an
+    earlier frame had is skipped (``skipped_repeated``).
     """
 
     kind = "bag"
@@ -153,6 +155,8 @@ class BagFrameSource(FrameSource):
         last = self.kept[-1] if len(self.kept) else -1
         expected = {k for k in self.kept if self.complete[k]}  # what the reader should give, unless TF cannot
         given: set[int] = set()
+        previous = -1
+        self.given_back, self.first_given_back = 0, ""
         with BagReader(self.path, self.topics, skip_refused=True) as reader:
             for bf in reader.frames():
                 i = self.index_of(bf.stamp_ns)
@@ -168,10 +172,17 @@ class BagFrameSource(FrameSource):
                     )
                 given.add(i)
                 expected.discard(i)
+                if i < previous:
+                    self.given_back += 1
+                    if not self.first_given_back:
+                        self.first_given_back = f"frame {i} came after frame {previous}"
+                previous = i
                 yield resize_frame(Frame(index=i, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), self.intrinsics)
                 if not expected:
                     break  # the rest of the kept frames are incomplete
             refused = {self.index_of(stamp) for stamp in reader.refused_stamps}
+            kept = set(self.kept)
+            self.skipped_repeated = sum(1 for stamp in reader.repeated_stamps if self.index_of(stamp) in kept)
             missing = [k for k in self.kept if k not in given and k not in refused]
             incomplete = sum(1 for k in missing if not self.complete[k])
             self.skipped_incomplete, self.skipped_no_tf = incomplete, 0

@@ -175,7 +175,9 @@ class FrameLedger(Generic[T]):
     again), ``out_of_order`` (first seen after newer frames were accounted: a stamp gone back, a stray
     stamp of 0, the first frame of a looped bag; never returned) or ``missed_estimate`` (none of its
     messages came: a gap in the stamps, :class:`StampGapCounter`; an estimate, exact for a regular
-    rate that loses in fewer than half of the intervals).
+    rate that loses in fewer than half of the intervals). A frame that comes late inside a gap already
+    counted missed (out of order, or in a block sent newest first) takes its place there, and so does a copy
+    of the stamp before a gap (a frame stamped as its predecessor): neither is counted twice.
 
     Messages of one key are assumed to come in stamp order (one publisher per topic): a stamp is
     then settled once every key has passed it, and its gap to the previous settled stamp counted.
@@ -222,6 +224,7 @@ class FrameLedger(Generic[T]):
         self._last_returned: int | None = None
         self._recent_gaps: deque[list[int]] = deque(maxlen=32)  # [after, before, frames counted missed]
         self._back: int | None = None  # every key went back to this stamp: a restart if the next one stays back
+        self._duplicates_unsettled = 0  # copies of a stamp seen since the last settled stamp
 
     @property
     def frames(self) -> int:
@@ -263,7 +266,7 @@ class FrameLedger(Generic[T]):
             raise KeyError(f"unknown key {key!r}; expected one of {sorted(map(str, self.keys))}")
         if self._back is not None and self._settled is not None and stamp_ns != self._back:
             if stamp_ns <= self._settled:  # a second frame back there: the source restarted
-                self._restart()
+                self._restart(self._back, stamp_ns)
             else:  # the old sequence goes on: that one frame was a stray (e.g. a stamp of 0)
                 self._back = None
         self._latest[key] = stamp_ns
@@ -283,6 +286,7 @@ class FrameLedger(Generic[T]):
             self._count(entry, key)
             self._remember(stamp_ns, entry)
         else:
+            self._refund_gap(stamp_ns)  # after a restart: inside a gap counted before it (a block sent newest first)
             entry = _Stamp(items={key: item})
             self._count(entry, key)
             self._pending[stamp_ns] = entry
@@ -312,6 +316,7 @@ class FrameLedger(Generic[T]):
         entry.copies = n
         if n > 1:
             self.duplicate_stamp += 1
+            self._duplicates_unsettled += 1
         return True
 
     def _maybe_complete(self, stamp: int, entry: _Stamp[T]) -> dict[Hashable, T] | None:
@@ -347,6 +352,11 @@ class FrameLedger(Generic[T]):
             if self._settled is not None and stamp <= self._settled:
                 continue
             lost = self.gaps.add(stamp)
+            # A copy of a stamp in place of the next frame's (a repeated stamp) leaves a gap that is that frame:
+            # the copies seen since the last settled stamp fill that many of the gap's frames.
+            filled = min(lost, self._duplicates_unsettled)
+            lost -= filled
+            self._duplicates_unsettled = 0
             if lost:
                 self.missed_estimate += lost
                 self._recent_gaps.append([self._settled if self._settled is not None else stamp, stamp, lost])
@@ -360,14 +370,22 @@ class FrameLedger(Generic[T]):
                 self.missed_estimate -= 1
                 return
 
-    def _restart(self) -> None:
-        """Every key went back below the settled stamps, twice: a new stream (a looped or restarted source)."""
+    def _restart(self, back: int, stamp: int) -> None:
+        """Every key went back below the settled stamps (to ``back``), then ``stamp`` too: a new stream (a looped
+        or restarted source), or a block of frames sent newest first.
+
+        The gaps counted missed that hold ``back`` or ``stamp`` are kept: the frames of a block sent newest first
+        fill the gap its newest frame left (each refunds one as it comes); a looped bag's first stamps hold none.
+        """
         self.restarts += 1
         self._back = None
         self.gaps.reset()
         self._done.clear()
         self._unsettled.clear()
+        kept = [g for g in self._recent_gaps if g[0] < back < g[1] or g[0] < stamp < g[1]]
         self._recent_gaps.clear()
+        self._recent_gaps.extend(kept)
+        self._duplicates_unsettled = 0
         self._settled = self._last_returned = None
 
 

@@ -131,7 +131,8 @@ def run_offline(
     over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
     counted, and so are those the source skips (a bag's frames without a pose on TF, incomplete stamps, frames
     whose messages do not convert: ``frames_skipped_no_tf`` and ``frames_skipped_refused`` with the reason,
-    ``frames_skipped_incomplete``). ``eval_source``: the image
+    ``frames_skipped_incomplete``; frames repeating an earlier frame's stamp: ``frames_skipped_repeated_stamp``), and
+    frames stamped before the frame mapped before them are counted (``frames_stamped_back``). ``eval_source``: the image
     metrics compare with its frames, at its poses, instead of the mapped ones (the same frames in the same
     order and size: e.g. the noise-free render of a simulated sensor's sequence, so that sensor noise is not
     counted as map error). ``test_source``: frames the policy never sees (e.g. poses between the mapped ones,
@@ -190,16 +191,25 @@ def run_offline(
     skipped_no_tf = int(getattr(source, "skipped_no_tf", 0))
     skipped_incomplete = int(getattr(source, "skipped_incomplete", 0))
     skipped_refused = int(getattr(source, "skipped_refused", 0))
+    skipped_repeated = int(getattr(source, "skipped_repeated", 0))
+    given_back = int(getattr(source, "given_back", 0))
     no_tf_reason = str(getattr(source, "no_tf_reason", "")) if skipped_no_tf else ""
     refused_reason = str(getattr(source, "refused_reason", "")) if skipped_refused else ""
-    if skipped_no_tf or skipped_incomplete or skipped_refused:
+    skipped = skipped_no_tf + skipped_incomplete + skipped_refused + skipped_repeated
+    if skipped:
         log.warning(
-            "%s: %d frames skipped without a pose on TF%s, %d incomplete, %d refused%s",
+            "%s: %d frames skipped without a pose on TF%s, %d incomplete, %d refused%s, %d repeating an earlier "
+            "frame's stamp",
             getattr(source, "path", "source"), skipped_no_tf, f" ({no_tf_reason})" if no_tf_reason else "",
-            skipped_incomplete, skipped_refused, f" ({refused_reason})" if refused_reason else "",
+            skipped_incomplete, skipped_refused, f" ({refused_reason})" if refused_reason else "", skipped_repeated,
         )  # fmt: skip
-        bar.set_postfix(skipped=skipped_no_tf + skipped_incomplete + skipped_refused, refresh=False)
-        bar.update(skipped_no_tf + skipped_incomplete + skipped_refused)
+        bar.set_postfix(skipped=skipped, refresh=False)
+        bar.update(skipped)
+    if given_back:
+        log.warning(
+            "%s: the stamps go back at %d frames (first: %s): they were mapped in the bag's order, and frame ids "
+            "follow the stamps", getattr(source, "path", "source"), given_back, getattr(source, "first_given_back", ""),
+        )  # fmt: skip
     bar.close()
     for keyframe in policy.finish(mapper):  # what a policy deciding late still holds at the end
         mapper.add_keyframe(keyframe)
@@ -261,6 +271,8 @@ def run_offline(
         "frames_skipped_refused": skipped_refused,
         "frames_skipped_refused_reason": refused_reason or None,
         "frames_skipped_incomplete": skipped_incomplete,
+        "frames_skipped_repeated_stamp": skipped_repeated,
+        "frames_stamped_back": given_back,
         "mesh_vertices": len(mesh.vertices),
         "mesh_triangles": len(mesh.triangles),
     }

@@ -12,11 +12,11 @@ camera costs the nodes only the mapping resolution in memory and work.
 Bad messages (unsupported encoding, size mismatch with the camera info, NaN pose, truncated JPEG, ...)
 are dropped with a throttled warning and counted by a short reason category; frames that never
 complete (e.g. depth without colour) are dropped and counted once the bounded queue overflows; repeated
-stamps and stamps gone back are counted, not delivered; frames that never arrived at all (every message
-overwritten in a full middleware queue, which the middleware does not report) are estimated from gaps
-in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`). With poses from TF, a complete frame
-waits (at most ``tf_wait_frames`` frames, at most ``tf_wait_s``) until TF gives its pose, else it is
-dropped and counted as ``no_tf``.
+stamps and stamps gone back are counted, not delivered, with a throttled warning too; frames that never
+arrived at all (every message overwritten in a full middleware queue, which the middleware does not
+report) are estimated from gaps in the stamps (:class:`roigsf_ros.data.sync.StampGapCounter`). With
+poses from TF, a complete frame waits (at most ``tf_wait_frames`` frames, at most ``tf_wait_s``) until TF
+gives its pose, else it is dropped and counted as ``no_tf``.
 
 A topic that delivers nothing is named in a warning with what the ROS graph suggests instead (the topic under
 another transport, ``/tf`` for a pose topic, a publisher whose QoS does not match), so a wrong transport, a typo
@@ -430,8 +430,24 @@ class CameraInput:
             self.received[topic] += 1
             self._gaps[topic].add(stamp)
             dropped_before = self._ledger.dropped_incomplete
+            stamps_before = (self._ledger.duplicate_stamp, self._ledger.out_of_order)
             parts = self._ledger.add(stamp, topic, msg)
             dropped = self._ledger.dropped_incomplete
+            repeated, back = self._ledger.duplicate_stamp, self._ledger.out_of_order
+        # Counted in ~/status; said once in a while, as other drops are (one call each: throttled apart).
+        when = f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}"
+        if repeated != stamps_before[0]:
+            self.node.get_logger().warning(
+                f"dropped frame at stamp {when} s on {topic}: it repeats the stamp of a frame already "
+                f"received ({repeated} so far)",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
+        if back != stamps_before[1]:
+            self.node.get_logger().warning(
+                f"dropped frame at stamp {when} s on {topic}: it is older than a frame already "
+                f"delivered, the stamps went back ({back} so far)",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
         if dropped > dropped_before:  # rare: only then look for the topics that never delivered
             with self._lock:
                 missing = [name for name in self.topics.types() if self.received[name] == 0]

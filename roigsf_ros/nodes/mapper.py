@@ -204,6 +204,9 @@ class MapperNode(SystemNode):
         load_dir = str(declare(self, "load_map", "", "saved map folder to resume from at start ('' = none)"))
         self.autosave_dir = str(declare(self, "autosave_dir", "", "folder the map is saved to ('' = never)"))
         self.autosave_every = int(declare(self, "autosave_every", 0, "save to autosave_dir every this many keyframes"))
+        autosave_overwrite = bool(declare(self, "autosave_overwrite", False, "replace a map an earlier run "
+                                          "left in autosave_dir (else start-up refuses it unless load_map "
+                                          "resumes it)"))  # fmt: skip
         self.mesh_max_triangles = int(
             declare(self, "mesh_marker_max_triangles", 100000, "~/mesh marker decimated to at most this many triangles")
         )
@@ -228,6 +231,13 @@ class MapperNode(SystemNode):
                 check_replaceable_map(self.autosave_dir)
             except InputError as exc:
                 raise InputError("parameter 'autosave_dir'", str(exc)) from None
+            resumed = bool(load_dir) and request_folder(load_dir) == Path(self.autosave_dir)
+            if (Path(self.autosave_dir) / "keyframes.json").is_file() and not (resumed or autosave_overwrite):
+                raise InputError(  # a restart with the same parameters must not replace the last run's map
+                    "parameter 'autosave_dir'",
+                    f"{self.autosave_dir} holds a map an earlier run saved: resume it with load_map:="
+                    f"{self.autosave_dir}, replace it with autosave_overwrite:=true, or choose another folder",
+                )
         check_positive("mesh_marker_max_triangles", self.mesh_max_triangles, allow_zero=True)
 
         self.in_process = shared is not None
@@ -377,6 +387,9 @@ class MapperNode(SystemNode):
             self.counters["keyframe_msgs"] += 1
             if stamp in self._queued_ids or stamp in self._waiting:
                 self.counters["keyframes_duplicate"] += 1
+                warn = (f"keyframe {stamp}: named before (in the map or on its way), not inserted twice "
+                        f"({self.counters['keyframes_duplicate']} so far; a looped or replayed bag repeats its "
+                        "stamps)")  # fmt: skip
             elif stamp in self._intrinsics_refusals:  # its frame came, but not for this map
                 self.counters["keyframes_missing"] += 1
                 warn = f"keyframe {stamp}: its frame was refused ({self._intrinsics_refusals[stamp]}); dropped"

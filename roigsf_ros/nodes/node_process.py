@@ -85,6 +85,8 @@ def ros_args_error(exc: Exception) -> InputError:
             return InputError(path, "params file cannot be read (not a readable file)")
         return InputError(path, f"not a valid YAML params file ({why})")
     if rule["what"] == "parameter override rule":
+        if arg.endswith(":="):  # an empty value: rcl needs it quoted as YAML
+            return InputError(f"'{arg}'", f"a parameter is set as -p NAME:=VALUE; an empty string is -p \"{value}''\"")
         return InputError(f"'{arg}'", "a parameter is set as -p NAME:=VALUE")
     if rule["what"] == "remap rule":
         return InputError(f"'{arg}'", "a remap is -r OLD:=NEW")
