@@ -242,6 +242,32 @@ class CameraInput:
         if subscribe:
             self.subscribe()
 
+    @classmethod
+    def of_settings(
+        cls,
+        node: Node,
+        on_frame: Callable[[BagFrame], None],
+        settings: CameraSettings,
+        qos_depth: int,
+        callback_group: CallbackGroup | None = None,
+        subscribe: bool = True,
+    ) -> CameraInput:
+        """A node's camera input as its camera parameters say (``settings``, from ``camera_params``): topics, QoS
+        (keep-last ``qos_depth``, the settings' reliability), mapping size and TF wait.
+        """
+        return cls(
+            node,
+            on_frame,
+            camera_qos(qos_depth, settings.reliability),
+            settings.topics,
+            callback_group=callback_group,
+            input_size=settings.input_size,
+            tf_wait_s=settings.tf_wait_s,
+            tf_cache_s=settings.tf_cache_s,
+            tf_wait_frames=settings.tf_wait_frames,
+            subscribe=subscribe,
+        )
+
     def subscribe(self) -> None:
         """Create the camera's subscriptions (once): a node that must not read frames before its outputs are
         connected (the keyframe selector) creates the input with ``subscribe=False`` and calls this later.

@@ -98,7 +98,7 @@ from roigsf_ros.nbv.novelty import (
     fuse_novelty,
 )
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, camera_qos, describe_topics
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, describe_topics
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import (
     KEYFRAME_POSES_TOPIC,
@@ -287,16 +287,12 @@ class KeyframeSelectorNode(SystemNode):
 
         inputs = MutuallyExclusiveCallbackGroup()
         planner = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraInput(
+        self.camera = CameraInput.of_settings(
             self,
             self._on_frame,
-            camera_qos(qos_depth, camera.reliability),
-            camera.topics,
+            camera,
+            qos_depth,
             callback_group=inputs,
-            input_size=camera.input_size,
-            tf_wait_s=camera.tf_wait_s,
-            tf_cache_s=camera.tf_cache_s,
-            tf_wait_frames=camera.tf_wait_frames,
             # In one process (the shared map) mapper and planner are there already, and a player waiting for one
             # subscriber must find the mapper's and the selector's together; else once they are: _start_camera.
             subscribe=self.startup_wait_s == 0 or shared is not None,

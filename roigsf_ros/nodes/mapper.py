@@ -299,17 +299,7 @@ class MapperNode(SystemNode):
         keyframes = MutuallyExclusiveCallbackGroup()
         outputs = MutuallyExclusiveCallbackGroup()
         services = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraInput(
-            self,
-            self._on_frame,
-            camera_qos(qos_depth, camera.reliability),
-            camera.topics,
-            callback_group=inputs,
-            input_size=camera.input_size,
-            tf_wait_s=camera.tf_wait_s,
-            tf_cache_s=camera.tf_cache_s,
-            tf_wait_frames=camera.tf_wait_frames,
-        )
+        self.camera = CameraInput.of_settings(self, self._on_frame, camera, qos_depth, callback_group=inputs)
         self.create_subscription(
             PoseStamped, keyframe_topic, self._on_keyframe, reliable_qos(qos_depth), callback_group=keyframes
         )
