@@ -165,6 +165,12 @@ def test_a_camera_field_that_is_no_number_is_named(seq_dir: Path) -> None:
     (seq_dir / "cam_params.json").write_text(json.dumps(cam))
     with pytest.raises(InputError, match=r"cam_params\.json: camera field 'fy' is not a number: 'abc'"):
         ReplicaSequence(seq_dir)
+    for key, value, said in (("fy", True, "is not a number: True"), ("w", 64.9, "is not a whole number of pixels")):
+        cam["camera"]["fy"] = 5.0
+        cam["camera"][key] = value  # JSON true was read as 1.0, 64.9 as 64: a run on wrong intrinsics
+        (seq_dir / "cam_params.json").write_text(json.dumps(cam))
+        with pytest.raises(InputError, match=rf"camera field '{key}' {said}"):
+            ReplicaSequence(seq_dir)
 
 
 def _kinect_like(T: np.ndarray, rng: np.random.Generator, off: float) -> np.ndarray:

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from roigsf_ros.cli import main
@@ -340,3 +341,42 @@ def test_ctrl_c_inside_a_commands_import_is_one_line_and_130(
     monkeypatch.setattr(roigsf_ros.cli.map, "register", lambda _sub: (_ for _ in ()).throw(ImportError("no o3d")))
     with pytest.raises(ImportError, match="no o3d"):  # an import error that is no interrupt: as it was
         main(argv)
+
+
+def test_map_of_frames_without_valid_depth_is_one_line_not_a_traceback(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every frame without valid depth (a sensor model that drops it all): every keyframe was skipped, then the empty
+    mesh's write failed with a traceback (session 60's second walk). Now one line naming the source and why."""
+    import cv2
+
+    scene = tmp_path / "scene"
+    make_synthetic_replica(scene, 32, 24, 3, seed=4)
+    for depth in (scene / "results").glob("depth*.png"):
+        cv2.imwrite(str(depth), np.zeros((24, 32), np.uint16))
+    argv = ["map", str(scene), "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", "", "--policy", "all"]
+    assert main([*argv, "--final-iters", "0", "--no-h-train"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("no keyframe could be mapped from 3 frame(s): 3 keyframe(s) had no valid depth"), err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()
+
+
+def test_a_test_scene_of_another_camera_names_both_cameras(tmp_path: Path) -> None:
+    """``--test-scene`` of another image size said only "its camera differs" (session 60's second walk)."""
+    from roigsf_ros.data.sources import open_frames
+    from roigsf_ros.experiments.offline import run_offline
+    from roigsf_ros.policies import make_policy
+
+    make_synthetic_replica(tmp_path / "a", 32, 24, 2, seed=1)
+    make_synthetic_replica(tmp_path / "b", 48, 36, 2, seed=1)
+    with pytest.raises(InputError) as caught:
+        run_offline(
+            open_frames(tmp_path / "a"),
+            make_policy("all"),
+            None,
+            tmp_path / "run",
+            test_source=open_frames(tmp_path / "b"),
+        )
+    text = str(caught.value)
+    assert "its camera differs from the mapped sequence's (48x36 px, fx " in text and ", against 32x24 px, fx" in text
+    assert not (tmp_path / "run").exists()

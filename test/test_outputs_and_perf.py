@@ -195,3 +195,42 @@ def test_perf_nbv_build_state_names_the_options_when_nothing_is_seen() -> None:
 
     with pytest.raises(InputError, match=r"--surfels: the training views at 8x6 with 2 surfels saw too little"):
         build_state(2, 8, 6, 2, 0.02, NBVScorer())
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "--threads", "99999999999"],
+        ["render", "--torch-threads", "99999999999"],
+        ["nbv", "--threads", "99999999999"],
+        ["nbv", "--voxel-size", "99999999999"],
+    ],
+)
+def test_perf_refuses_huge_thread_counts_and_voxels_naming_the_option(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A typo's 99999999999 threads overflowed inside torch, and a 1e11 m voxel failed in numpy, both with a traceback
+    (session 60's second walk): refused before any work, naming the option."""
+    assert main(["perf", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"roigsf perf: error: {argv[1]}: must be at most ") and len(err.splitlines()) == 1, err
+
+
+def test_a_novelty_hash_set_that_cannot_be_allocated_is_a_memory_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """open3d reports a failed allocation as RuntimeError("CPU malloc failed"), which went out as a traceback from
+    ``roigsf perf novelty --hash-capacity 9999999999``; it is now the MemoryError that the CLI reports in one line."""
+    import open3d as o3d
+
+    from roigsf_ros.nbv.novelty import ObservedSurface
+
+    def failing(*args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError("[Open3D Error] CPU malloc failed")
+
+    monkeypatch.setattr(o3d.core, "HashSet", failing)
+    with pytest.raises(MemoryError, match="hash_capacity 9999999999"):
+        ObservedSurface(hash_capacity=9999999999)
+    assert main(["perf", "novelty", "--hash-capacity", "9999999999", "--repeats", "1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("roigsf perf: error: not enough memory for this command (a hash set of hash_capacity"), err

@@ -209,7 +209,8 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(
             f"stamps back:  {info['frames_stamped_back']} frame(s) stamped before the frame before them (first: "
             f"{info['first_stamped_back']}): roigsf map maps them in the bag's order with ids in stamp order; the "
-            "nodes drop a frame older than one they delivered"
+            "nodes drop a frame stamped before one they delivered, unless the next frame stays back too (read as "
+            "a restarted stream)"
         )
     for problem in info.get("missing_topics") or []:
         lines.append(f"missing:      {problem}")

@@ -973,7 +973,8 @@ def _run(args: argparse.Namespace) -> int:
     if missed:  # the map and its figures are of the frames that came: say so, and fail
         back = info.get("frames_stamped_back") or 0
         why = (f"; the bag's stamps go back at {back} frame(s), first at {info['first_stamped_back']}, and the nodes "
-               "drop a frame older than one they delivered" if back else "")  # fmt: skip
+               "drop a frame stamped before one they delivered unless the next frame stays back too" if back
+               else "")  # fmt: skip
         print(
             f"roigsf demo: error: {missed} of the bag's {info['frame_count']} frames did not reach the nodes complete "
             f"and valid (at rate x{args.rate:g}; replay.json has the player's and the nodes' counts{why}): the "

@@ -139,9 +139,13 @@ def load_cam_params(path: str | Path) -> Intrinsics:
     for key in ("w", "h", "fx", "fy", "cx", "cy", "scale"):
         value = cam.get(key, REPLICA_DEPTH_SCALE)
         try:
-            values[key] = int(value) if key in ("w", "h") else float(value)
+            if isinstance(value, bool):  # JSON true is no number, though Python reads it as 1
+                raise TypeError
+            values[key] = float(value)
         except (TypeError, ValueError):
             raise InputError(path, f"camera field '{key}' is not a number: {value!r}") from None
+        if key in ("w", "h") and not values[key].is_integer():
+            raise InputError(path, f"camera field '{key}' is not a whole number of pixels: {value!r}")
     try:
         return Intrinsics(
             width=int(values["w"]),

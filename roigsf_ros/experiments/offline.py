@@ -112,6 +112,16 @@ class EvalConfig(Config):
         return self
 
 
+def _cameras(other: FrameSequence, source: FrameSequence) -> str:
+    """`` (its W x H fx .. against W x H fx ..)``: how two sequences' cameras differ, for an error."""
+
+    def camera(seq: FrameSequence) -> str:
+        k = seq.intrinsics
+        return f"{k.width}x{k.height} px, fx {k.fx:g}, fy {k.fy:g}, cx {k.cx:g}, cy {k.cy:g}"
+
+    return f" ({camera(other)}, against {camera(source)})"
+
+
 def run_offline(
     source: FrameSequence,
     policy: KeyframePolicy,
@@ -147,9 +157,11 @@ def run_offline(
         if len(eval_source) != len(source):
             raise InputError("eval_source", f"has {len(eval_source)} frames, the mapped sequence {len(source)}")
         if eval_source.intrinsics != source.intrinsics:
-            raise InputError("eval_source", "its camera differs from the mapped sequence's")
+            why = f"its camera differs from the mapped sequence's{_cameras(eval_source, source)}"
+            raise InputError("eval_source", why)
     if test_source is not None and test_source.intrinsics != source.intrinsics:
-        raise InputError(getattr(test_source, "path", "test_source"), "its camera differs from the mapped sequence's")
+        raise InputError(getattr(test_source, "path", "test_source"), "its camera differs from the mapped sequence's"
+                         f"{_cameras(test_source, source)}")  # fmt: skip
     ev = eval_config or EvalConfig()
     evaluation.check_eval_size(source.intrinsics)
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
@@ -207,7 +219,7 @@ def run_offline(
         bar.update(skipped)
     if given_back:
         log.warning(
-            "%s: the stamps go back at %d frames (first: %s): they were mapped in the bag's order, and frame ids "
+            "%s: the stamps go back at %d frame(s) (first: %s): they were mapped in the bag's order, and frame ids "
             "follow the stamps", getattr(source, "path", "source"), given_back, getattr(source, "first_given_back", ""),
         )  # fmt: skip
     bar.close()
@@ -216,6 +228,11 @@ def run_offline(
     if cfg.final_iters and mapper.keyframes:
         mapper.refine(cfg.final_iters)
     t_map = time.perf_counter() - t0
+    if not mapper.keyframes:  # no map to render, mesh or save: say why instead of failing in the mesh writer
+        no_depth = mapper.stats.frames_skipped_no_depth
+        why = f"{no_depth} keyframe(s) had no valid depth" if no_depth else f"policy {policy.name} chose none"
+        raise InputError(getattr(source, "path", "source"), f"no keyframe could be mapped from {len(frame_ids)} "
+                         f"frame(s): {why}")  # fmt: skip
     inserted = set(mapper.keyframe_ids)
     is_keyframe = [fid is not None and fid in inserted for fid in frame_ids]
 

@@ -403,7 +403,9 @@ class Mapper:
 
     @property
     def keyframe_ids(self) -> list[int]:
-        """Frame ids of the keyframes, in insertion order."""
+        """Frame ids of the keyframes this mapper inserted, in insertion order (a loaded map's own are in
+        ``loaded_keyframe_ids``; :meth:`map_keyframes` gives both).
+        """
         return [kf.frame_id for kf in self.keyframes]
 
     @property

@@ -100,7 +100,10 @@ class ObservedSurface:
         offs = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), axis=-1).reshape(-1, 3)
         self._offsets = offs[(offs**2).sum(axis=1) <= r * r + 1e-9].astype(np.int64)
         """Integer voxel offsets within reach: [K, 3]."""
-        self._reached = o3d.core.HashSet(int(hash_capacity), o3d.core.int32, [3], o3d.core.Device("CPU:0"))
+        try:
+            self._reached = o3d.core.HashSet(int(hash_capacity), o3d.core.int32, [3], o3d.core.Device("CPU:0"))
+        except RuntimeError as exc:  # open3d's "CPU malloc failed": the same as numpy's MemoryError, named
+            raise MemoryError(f"a hash set of hash_capacity {int(hash_capacity)} voxels: {exc}") from None
         self.n_added = 0
         """Frames added so far."""
 

@@ -12,15 +12,29 @@ from pathlib import Path
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_writable
 
+MAX_THREADS = 1024
+"""The most threads a benchmark may be asked for (more than any machine here has; a typo's 99999999999 overflowed
+inside torch with a traceback)."""
 
-def check_options(args: argparse.Namespace, least: dict[str, int], positive: tuple[str, ...] = ()) -> None:
+
+def check_options(
+    args: argparse.Namespace,
+    least: dict[str, int],
+    positive: tuple[str, ...] = (),
+    most: dict[str, float] | None = None,
+) -> None:
     """Refuse bad numbers before any work, naming the option (``--repeats``): each of ``least`` below its minimum
-    (None: the option's "not given" default, accepted) and each float of ``positive`` not finite and > 0.
+    (None: the option's "not given" default, accepted), each float of ``positive`` not finite and > 0, and each of
+    ``most`` above its maximum.
     """
     for name, minimum in least.items():
         value = getattr(args, name)
         if value is not None and value < minimum:
             raise InputError(f"--{name.replace('_', '-')}", f"must be at least {minimum}, got {value}")
+    for name, maximum in (most or {}).items():
+        value = getattr(args, name)
+        if value is not None and value > maximum:
+            raise InputError(f"--{name.replace('_', '-')}", f"must be at most {maximum:g}, got {value}")
     for name in positive:
         value = getattr(args, name)
         if not (math.isfinite(value) and value > 0):
@@ -35,4 +49,4 @@ def check_out_file(out: str | Path | None) -> None:
         check_writable(out, file=True)
 
 
-__all__ = ["check_options", "check_out_file"]
+__all__ = ["MAX_THREADS", "check_options", "check_out_file"]

@@ -57,7 +57,7 @@ from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
-from roigsf_ros.perf import check_options, check_out_file
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -105,7 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--candidates", type=int, default=50, metavar="M", help="candidates per score() (default 50)")
     parser.add_argument(
-        "--voxel-size", type=float, default=0.02, metavar="M", help="TSDF voxel size in metres (default 0.02)"
+        "--voxel-size", type=float, default=0.02, metavar="M", help="TSDF voxel size in metres (default 0.02, <= 1)"
     )
     parser.add_argument(
         "--keyframes", default="4,16,64", metavar="K,K,...",
@@ -360,13 +360,17 @@ def _keyframe_counts(text: str) -> list[int]:
     return counts
 
 
+MAX_VOXEL_M = 1.0
+"""The largest ``--voxel-size``: the benchmark's room is a few metres (a typo's 1e11 m failed in numpy)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Build the state, time every (mode, fisher_downsample), print a table, optionally write JSON."""
     least = dict.fromkeys(("repeats", "threads", "surfels", "candidates"), 1) | {
         "width": MIN_WIDTH,
         "height": MIN_HEIGHT,
     }
-    check_options(args, least, positive=("voxel_size",))
+    check_options(args, least, positive=("voxel_size",), most={"threads": MAX_THREADS, "voxel_size": MAX_VOXEL_M})
     keyframe_counts = _keyframe_counts(args.keyframes)
     check_out_file(args.out)
     torch.set_num_threads(args.threads)

@@ -36,7 +36,7 @@ import torch
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
-from roigsf_ros.perf import check_options, check_out_file
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS, fisher_diag
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -214,7 +214,8 @@ def bench_case(
 
 def run(args: argparse.Namespace) -> int:
     """Run every case, print a table, optionally write JSON."""
-    check_options(args, {"repeats": 1, "threads": 1, "torch_threads": 1})
+    check_options(args, {"repeats": 1, "threads": 1, "torch_threads": 1}, most=dict.fromkeys(
+        ("threads", "torch_threads"), MAX_THREADS))  # fmt: skip
     check_out_file(args.out)
     torch.set_num_threads(args.torch_threads or args.threads)
     device = check_device(args.device, "--device")
