@@ -74,21 +74,40 @@ def _messages(stamp_ns: int, *, depth_encoding: str = "32FC1", depth_w: int = W,
     return {t.color: color, t.depth: depth, t.camera_info: info, t.pose: pose}
 
 
-def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
-    frames: list[BagFrame] = []
-    node = Node("camera_input_test", context=ros_context)
-    qos = reliable_qos(50)
-    camera = CameraInput(node, frames.append, qos, max_pending=4)
-    pub_node = Node("camera_input_test_pub", context=ros_context)
+def _camera_publishers(ctx: Any, camera: CameraInput, qos: Any, name: str) -> tuple[Node, dict[str, Any]]:
+    """A node publishing the camera's four topics: (the node, {topic: publisher})."""
+    pub_node = Node(name, context=ctx)
     types = {"color": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped}
     pubs = {
         getattr(camera.topics, k): pub_node.create_publisher(v, getattr(camera.topics, k), qos)
         for k, v in types.items()
     }
+    return pub_node, pubs
+
+
+def _wait_matched(pubs: dict[str, Any], timeout_s: float = 5.0) -> None:
+    """Wait until every publisher has a subscriber (at most ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+def _wait_received(camera: CameraInput, n: int, timeout_s: float = 5.0) -> None:
+    """Wait until ``n`` pose messages came (at most ``timeout_s``), then a moment for their frames' handling."""
+    deadline = time.monotonic() + timeout_s
+    while camera.stats()["received"].get(camera.topics.pose, 0) < n and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.1)
+
+
+def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
+    frames: list[BagFrame] = []
+    node = Node("camera_input_test", context=ros_context)
+    qos = reliable_qos(50)
+    camera = CameraInput(node, frames.append, qos, max_pending=4)
+    pub_node, pubs = _camera_publishers(ros_context, camera, qos, "camera_input_test_pub")
     with _spinning(ros_context, node, pub_node):
-        deadline = time.monotonic() + 5.0
-        while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _wait_matched(pubs)
         sets = [
             _messages(1_000),  # good
             _messages(2_000, depth_encoding="8UC1"),  # unsupported encoding
@@ -102,10 +121,7 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
                 pubs[topic].publish(msg)
         only_depth = _messages(5_000)  # depth without colour (and the rest): never completes
         pubs[camera.topics.depth].publish(only_depth[camera.topics.depth])
-        deadline = time.monotonic() + 5.0
-        while camera.stats()["received"].get(camera.topics.pose, 0) < 10 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        time.sleep(0.1)
+        _wait_received(camera, 10)
     stats = camera.stats()
     assert [f.stamp_ns for f in frames] == [1_000, 6_000, 7_000, 8_000, 9_000, 11_000, 12_000]
     # the missing stamp shows as one message lost per topic, one frame (the gap 4 000 -> 6 000 comes
@@ -598,23 +614,13 @@ def test_repeated_and_backward_stamps_are_said_not_only_counted(ros_context: Any
     node.get_logger = _Logger  # type: ignore[method-assign]
     qos = reliable_qos(50)
     camera = CameraInput(node, frames.append, qos)
-    pub_node = Node("camera_input_stamps_pub", context=ros_context)
-    types = {"color": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped}
-    pubs = {
-        getattr(camera.topics, k): pub_node.create_publisher(v, getattr(camera.topics, k), qos)
-        for k, v in types.items()
-    }
+    pub_node, pubs = _camera_publishers(ros_context, camera, qos, "camera_input_stamps_pub")
     with _spinning(ros_context, node, pub_node):
-        deadline = time.monotonic() + 5.0
-        while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _wait_matched(pubs)
         for k in (1, 2, 3, 3, 4, 5, 2.5, 6, 7):  # 3 twice; 2.5 after 5
             for topic, msg in _messages(int(k * 1_000)).items():
                 pubs[topic].publish(msg)
-        deadline = time.monotonic() + 5.0
-        while camera.stats()["received"].get(camera.topics.pose, 0) < 9 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        time.sleep(0.1)
+        _wait_received(camera, 9)
     stats = camera.stats()
     assert [f.stamp_ns for f in frames] == [1_000, 2_000, 3_000, 4_000, 5_000, 6_000, 7_000]
     assert (stats["duplicate_stamp"], stats["out_of_order"]) == (1, 1)

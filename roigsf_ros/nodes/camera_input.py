@@ -461,7 +461,7 @@ class CameraInput:
             dropped = self._ledger.dropped_incomplete
             repeated, back = self._ledger.duplicate_stamp, self._ledger.out_of_order
         # Counted in ~/status; said once in a while, as other drops are (one call each: throttled apart).
-        when = f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}"
+        when = f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}" if (repeated, back) != stamps_before else ""
         if repeated != stamps_before[0]:
             self.node.get_logger().warning(
                 f"dropped frame at stamp {when} s on {topic}: it repeats the stamp of a frame already "
