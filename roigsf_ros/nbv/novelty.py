@@ -103,6 +103,8 @@ class ObservedSurface:
         try:
             self._reached = o3d.core.HashSet(int(hash_capacity), o3d.core.int32, [3], o3d.core.Device("CPU:0"))
         except RuntimeError as exc:  # open3d's "CPU malloc failed": the same as numpy's MemoryError, named
+            if "malloc" not in str(exc):
+                raise
             raise MemoryError(f"a hash set of hash_capacity {int(hash_capacity)} voxels: {exc}") from None
         self.n_added = 0
         """Frames added so far."""
