@@ -250,7 +250,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="procedural surface texture multiplied onto vertex colours: 0 off, 1 full (default 1)",
     )
     p.add_argument(
-        "--texture-seed", type=int, default=0, metavar="SEED", help="seed of the procedural texture pattern (default 0)"
+        "--texture-seed",
+        type=int,
+        default=0,
+        metavar="SEED",
+        help="seed of the procedural texture pattern (default 0; `scene synth` used its --seed: give the same to "
+        "re-render a synth scene's mesh in its colours)",
     )
     _add_sensor_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (only once the new one is done)")
