@@ -78,7 +78,13 @@ from roigsf_ros.nodes.node_params import (
     settings_text,
 )
 from roigsf_ros.nodes.node_process import run_nodes
-from roigsf_ros.nodes.shared_map import SharedMapper, check_replaceable_map, decimate_mesh, same_camera
+from roigsf_ros.nodes.shared_map import (
+    SharedMapper,
+    check_replaceable_map,
+    decimate_mesh,
+    is_saved_map,
+    same_camera,
+)
 
 KEYFRAME_TOPIC = "/roigsf/keyframe"
 MAP_TOPIC = "/roigsf/map"
@@ -232,7 +238,7 @@ class MapperNode(SystemNode):
             except InputError as exc:
                 raise InputError("parameter 'autosave_dir'", str(exc)) from None
             resumed = bool(load_dir) and request_folder(load_dir) == Path(self.autosave_dir)
-            if (Path(self.autosave_dir) / "keyframes.json").is_file() and not (resumed or autosave_overwrite):
+            if is_saved_map(self.autosave_dir) and not (resumed or autosave_overwrite):
                 raise InputError(  # a restart with the same parameters must not replace the last run's map
                     "parameter 'autosave_dir'",
                     f"{self.autosave_dir} holds a map an earlier run saved: resume it with load_map:="

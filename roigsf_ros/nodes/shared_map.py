@@ -258,6 +258,12 @@ def decimate_mesh(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
     raise InputError("mesh", f"could not decimate {n} triangles to {max_triangles}")
 
 
+def is_saved_map(directory: str | Path) -> bool:
+    """Whether ``directory`` is a saved map: a real folder (not a link) with ``keyframes.json``."""
+    path = Path(directory)
+    return path.is_dir() and not path.is_symlink() and (path / "keyframes.json").is_file()
+
+
 def check_replaceable_map(directory: str | Path) -> None:
     """Refuse to replace anything at ``directory`` but a saved map (a folder with keyframes.json) or an empty folder:
     a mistyped ``overwrite: true`` save must not delete a file or a folder of other things.
@@ -265,7 +271,7 @@ def check_replaceable_map(directory: str | Path) -> None:
     path = Path(directory)
     if not (path.exists() or path.is_symlink()):
         return
-    if path.is_dir() and not path.is_symlink() and ((path / "keyframes.json").is_file() or not any(path.iterdir())):
+    if is_saved_map(path) or (path.is_dir() and not path.is_symlink() and not any(path.iterdir())):
         return
     what = "a folder without keyframes.json" if path.is_dir() else "not a folder"
     raise InputError(directory, f"is {what}, not a saved map: overwrite replaces only a map")
@@ -295,6 +301,7 @@ __all__ = [
     "SharedMapper",
     "check_replaceable_map",
     "decimate_mesh",
+    "is_saved_map",
     "read_keyframe_ids",
     "same_camera",
     "save_snapshot",
