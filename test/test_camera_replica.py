@@ -119,6 +119,13 @@ def test_layout_variants(seq_dir: Path, tmp_path: Path) -> None:
     seq = ReplicaSequence(dataset / "office9", size=(16, 12))
     assert seq.intrinsics == INTR.resized(16, 12)
     assert seq.frame(0).rgb.shape == (12, 16, 3) and seq.frame(0).depth_m.shape == (12, 16)
+    # The download's root given instead of a scene: the error names its scene folders.
+    (dataset / "notes").mkdir()
+    shutil.copytree(seq_dir, dataset / "room0")
+    with pytest.raises(InputError, match=r"it holds scene folder\(s\) office9, room0: give one of them \(e\.g\. "):
+        ReplicaSequence(dataset)
+    with pytest.raises(InputError, match=r"NICE-SLAM Replica layout\)$"):  # no scene below: no hint
+        ReplicaSequence(dataset / "notes")
 
 
 def test_traj_count_mismatch_is_an_error_unless_partial(seq_dir: Path) -> None:

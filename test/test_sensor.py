@@ -91,6 +91,23 @@ def test_range_holes() -> None:
         assert holes.out_of_range == (0 if expect else depth.size)
 
 
+def test_depths_the_uint16_image_cannot_hold_are_holes_and_counted() -> None:
+    """Huge noise or a range beyond the format's: the holes reported are those the written depth PNG has."""
+    intr = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)  # uint16 at 6553.5: up to 10 m
+    far = SensorConfig(**QUIET, max_range_m=20.0)
+    depth, holes = simulate_depth(_plane(12.0, intr), None, intr, _rng(), far)
+    assert (depth == 0).all() and holes.not_storable == holes.total == depth.size
+    noisy = SensorConfig(**QUIET, axial_a_m=5.0)
+    depth, holes = simulate_depth(_plane(2.0, intr), None, intr, _rng(), noisy)
+    stored = np.round(depth.astype(np.float64) * intr.depth_scale)
+    assert ((depth == 0) | ((stored >= 1) & (stored <= 65535))).all()  # every depth left fits the PNG
+    assert holes.not_storable > 0 and holes.total == int((depth == 0).sum())
+    assert SensorModel(noisy).describe()["hole_fractions"]["not_storable"] == 0.0  # nothing seen yet
+    mm = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, depth_scale=1000.0)  # up to 65 m
+    depth, holes = simulate_depth(_plane(12.0, mm), None, mm, _rng(), far)
+    assert (depth > 0).all() and holes.not_storable == 0
+
+
 def test_grazing_incidence_holes_and_angle_dependent_noise() -> None:
     cfg = SensorConfig(**QUIET)
     cos = np.full((K1.height, K1.width), math.cos(math.radians(70.0)), np.float32)
@@ -238,8 +255,13 @@ def test_sensor_config_is_validated_and_named() -> None:
         SensorConfig(dropout_prob=1.5)
     with pytest.raises(InputError, match="pose_ortho_dev_max"):
         SensorConfig(pose_ortho_dev_max=0.05)
-    with pytest.raises(InputError, match="max_range_m"):
-        SensorConfig(min_range_m=3.0, max_range_m=2.0)
+    # A min/max pair out of order names both fields: either may be the one the user set.
+    with pytest.raises(InputError, match=r"^min_range_m, max_range_m: .* got 5.0 and 4.0"):
+        SensorConfig(min_range_m=5.0)
+    with pytest.raises(InputError, match=r"^pose_ortho_dev_min, pose_ortho_dev_max: .* got 0.0005 and 0.0004"):
+        SensorConfig(pose_ortho_dev_min=5e-4)
+    with pytest.raises(InputError, match=r"^max_range_m: must be a finite number"):
+        SensorConfig(max_range_m=math.inf)
     with pytest.raises(InputError, match="unknown sensor"):
         SensorModel.named("realsense")
     assert SensorModel.named("kinect", seed=2, dropout_prob=0.05).config.dropout_prob == 0.05

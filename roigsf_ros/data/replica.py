@@ -129,6 +129,22 @@ def find_cam_params(seq_dir: str | Path) -> Path | None:
     return None
 
 
+def _scenes_hint(root: Path, most: int = 5) -> str:
+    """"; its scene folders: a, b (give one of them)" when ``root`` is a download holding scene folders, else ""."""
+
+    def is_scene(folder: Path) -> bool:
+        try:
+            return (folder / "results").is_dir() or any(_FRAME_RE.match(q.name) for q in folder.iterdir())
+        except OSError:  # unreadable: not named
+            return False
+
+    scenes = sorted(p.name for p in root.iterdir() if p.is_dir() and is_scene(p))
+    if not scenes:
+        return ""
+    named = ", ".join(scenes[:most]) + (f" and {len(scenes) - most} more" if len(scenes) > most else "")
+    return f"; it holds scene folder(s) {named}: give one of them (e.g. {root / scenes[0]})"
+
+
 class ReplicaSequence:
     """A Replica-layout sequence on disk, read lazily frame by frame.
 
@@ -155,7 +171,9 @@ class ReplicaSequence:
             self.root = root if (root / "traj.txt").is_file() else root.parent
             self.results = root
         else:
-            raise InputError(root, "no 'results/' folder with frameNNNNNN.jpg files (NICE-SLAM Replica layout)")
+            raise InputError(
+                root, "no 'results/' folder with frameNNNNNN.jpg files (NICE-SLAM Replica layout)" + _scenes_hint(root)
+            )
 
         if isinstance(cam, Intrinsics):
             native = cam

@@ -137,8 +137,13 @@ class SensorConfig(Config):
             raise InputError("native_width_px", f"must be >= 1, got {self.native_width_px}")
         if not (math.isfinite(self.baseline_m) and self.baseline_m > 0):
             raise InputError("baseline_m", f"must be a positive number, got {self.baseline_m}")
-        if not (math.isfinite(self.max_range_m) and self.max_range_m > self.min_range_m):
-            raise InputError("max_range_m", f"must be above min_range_m = {self.min_range_m}, got {self.max_range_m}")
+        if not math.isfinite(self.max_range_m):
+            raise InputError("max_range_m", f"must be a finite number, got {self.max_range_m}")
+        if self.max_range_m <= self.min_range_m:  # either may be the one set: name both
+            raise InputError(
+                "min_range_m, max_range_m",
+                f"min_range_m must be below max_range_m, got {self.min_range_m} and {self.max_range_m}",
+            )
         if not 0 < self.max_incidence_deg <= 90:
             raise InputError("max_incidence_deg", f"must be in (0, 90], got {self.max_incidence_deg}")
         if not 0 <= self.dropout_prob < 1:
@@ -147,10 +152,14 @@ class SensorConfig(Config):
             raise InputError("projector_side", f"must be -1, 0 or 1, got {self.projector_side}")
         if not 0 <= int(self.jpeg_quality) <= 100:
             raise InputError("jpeg_quality", f"must be in 0..100 (0: no JPEG), got {self.jpeg_quality}")
-        if self.pose_ortho_dev_max < self.pose_ortho_dev_min or self.pose_ortho_dev_max > 1e-2:
+        if self.pose_ortho_dev_max > 1e-2:
+            raise InputError("pose_ortho_dev_max", f"must be at most 1e-2 (the loader's tolerance), got "
+                             f"{self.pose_ortho_dev_max}")  # fmt: skip
+        if self.pose_ortho_dev_max < self.pose_ortho_dev_min:  # either may be the one set: name both
             raise InputError(
-                "pose_ortho_dev_max",
-                f"must be in [pose_ortho_dev_min, 1e-2] (the loader's tolerance), got {self.pose_ortho_dev_max}",
+                "pose_ortho_dev_min, pose_ortho_dev_max",
+                f"pose_ortho_dev_min must be at most pose_ortho_dev_max, got {self.pose_ortho_dev_min} and "
+                f"{self.pose_ortho_dev_max}",
             )
         return self
 
@@ -171,6 +180,9 @@ class HoleCounts:
     grazing: int = 0
     shadow: int = 0
     dropout: int = 0
+    not_storable: int = 0
+    """Measured depths the camera's uint16 image cannot hold (above ``65535 / depth_scale`` m or rounding to 0),
+    stored as holes: only huge noise or a range beyond the format's makes them."""
     total: int = 0
     """Pixels with depth 0 in the output (including ``no_surface``)."""
     by_frame: list[float] = field(default_factory=list)
@@ -178,14 +190,14 @@ class HoleCounts:
 
     def add(self, other: HoleCounts) -> None:
         """Accumulate another frame's counts."""
-        for name in ("pixels", "no_surface", "out_of_range", "grazing", "shadow", "dropout", "total"):
+        for name in ("pixels", "no_surface", "out_of_range", "grazing", "shadow", "dropout", "not_storable", "total"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.by_frame.extend(other.by_frame)
 
     def fractions(self) -> dict[str, float]:
         """Each count as a fraction of the pixels looked at."""
         n = max(self.pixels, 1)
-        names = ("no_surface", "out_of_range", "grazing", "shadow", "dropout", "total")
+        names = ("no_surface", "out_of_range", "grazing", "shadow", "dropout", "not_storable", "total")
         return {name: getattr(self, name) / n for name in names}
 
 
@@ -281,7 +293,8 @@ def simulate_depth(
     """The sensor's depth [H, W] float32 (0: hole) from ideal z-depth ``depth_m`` (0: no surface), and its holes.
 
     ``cos_incidence`` [H, W] is ``|cos|`` of the angle between each ray and the surface normal (None:
-    normal incidence everywhere, e.g. for a depth image without geometry). ``intr`` is the render's camera.
+    normal incidence everywhere, e.g. for a depth image without geometry). ``intr`` is the render's camera; a
+    measured depth its uint16 depth image (``intr.depth_scale``) cannot hold becomes a hole, as it would in the file.
     """
     c = config or SensorConfig()
     z = np.asarray(depth_m, dtype=np.float64)
@@ -322,6 +335,12 @@ def simulate_depth(
         drop = rng.random(z.shape) < c.dropout_prob
         holes.dropout = int((drop & (meas > 0)).sum())
         meas[drop] = 0.0
+    # What the uint16 depth image at the camera's scale cannot hold is a hole in the file: count it here, so the
+    # holes reported are the holes written (write_replica stores such depths as 0).
+    units = meas * intr.depth_scale
+    not_storable = (meas > 0) & ((units > 65535) | (np.round(units) < 1))
+    holes.not_storable = int(not_storable.sum())
+    meas[not_storable] = 0.0
     holes.total = int((meas <= 0).sum())
     holes.by_frame.append(holes.total / max(holes.pixels, 1))
     return meas.astype(np.float32), holes
