@@ -749,6 +749,41 @@ class TestFaultTolerance:
         )  # +1 in insertion
         assert "resumed map" in _process(ps, "mapper").log()
 
+    def test_roigsf_ros_from_a_third_process(self, looping_system: Processes, watch: Watcher, bag: Path, tmp_path):
+        """What a user without the ros2 CLI runs beside the nodes: ``roigsf ros status``, ``nbv`` on a pose file and
+        ``save-map``, each its own process; a refusal is exit 1 with the node's reason."""
+        ps = looping_system
+        wait_until("a few keyframes", lambda: watch.get("mapper").get("keyframes", 0) >= 2, 60, ps)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
+
+        def roigsf(*args: str) -> subprocess.CompletedProcess[str]:
+            cmd = [sys.executable, "-m", "roigsf_ros.cli", "ros", *args]
+            return subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=180)
+
+        status = roigsf("status", "mapper", "--compact")
+        assert status.returncode == 0, status.stderr
+        assert json.loads(status.stdout)["keyframes"] >= 2
+
+        frames, _ = bags.read_bag_frames(bag)
+        cands = tmp_path / "cands.txt"
+        np.savetxt(cands, np.asarray([f.T_wc.reshape(-1) for f in frames[::5]]))  # 8 poses of the bag's loop
+        out = tmp_path / "answer.json"
+        nbv = roigsf("nbv", "--candidates", str(cands), "--top-k", "3", "--out", str(out))
+        assert nbv.returncode == 0, nbv.stderr
+        answer = json.loads(out.read_text())
+        assert answer["success"] and answer["n_candidates"] == 8 and len(answer["fused_scores"]) == 8
+        assert len(answer["top_k_indices"]) == 3 and answer["top_k_indices"][0] == answer["best_index"]
+        assert f"best of 8: line {answer['best_index'] + 1} of {cands}" in nbv.stdout
+        refused = roigsf("nbv", "--candidates", str(cands), "--frame-id", "odom")
+        assert refused.returncode == 1 and "candidates.header.frame_id" in refused.stderr, refused.stderr
+
+        saved = tmp_path / "map"
+        save = roigsf("save-map", str(saved))
+        assert save.returncode == 0, save.stderr
+        assert (saved / "keyframes.json").is_file() and (saved / "map.ply").is_file()
+        again = roigsf("save-map", str(saved))
+        assert again.returncode == 1 and "already exists" in again.stderr and "--overwrite" in again.stderr
+
     def test_selector_finish_service_decides_the_frames_it_holds(self, looping_system: Processes, watch: Watcher):
         """``~/finish`` from another process: the selector (lookahead 8) decides the frames it holds, as at the end
         of a stream; the planner (or its fallback) names one more keyframe."""

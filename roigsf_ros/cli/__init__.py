@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from roigsf_ros.data.bags import CameraTopics
 
 # Subcommand modules, in the order `roigsf --help` lists them.
-_COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "targets", "perf")
+_COMMAND_MODULES = ("demo", "scene", "bag", "map", "bench", "targets", "perf", "ros")
 
 
 def image_size(args: argparse.Namespace) -> tuple[int | None, int | None] | None:
