@@ -130,7 +130,7 @@ def find_cam_params(seq_dir: str | Path) -> Path | None:
 
 
 def _scenes_hint(root: Path, most: int = 5) -> str:
-    """"; its scene folders: a, b (give one of them)" when ``root`` is a download holding scene folders, else ""."""
+    """The error's hint naming the scene folders when ``root`` is a download holding some, else ""."""
 
     def is_scene(folder: Path) -> bool:
         try:

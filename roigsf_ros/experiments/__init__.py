@@ -41,7 +41,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "selectable_positions",
             "split_pool",
         ],
-        "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "write_report"],
+        "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "table_columns", "write_report"],
         "targets": [
             "BENCH_SETTINGS",
             "MUST_MATCH",

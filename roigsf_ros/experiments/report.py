@@ -74,6 +74,15 @@ def cell(summary_row: dict[str, Any], key: str, fmt: str) -> str:
     return text
 
 
+def table_columns(results: dict[str, Any]) -> tuple[tuple[str, str, str], ...]:
+    """The main table's columns for these results: the test-scene ones only when the bench had a test scene (a pool
+    bench never does: it holds out its own test views), so a table has no column that is empty by construction.
+    """
+    if results.get("test_scene"):
+        return TABLE_COLUMNS
+    return tuple(c for c in TABLE_COLUMNS if not c[1].startswith("test_scene_"))
+
+
 def markdown(results: dict[str, Any]) -> str:
     """``results.md``: the main table (one row per policy, mean over seeds) and, for pool, the curve table."""
     setting = results["setting"]
@@ -115,11 +124,12 @@ def markdown(results: dict[str, Any]) -> str:
     if rescore:
         lines.append(f"- AUSE study recomputed from the saved maps at {rescore['at']} ({rescore['wall_s']:.0f} s)")
     lines += ["", "## Quality per policy (Tables I / III / IV)", ""]
-    lines.append("| Policy | " + " | ".join(c[0] for c in TABLE_COLUMNS) + " |")
-    lines.append("|---|" + "---|" * len(TABLE_COLUMNS))
+    columns = table_columns(results)
+    lines.append("| Policy | " + " | ".join(c[0] for c in columns) + " |")
+    lines.append("|---|" + "---|" * len(columns))
     for p in results["policies"]:
         row = results["summary"].get(p["label"], {})
-        lines.append(f"| {p['label']} | " + " | ".join(cell(row, k, f) for _, k, f in TABLE_COLUMNS) + " |")
+        lines.append(f"| {p['label']} | " + " | ".join(cell(row, k, f) for _, k, f in columns) + " |")
     lines += ["", AUSE_CAVEAT]
     curves = results.get("curves") or {}
     if setting == "pool" and curves:
@@ -289,4 +299,4 @@ def write_report(out: Path, results: dict[str, Any], runs: list[dict[str, Any]])
     return written
 
 
-__all__ = ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "write_report"]
+__all__ = ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "table_columns", "write_report"]
