@@ -231,7 +231,7 @@ def test_bag_info_counts_the_frames_the_reader_refuses_with_the_reason(
 
 
 def test_repeated_and_backward_stamps_are_counted_by_bag_info_and_map(
-    bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     """Frame 2 carries frame 1's stamp and frame 4 a stamp between frames 0 and 1 (every message of each): ``bag
     info`` and ``roigsf map`` agree on 4 frames, the repeat skipped and counted, the stamp gone back said.
@@ -264,6 +264,10 @@ def test_repeated_and_backward_stamps_are_counted_by_bag_info_and_map(
     text = capsys.readouterr().out
     assert re.search(r"skipped: repeated stamp\s+1$", text, re.MULTILINE), text
     assert re.search(r"stamps gone back\s+1$", text, re.MULTILINE), text
+    # The warning names the frame as `bag info` does, by its stamp (its id is its place in stamp order, 1; bag info's
+    # number its place in the bag, 3).
+    back_s = f"{(t0 + 50_000_000) / 1e9:.3f} s"
+    assert f"first: frame 1 (ids in stamp order) at {back_s}, after frame 3" in caplog.text, caplog.text
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert (metrics["n_frames"], metrics["frames_skipped_repeated_stamp"], metrics["frames_stamped_back"]) == (4, 1, 1)
     # frames mapped in the bag's order; ids are places in stamp order (0, 50, 100, 300 ms)

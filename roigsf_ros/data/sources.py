@@ -175,7 +175,10 @@ class BagFrameSource(FrameSource):
                 if i < previous:
                     self.given_back += 1
                     if not self.first_given_back:
-                        self.first_given_back = f"frame {i} came after frame {previous}"
+                        # with its stamp, as `bag info` says it (which numbers frames in the bag's order)
+                        self.first_given_back = (
+                            f"frame {i} (ids in stamp order) at {bf.stamp_ns / 1e9:.3f} s, after frame {previous}"
+                        )
                 previous = i
                 yield resize_frame(Frame(index=i, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), self.intrinsics)
                 if not expected:
