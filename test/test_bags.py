@@ -230,6 +230,46 @@ def test_bag_info_counts_the_frames_the_reader_refuses_with_the_reason(
     assert metrics["keyframe_ids"] == [0, 2, 4] and "mono8" in metrics["frames_skipped_refused_reason"]
 
 
+def test_a_camera_that_changes_size_mid_bag_does_not_end_the_run(
+    bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Frames 3 and 4 at half the size (camera info, colour and depth alike, as after a driver restart with another
+    profile): ``roigsf map`` maps frames 0-2, refuses and counts the others with the reason, as the nodes drop them;
+    ``bag info`` counts them apart.
+
+    Before (session 60's walk): the run stopped at frame 3 with an error, and nothing of frames 0-2 was written.
+    """
+
+    def edit(topic: str, k: int, msg: Any) -> Any:
+        if k < 3:
+            return msg
+        if topic == bags.CAMERA_INFO_TOPIC:
+            msg.width, msg.height = W // 2, H // 2
+        elif topic in (bags.COLOR_TOPIC, bags.DEPTH_TOPIC):  # every other row and column, bytes per pixel kept
+            px = np.frombuffer(bytes(msg.data), np.uint8).reshape(H, W, msg.step // W)[::2, ::2]
+            msg.width, msg.height, msg.step = W // 2, H // 2, msg.step // 2
+            msg.data = np.ascontiguousarray(px).reshape(-1)
+        return msg
+
+    out = tmp_path / "resized"
+    _rewrite_bag(bag32, out, edit)
+    info = bags.bag_info(out)
+    assert (info["frame_count"], info["frames_other_size"]) == (3, 2)  # as roigsf map counts them
+    assert info["first_other_size"] == f"frame 3 at {W // 2}x{H // 2}, not {W}x{H}"
+    assert bags.bag_info(out, decode=False)["frames_other_size"] is None
+    assert cli_main(["bag", "info", str(out)]) == 0
+    out_text = capsys.readouterr().out
+    assert "other size:   2 more frame(s) not at the first frame's image size (first: frame 3" in out_text
+    argv = ["map", str(out), "--policy", "all", "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", ""]
+    assert cli_main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["keyframe_ids"] == [0, 1, 2] and metrics["frames_skipped_refused"] == 2
+    assert (
+        f"frame 3's image size {W // 2}x{H // 2} differs from the first frame's {W}x{H}"
+        in (metrics["frames_skipped_refused_reason"])
+    )
+
+
 def test_repeated_and_backward_stamps_are_counted_by_bag_info_and_map(
     bag32: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:

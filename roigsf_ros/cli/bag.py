@@ -205,6 +205,11 @@ def format_info(info: dict[str, Any]) -> str:
             f"repeated:     {info['frames_repeating_stamp']} more frame(s) with an earlier frame's header stamp, not "
             "counted above (roigsf map and the nodes read one frame a stamp)"
         )
+    if info.get("frames_other_size"):
+        lines.append(
+            f"other size:   {info['frames_other_size']} more frame(s) not at the first frame's image size (first: "
+            f"{info['first_other_size']}), not counted above (roigsf map and the nodes refuse them)"
+        )
     if info.get("frames_stamped_back"):
         lines.append(
             f"stamps back:  {info['frames_stamped_back']} frame(s) stamped before the frame before them (first: "

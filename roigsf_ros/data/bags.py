@@ -946,6 +946,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
     last one's error; ``incomplete_stamps`` the other stamps. ``frames_repeating_stamp`` counts the frames
     skipped because a frame before them had their stamp; ``frames_stamped_back`` those stamped before the frame
     before them, ``first_stamped_back`` where the first is (both as :class:`BagReader` counts them).
+    ``frames_other_size`` counts the frames whose images are not the first frame's size, not in ``frame_count``
+    (``roigsf map`` and the nodes refuse them; None without ``decode``), ``first_other_size`` names the first.
     ``missing_topics`` names each topic the bag lacks or holds with another type (empty when all are there; no
     frame is then complete, and the stamps of the topics it has count as incomplete); ``realsense_namespace``
     is then the namespace of a RealSense camera the bag does hold in full (:func:`realsense_topics`), else
@@ -978,10 +980,19 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             stamps = reader.messages(connections=camera) if camera else ()
             incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
     frames = refused = no_tf = repeated = back = 0
-    reason = refusal = first_back = ""
+    reason = refusal = first_back = first_other = ""
+    other_size: list[tuple[int, int]] = []
     if not missing:
         with BagReader(path, requested, skip_refused=True) as frame_reader:
-            frames = sum(1 for _ in (frame_reader.frames() if decode else frame_reader.stamps()))
+            if decode:
+                sizes = [(f.intrinsics.width, f.intrinsics.height) for f in frame_reader.frames()]
+                other_size = [wh for wh in sizes if wh != sizes[0]]
+                frames = len(sizes) - len(other_size)  # as roigsf map and the nodes count them
+                if other_size:
+                    (w0, h0), (w1, h1) = sizes[0], other_size[0]
+                    first_other = f"frame {sizes.index(other_size[0])} at {w1}x{h1}, not {w0}x{h0}"
+            else:
+                frames = sum(1 for _ in frame_reader.stamps())
             incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
             reason, refusal = frame_reader.last_tf_error, frame_reader.last_refusal
             repeated, back = len(frame_reader.repeated_stamps), frame_reader.stamps_back
@@ -1020,6 +1031,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         "frames_repeating_stamp": repeated,
         "frames_stamped_back": back,
         "first_stamped_back": first_back or None,
+        "frames_other_size": len(other_size) if decode else None,
+        "first_other_size": first_other or None,
         "missing_topics": missing,
         "realsense_namespace": _realsense_namespace(present) if missing else None,
     }

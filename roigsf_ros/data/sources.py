@@ -106,11 +106,11 @@ class BagFrameSource(FrameSource):
 
     A frame's index is its position among all the bag's frames, the sorted distinct header stamps of the
     colour topic (a stamp without colour is no frame), counted once when the source is opened: frames the
-    reader skips (incomplete, no pose on TF, refused: messages that do not convert) keep their numbers, so
-    the stride, the cap and the ids of the frames given name bag frames. ``len`` counts the frames the stride
-    and cap keep, those skipped too. Frames come in the bag's order: where their stamps go back, ids do too
-    (``given_back`` counts those frames, ``first_given_back`` says where the first was); a frame whose stamp an
-    earlier frame had is skipped (``skipped_repeated``).
+    reader skips (incomplete, no pose on TF, refused: messages that do not convert, or images of another size
+    than the first frame's) keep their numbers, so the stride, the cap and the ids of the frames given name bag
+    frames. ``len`` counts the frames the stride and cap keep, those skipped too. Frames come in the bag's order:
+    where their stamps go back, ids do too (``given_back`` counts those frames, ``first_given_back`` says where the
+    first was); a frame whose stamp an earlier frame had is skipped (``skipped_repeated``).
     """
 
     kind = "bag"
@@ -157,6 +157,8 @@ class BagFrameSource(FrameSource):
         given: set[int] = set()
         previous = -1
         self.given_back, self.first_given_back = 0, ""
+        resized: list[int] = []
+        resized_reason = ""
         with BagReader(self.path, self.topics, skip_refused=True) as reader:
             for bf in reader.frames():
                 i = self.index_of(bf.stamp_ns)
@@ -164,14 +166,17 @@ class BagFrameSource(FrameSource):
                     break  # posed frames come in stamp order: every kept one was given or skipped
                 if i > last or i % self.stride:  # (the reader gives each stamp once)
                     continue
-                if (bf.intrinsics.width, bf.intrinsics.height) != (self.native.width, self.native.height):
-                    raise InputError(
-                        f"{self.path} frame {i}",
-                        f"image size {bf.intrinsics.width}x{bf.intrinsics.height} changed from "
-                        f"{self.native.width}x{self.native.height}",
-                    )
-                given.add(i)
                 expected.discard(i)
+                if (bf.intrinsics.width, bf.intrinsics.height) != (self.native.width, self.native.height):
+                    # A camera restarted with another profile: refused and counted as the nodes do, not the end of
+                    # the run (the frames before and after it still map).
+                    resized.append(i)
+                    resized_reason = resized_reason or (
+                        f"frame {i}'s image size {bf.intrinsics.width}x{bf.intrinsics.height} differs from the first "
+                        f"frame's {self.native.width}x{self.native.height}"
+                    )
+                    continue
+                given.add(i)
                 if i < previous:
                     self.given_back += 1
                     if not self.first_given_back:
@@ -185,6 +190,8 @@ class BagFrameSource(FrameSource):
                     break  # the rest of the kept frames are incomplete
             refused = {self.index_of(stamp) for stamp in reader.refused_stamps}
             kept = set(self.kept)
+            reasons = [reader.last_refusal] if any(k in kept for k in refused) else []
+            refused |= set(resized)
             self.skipped_repeated = sum(1 for stamp in reader.repeated_stamps if self.index_of(stamp) in kept)
             missing = [k for k in self.kept if k not in given and k not in refused]
             incomplete = sum(1 for k in missing if not self.complete[k])
@@ -195,7 +202,7 @@ class BagFrameSource(FrameSource):
                 self.skipped_incomplete = len(missing)
             self.no_tf_reason = reader.last_tf_error if self.skipped_no_tf else ""
             self.skipped_refused = sum(1 for k in self.kept if k in refused)
-            self.refused_reason = reader.last_refusal if self.skipped_refused else ""
+            self.refused_reason = "; ".join([*reasons, *([resized_reason] if resized else [])])
 
 
 def _frame_stamps(path: Path, topics: CameraTopics) -> tuple[np.ndarray, np.ndarray]:
