@@ -194,7 +194,7 @@ def _nbv(args: argparse.Namespace) -> int:
     if args.out is not None:
         check_writable(Path(args.out))
     req = candidates_request(Path(args.candidates), args.frame_id, args.top_k, args.mode)
-    service = node_path(args.planner) + "/get_next_best_view"
+    service = node_path(args.node) + "/get_next_best_view"
     answer = nbv_answer(call_service(GetNextBestView, service, req, args))
     answer = {
         "service": service,
@@ -232,7 +232,7 @@ def _answered(command: str, service: str, res: Any, hint: str = "") -> int:
 def _save_map(args: argparse.Namespace) -> int:
     from roigsf_interfaces.srv import SaveMap
 
-    service = node_path(args.mapper) + "/save_map"
+    service = node_path(args.node) + "/save_map"
     directory = str(Path(args.directory).absolute())  # the mapper's working directory may be another
     req = SaveMap.Request(directory=directory, with_mesh=args.with_mesh, overwrite=args.overwrite)
     res = call_service(SaveMap, service, req, args)
@@ -243,19 +243,19 @@ def _save_map(args: argparse.Namespace) -> int:
 def _load_map(args: argparse.Namespace) -> int:
     from roigsf_interfaces.srv import LoadMap
 
-    service = node_path(args.mapper) + "/load_map"
+    service = node_path(args.node) + "/load_map"
     directory = str(Path(args.directory).absolute())
     res = call_service(LoadMap, service, LoadMap.Request(directory=directory), args)
     return _answered("load-map", service, res)
 
 
-def _trigger(command: str, default_node: str, name: str) -> Callable[[argparse.Namespace], int]:
+def _trigger(command: str, name: str) -> Callable[[argparse.Namespace], int]:
     """A handler calling the ``std_srvs/Trigger`` service ``NODE/name``."""
 
     def handler(args: argparse.Namespace) -> int:
         from std_srvs.srv import Trigger
 
-        service = node_path(getattr(args, default_node)) + "/" + name
+        service = node_path(args.node) + "/" + name
         res = call_service(Trigger, service, Trigger.Request(), args)
         return _answered(command, service, res)
 
@@ -271,72 +271,51 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     group = p.add_subparsers(dest="ros_command", metavar="ACTION", required=True)
 
-    def action(name: str, help_text: str, func: Callable[[argparse.Namespace], int], answer_s: float) -> Any:
+    def action(name: str, help_text: str, func: Callable[[argparse.Namespace], int], answer_s: float,
+               node: str | None = None) -> Any:  # fmt: skip
+        """A subcommand with the options every action has, and ``--NODE`` naming the node it calls (default NODE)."""
         a = group.add_parser(name, help=help_text, description=help_text)
         a.set_defaults(func=func)
         a.add_argument("--domain-id", type=int, metavar="N", help="ROS domain (default: ROS_DOMAIN_ID, else 0)")
-        a.add_argument(
-            "--wait",
-            type=_seconds("--wait"),
-            default=DEFAULT_WAIT_S,
-            metavar="S",
-            help=f"seconds to find the node (default {DEFAULT_WAIT_S:g})",
-        )
-        a.add_argument(
-            "--timeout",
-            type=_seconds("--timeout"),
-            default=answer_s,
-            metavar="S",
-            help=f"seconds for its answer (default {answer_s:g})",
-        )
+        a.add_argument("--wait", type=_seconds("--wait"), default=DEFAULT_WAIT_S, metavar="S",
+                       help=f"seconds to find the node (default {DEFAULT_WAIT_S:g})")  # fmt: skip
+        a.add_argument("--timeout", type=_seconds("--timeout"), default=answer_s, metavar="S",
+                       help=f"seconds for its answer (default {answer_s:g})")  # fmt: skip
+        if node is not None:
+            option = {"nbv_planner": "--planner", "mapper": "--mapper", "keyframe_selector": "--selector"}[node]
+            a.add_argument(option, dest="node", default=node, metavar="NODE", help=f"the node (default {node})")
         return a
 
     a = action("status", "print a node's next ~/status (JSON counters)", _status, DEFAULT_STATUS_TIMEOUT_S)
     a.add_argument("node", metavar="NODE", help="mapper, nbv_planner, keyframe_selector, or /NS/NAME")
     a.add_argument("--compact", action="store_true", help="one line of JSON instead of indented")
 
-    a = action("nbv", "ask the planner which of the candidate poses to take next", _nbv, DEFAULT_TIMEOUT_S)
+    a = action("nbv", "ask the planner which of the candidate poses to take next", _nbv, DEFAULT_TIMEOUT_S,
+               "nbv_planner")  # fmt: skip
     a.add_argument(
         "--candidates",
         required=True,
         metavar="TRAJ",
-        help="candidate poses: a traj.txt (a camera-to-world 4x4 row-major a line, OpenCV axes)",
+        help="candidate poses: a traj.txt (a camera-to-world 4x4, row-major, a line; OpenCV axes)",
     )
-    a.add_argument("--planner", default="nbv_planner", metavar="NODE", help="the planner node (default nbv_planner)")
-    a.add_argument(
-        "--frame-id", default="", metavar="FRAME", help="the poses' frame (default empty: the planner's map frame)"
-    )
+    a.add_argument("--frame-id", default="", metavar="FRAME",
+                   help="the poses' frame (default empty: the planner's map frame)")  # fmt: skip
     a.add_argument("--top-k", type=int, default=0, metavar="K", help="rank the K best (default 0: all)")
     a.add_argument("--mode", default="", help="score mode (default empty: the planner's `mode` parameter)")
     a.add_argument("--out", metavar="FILE.json", help="also write the answer as JSON")
 
-    a = action("save-map", "ask the mapper to save its map (map.ply, keyframes.json)", _save_map, DEFAULT_TIMEOUT_S)
+    a = action("save-map", "ask the mapper to save its map (map.ply, keyframes.json)", _save_map, DEFAULT_TIMEOUT_S,
+               "mapper")  # fmt: skip
     a.add_argument("directory", metavar="DIR", help="the folder to write (made whole or not at all)")
     a.add_argument("--with-mesh", action="store_true", help="also the TSDF mesh (mesh.ply; slower)")
     a.add_argument("--overwrite", action="store_true", help="replace DIR when it exists")
-    a.add_argument("--mapper", default="mapper", metavar="NODE", help="the mapper node (default mapper)")
 
-    a = action("load-map", "ask the mapper to replace its map with a saved one", _load_map, DEFAULT_TIMEOUT_S)
+    a = action("load-map", "ask the mapper to replace its map with a saved one", _load_map, DEFAULT_TIMEOUT_S, "mapper")
     a.add_argument("directory", metavar="DIR", help="a folder written by save-map or `roigsf map`")
-    a.add_argument("--mapper", default="mapper", metavar="NODE", help="the mapper node (default mapper)")
-
-    a = action(
-        "publish-mesh",
-        "ask the mapper to publish its mesh on ~/mesh",
-        _trigger("publish-mesh", "mapper", "publish_mesh"),
-        DEFAULT_TIMEOUT_S,
-    )
-    a.add_argument("--mapper", default="mapper", metavar="NODE", help="the mapper node (default mapper)")
-
-    a = action(
-        "finish",
-        "tell the keyframe selector the stream has ended",
-        _trigger("finish", "selector", "finish"),
-        DEFAULT_TIMEOUT_S,
-    )
-    a.add_argument(
-        "--selector", default="keyframe_selector", metavar="NODE", help="the selector node (default keyframe_selector)"
-    )
+    action("publish-mesh", "ask the mapper to publish its mesh on ~/mesh", _trigger("publish-mesh", "publish_mesh"),
+           DEFAULT_TIMEOUT_S, "mapper")  # fmt: skip
+    action("finish", "tell the keyframe selector the stream has ended", _trigger("finish", "finish"),
+           DEFAULT_TIMEOUT_S, "keyframe_selector")  # fmt: skip
 
 
 def _seconds(option: str) -> Callable[[str], float]:
