@@ -14,6 +14,7 @@ from roigsf_ros.experiments.targets import (
     check_comparable,
     config_differences,
     load_policy,
+    policy_key,
     pool_target,
     seed_margins,
     stream_target,
@@ -132,6 +133,27 @@ def test_benches_that_are_not_comparable_are_refused_naming_the_file_and_field(t
         pool_target(stream, [cand])
     with pytest.raises(InputError, match="setting is 'pool', not 'stream'"):
         stream_target(cand, stream)
+
+
+def test_a_label_spelt_otherwise_finds_the_same_policy(tmp_path: Path) -> None:
+    """The fiftieth session's F3 bench label gave unseen_weight twice (F2's, then 2); the README spells F3 once. Both
+    name one policy; a label that could be two of the bench's policies is refused, not guessed."""
+    f3_as_run = "roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=rays:unseen_weight=2"
+    f2 = "roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=rays"
+    folder = bench(tmp_path / "held", "pool", {f3_as_run: FOURTH_ROOM["variant"], f2: FOURTH_ROOM["random"]})
+    readme_f3 = "roi-gsurfisher:unseen_weight=2:unseen_source=carved:unseen_measure=rays"
+    assert load_policy(f"{folder}#{readme_f3}").label == f3_as_run
+    assert load_policy(f"{folder}#roi-gsurfisher:unseen_measure=rays:unseen_source=carved:unseen_weight=2.0").label == (
+        f3_as_run
+    )
+    assert load_policy(f"{folder}#{f2}").label == f2  # the exact label first
+    assert policy_key("random") == ("random", ())
+    assert policy_key("a:x=True:y=1") == policy_key("a:y=1.0:x=true")
+    with pytest.raises(InputError, match="no policy 'roi-gsurfisher:unseen_weight=3"):
+        load_policy(f"{folder}#roi-gsurfisher:unseen_weight=3:unseen_source=carved:unseen_measure=rays")
+    twice = bench(tmp_path / "twice", "pool", {"a:x=1": FOURTH_ROOM["variant"], "a:x=1.0": FOURTH_ROOM["random"]})
+    with pytest.raises(InputError, match=r"no policy 'a:x=1\.00'"):
+        load_policy(f"{twice}#a:x=1.00")
 
 
 def test_bad_bench_folders_are_refused_naming_the_file(tmp_path: Path) -> None:

@@ -60,6 +60,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "config_differences",
             "curve_by_seed",
             "load_policy",
+            "policy_key",
             "pool_target",
             "seed_margins",
             "stream_target",

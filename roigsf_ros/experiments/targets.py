@@ -222,12 +222,29 @@ def seed_margins(candidate: PolicyResults, other: PolicyResults, key: str) -> tu
     return tuple(mine[s] - theirs[s] for s in sorted(set(mine) & set(theirs)))
 
 
+def policy_key(label: str) -> tuple[str, tuple[tuple[str, str], ...]]:
+    """A bench label ``name:key=value:...`` as (name, its parameters sorted, the last of a key given twice, numbers
+    and booleans written one way): two labels of one policy and parameters have one key.
+    """
+    name, *pairs = (part.strip() for part in label.split(":"))
+    params: dict[str, str] = {}
+    for pair in pairs:
+        key, _, value = (t.strip() for t in pair.partition("="))
+        try:
+            value = repr(float(value))
+        except ValueError:
+            value = value.lower() if value.lower() in ("true", "false") else value
+        params[key] = value
+    return name, tuple(sorted(params.items()))
+
+
 def load_policy(spec: str | Path) -> PolicyResults:
     """``FOLDER`` (a bench of one policy) or ``FOLDER#LABEL``: that policy's results, validated. ``FOLDER`` may also
     be the bench's ``results.json`` itself.
 
-    Errors name the file and the field: no results.json, truncated JSON, no summary, a label the folder does not hold
-    (with the ones it does), or a folder of several policies given without a label.
+    ``LABEL`` may spell the policy's parameters otherwise than the bench did (:func:`policy_key`). Errors name the file
+    and the field: no results.json, truncated JSON, no summary, a label the folder does not hold (with the ones it
+    does), or a folder of several policies given without a label.
     """
     text = str(spec)
     folder, label = Path(text), None
@@ -253,7 +270,10 @@ def load_policy(spec: str | Path) -> PolicyResults:
             raise InputError(path, f"holds {len(summary)} policies; name one as {folder}#LABEL, one of {list(summary)}")
         label = next(iter(summary))
     if label not in summary:
-        raise InputError(path, f"no policy {label!r} in 'summary'; it holds {list(summary)}")
+        same = [held for held in summary if policy_key(held) == policy_key(label)]
+        if len(same) != 1:
+            raise InputError(path, f"no policy {label!r} in 'summary'; it holds {list(summary)}")
+        label = same[0]  # the same policy and parameters, spelt otherwise (order, a key given twice, 2 vs 2.0)
     if not isinstance(summary[label], dict):
         raise InputError(path, f"field 'summary.{label}' is not an object of metrics")
     return PolicyResults(label=label, source=folder, bench=bench, summary=summary[label])
@@ -536,6 +556,7 @@ __all__ = [
     "config_differences",
     "curve_by_seed",
     "load_policy",
+    "policy_key",
     "pool_target",
     "seed_margins",
     "stream_target",
