@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -48,6 +49,23 @@ def test_module_entry_point_runs() -> None:
         [sys.executable, "-m", "roigsf_ros.cli", "--help"], capture_output=True, text=True, cwd=REPO, timeout=120
     )
     assert proc.returncode == 0 and "scene" in proc.stdout and "bag" in proc.stdout
+
+
+def test_a_closed_output_pipe_is_quiet() -> None:
+    """``roigsf bag info BAG | head -1`` where head left first: exit 141 (SIGPIPE, as a shell tool), no traceback.
+
+    Before (session 61): "BrokenPipeError: [Errno 32] Broken pipe" with the whole traceback, exit 1.
+    """
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the command writes: every write fails
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "roigsf_ros.cli", "bag", "info", "bags/synth_room"],
+            stdout=write_end, stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=120,
+        )  # fmt: skip
+    finally:
+        os.close(write_end)
+    assert (proc.returncode, proc.stderr) == (141, "")
 
 
 def _no_work(*_args: object, **_kw: object) -> None:

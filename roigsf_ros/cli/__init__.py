@@ -257,9 +257,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run_command(args: argparse.Namespace) -> int:
-    """Run the parsed command: bad input one line and 2, an interrupt one line and 128 + signal, memory one line."""
+    """Run the parsed command: bad input one line and 2, an interrupt one line and 128 + signal, memory one line, a
+    closed output pipe nothing and 141 (128 + SIGPIPE, as a shell tool).
+    """
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:  # `roigsf bag info ... | head -1`: the reader left; quiet, as a shell tool is
+        with contextlib.suppress(OSError, ValueError):  # no flush at exit into the closed pipe either
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except (InputError, FileExistsError, FileNotFoundError) as exc:
         print(f"roigsf {args.command}: error: {exc}", file=sys.stderr)
         return 2
