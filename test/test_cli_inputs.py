@@ -178,7 +178,7 @@ def test_every_domain_id_option_refuses_an_id_whose_dds_ports_do_not_fit(
     ROS_DOMAIN_ID when the id came from there).
     """
     from roigsf_ros.cli import demo
-    from roigsf_ros.perf.io import MAX_DOMAIN_ID, check_domain_id, domain_id_from_env
+    from roigsf_ros.core.ros_domain import MAX_DOMAIN_ID, check_domain_id, domain_id_from_env
 
     assert MAX_DOMAIN_ID == 232 and check_domain_id(0) == 0 and check_domain_id(232) == 232
     with pytest.raises(InputError, match=r"--domain-id: must be a ROS domain id in 0\.\.232, got 233"):

@@ -15,7 +15,7 @@ pytest.importorskip("roigsf_interfaces.srv")
 
 from roigsf_interfaces.srv import GetNextBestView
 from roigsf_ros.cli import main
-from roigsf_ros.cli.ros import candidates_request, nbv_answer, nbv_table, node_path
+from roigsf_ros.cli.ros import candidates_request, directory_arg, nbv_answer, nbv_table, node_path
 from roigsf_ros.core.camera import pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import save_traj
@@ -96,10 +96,37 @@ def test_errors_without_nodes_name_what_was_not_found(tmp_path: Path, capsys: py
     # Bad input is refused before any ROS work.
     assert main(["ros", "nbv", "--candidates", str(tmp_path / "none.txt"), *domain]) == 2
     assert "none.txt" in capsys.readouterr().err
+    if Path("/proc/self").is_dir():  # a folder nothing can be created in, even as root: the output is named too
+        assert main(["ros", "nbv", "--candidates", str(tmp_path / "c.txt"), "--out", "/proc/x/nbv.json", *domain]) == 2
+        assert "/proc/x/nbv.json cannot be written there" in capsys.readouterr().err
     assert main(["ros", "status", "mapper", "--domain-id", "300"]) == 2
-    assert "--domain-id: must be in 0..232" in capsys.readouterr().err
+    assert "--domain-id: must be a ROS domain id in 0..232, got 300" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["ros", "status", "mapper", "--wait", "-1"])
     assert "--wait: must be in (0, 1e6) seconds" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
     assert os.environ["ROS_DOMAIN_ID"] == domain_before  # --domain-id is this command's, not the process's
+
+
+def test_a_bad_domain_from_the_environment_is_named(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Before (session 61's walk): "abc" gave rcl's traceback, 999 Fast DDS's bare log line and /dev/shm files."""
+    for value, problem in (("abc", "not an integer: 'abc'"), ("999", "must be a ROS domain id in 0..232, got 999")):
+        monkeypatch.setenv("ROS_DOMAIN_ID", value)
+        assert main(["ros", "status", "mapper", "--wait", "0.5"]) == 2
+        assert f"roigsf ros: error: ROS_DOMAIN_ID: {problem}" in capsys.readouterr().err
+
+
+def test_map_folders_are_sent_absolute_and_names_of_no_folder_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``save-map .`` in a saved map's folder replaced it: the absolute path slipped past the mapper's refusal of
+    ``.``; ``'~/m'`` made a folder named ``~``; ``''`` named the working folder (session 61's walk)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert directory_arg("maps/a") == str(tmp_path / "maps" / "a")  # the caller's folder, not the node's
+    assert directory_arg("~/m") == str(tmp_path / "home" / "m")
+    for bad in ("", " ", ".", "..", "maps/..", "/", "./"):
+        with pytest.raises(InputError, match="names no folder of its own"):
+            directory_arg(bad)

@@ -1306,6 +1306,18 @@ def test_gil_switch_interval_is_lowered_never_raised(monkeypatch: pytest.MonkeyP
     assert bad.returncode == 2 and "bag_player: error: ROIGSF_GIL_SWITCH_INTERVAL_S" in bad.stderr, bad.stderr
 
 
+@pytest.mark.parametrize("value", ["abc", "999"])
+def test_a_bad_ros_domain_id_is_one_line_naming_it(value: str) -> None:
+    """Before (session 61's walk): rcl's RCLError traceback for "abc", and for 999 Fast DDS's bare "port number is too
+    high" with its /dev/shm files left behind; now one line naming the variable, exit 2, before ROS starts."""
+    env = dict(os.environ, ROS_DOMAIN_ID=value, PYTHONPATH=str(REPO))
+    bad = subprocess.run(
+        [sys.executable, "-m", "roigsf_ros.nodes.mapper"], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode == 2 and "mapper: error: ROS_DOMAIN_ID: " in bad.stderr, bad.stderr
+    assert "Traceback" not in bad.stderr
+
+
 # ---------------------------------------------------------------------------------------- whole system
 def test_active_mapping_replay_gives_keyframes_map_and_mesh(ros_context: Any, scene: Any, tmp_path: Path) -> None:
     _, bag = scene

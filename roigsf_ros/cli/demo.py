@@ -44,6 +44,7 @@ import numpy as np
 
 from roigsf_ros.cli import check_writable, realsense_hint
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import (
     AUTO,
     SAMPLE_BAG,
@@ -56,7 +57,6 @@ from roigsf_ros.data.bags import (
     realsense_topics,
     sample_path,
 )
-from roigsf_ros.perf.io import check_domain_id, domain_id_from_env
 
 if TYPE_CHECKING:
     import open3d as o3d

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 
 DEFAULT_WAIT_S = 10.0
 """Seconds to find the node's service or status topic."""
@@ -39,17 +40,34 @@ def node_path(node: str) -> str:
     return "/" + name.strip("/")
 
 
+def domain_id_of(domain_id: int | None) -> int | None:
+    """``--domain-id``, else ``ROS_DOMAIN_ID`` (None: unset, rcl's 0), each checked naming where it came from."""
+    return check_domain_id(domain_id) if domain_id is not None else domain_id_from_env()
+
+
+def directory_arg(text: str) -> str:
+    """The absolute folder ``save-map`` / ``load-map`` send (the node's working folder may be another); ``~`` is
+    the home folder; an empty name, ``.``, ``..`` or ``/`` are refused here, as the mapper refuses them (given as
+    an absolute path they would slip past its check and name the caller's folder).
+    """
+    expanded = os.path.expanduser(text.strip())
+    name = os.path.basename(os.path.normpath(expanded)) if expanded else ""
+    if name in ("", ".", "..") or os.path.normpath(expanded) == os.sep:
+        raise InputError("DIR", f"{text!r} names no folder of its own: give the map's folder, e.g. /tmp/map")
+    return os.path.abspath(expanded)
+
+
 def _where(domain_id: int | None) -> str:
     """The domain and discovery range this command looks in, for an error that could not reach a node."""
-    domain = domain_id if domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or 0
+    domain = domain_id_of(domain_id)
+    domain = 0 if domain is None else domain
     return f"ROS_DOMAIN_ID={domain}, ROS_AUTOMATIC_DISCOVERY_RANGE={os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
 
 
 @contextlib.contextmanager
 def ros_node(domain_id: int | None) -> Iterator[tuple[Any, Any]]:
     """A hidden node and a single-threaded executor in a fresh context; all shut down on the way out."""
-    if domain_id is not None and not 0 <= domain_id <= 232:
-        raise InputError("--domain-id", f"must be in 0..232, got {domain_id}")
+    domain_id = domain_id_of(domain_id)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -233,10 +251,10 @@ def _save_map(args: argparse.Namespace) -> int:
     from roigsf_interfaces.srv import SaveMap
 
     service = node_path(args.node) + "/save_map"
-    directory = str(Path(args.directory).absolute())  # the mapper's working directory may be another
+    directory = directory_arg(args.directory)
     req = SaveMap.Request(directory=directory, with_mesh=args.with_mesh, overwrite=args.overwrite)
     res = call_service(SaveMap, service, req, args)
-    hint = " (pass --overwrite to replace it)" if Path(directory).exists() and not args.overwrite else ""
+    hint = "; roigsf ros: pass --overwrite" if Path(directory).exists() and not args.overwrite else ""
     return _answered("save-map", service, res, hint)
 
 
@@ -244,7 +262,7 @@ def _load_map(args: argparse.Namespace) -> int:
     from roigsf_interfaces.srv import LoadMap
 
     service = node_path(args.node) + "/load_map"
-    directory = str(Path(args.directory).absolute())
+    directory = directory_arg(args.directory)
     res = call_service(LoadMap, service, LoadMap.Request(directory=directory), args)
     return _answered("load-map", service, res)
 
@@ -296,13 +314,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--candidates",
         required=True,
         metavar="TRAJ",
-        help="candidate poses: a traj.txt (a camera-to-world 4x4, row-major, a line; OpenCV axes)",
+        help="candidate poses: a traj.txt (a camera-to-world 4x4, row-major, a line; OpenCV axes), at most the "
+        "planner's max_candidates (64 by default)",
     )
     a.add_argument("--frame-id", default="", metavar="FRAME",
                    help="the poses' frame (default empty: the planner's map frame)")  # fmt: skip
     a.add_argument("--top-k", type=int, default=0, metavar="K", help="rank the K best (default 0: all)")
     a.add_argument("--mode", default="", help="score mode (default empty: the planner's `mode` parameter)")
-    a.add_argument("--out", metavar="FILE.json", help="also write the answer as JSON")
+    a.add_argument(
+        "--out",
+        metavar="FILE.json",
+        help="also write the answer as JSON (its indices count candidates from 0; the table's lines from 1)",
+    )
 
     a = action("save-map", "ask the mapper to save its map (map.ply, keyframes.json)", _save_map, DEFAULT_TIMEOUT_S,
                "mapper")  # fmt: skip

@@ -1,5 +1,5 @@
 """The lowest layer: errors, atomic file output, the pinhole camera, the Frame type, configs, lazy exports, where the
-package's own files are.
+package's own files are, the ROS domain id checked without ROS.
 """
 
 from roigsf_ros.core.exports import lazy_exports
@@ -36,5 +36,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
         ],
         "frame": ["Frame", "resize_frame", "spread_indices"],
         "package_files": ["CHECKOUT_ROOT", "PACKAGE", "package_path", "package_path_places", "share_folders"],
+        "ros_domain": ["MAX_DOMAIN_ID", "check_domain_id", "domain_id_from_env"],
     },
 )

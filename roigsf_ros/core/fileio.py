@@ -122,7 +122,9 @@ def check_writable(out: str | Path, file: bool = False) -> None:
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise InputError(folder, f"output folder is not writable ({exc.strerror or exc}); choose another one") from None
+        where = f"{out} cannot be written there" if Path(os.path.abspath(out)).parent != folder else ""
+        why = f"output folder is not writable ({exc.strerror or exc})"
+        raise InputError(folder, f"{why}{'; ' + where if where else ''}; choose another one") from None
 
 
 def remove_stale_temporaries(final: str | Path, stem: str) -> list[Path]:

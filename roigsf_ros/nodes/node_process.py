@@ -24,6 +24,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import get_default_context, remove_ros_args
 
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.ros_domain import domain_id_from_env
 from roigsf_ros.nodes.node_params import BAD_PARAMETER_ERRORS, parameter_error, remember_ros_args
 
 GIL_SWITCH_INTERVAL_S = 0.0005
@@ -131,8 +132,8 @@ def init_ros(args: list[str] | None = None) -> None:
     """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
 
     Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`). ROS arguments rclpy cannot
-    parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` does. The arguments
-    are noted (:func:`remember_ros_args`): the nodes' errors and warnings name their params files.
+    parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` or ``ROS_DOMAIN_ID``
+    does. The arguments are noted (:func:`remember_ros_args`): the nodes' errors and warnings name their params files.
 
     rclpy's own handlers shut the context down inside the signal handler, under the executor's feet:
     callbacks still running then fail ("publisher's context is invalid", printed by rclpy as "exception
@@ -141,6 +142,7 @@ def init_ros(args: list[str] | None = None) -> None:
     nodes and shuts the context down last. A second signal during that clean-up exits at once (128 + signal).
     """
     reduce_gil_switch_interval()
+    domain_id_from_env()  # a bad ROS_DOMAIN_ID: one line naming it, not rcl's traceback
     try:
         rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
     except ROS_ARGS_ERRORS as exc:

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
-from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
+from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import BagReader, CameraTopics, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, write_replica
 from roigsf_ros.perf import check_options, check_out_file
@@ -33,12 +33,6 @@ from roigsf_ros.perf import check_options, check_out_file
 NATIVE_SIZE = (1200, 680)
 SMALL_SIZE = (240, 136)
 PLAYER_RATE_HZ = 10.0
-MAX_DOMAIN_ID = 232
-"""The largest ROS 2 domain id (on Linux; 0..101 are the portable ones): the largest whose DDS ports fit in 16 bits with
-Fast DDS's defaults (port base 7400 + domain gain 250 x id + offsets: 7400 + 250 x 232 = 65400 leaves room for the
-participants' ports below 65536, 233 gives 65650). Past it Fast DDS fails with "port number is too high" after the
-nodes' shared-memory files are made, and leaves them in /dev/shm.
-"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -60,29 +54,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="ROS domain id of the player timing (default: ROS_DOMAIN_ID, else a random one of 1..99); discovery "
         "stays on localhost",
     )  # fmt: skip
-
-
-def check_domain_id(value: int, where: str = "--domain-id") -> int:
-    """``value`` if it is a ROS domain id in 0..:data:`MAX_DOMAIN_ID`, else an InputError naming ``where`` (the
-    option or variable it came from): the one check of every ``roigsf`` command with ``--domain-id``, made before
-    any ROS context exists, since Fast DDS refuses a larger one only after leaving files in /dev/shm.
-    """
-    if not 0 <= value <= MAX_DOMAIN_ID:
-        raise InputError(where, f"must be a ROS domain id in 0..{MAX_DOMAIN_ID}, got {value}")
-    return value
-
-
-def domain_id_from_env(environ: Mapping[str, str] | None = None) -> int | None:
-    """``ROS_DOMAIN_ID`` checked as :func:`check_domain_id` does (errors name the variable); None when it is unset."""
-    env = os.environ if environ is None else environ
-    text = env.get("ROS_DOMAIN_ID", "").strip()
-    if not text:
-        return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise InputError("ROS_DOMAIN_ID", f"not an integer: {env['ROS_DOMAIN_ID']!r}") from None
-    return check_domain_id(value, "ROS_DOMAIN_ID")
 
 
 def choose_domain_id(given: int | None, environ: Mapping[str, str] | None = None) -> int:
