@@ -255,7 +255,8 @@ def test_a_camera_that_changes_size_mid_bag_does_not_end_the_run(
     _rewrite_bag(bag32, out, edit)
     info = bags.bag_info(out)
     assert (info["frame_count"], info["frames_other_size"]) == (3, 2)  # as roigsf map counts them
-    assert info["first_other_size"] == f"frame 3 at {W // 2}x{H // 2}, not {W}x{H}"
+    stamp3 = f"{(bags.DEFAULT_T0_NS + 300_000_000) / 1e9:.3f} s"
+    assert info["first_other_size"] == f"frame 3 (in the bag's order) at {stamp3}: {W // 2}x{H // 2}, not {W}x{H}"
     assert bags.bag_info(out, decode=False)["frames_other_size"] is None
     assert cli_main(["bag", "info", str(out)]) == 0
     out_text = capsys.readouterr().out
@@ -265,7 +266,7 @@ def test_a_camera_that_changes_size_mid_bag_does_not_end_the_run(
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["keyframe_ids"] == [0, 1, 2] and metrics["frames_skipped_refused"] == 2
     assert (
-        f"frame 3's image size {W // 2}x{H // 2} differs from the first frame's {W}x{H}"
+        f"frame 3's image size {W // 2}x{H // 2} (at {stamp3}) differs from the first frame's {W}x{H}"
         in (metrics["frames_skipped_refused_reason"])
     )
 

@@ -6,8 +6,8 @@ OpenCV axes, in the map frame) to take and prints the ranking; ``save-map``, ``l
 mapper's services, ``finish`` the selector's. Each runs a hidden node (not counted by the nodes' start-up waits) in its
 own context on ``ROS_DOMAIN_ID`` (or ``--domain-id``), with ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless the
 environment sets another range. Exit 0 when the node answered yes, 1 when it answered no (its message on stderr), 2
-when it could not be reached in ``--wait`` seconds or did not answer in ``--timeout`` (the error names the service or
-topic, the domain and the discovery range).
+when it could not be reached in ``--wait`` seconds (the error names the service or topic, the domain and the discovery
+range), did not answer in ``--timeout``, or the input was bad (a pose file, the domain, a folder of no name of its own).
 """
 
 from __future__ import annotations

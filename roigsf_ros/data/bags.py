@@ -981,16 +981,18 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
     frames = refused = no_tf = repeated = back = 0
     reason = refusal = first_back = first_other = ""
-    other_size: list[tuple[int, int]] = []
+    other: list[int] = []  # places (in the bag's order) of frames not at the first frame's size
     if not missing:
         with BagReader(path, requested, skip_refused=True) as frame_reader:
             if decode:
-                sizes = [(f.intrinsics.width, f.intrinsics.height) for f in frame_reader.frames()]
-                other_size = [wh for wh in sizes if wh != sizes[0]]
-                frames = len(sizes) - len(other_size)  # as roigsf map and the nodes count them
-                if other_size:
-                    (w0, h0), (w1, h1) = sizes[0], other_size[0]
-                    first_other = f"frame {sizes.index(other_size[0])} at {w1}x{h1}, not {w0}x{h0}"
+                read = [(f.intrinsics.width, f.intrinsics.height, f.stamp_ns) for f in frame_reader.frames()]
+                other = [k for k, (w, h, _) in enumerate(read) if (w, h) != read[0][:2]]
+                frames = len(read) - len(other)  # as roigsf map and the nodes count them
+                if other:
+                    (w0, h0, _), (w1, h1, stamp) = read[0], read[other[0]]
+                    first_other = (
+                        f"frame {other[0]} (in the bag's order) at {stamp / 1e9:.3f} s: {w1}x{h1}, not {w0}x{h0}"
+                    )
             else:
                 frames = sum(1 for _ in frame_reader.stamps())
             incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
@@ -1031,7 +1033,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         "frames_repeating_stamp": repeated,
         "frames_stamped_back": back,
         "first_stamped_back": first_back or None,
-        "frames_other_size": len(other_size) if decode else None,
+        "frames_other_size": len(other) if decode else None,
         "first_other_size": first_other or None,
         "missing_topics": missing,
         "realsense_namespace": _realsense_namespace(present) if missing else None,

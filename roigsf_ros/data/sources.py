@@ -172,9 +172,12 @@ class BagFrameSource(FrameSource):
                     # the run (the frames before and after it still map).
                     resized.append(i)
                     resized_reason = resized_reason or (
-                        f"frame {i}'s image size {bf.intrinsics.width}x{bf.intrinsics.height} differs from the first "
-                        f"frame's {self.native.width}x{self.native.height}"
+                        f"frame {i}'s image size {bf.intrinsics.width}x{bf.intrinsics.height} (at "
+                        f"{bf.stamp_ns / 1e9:.3f} s) differs from the first frame's {self.native.width}x"
+                        f"{self.native.height}"
                     )
+                    if not expected:
+                        break
                     continue
                 given.add(i)
                 if i < previous:
