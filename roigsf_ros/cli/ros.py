@@ -161,7 +161,7 @@ def candidates_request(path: Path, frame_id: str, top_k: int, mode: str) -> Any:
     req = GetNextBestView.Request(top_k=top_k, mode=mode)
     req.candidates = PoseArray()
     req.candidates.header.frame_id = frame_id  # unstamped: never "stale"
-    for T in poses:
+    for T in poses:  # as nodes.map_msgs.matrix_to_pose does; that module loads torch, 5 s of a 2 s command
         pose = Pose()
         pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
         q = matrix_to_quat_xyzw(T[:3, :3])
