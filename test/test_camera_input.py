@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -19,7 +20,6 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from roigsf_ros.cli.demo import replay_bag
 from roigsf_ros.data.bags import BagFrame, CameraTopics
 from roigsf_ros.nodes.bag_player import reliable_qos
 from roigsf_ros.nodes.camera_input import CameraInput
@@ -140,16 +140,73 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
     np.testing.assert_array_equal(frames[0].depth_m, np.full((H, W), 1.5, np.float32))
 
 
-def test_demo_replay_delivers_every_frame(tmp_path: Path) -> None:
+def _replay_bag(bag: Path, rate: float, domain_id: int) -> dict[str, Any]:
+    """Play ``bag`` with a :class:`BagPlayer` and collect the complete frames a subscriber receives.
+
+    Returns ``{"frames": [BagFrame], "player": summary, "input": counters, "wall_s": s}``. The
+    executor is shut down and its thread joined before returning: the transport alone, without the nodes.
+    """
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
+    from roigsf_ros.nodes.camera_input import CameraInput
+    from roigsf_ros.nodes.node_process import BackgroundSpin
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    frames: list[BagFrame] = []
+    lock = threading.Lock()
+
+    def on_frame(frame: BagFrame) -> None:
+        with lock:
+            frames.append(frame)
+
+    t0 = time.monotonic()
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    listener = Node("demo_listener", context=context)
+    camera = CameraInput(listener, on_frame, reliable_qos(200))
+    player = BagPlayer(
+        context=context,
+        parameter_overrides=[
+            Parameter("bag", value=str(bag)),
+            Parameter("rate", value=float(rate)),
+            Parameter("progress_period_s", value=0.0),
+        ],
+    )
+    executor.add_node(listener)
+    executor.add_node(player)
+    spin = BackgroundSpin(executor, "demo_executor").start()
+    try:
+        while not player.wait(0.2):
+            pass
+        expected = player.total_per_loop // 4
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and camera.stats()["frames"] + camera.dropped_incomplete < expected:
+            time.sleep(0.05)
+    finally:
+        spin.stop()
+        player.destroy_node()
+        listener.destroy_node()
+        context.try_shutdown()
+    return {
+        "frames": frames,
+        "player": player.summary(),
+        "input": camera.stats(),
+        "wall_s": time.monotonic() - t0,
+    }
+
+
+def test_a_bag_played_into_a_camera_input_gives_every_frame_as_recorded(tmp_path: Path) -> None:
     from roigsf_ros.data import bags
     from roigsf_ros.data.replica import ReplicaSequence
     from roigsf_ros.perf.io import make_synthetic_replica
 
     make_synthetic_replica(tmp_path / "scene", 16, 12, 6, seed=2)
     bags.write_bag(ReplicaSequence(tmp_path / "scene"), tmp_path / "bag", progress=False)
-    import os
-
-    out = replay_bag(tmp_path / "bag", rate=0.0, domain_id=int(os.environ["ROS_DOMAIN_ID"]), progress=False)
+    out = _replay_bag(tmp_path / "bag", rate=0.0, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
     assert out["input"]["frames"] == 6 and len(out["frames"]) == 6
     assert [f.stamp_ns for f in out["frames"]] == sorted(f.stamp_ns for f in out["frames"])
     seq = ReplicaSequence(tmp_path / "scene")

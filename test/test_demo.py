@@ -127,7 +127,7 @@ def test_lockstep_waits_for_delivery_and_room_and_gives_up_on_a_stall() -> None:
     """
     from types import SimpleNamespace
 
-    from roigsf_ros.cli.demo import Lockstep
+    from roigsf_ros.nodes.lockstep import Lockstep
 
     sel = {"planner_window_waiting": False, "frames_held_for_map": 0, "frames": 0, "keyframes_published": 0}
     sel |= {"planner_answers": 0, "planner_failures": 0, "planner_timeouts": 0, "fallbacks": 0}

@@ -21,7 +21,8 @@ the keyframe selector (and the planner's camera_info_topic), with the transports
 over the params files; a ``--set NODE.NAME=VALUE`` still wins. Settings with which the mapper or the selector would
 read no frame of the bag are refused before anything starts, naming the parameter.
 
-``--rate 0`` plays as fast as the nodes can take the bag without losing anything (:class:`Lockstep`): each frame
+``--rate 0`` plays as fast as the nodes can take the bag without losing anything
+(:class:`~roigsf_ros.nodes.lockstep.Lockstep`): each frame
 waits until the nodes received the one before and have room for it. Played blindly as fast as possible, the nodes'
 queues overflowed (47 of the shipped bag's 150 frames received), windows went to the fallback, and a bag's whole /tf
 came before its images were decoded.
@@ -32,11 +33,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import re
 import sys
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -46,25 +45,22 @@ from roigsf_ros.cli import check_writable, realsense_hint
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import (
-    AUTO,
     SAMPLE_BAG,
     SAMPLE_GT_MESH,
     BagFrame,
     BagReader,
-    CameraTopics,
     bag_info,
     bag_topic_types,
-    realsense_topics,
     sample_path,
 )
 
 if TYPE_CHECKING:
     import open3d as o3d
-    from rclpy.context import Context
 
     from roigsf_ros.experiments.offline import EvalConfig
     from roigsf_ros.mapping.mapper import Mapper
     from roigsf_ros.nodes.active_mapping import ActiveMapping
+    from roigsf_ros.nodes.bag_camera import BagCamera
     from roigsf_ros.nodes.bag_player import BagPlayer
 
 DEFAULT_RATE = 1.0
@@ -100,240 +96,6 @@ SUMMARY_ROWS = (
     ("wall time (s)", "wall_s", "{:.1f}"),
 )
 """The demo's table: label, metrics key, format."""
-
-
-# ------------------------------------------------------------------------------------ ROS replay (plain)
-def replay_bag(bag: Path, rate: float, domain_id: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Play ``bag`` with a :class:`BagPlayer` and collect the complete frames a subscriber receives.
-
-    Returns ``{"frames": [BagFrame], "player": summary, "input": counters, "wall_s": s}``. The
-    executor is shut down and its thread joined before returning. (A check of the transport alone;
-    the demo itself maps with the nodes.)
-    """
-    import threading
-
-    import rclpy
-    from rclpy.executors import MultiThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-    from tqdm import tqdm
-
-    from roigsf_ros.nodes.bag_player import BagPlayer, reliable_qos
-    from roigsf_ros.nodes.camera_input import CameraInput
-    from roigsf_ros.nodes.node_process import BackgroundSpin
-
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    frames: list[BagFrame] = []
-    lock = threading.Lock()
-
-    def on_frame(frame: BagFrame) -> None:
-        with lock:
-            frames.append(frame)
-
-    t0 = time.monotonic()
-    executor = MultiThreadedExecutor(num_threads=2, context=context)
-    listener = Node("demo_listener", context=context)
-    camera = CameraInput(listener, on_frame, reliable_qos(200))
-    player = BagPlayer(
-        context=context,
-        parameter_overrides=[
-            Parameter("bag", value=str(bag)),
-            Parameter("rate", value=float(rate)),
-            Parameter("progress_period_s", value=0.0),
-        ],
-    )
-    executor.add_node(listener)
-    executor.add_node(player)
-    spin = BackgroundSpin(executor, "demo_executor").start()
-    try:
-        with tqdm(total=player.total_per_loop, desc="replay", unit="msg", disable=not progress) as bar:
-            while not player.wait(0.2):
-                bar.update(player.published - bar.n)
-            bar.update(player.published - bar.n)
-        expected = player.total_per_loop // 4
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and camera.stats()["frames"] + camera.dropped_incomplete < expected:
-            time.sleep(0.05)
-    finally:
-        spin.stop()
-        player.destroy_node()
-        listener.destroy_node()
-        context.try_shutdown()
-    return {
-        "frames": frames,
-        "player": player.summary(),
-        "input": camera.stats(),
-        "wall_s": time.monotonic() - t0,
-    }
-
-
-# ------------------------------------------------------------------------------------ the bag's camera
-CAMERA_NODES = ("mapper", "keyframe_selector")
-"""The nodes that read the camera topics (``roigsf_ros.nodes.mapper.camera_params``)."""
-CAMERA_PARAMETERS = {
-    "color": "color_topic",
-    "depth": "depth_topic",
-    "camera_info": "camera_info_topic",
-    "pose": "pose_topic",
-    **{name: name for name in ("pose_source", "tf_parent_frame", "tf_child_frame", "tf_topic", "tf_static_topic")},
-    **{name: name for name in ("tf_tolerance_s", "color_transport", "depth_transport")},
-}
-"""CameraTopics field -> the camera nodes' parameter that sets it."""
-_PROBED = {
-    *CAMERA_PARAMETERS.values(),
-    *("tf_wait_s", "tf_wait_frames", "tf_cache_s", "input_width", "input_height", "camera_reliability"),
-}
-"""Every parameter ``camera_params`` declares: the ``--set`` values a probe node gets."""
-REALSENSE_FIELDS = ("color", "depth", "camera_info", "pose_source", "tf_child_frame")
-"""The CameraTopics fields :func:`~roigsf_ros.data.bags.realsense_topics` names (``--realsense`` sets them)."""
-
-
-@dataclass(frozen=True)
-class DemoCamera:
-    """How the demo reads the bag's camera, and the node parameters that make the nodes read it the same way."""
-
-    topics: CameraTopics
-    """The mapper's camera settings resolved against the bag: the frames the report is evaluated on."""
-    params: dict[str, dict[str, Any]]
-    """Node parameters: the ``--set`` ones over ``--realsense``'s, ``auto`` transports replaced by the bag's."""
-    play: tuple[str, ...]
-    """The bag's topics a camera node reads: what the player plays."""
-
-
-def realsense_parameters(namespace: str) -> dict[str, Any]:
-    """The camera parameters ``--realsense NS`` sets: RealSense names, pose from TF, transports from the bag."""
-    t = realsense_topics(namespace, color_transport=AUTO, depth_transport=AUTO)
-    fields = (*REALSENSE_FIELDS, "color_transport", "depth_transport")
-    return {CAMERA_PARAMETERS[f]: getattr(t, f) for f in fields}
-
-
-def _node_parameter(node: str, where: str) -> str:
-    """An error's ``parameter 'NAME'`` as ``parameter 'NODE.NAME'`` (the demo runs two camera nodes)."""
-    m = re.fullmatch(r"parameter '([^'.]+)'", where)
-    return f"parameter '{node}.{m[1]}'" if m else where
-
-
-def node_camera(context: Context, node: str, overrides: dict[str, Any]) -> CameraTopics:
-    """The camera settings node ``node`` will run with: a short-lived node of that name declares its camera
-    parameters under the context's params files and ``overrides`` (rcl resolves them exactly as for the node).
-    """
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-
-    from roigsf_ros.nodes.mapper import camera_params
-    from roigsf_ros.nodes.node_params import parameter_error
-
-    given = [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in overrides.items() if k in _PROBED]
-    probe = Node(node, context=context, parameter_overrides=given, start_parameter_services=False, enable_rosout=False)
-    try:
-        return camera_params(probe).topics
-    except InputError as exc:
-        named = parameter_error(probe, exc)  # "(set in FILE)" as the node itself says it
-        named = named if isinstance(named, InputError) else exc
-        raise InputError(_node_parameter(node, named.where), named.problem) from None
-    finally:
-        probe.destroy_node()
-
-
-def first_frame(bag: Path, topics: CameraTopics, present: dict[str, str]) -> tuple[CameraTopics, InputError | None]:
-    """``topics`` resolved against the bag's ``present`` topics, and None if they read a first frame of it, else the
-    reader's error: a missing topic or one of another type, or no complete frame (incomplete stamps, no pose on TF).
-    """
-    try:
-        resolved = topics.in_bag(present, bag)
-        with BagReader(bag, resolved) as reader:
-            if next(reader.frames(), None) is not None:
-                return resolved, None
-            why = f"{reader.skipped_frames} incomplete stamps"
-            if reader.no_tf:
-                why += f", {reader.no_tf} complete frame(s) without a pose on TF: {reader.last_tf_error}"
-    except InputError as exc:
-        return topics, exc
-    return resolved, InputError(bag, f"no complete frame on {', '.join(resolved.types())} ({why})")
-
-
-def demo_camera(
-    bag: Path,
-    params: dict[str, dict[str, Any]] | None = None,
-    params_files: Sequence[Path] = (),
-    realsense: str | None = None,
-    domain_id: int | None = None,
-) -> DemoCamera:
-    """The bag's camera as the nodes will read it: their camera parameters (params files, then ``realsense``'s, then
-    ``params``, which win), ``auto`` transports resolved from the bag, checked to read a frame of it.
-
-    InputError with the reader's error when the mapper reads no frame (suggesting ``--realsense`` when the bag has
-    RealSense names), or naming the parameters when the mapper's and the selector's settings differ so that one of
-    them would read nothing.
-    """
-    node_params = {k: dict(v) for k, v in (params or {}).items()}
-    if realsense is not None:
-        rs = realsense_parameters(realsense)
-        for node in CAMERA_NODES:
-            node_params[node] = rs | node_params.get(node, {})
-        node_params.setdefault("nbv_planner", {}).setdefault("camera_info_topic", rs["camera_info_topic"])
-    present = bag_topic_types(bag)
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = ros_context(params_files, domain_id)
-    try:
-        wanted = {node: node_camera(context, node, node_params.get(node, {})) for node in CAMERA_NODES}
-    finally:
-        context.try_shutdown()
-    read = {wanted["mapper"]: first_frame(bag, wanted["mapper"], present)}
-    read.setdefault(wanted["keyframe_selector"], first_frame(bag, wanted["keyframe_selector"], present))
-    (mapper, mapper_error), (selector, selector_error) = (read[wanted[n]] for n in CAMERA_NODES)
-    if (mapper_error is None) != (selector_error is None):  # one reads the bag, the other nothing
-        node, peer = ("mapper", "keyframe_selector") if mapper_error else ("keyframe_selector", "mapper")
-        error = mapper_error or selector_error
-        fields = [f for f in CAMERA_PARAMETERS if getattr(wanted[node], f) != getattr(wanted[peer], f)]
-        peer_read = mapper if peer == "mapper" else selector
-
-        def theirs(f: str) -> str:  # an auto transport with what it is in this bag
-            value = getattr(wanted[peer], f)
-            return f"auto, here {getattr(peer_read, f)}" if value == AUTO else str(value)
-
-        mine = ", ".join(f"{CAMERA_PARAMETERS[f]}={getattr(wanted[node], f)}" for f in fields)
-        theirs_all = ", ".join(theirs(f) for f in fields)
-        names = ", ".join(f"'{node}.{CAMERA_PARAMETERS[f]}'" for f in fields)
-        raise InputError(
-            f"parameter{'s' if len(fields) > 1 else ''} {names}",
-            f"{mine} (the {peer}'s: {theirs_all}): the {node} would read no frame of the bag: {error}",
-        )
-    if mapper_error is not None:
-        hint = realsense_hint(bag, present, realsense)
-        raise InputError(mapper_error.where, f"{mapper_error.problem}{hint}")
-    for node, resolved in zip(CAMERA_NODES, (mapper, selector), strict=True):
-        for stream in ("color", "depth"):
-            if getattr(wanted[node], f"{stream}_transport") == AUTO:  # the nodes need it named
-                node_params.setdefault(node, {})[f"{stream}_transport"] = getattr(resolved, f"{stream}_transport")
-    topics = {t for r in (mapper, selector) for t in (*r.types(), *r.tf_types())}
-    return DemoCamera(mapper, node_params, tuple(sorted(topics & set(present))))
-
-
-def _ros_args(params_files: Sequence[Path]) -> list[str] | None:
-    """The rclpy arguments for the params files in order (later ones win, as ROS reads them); None without any."""
-    if not params_files:
-        return None
-    return ["roigsf_demo", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
-
-
-def ros_context(params_files: Sequence[Path], domain_id: int | None) -> Context:
-    """A fresh rclpy context with the params files, its arguments noted as ``active_mapping``'s are
-    (:func:`~roigsf_ros.nodes.node_params.remember_ros_args`): the nodes then warn of a misspelt section
-    (``mappr:``) and a bad value's error says ``(set in FILE)``, as with ``--ros-args --params-file FILE``.
-    """
-    import rclpy
-
-    from roigsf_ros.nodes.node_params import remember_ros_args
-
-    args = _ros_args(params_files)
-    context = rclpy.Context()
-    rclpy.init(args=args, context=context, domain_id=domain_id)
-    if args is not None:
-        remember_ros_args(context, args)
-    return context
 
 
 # ------------------------------------------------------------------------------------ evaluation
@@ -546,96 +308,6 @@ def mapping_hint(metrics: dict[str, Any]) -> str | None:
     return line
 
 
-def system_busy(status: dict[str, Any]) -> bool:
-    """Whether the nodes still work on what they received: a planner request or a window waiting for one, frames
-    held until the map catches up (gaus-slam), or keyframes named and not yet inserted, dropped or refused.
-    """
-    sel, mp = status["selector"], status["mapper"]
-    handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
-    handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
-    return bool(
-        sel["planner_pending"]
-        or sel["planner_window_waiting"]
-        or mp["pending_keyframes"]
-        or mp["waiting_keyframes"]
-        or sel["frames_held_for_map"]
-        or handled < mp["keyframe_msgs"]
-        or mp["keyframe_msgs"] < sel["keyframes_published"]
-    )
-
-
-def _selector_took(system: ActiveMapping, n_frames: int) -> bool:
-    """Whether the selector has taken ``n_frames`` frames, the last one's callback returned (its ``frames`` count
-    comes before the frame reaches the policy: ``finish`` called in between decided without the last frame).
-    """
-    cam = system.selector.camera.stats()
-    return cam["frames"] >= n_frames and cam["in_callback"] == 0
-
-
-class Lockstep:
-    """The player's ``pace`` at ``--rate 0``: as fast as the nodes can go without losing anything.
-
-    A frame's first message (on ``frame_topic``, the colour topic) waits until both camera nodes received and
-    handled every message published before it, and until going on would lose work: while a window already waits
-    behind a planner request (the next one would go to the fallback), while the window asked waits for the planner's
-    first map or may have to (asked while the map has no keyframe: the next window would send it to the fallback),
-    while gaus-slam holds frames for the map,
-    or while the mapper has more than one keyframe to insert (its queue and frame buffer would overflow). The nodes'
-    work otherwise overlaps the stream, as in real time. When nothing in the nodes' status moves for ``stall_s``
-    while a frame waits (a message lost on a best-effort subscription, a stuck node), it goes anyway and
-    ``stalls`` counts it. ``waited_s``: the playback thread's time in here.
-    """
-
-    def __init__(self, system: ActiveMapping, frame_topic: str, stall_s: float = 30.0, poll_s: float = 0.005) -> None:
-        self.system = system
-        self.frame_topic = frame_topic
-        self.stall_s = stall_s
-        self.poll_s = poll_s
-        self.player: BagPlayer | None = None
-        """The player paced (set once it is made): waiting ends when it is ``stopping``."""
-        self.stalls = 0
-        self.waited_s = 0.0
-
-    def ready(self, published: Mapping[str, int]) -> tuple[bool, object]:
-        """(the nodes can take the next frame without loss, their counters of work done, to tell progress by)."""
-        cams = [self.system.mapper.camera.stats(), self.system.selector.camera.stats()]
-        sel, mp = self.system.selector.status(), self.system.mapper.status()  # not the planner's: polled often
-        delivered = all(
-            cam["in_callback"] == 0 and all(cam["received"].get(t, n) >= n for t, n in published.items())
-            for cam in cams
-        )
-        free = not (
-            sel["planner_window_waiting"]
-            or sel["planner_waits_for_map"]
-            or (sel["planner_pending"] and mp["keyframes"] == 0)
-            or sel["frames_held_for_map"]
-            or mp["pending_keyframes"] + mp["waiting_keyframes"] > 1
-        )
-        progress = [sel[k] for k in ("frames", "keyframes_published", "planner_answers", "planner_failures")]
-        progress += [sel[k] for k in ("planner_timeouts", "fallbacks", "frames_held_for_map", "planner_not_ready")]
-        progress += [mp[k] for k in ("keyframe_msgs", "pending_keyframes", "waiting_keyframes", "keyframes")]
-        return delivered and free, ([cam["received"] for cam in cams], progress)
-
-    def __call__(self, topic: str, published: Mapping[str, int]) -> None:
-        """Return once the nodes are ready for a message on ``topic`` (at once unless it starts a frame)."""
-        if topic != self.frame_topic:
-            return
-        t0 = time.monotonic()
-        moved_at, last = t0, None
-        while self.player is None or not self.player.stopping:
-            ok, snapshot = self.ready(dict(published))
-            if ok:
-                break
-            now = time.monotonic()
-            if snapshot != last:
-                moved_at, last = now, snapshot
-            elif now - moved_at > self.stall_s:
-                self.stalls += 1
-                break
-            time.sleep(self.poll_s)
-        self.waited_s += time.monotonic() - t0
-
-
 class _Progress:
     """One status line: frames received, keyframes, surfels, planner answers/calls, fallbacks, queue."""
 
@@ -666,6 +338,25 @@ class _Progress:
             self._last_print, self._last_text = time.monotonic(), text
 
 
+def demo_camera(
+    bag: Path,
+    params: dict[str, dict[str, Any]] | None = None,
+    params_files: Sequence[Path] = (),
+    realsense: str | None = None,
+    domain_id: int | None = None,
+) -> BagCamera:
+    """The bag's camera as the demo's nodes will read it (:func:`~roigsf_ros.nodes.bag_camera.bag_camera`); when the
+    mapper would read no frame, the error suggests ``--realsense`` if the bag has RealSense names.
+    """
+    from roigsf_ros.nodes.bag_camera import NoFrameError, bag_camera
+
+    try:
+        return bag_camera(bag, params, params_files, realsense, domain_id)
+    except NoFrameError as exc:
+        hint = realsense_hint(bag, bag_topic_types(bag), realsense)
+        raise InputError(exc.where, f"{exc.problem}{hint}") from None
+
+
 def run_demo(
     bag: Path,
     out: Path,
@@ -679,7 +370,7 @@ def run_demo(
     progress: bool = True,
     drain_timeout_s: float = 120.0,
     realsense: str | None = None,
-    camera: DemoCamera | None = None,
+    camera: BagCamera | None = None,
     no_gt_mesh_reason: str = "no ground-truth mesh given",
 ) -> dict[str, Any]:
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
@@ -695,6 +386,8 @@ def run_demo(
     from roigsf_ros.core.fileio import atomic_dir, write_json
     from roigsf_ros.nodes.active_mapping import ActiveMapping
     from roigsf_ros.nodes.bag_player import BagPlayer
+    from roigsf_ros.nodes.lockstep import Lockstep, selector_took, system_busy
+    from roigsf_ros.nodes.node_params import context_with_params_files
     from roigsf_ros.nodes.shared_map import save_snapshot
 
     t0 = time.perf_counter()
@@ -717,7 +410,7 @@ def run_demo(
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if domain_id is None:
         domain_id = domain_id_from_env() or 0
-    context = ros_context(params_files, domain_id)
+    context = context_with_params_files(params_files, domain_id)
     system: ActiveMapping | None = None
     player: BagPlayer | None = None
     lockstep: Lockstep | None = None
@@ -751,7 +444,7 @@ def run_demo(
         # is not waited for: the refinement below does that work).
         deadline = time.monotonic() + drain_timeout_s
         seen_by = time.monotonic() + min(5.0, drain_timeout_s)
-        while not _selector_took(system, len(frames)) and time.monotonic() < seen_by:
+        while not selector_took(system, len(frames)) and time.monotonic() < seen_by:
             time.sleep(0.05)
         system.selector.finish()
         settled_since, last = time.monotonic(), None

@@ -252,6 +252,23 @@ def remember_ros_args(context: Context, args: Sequence[str]) -> None:
     _ROS_ARGS[context] = tuple(args)
 
 
+def context_with_params_files(params_files: Sequence[Path], domain_id: int | None) -> Context:
+    """A fresh rclpy context with the params files in order (later ones win, as ROS reads them), its arguments noted
+    (:func:`remember_ros_args`): nodes made in it then warn of a misspelt section (``mappr:``) and a bad value's error
+    says ``(set in FILE)``, as with ``--ros-args --params-file FILE``.
+    """
+    import rclpy
+
+    args = None
+    if params_files:
+        args = ["roigsf", "--ros-args", *(a for f in params_files for a in ("--params-file", str(f)))]
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context, domain_id=domain_id)
+    if args is not None:
+        remember_ros_args(context, args)
+    return context
+
+
 def ros_parameter_rules(context: Context) -> list[tuple[str, str]]:
     """The parameter sources in ``context``'s ROS arguments, in order (a later one wins): ``("file", PATH)`` for a
     ``--params-file``, ``("-p", RULE)`` for a ``-p RULE``; empty when its arguments were not noted.
