@@ -299,6 +299,34 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     assert make_policy("roi-gsurfisher")._h_train(loaded) is None
 
 
+def test_the_demo_says_against_what_its_recall_is_taken(frames: list[Frame], tmp_path) -> None:
+    """``roigsf demo``'s report takes the mesh metrics as ``roigsf map`` does (:func:`run_mesh_metrics`): the GT culled
+    to what every frame's pose observes, and says so in ``gt_culling`` (its metrics.json did not say)."""
+    from roigsf_ros import evaluation
+    from roigsf_ros.cli.demo import evaluate_map
+    from roigsf_ros.data.bags import BagFrame
+
+    gt = tmp_path / "gt.ply"
+    o3d.io.write_triangle_mesh(str(gt), room_mesh())
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=8, weight_distortion=100.0))
+    for f in frames[::2]:
+        mapper.add_keyframe(f)
+    # the nodes name a keyframe by its frame's stamp: a bag whose stamps are the frame numbers
+    bag = [BagFrame(f.index, f.rgb, f.depth_m, f.T_wc, INTR) for f in frames]
+    ev = EvalConfig(mesh_samples=20_000, strip_frames=2)
+    metrics, rows, mesh = evaluate_map(mapper, bag, gt, ev)
+    assert metrics["n_keyframes"] == 4 and metrics["keyframes_in_bag"] == 4 and len(rows) == 2
+    assert metrics["gt_culling"].startswith("GT samples culled") and metrics["gt_mesh"] == str(gt)
+    poses = np.stack([f.T_wc for f in frames])
+    kwargs = {"taus_m": ev.mesh_taus_m, "n_samples": ev.mesh_samples, "seed": ev.seed}
+    culled = evaluation.mesh_metrics(mesh, gt, observed_poses=poses, intr=INTR,
+                                     cull_max_depth_m=mapper.config.max_depth_m, **kwargs)  # fmt: skip
+    whole = evaluation.mesh_metrics(mesh, gt, **kwargs)
+    assert metrics["recall@5cm"] == culled["recall@5cm"] > whole["recall@5cm"]
+    unculled, _, _ = evaluate_map(mapper, bag, gt, EvalConfig(mesh_samples=20_000, cull_gt_to_observed=False))
+    assert unculled["gt_culling"].startswith("none") and unculled["recall@5cm"] == whole["recall@5cm"]
+
+
 def test_cli_map(frames: list[Frame], tmp_path, capsys: pytest.CaptureFixture) -> None:
     scene = tmp_path / "scene"
     write_replica(scene, INTR, frames[:4])

@@ -113,7 +113,7 @@ def evaluate_map(
     """
     from roigsf_ros import evaluation
     from roigsf_ros.core.frame import spread_indices
-    from roigsf_ros.experiments.offline import EvalConfig
+    from roigsf_ros.experiments.offline import EvalConfig, run_mesh_metrics
 
     ev = eval_config or EvalConfig()
     cfg = mapper.config
@@ -138,17 +138,7 @@ def evaluate_map(
     }
     if gt_mesh is not None:
         poses = np.stack([f.T_wc for f in frames])
-        metrics |= evaluation.mesh_metrics(
-            mesh,
-            gt_mesh,
-            taus_m=ev.mesh_taus_m,
-            n_samples=ev.mesh_samples,
-            seed=ev.seed,
-            observed_poses=poses if ev.cull_gt_to_observed else None,
-            intr=frames[0].intrinsics if ev.cull_gt_to_observed else None,
-            cull_max_depth_m=cfg.max_depth_m,
-        )
-        metrics["gt_mesh"] = str(gt_mesh)
+        metrics |= run_mesh_metrics(mesh, gt_mesh, poses, frames[0].intrinsics, ev, cfg)
     return metrics, rows, mesh
 
 

@@ -24,7 +24,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "summarise",
             "uncertainty_study",
         ],
-        "offline": ["EvalConfig", "run_offline"],
+        "offline": ["EvalConfig", "run_mesh_metrics", "run_offline"],
         "pool": [
             "POOL_POLICIES",
             "PoolConfig",

@@ -14,7 +14,7 @@ import open3d as o3d
 from tqdm import tqdm
 
 from roigsf_ros import evaluation
-from roigsf_ros.core.camera import check_pose, depth_points_w
+from roigsf_ros.core.camera import Intrinsics, check_pose, depth_points_w
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, write_json
@@ -120,6 +120,39 @@ def _cameras(other: FrameSequence, source: FrameSequence) -> str:
         return f"{k.width}x{k.height} px, fx {k.fx:g}, fy {k.fy:g}, cx {k.cx:g}, cy {k.cy:g}"
 
     return f" ({camera(other)}, against {camera(source)})"
+
+
+def run_mesh_metrics(
+    mesh: o3d.geometry.TriangleMesh,
+    gt_mesh: Path,
+    poses: np.ndarray | None,
+    intr: Intrinsics,
+    ev: EvalConfig,
+    cfg: MapperConfig,
+) -> dict[str, Any]:
+    """A run's mesh against ``gt_mesh`` as ``ev`` asks: precision/recall/F at ``ev.mesh_taus_m``, the GT culled to what
+    the run's ``poses`` [N, 4, 4] (camera-to-world, ``intr``; None: none) observe up to the mapper's ``max_depth_m``
+    when ``ev.cull_gt_to_observed``; the keys ``gt_mesh`` and ``gt_culling`` say against what.
+    """
+    cull = ev.cull_gt_to_observed and poses is not None and len(poses) > 0
+    metrics = evaluation.mesh_metrics(
+        mesh,
+        gt_mesh,
+        taus_m=ev.mesh_taus_m,
+        n_samples=ev.mesh_samples,
+        seed=ev.seed,
+        observed_poses=poses if cull else None,
+        intr=intr if cull else None,
+        cull_max_depth_m=cfg.max_depth_m,
+    )
+    metrics["gt_mesh"] = str(gt_mesh)
+    metrics["gt_culling"] = (
+        "GT samples culled to those seen (in image, in range, unoccluded) from the poses of all "
+        "frames of the run before recall/completion; precision/accuracy use the whole GT mesh"
+        if cull
+        else "none: recall/completion against the whole GT mesh"
+    )
+    return metrics
 
 
 def run_offline(
@@ -295,26 +328,8 @@ def run_offline(
     }
     metrics |= {f"mapper_{k}": v for k, v in asdict(mapper.stats).items()}
     if gt_path is not None:
-        valid_poses = np.stack([p for p in poses if np.isfinite(p).all()]) if poses else np.zeros((0, 4, 4))
-        cull = ev.cull_gt_to_observed and len(valid_poses) > 0
-        mm = evaluation.mesh_metrics(
-            mesh,
-            gt_path,
-            taus_m=ev.mesh_taus_m,
-            n_samples=ev.mesh_samples,
-            seed=ev.seed,
-            observed_poses=valid_poses if cull else None,
-            intr=source.intrinsics if cull else None,
-            cull_max_depth_m=cfg.max_depth_m,
-        )
-        metrics |= mm
-        metrics["gt_mesh"] = str(gt_path)
-        metrics["gt_culling"] = (
-            "GT samples culled to those seen (in image, in range, unoccluded) from the poses of all "
-            "frames of the run before recall/completion; precision/accuracy use the whole GT mesh"
-            if cull
-            else "none: recall/completion against the whole GT mesh"
-        )
+        valid = [p for p in poses if np.isfinite(p).all()]
+        metrics |= run_mesh_metrics(mesh, gt_path, np.stack(valid) if valid else None, source.intrinsics, ev, cfg)
     metrics["wall_s"] = time.perf_counter() - t0
     metrics["mapping_wall_s"] = t_map
     metrics["config"] = cfg.to_dict()
@@ -331,4 +346,4 @@ def run_offline(
     return metrics
 
 
-__all__ = ["EvalConfig", "run_offline"]
+__all__ = ["EvalConfig", "run_mesh_metrics", "run_offline"]
