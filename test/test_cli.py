@@ -412,4 +412,7 @@ def test_ctrl_c_while_the_commands_import_is_one_line(
 
     monkeypatch.setattr(cli, "build_parser", interrupted_import)
     assert main(["map", "x", "--out", "y"]) == 130
-    assert capsys.readouterr().err == "roigsf: interrupted\n"
+    assert capsys.readouterr().err == "roigsf map: interrupted\n"  # the command typed, as once it runs
+    for argv in (["--help"], ["mapp", "x"], []):  # no command named: the program's name alone
+        assert main(argv) == 130
+        assert capsys.readouterr().err == "roigsf: interrupted\n"

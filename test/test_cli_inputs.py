@@ -324,7 +324,7 @@ def test_ctrl_c_inside_a_commands_import_is_one_line_and_130(
     with monkeypatch.context() as m:
         m.setattr(roigsf_ros.cli.map, "register", import_interrupted)
         assert main(argv) == 130
-    assert capsys.readouterr().err == "roigsf: interrupted\n"
+    assert capsys.readouterr().err == "roigsf map: interrupted\n"
 
     def interrupted(_args: Any) -> int:
         raise KeyboardInterrupt

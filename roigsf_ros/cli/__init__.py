@@ -229,6 +229,12 @@ def _interrupted(command: str, exc: KeyboardInterrupt) -> int:
     return 128 + exc.signum if isinstance(exc, _Interrupted) else 130
 
 
+def _command_named(argv: list[str]) -> str:
+    """The subcommand ``argv`` names (its first word, when that is one), for a line before the parser could say."""
+    first = next((a for a in argv if not a.startswith("-")), "")
+    return first if first in _COMMAND_MODULES else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse, run, and turn bad input into a one-line error and exit code 2.
 
@@ -248,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
             interrupt = _interrupt_behind(exc)  # also one a library wrapped ("ImportError: initialization failed")
             if interrupt is None:
                 raise
-            return _interrupted("", interrupt)
+            return _interrupted(_command_named(sys.argv[1:] if argv is None else argv), interrupt)
         return _run_command(args)
     finally:
         for sig, handler in handlers.items():
