@@ -205,12 +205,24 @@ def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
         (["--set", "nosuch"], ["--set nosuch: expected NAME=VALUE", "iters_per_keyframe"]),
         (["--policy", "every-n", "--every-n", "0"], ["--every-n: must be at least 1, got 0"]),
         (["--policy", "gaus-slam", "--tau-k", "1.5"], ["--tau-k: must be in [0, 1), got 1.5"]),
+        # the bench's spec syntax; an option the policy does not take is named as typed (was "takes no parameter(s) n")
+        (["--policy", "evry-n:n=2"], ["--policy evry-n:n=2: unknown keyframe policy (did you mean 'every-n'?)"]),
+        (["--policy", "every-n:n"], ["--policy every-n:n: expected NAME:KEY=VALUE..., got 'n'"]),
+        (["--policy", "every-n:evry_n=2"], ["--policy every-n:evry_n=2: takes no parameter(s) evry_n (did you mean"]),
+        (["--policy", "every-n:n=0"], ["n: must be at least 1, got 0"]),
+        (["--policy", "gaus-slam", "--every-n", "3"], ["--every-n: policy gaus-slam takes no n (it takes tau_k"]),
+        (["--policy", "every-n:n=2", "--every-n", "3"], ["--every-n: n is given in --policy every-n:n=2 too"]),
     ]
     for extra, words in cases:
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err
         assert all(w in err for w in words), (extra, err)
     assert not (tmp_path / "out").exists()
+    from roigsf_ros.cli.map import policy_from_args
+
+    args = build_parser().parse_args([*base, "--policy", "roi-gsurfisher:window=13:unseen_weight=1"])
+    policy = policy_from_args(args)
+    assert policy.name == "roi-gsurfisher" and policy.params()["window"] == 13
 
 
 def test_list_values_of_set_and_pool_set_are_comma_separated(

@@ -146,6 +146,8 @@ def test_demo_warns_of_a_misspelt_section_and_names_the_params_file_of_a_bad_val
         ("--final-iters", "-1", "--final-iters: must be >= 0, got -1"),
         ("--rate", "nan", "--rate: must be a finite number"),
         ("--rate", "inf", "--rate: must be a finite number"),
+        # a misspelt policy was refused by the selector, once the nodes had started and warmed up
+        ("--policy", "evry-n", "--policy: unknown keyframe policy (did you mean 'every-n'?); choose one of"),
     ],
 )
 def test_demo_refuses_nonsense_numbers_before_any_work(

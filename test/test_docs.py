@@ -207,3 +207,31 @@ def test_the_readme_recommends_the_stream_variant_the_library_names() -> None:
     assert (spec.name, spec.params) == (RECOMMENDED_STREAM_POLICY, dict(RECOMMENDED_STREAM)), spec_text.group(1)
     for name, value in RECOMMENDED_STREAM_MAPPER.items():
         assert f"`{name}: {value}`" in " ".join(stream.split()), f"the stream recommendation leaves out {name}: {value}"
+
+
+def test_the_readmes_library_example_scores_a_saved_map(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The README's "NBV scoring (library)" Python block runs as written on a small saved map and a traj.txt."""
+    import contextlib
+    import io
+
+    import numpy as np
+
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.mapping import Mapper, MapperConfig
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    section = (ROOT / "README.md").read_text().split("## NBV scoring (library)", 1)[1].split("\n## ", 1)[0]
+    (code,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    intr = make_synthetic_replica(tmp_path / "scene", 48, 36, 6, seed=1)
+    frames = list(ReplicaSequence(tmp_path / "scene"))
+    mapper = Mapper(intr, MapperConfig(iters_per_keyframe=4, track_h_train=False))
+    for f in frames[::2]:
+        mapper.add_keyframe(f)
+    monkeypatch.chdir(tmp_path)
+    mapper.save(tmp_path / "runs" / "map")
+    np.savetxt("traj.txt", np.stack([f.T_wc.reshape(16) for f in frames[1::2]]))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(code, "README.md", "exec"), {})
+    best, *_, status = out.getvalue().split()
+    assert best in {"0", "1", "2"} and status == "ok", out.getvalue()

@@ -299,6 +299,76 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     assert make_policy("roi-gsurfisher")._h_train(loaded) is None
 
 
+@pytest.mark.parametrize(
+    ("returns", "error"),
+    [
+        ("none", r"observe\(\) returned NoneType, not a list"),
+        ("frame", r"observe\(\) returned Frame, not a list"),
+        ("int", r"observe\(\) returned a int among its frames, not a Frame"),
+        ("twice", r"observe\(\) named frame 0 again: it is a keyframe already"),
+        ("again", r"observe\(\) named frame 0 again"),
+        ("finish", r"finish\(\) named frame 0 again"),
+    ],
+)
+def test_a_policy_that_returns_no_list_of_new_frames_is_named(
+    frames: list[Frame], tmp_path, monkeypatch: pytest.MonkeyPatch, returns: str, error: str
+) -> None:
+    """What a policy's ``observe``/``finish`` returns is checked: a wrong type failed deep in the mapper, and a frame
+    named twice was inserted twice, its keyframe id twice in keyframes.json and its Fisher counted twice."""
+    from roigsf_ros.policies import base
+
+    monkeypatch.setattr(base, "_REGISTRY", dict(base._REGISTRY))  # registered for this test only
+
+    @base.register_policy("test-bad")
+    class Bad(base.KeyframePolicy):
+        def __init__(self, returns: str = "none") -> None:
+            self.returns, self.first = returns, None
+
+        def observe(self, frame, keyframe_map):
+            self.first = self.first or frame
+            if frame.index < 2:
+                return {"none": None, "frame": frame, "int": [3], "twice": [frame, frame]}.get(self.returns, [frame])
+            return [self.first] if self.returns == "again" else []
+
+        def finish(self, keyframe_map):
+            return [self.first] if self.returns == "finish" else []
+
+    class FrameList:
+        intrinsics = INTR
+
+        def __len__(self) -> int:
+            return len(frames)
+
+        def __iter__(self):
+            return iter(frames)
+
+    out = tmp_path / "run"
+    with pytest.raises(InputError, match=error) as info:
+        run_offline(FrameList(), make_policy("test-bad", returns=returns), small_config(), out, progress=False)
+    assert info.value.where == "keyframe policy 'test-bad'" and not out.exists()
+
+
+def test_score_views_scores_a_built_and_a_loaded_map_alike(frames: list[Frame], tmp_path) -> None:
+    """``nbv.score_views``: candidate poses scored against a Mapper in one call, with the recommended settings too; a
+    map from ``Mapper.load`` (no keyframe images, its poses in ``map_keyframes``) scores as the map it was saved from
+    with H_train recomputed (a walk gave ``keyframe_poses``, empty there, and got zeros and "no TSDF given")."""
+    from roigsf_ros.nbv import RECOMMENDED_UNSEEN, NBVConfig, score_views
+
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=8, track_h_train=False))  # H_train recomputed in both
+    for f in frames[::2]:
+        mapper.add_keyframe(f)
+    mapper.save(tmp_path / "map")
+    loaded = Mapper.load(tmp_path / "map")
+    assert len(loaded.keyframe_poses) == 0 and len(loaded.map_keyframes()[1]) == 4
+    candidates = np.stack([f.T_wc for f in frames[1::2]])
+    for config in (None, NBVConfig(**RECOMMENDED_UNSEEN)):
+        built = score_views(mapper, candidates, config)
+        again = score_views(loaded, candidates, config)
+        assert built.reason == again.reason == "" and np.isfinite(again.fused).all() and np.ptp(again.fused) > 0
+        np.testing.assert_allclose(again.fused, built.fused, rtol=1e-5, atol=1e-9)
+        assert list(again.ranking) == list(built.ranking)
+
+
 def test_the_demo_says_against_what_its_recall_is_taken(frames: list[Frame], tmp_path) -> None:
     """``roigsf demo``'s report takes the mesh metrics as ``roigsf map`` does (:func:`run_mesh_metrics`): the GT culled
     to what every frame's pose observes, and says so in ``gt_culling`` (its metrics.json did not say)."""

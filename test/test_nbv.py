@@ -366,6 +366,12 @@ def test_bad_and_degenerate_inputs(world: World) -> None:
             check_zero(res, "fisher", reason)
             check_zero(res, "close_front", reason)
             assert res.flagged.all()
+    # a map from Mapper.load keeps its keyframe poses in map_keyframes(): given its empty keyframe_poses, the scores
+    # were 0 with "no TSDF given" alone, which named the symptom, not the empty poses
+    res = scorer.score(world.map, None, None, np.zeros((0, 4, 4)), world.candidates, INTR, mode="roi-gsurfisher")
+    assert "no training poses" in res.reason and "map_keyframes" in res.reason and not res.fused.any()
+    res = scorer.score(world.map, world.h_train, world.tsdf, world.train, world.candidates, INTR)
+    assert "no training poses" not in res.reason
 
 
 # ----------------------------------------------------------------------------- uncertainty, AUSE

@@ -749,6 +749,55 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
 
 
+def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
+    ros_context: Any, scene: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """docs/architecture.md: a policy registered in the library is found by name in the keyframe_selector node too,
+    with the node's parameters its constructor takes and ``policy_params`` for its own; one that returns nonsense or
+    raises leaves the frame undecided, counted, and the node goes on (the node refused any name but the built-ins)."""
+    from roigsf_ros.policies import base
+
+    monkeypatch.setattr(base, "_REGISTRY", dict(base._REGISTRY))  # registered for this test only
+
+    @base.register_policy("test-every-k")
+    class EveryK(base.KeyframePolicy):
+        def __init__(self, k: int = 2, window: int = 1, fail_at: int = -1) -> None:
+            self.k, self.window, self.fail_at, self.seen = k, window, fail_at, 0
+
+        def observe(self, frame: Frame, keyframe_map: Any) -> list[Frame]:
+            self.seen += 1
+            if self.seen == self.fail_at:
+                return frame  # type: ignore[return-value]  # a bare Frame, not a list
+            if self.seen == self.fail_at + 1:
+                raise RuntimeError("the policy's own bug")
+            assert keyframe_map is not None and keyframe_map.n_surfels == 0  # it reads the (empty) map
+            return [frame] if self.seen % self.k == 1 else []
+
+    frames, _ = scene
+    overrides = [Parameter("policy", value="test-every-k"), Parameter("policy_params", value="k=3:fail_at=4"),
+                 Parameter("window", value=5), Parameter("startup_wait_s", value=0.0)]  # fmt: skip
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    policy = selector._alone
+    assert isinstance(policy, EveryK) and (policy.k, policy.window, policy.fail_at) == (3, 5, 4)
+    cam = _Camera(ros_context)
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        for i in range(8):
+            cam.publish(_frame_msgs(frames[i % len(frames)], (i + 1) * 1000))
+        _wait(lambda: selector.status()["frames"] == 8, 20.0, "eight frames")
+        status = selector.status()
+    # seen 1, 4 (refused: a bare Frame), 5 (raised), 7: the 4th and 5th frames were not decided, the node went on
+    assert status["keyframe_ids"] == [1000, 7000] and status["policy_errors"] == 2, status
+    for bad, why in (("policy_params", "k"), ("policy_params", "k=2:nosuch=1")):
+        params = [Parameter("policy", value="test-every-k"), Parameter(bad, value=why)]
+        with pytest.raises(InputError, match=r"policy_params|nosuch"):
+            KeyframeSelectorNode(context=ros_context, parameter_overrides=params)
+    with pytest.raises(InputError, match=r"unknown keyframe policy \(did you mean 'test-every-k'\?\)"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="test-every-kk")])
+    with pytest.raises(InputError, match=r"policy_params.*asks the planner"):
+        KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy_params", value="k=1")])
+
+
 @pytest.mark.parametrize(("policy", "measure"), [("novelty", "area"), ("roi-fisher", "area"), ("novelty", "pixels")])
 def test_selector_lookahead_decides_each_window_as_the_library_does(
     ros_context: Any, scene: Any, policy: str, measure: str

@@ -617,6 +617,13 @@ def _run(args: argparse.Namespace) -> int:
 
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
         params_file_sections(f, strict=True)
+    if args.policy is not None:  # now, not once the nodes started and warmed up
+        from roigsf_ros.nodes.keyframe_selector import PLANNER_POLICIES, alone_policies
+        from roigsf_ros.policies.base import unknown_policy
+
+        names = (*PLANNER_POLICIES, *alone_policies())
+        if args.policy not in names:
+            raise InputError("--policy", unknown_policy(args.policy, names).problem)
     # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
     camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, domain_id)
     info = bag_info(bag, camera.topics)
@@ -691,7 +698,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="P",
         help=f"keyframe selector policy, over the params files' (default: theirs, else {DEFAULT_POLICY}; also "
-        "roi-fisher, close-front, fisherrf, random, gaus-slam, every-n, all, novelty)",
+        "roi-fisher, close-front, fisherrf, random, gaus-slam, every-n, all, novelty, or a policy added to the "
+        "library; an added policy's own parameters: --set keyframe_selector.policy_params=KEY=VALUE:...)",
     )
     p.add_argument(
         "--rate",

@@ -13,9 +13,10 @@ from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_s
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
 from roigsf_ros.data.sources import FrameSource, open_frames
+from roigsf_ros.experiments.bench import parse_value
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
-from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names
+from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names, policy_parameters
 
 _SUMMARY_KEYS = (
     ("frames", "n_frames", "{:d}"),
@@ -49,7 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__,
     )
     p.add_argument("source", metavar="BAG_OR_DIR", help="rosbag2 bag (folder or .mcap) or Replica-layout folder")
-    p.add_argument("--policy", default="gaus-slam", help=f"keyframe policy: {', '.join(policy_names())}")
+    p.add_argument(
+        "--policy",
+        default="gaus-slam",
+        metavar="NAME[:KEY=VALUE...]",
+        help=f"keyframe policy: {', '.join(policy_names())}; its parameters as in roigsf bench --policies, e.g. "
+        "every-n:n=4 or roi-gsurfisher:window=13:unseen_weight=1",
+    )
     p.add_argument("--out", required=True, type=Path, help="run folder to write (atomically)")
     p.add_argument(
         "--gt-mesh",
@@ -174,12 +181,30 @@ def config_from_args(args: argparse.Namespace) -> MapperConfig:
 
 
 def policy_from_args(args: argparse.Namespace) -> KeyframePolicy:
-    """The keyframe policy of the command line; an error names the option typed (``--policy``, ``--tau-k``, ...)."""
-    given = {"n": args.every_n, "tau_k": args.tau_k, "window": args.window}
+    """The keyframe policy of the command line: ``--policy NAME[:KEY=VALUE...]`` (the spec of ``roigsf bench
+    --policies``) and the options ``--every-n``, ``--tau-k``, ``--window``; an error names the option typed.
+    """
+    name, *pairs = [p.strip() for p in args.policy.split(":")]
+    spec: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise InputError(f"--policy {args.policy}", f"expected NAME:KEY=VALUE..., got {pair!r}")
+        spec[key.strip()] = parse_value(value)
+    typed = {"n": args.every_n, "tau_k": args.tau_k, "window": args.window}
+    options = {k: v for k, v in typed.items() if v is not None}
+    if name in policy_names():  # an option the policy does not take: name the option, not the constructor's name
+        takes = policy_parameters(name)
+        for key in options:
+            if key not in takes:
+                its = f" (it takes {', '.join(takes) or 'none'})" if len(takes) <= 6 else ""
+                raise InputError(_POLICY_OPTIONS[key], f"policy {name} takes no {key}{its}")
+            if key in spec:
+                raise InputError(_POLICY_OPTIONS[key], f"{key} is given in --policy {args.policy} too")
     try:
-        return make_policy(args.policy, **given)
+        return make_policy(name, **spec, **options)
     except InputError as exc:
-        where = f"--policy {args.policy}" if exc.where == f"policy {args.policy!r}" else exc.where
+        where = f"--policy {args.policy}" if exc.where == f"policy {name!r}" else exc.where
         raise InputError(_POLICY_OPTIONS.get(where, where), exc.problem) from None
 
 

@@ -22,7 +22,7 @@ from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.novelty import ObservedSurface
-from roigsf_ros.policies.base import KeyframePolicy
+from roigsf_ros.policies.base import KeyframePolicy, checked_keyframes
 
 log = logging.getLogger(__name__)
 
@@ -213,6 +213,7 @@ def run_offline(
     poses: list[np.ndarray] = []
     bad_pose = 0
     bar = tqdm(total=len(source), desc="mapping", unit="frame", disable=not progress, dynamic_ncols=True)
+    named: set[int] = set()  # the frames the policy named so far
     for frame in source:
         try:
             T = check_pose(frame.T_wc, f"frame {frame.index} pose")
@@ -227,7 +228,7 @@ def run_offline(
         frame_ids.append(int(frame.index))
         # The policy names the frames to insert now: this one, or an earlier one (the NBV window
         # policies); the mapper's keyframe ids below are the truth (it skips a frame without depth).
-        for keyframe in policy.observe(frame, mapper):
+        for keyframe in checked_keyframes(policy, policy.observe(frame, mapper), named):
             mapper.add_keyframe(keyframe)
         bar.update(1)
         bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)
@@ -256,7 +257,7 @@ def run_offline(
             "follow the stamps", getattr(source, "path", "source"), given_back, getattr(source, "first_given_back", ""),
         )  # fmt: skip
     bar.close()
-    for keyframe in policy.finish(mapper):  # what a policy deciding late still holds at the end
+    for keyframe in checked_keyframes(policy, policy.finish(mapper), named, "finish"):  # what it still holds at the end
         mapper.add_keyframe(keyframe)
     if cfg.final_iters and mapper.keyframes:
         mapper.refine(cfg.final_iters)

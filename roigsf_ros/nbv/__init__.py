@@ -78,6 +78,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "match_surfels",
             "pose_keys",
             "running_h_train_fits",
+            "score_views",
         ],
         "stop": ["ScoringStoppedError", "ShouldStop", "check_stop"],
         "unseen": [

@@ -425,6 +425,11 @@ class NBVScorer:
         empty_map = len(surfel_map) == 0
         if need_fisher and empty_map:
             reasons.append("the surfel map is empty: Fisher scores are 0")
+        if len(poses) == 0 and not empty_map and (need_voxels or (need_fisher and h_train is None)):
+            reasons.append(  # a map from Mapper.load holds its keyframe poses apart: keyframe_poses is empty
+                "no training poses: nothing to fuse the TSDF from or to sum H_train over (a loaded map's keyframe "
+                "poses are Mapper.map_keyframes()[1], not keyframe_poses)"
+            )
 
         vox, voxel_size = None, 1.0
         if need_voxels:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -29,6 +30,9 @@ from roigsf_ros.nbv.scorer import NBVResult, NBVScorer, downsampled
 from roigsf_ros.nbv.stop import ShouldStop, check_stop
 from roigsf_ros.nbv.unseen import carve_depths, unseen_box
 from roigsf_ros.render.surfels import SurfelMap
+
+if TYPE_CHECKING:
+    from roigsf_ros.mapping.mapper import Mapper
 
 
 def match_surfels(old_means: np.ndarray, new_means: np.ndarray, tol_m: float) -> np.ndarray:
@@ -397,6 +401,31 @@ class ScoringState:
         )  # fmt: skip
 
 
+def score_views(
+    mapper: Mapper,
+    candidates: list[np.ndarray] | np.ndarray,
+    config: NBVConfig | None = None,
+    mode: str | None = None,
+    top_k: int | None = None,
+) -> NBVResult:
+    """Score candidate poses ([N, 4, 4] camera-to-world, a list of 4x4, or [N, 7] position + xyzw rows) against a
+    mapper's map in one call, as the planner node does: the TSDF fused from the map rendered at every keyframe
+    (:meth:`~roigsf_ros.mapping.mapper.Mapper.map_keyframes`, so a map from ``Mapper.load`` works too), with the
+    mapper's mesh settings, and its running H_train where it covers every keyframe (else recomputed).
+
+    ``config`` default: the paper's score; ``NBVConfig(**RECOMMENDED_UNSEEN)`` is the recommended variant. For many
+    calls on a growing map keep a :class:`ScoringState` instead (it fuses only new keyframes).
+    """
+    cfg = mapper.config
+    voxel = cfg.mesh_voxel_size_m
+    state = ScoringState(config or NBVConfig(), voxel, max(cfg.mesh_sdf_trunc_m, voxel), cfg.max_depth_m)
+    _, poses = mapper.map_keyframes()
+    running = None if mapper.loaded_keyframe_ids or not cfg.track_h_train else mapper.h_train
+    outputs = tuple(cfg.fisher_outputs)  # the map rendered as its mesh is fused: depth, and alpha threshold
+    return state.score(mapper.map, running, outputs, poses, candidates, mapper.intr, mapper.rendered_rgbd,
+                       mode=mode, top_k=top_k)  # fmt: skip
+
+
 __all__ = [
     "CLOSE_FRONT_MODES",
     "CarvedSpaceMemory",
@@ -408,4 +437,5 @@ __all__ = [
     "match_surfels",
     "pose_keys",
     "running_h_train_fits",
+    "score_views",
 ]

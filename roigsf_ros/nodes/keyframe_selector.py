@@ -88,6 +88,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame
+from roigsf_ros.experiments.bench import parse_value
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nbv.novelty import (
@@ -112,14 +113,29 @@ from roigsf_ros.nodes.nbv_planner import MAP_NOT_READY
 from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare
 from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
-from roigsf_ros.policies.base import KeyframePolicy, make_policy
+from roigsf_ros.policies.base import (
+    KeyframePolicy,
+    checked_keyframes,
+    make_policy,
+    policy_names,
+    policy_parameters,
+    unknown_policy,
+)
 from roigsf_ros.policies.stream import CandidateWindow, StreamNBVPolicy, split_lookahead
 from roigsf_ros.render.surfels import SurfelMap
 
 PLANNER_POLICIES = MODES
 """Policies whose keyframes the NBV planner chooses (its score modes)."""
-ALONE_POLICIES = ("random", "every-n", "gaus-slam", "all", "novelty")
-"""Policies that decide without the planner (the baselines, and the fallbacks)."""
+FALLBACK_POLICIES = ("random", "every-n", "gaus-slam", "all", "novelty")
+"""The built-in policies that decide without the planner: the baselines, and the fallbacks."""
+
+
+def alone_policies() -> tuple[str, ...]:
+    """Every registered policy that decides without the planner: the built-in ones, then any added (sorted)."""
+    added = sorted(set(policy_names()) - set(PLANNER_POLICIES) - set(FALLBACK_POLICIES))
+    return (*FALLBACK_POLICIES, *added)
+
+
 PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
 MATCH_GRACE_S = 0.5
 """Seconds after the keyframe topic's first subscriber matched before keyframes go out: the subscriber's side of
@@ -163,8 +179,11 @@ class KeyframeSelectorNode(SystemNode):
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:
-        names = (*PLANNER_POLICIES, *ALONE_POLICIES)
+        names = (*PLANNER_POLICIES, *alone_policies())
         self.policy = str(declare(self, "policy", "roi-gsurfisher", f"keyframe policy: {', '.join(names)}"))
+        policy_params = str(declare(self, "policy_params", "", "NAME=VALUE pairs, ':'-separated: parameters of a "
+                                    "policy that decides alone which the node does not declare (a policy added "
+                                    "to the library)"))  # fmt: skip
         self.window = int(declare(self, "window", 8, "candidate frames kept (the most recent non-keyframes)"))
         trigger = int(declare(self, "trigger_every", 0, "frames between two selections (0 = window)"))
         self.seed = int(declare(self, "seed", 0, "seed of the random pick (policy or fallback random)"))
@@ -197,9 +216,10 @@ class KeyframeSelectorNode(SystemNode):
                                             "and, with a planner policy, the planner's service (0 = subscribe at "
                                             "once)"))  # fmt: skip
         if self.policy not in names:
-            raise InputError("parameter 'policy'", f"unknown policy '{self.policy}' (choose from {', '.join(names)})")
-        if self.fallback not in ALONE_POLICIES:
-            choices = ", ".join(ALONE_POLICIES)
+            raise InputError("parameter 'policy'", unknown_policy(self.policy, names).problem)
+        self.policy_params = self._parse_policy_params(policy_params)
+        if self.fallback not in FALLBACK_POLICIES:
+            choices = ", ".join(FALLBACK_POLICIES)
             raise InputError("parameter 'fallback_policy'", f"'{self.fallback}' must decide alone: one of {choices}")
         check_positive("window", self.window)
         check_positive("novelty_weight", self.novelty_weight, allow_zero=True)
@@ -269,6 +289,10 @@ class KeyframeSelectorNode(SystemNode):
         self.counters["planner_not_ready"] = 0
         """Answers "map not ready" after which the window asked again (``map_wait_s``)."""
         self.counters |= {"frames_skipped_map_lag": 0, "map_waits_expired": 0, "keyframes_dropped_unsent": 0}
+        self.counters["policy_errors"] = 0
+        """Frames a policy deciding alone failed on (it raised, or returned no list of new frames): not decided."""
+        self._named: set[int] = set()
+        """The frames a policy deciding alone named (checked_keyframes: none twice)."""
         self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
         """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
         live, the mapper inserts them later, and judged at once nearly every frame would render unmapped."""
@@ -361,8 +385,36 @@ class KeyframeSelectorNode(SystemNode):
                                    f"{waited:.1f} s: reading the camera")  # fmt: skip
         self.camera.subscribe()
 
+    def _parse_policy_params(self, text: str) -> dict[str, Any]:
+        """``policy_params`` as a dict (values as ``roigsf bench``'s policy specs read them); only for a policy that
+        decides alone.
+        """
+        params: dict[str, Any] = {}
+        for pair in (p.strip() for p in text.split(":") if p.strip()):
+            key, sep, value = pair.partition("=")
+            if not sep or not key.strip():
+                raise InputError("parameter 'policy_params'", f"expected NAME=VALUE pairs split by ':', got {pair!r}")
+            params[key.strip()] = parse_value(value)
+        if params and self.policy in PLANNER_POLICIES:
+            raise InputError("parameter 'policy_params'", f"is for a policy that decides alone: policy '{self.policy}' "
+                             "asks the planner, whose own parameters set its score")  # fmt: skip
+        return params
+
     def _make_alone(self, name: str) -> KeyframePolicy:
-        params: dict[str, Any] = {
+        """Policy ``name`` made from the node's parameters (and, for the node's own policy, ``policy_params``)."""
+        node_values: dict[str, Any] = {
+            "window": self.window,
+            "trigger_every": self.trigger_every,
+            "seed": self.seed,
+            "every_n": self.every_n,
+            "tau_k": self.tau_k,
+            "alpha_threshold": self.alpha_threshold,
+            "novelty_voxel_m": self.novelty_voxel_m,
+            "novelty_radius_m": self.novelty_radius_m,
+            "novelty_measure": self.novelty_measure,
+            "lookahead": self.lookahead,
+        }
+        built_in: dict[str, dict[str, Any]] = {
             "random": {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed},
             "novelty": {
                 "window": self.window,
@@ -375,7 +427,13 @@ class KeyframeSelectorNode(SystemNode):
             "every-n": {"every_n": self.every_n},
             "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
             "all": {},
-        }[name]
+        }
+        if name in built_in:
+            params = built_in[name]
+        else:  # a policy added to the library: the node's parameters it takes
+            params = {k: node_values[k] for k in policy_parameters(name) if k in node_values}
+        if name == self.policy:
+            params = params | self.policy_params
         try:
             return make_policy(name, **params)
         except InputError as exc:  # the library names its field: name it as the node's parameter
@@ -470,11 +528,18 @@ class KeyframeSelectorNode(SystemNode):
     ) -> None:
         """Run a library policy over ``frames`` and publish the keyframes it names (the first frame always)."""
         for frame in frames:
-            view = self._map_view(intr) if policy.name == "gaus-slam" else None
+            view = None if policy.name in ("random", "every-n", "all") else self._map_view(intr)  # they read no map
             view = self._depth_view(intr) if policy.name == "novelty" else view
-            chosen = policy.observe(frame, view)  # type: ignore[arg-type]  # only gaus-slam reads the map
+            try:  # a policy added to the library may fail: the node says so and goes on with the next frame
+                chosen = checked_keyframes(policy, policy.observe(frame, view), self._named)  # type: ignore[arg-type]
+            except Exception as exc:
+                self.counters["policy_errors"] += 1
+                self.get_logger().error(f"frame {frame.index} not decided: {type(exc).__name__}: {exc}",
+                                        throttle_duration_sec=WARN_THROTTLE_S)  # fmt: skip
+                chosen = []
             if force_first and not any(f is frame for f in chosen):
                 chosen = [frame, *chosen]
+                self._named.add(int(frame.index))
             force_first = False
             for f in chosen:
                 self._publish(f, intr)

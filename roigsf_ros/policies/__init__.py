@@ -11,10 +11,13 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "base": [
             "KeyframeMap",
             "KeyframePolicy",
+            "checked_keyframes",
             "make_policy",
             "policy_names",
+            "policy_parameters",
             "register_policy",
             "unknown_parameters",
+            "unknown_policy",
         ],
         "rules": ["AllFrames", "EveryN", "GausSlam"],
         "stream": [

@@ -144,6 +144,14 @@ def policy_names() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def policy_parameters(name: str) -> list[str]:
+    """The parameter names policy ``name``'s constructor takes (an InputError for an unknown name)."""
+    if name not in _REGISTRY:
+        raise unknown_policy(name)
+    variadic = (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+    return [k for k, p in inspect.signature(_REGISTRY[name]).parameters.items() if p.kind not in variadic]
+
+
 def unknown_parameters(policy: str, unknown: Iterable[str], known: Iterable[str]) -> InputError:
     """The InputError of parameters ``policy`` does not take, each followed by the closest names it does take
     (``windw (did you mean 'window'?)``; difflib, as the nodes' hints for an undeclared parameter).
@@ -156,6 +164,37 @@ def unknown_parameters(policy: str, unknown: Iterable[str], known: Iterable[str]
     return InputError(f"policy {policy!r}", f"takes no parameter(s) {', '.join(parts)}")
 
 
+def unknown_policy(name: str, choices: Iterable[str] | None = None) -> InputError:
+    """The InputError of a policy name not among ``choices`` (default: every registered one), with the closest names
+    (``evry-n (did you mean 'every-n'?)``).
+    """
+    names = sorted(policy_names() if choices is None else choices)
+    close = difflib.get_close_matches(name, names, n=2, cutoff=0.75)
+    hint = f" (did you mean {' or '.join(map(repr, close))}?)" if close else ""
+    return InputError(f"policy {name!r}", f"unknown keyframe policy{hint}; choose one of {', '.join(names)}")
+
+
+def checked_keyframes(policy: KeyframePolicy, chosen: object, named: set[int], call: str = "observe") -> list[Frame]:
+    """What ``policy.observe`` (or ``finish``: ``call``) returned, as the frames to insert: a list or tuple of Frames,
+    none named twice (within it, or already in ``named``, the frame ids named so far, to which they are added).
+
+    Anything else is an InputError naming the policy: a bad return type once failed deep in the caller, and a frame
+    named twice was inserted twice (the same keyframe id in the map and its Fisher counted twice).
+    """
+    where = f"keyframe policy {policy.name!r}"
+    if not isinstance(chosen, list | tuple):
+        raise InputError(where, f"{call}() returned {type(chosen).__name__}, not a list of the frames to insert")
+    ids = []
+    for f in chosen:
+        if not isinstance(f, Frame):
+            raise InputError(where, f"{call}() returned a {type(f).__name__} among its frames, not a Frame")
+        if f.index in named or f.index in ids:
+            raise InputError(where, f"{call}() named frame {f.index} again: it is a keyframe already")
+        ids.append(f.index)
+    named.update(ids)
+    return list(chosen)
+
+
 def make_policy(name: str, **params: Any) -> KeyframePolicy:
     """A policy by registered name; ``None``-valued params are dropped; an unknown one is an InputError naming the
     policy (``policy 'x': ...``, no command-line flag: callers are the CLI, a node parameter, a pool config), and a
@@ -163,7 +202,7 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
     :func:`_checked_init`).
     """
     if name not in _REGISTRY:
-        raise InputError(f"policy {name!r}", f"unknown keyframe policy; choose one of {', '.join(policy_names())}")
+        raise unknown_policy(name)
     factory = _REGISTRY[name]
     given = {k: v for k, v in params.items() if v is not None}
     sig = inspect.signature(factory).parameters  # names only: the constructor checks the types
@@ -175,4 +214,14 @@ def make_policy(name: str, **params: Any) -> KeyframePolicy:
     return factory(**given)
 
 
-__all__ = ["KeyframeMap", "KeyframePolicy", "make_policy", "policy_names", "register_policy", "unknown_parameters"]
+__all__ = [
+    "KeyframeMap",
+    "KeyframePolicy",
+    "checked_keyframes",
+    "make_policy",
+    "policy_names",
+    "policy_parameters",
+    "register_policy",
+    "unknown_parameters",
+    "unknown_policy",
+]
