@@ -477,6 +477,14 @@ def test_demo_defaults_to_the_sample_bag_and_mesh_from_any_folder(
     assert main(["demo", "--out", str(tmp_path / "run"), "--no-progress", "--gt-mesh", ""]) == 0
     assert used == {"bag": share / "bags" / "synth_room", "gt_mesh": None}
     assert "bag " + str(share / "bags" / "synth_room") + ": 150 frames" in capsys.readouterr().out
+    # scripts/demo.sh: the installed roigsf given the checkout's bag takes the mesh beside it (the share folder's
+    # before: the same bytes, but the start line named two places)
+    out = ["--out", str(tmp_path / "run"), "--no-progress"]
+    assert main(["demo", "--bag", str(REPO / "bags" / "synth_room"), *out]) == 0
+    assert used == {"bag": REPO / "bags" / "synth_room", "gt_mesh": REPO / "bags" / "synth_room_mesh.ply"}
+    mcap = next((REPO / "bags" / "synth_room").glob("*.mcap"))
+    assert main(["demo", "--bag", str(mcap), *out]) == 0
+    assert used["gt_mesh"] == REPO / "bags" / "synth_room_mesh.ply"
 
 
 def test_the_installed_package_carries_the_sample_bag_and_mesh() -> None:

@@ -1141,6 +1141,9 @@ def test_planner_process_takes_the_recommended_overlay_and_says_so() -> None:
     try:
         _wait(planner_started, 60.0, "the planner's start-up line with the overlay's settings")
         _wait(lambda: any("own map; init_max_stretch=4.0)" in x for x in lines), 60.0, "the mapper's start-up line")
+        # the map's intrinsics topic, which it prefers, named beside the camera's (it named the camera's alone)
+        source = "against /roigsf/map + /roigsf/keyframe_poses + /roigsf/map_camera_info (else /camera/camera_info)"
+        assert any(source in x for x in lines), [x for x in lines if "scoring (" in x]
     finally:
         for proc in procs:
             proc.send_signal(signal.SIGINT)

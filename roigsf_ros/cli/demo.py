@@ -584,7 +584,10 @@ def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
     if option is not None:
         return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
     if is_sample_bag(bag):
-        return sample_path(SAMPLE_GT_MESH), ""
+        mesh = sample_path(SAMPLE_GT_MESH)
+        folder = bag.parent if bag.is_dir() else bag.parent.parent  # the bag folder's, for a .mcap given
+        beside = folder / mesh.name  # the checkout's bags/ for scripts/demo.sh: the paths printed then agree
+        return (beside if beside.is_file() and _same_file(beside, mesh) else mesh), ""
     return None, "no --gt-mesh for this bag"
 
 

@@ -233,7 +233,11 @@ class NBVPlannerNode(SystemNode):
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=MutuallyExclusiveCallbackGroup())
         if sync_s > 0:
             self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
-        source = "the shared in-process map" if shared is not None else f"{map_topic} + {poses_topic} + {info_topic}"
+        source = (
+            "the shared in-process map"
+            if shared is not None
+            else f"{map_topic} + {poses_topic} + {map_info_topic} (else {info_topic})"
+        )
         changed = {k: v for k, v in self.nbv.changed().items() if k != "mode"}
         self.get_logger().info(f"scoring ({self.nbv.mode}{settings_text(changed)}) against {source}")
 
