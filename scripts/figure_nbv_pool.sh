@@ -105,6 +105,8 @@
 # POLICIES="$F2:unseen_weight=2,$F2:unseen_weight=0.5" with the same two (213 and 549 s; weight 2 went on, F3), then
 # TAG=rep49 POLICIES="$F2:unseen_weight=2" SCALE=2 with the forty-seventh session's list and SCENES=synth, SCENES=office0
 # OFFSET=5, room7, SCENES=office0, room8 (3.7-6.5 min each, 73 min in all; runs/s49/rep49.sh's order).
+# Sixty-second session, the Intel machine: TAG=rep62 POLICIES="$F2:unseen_weight=2,fisherrf,random" (F3 and both
+# baselines in one bench) SCALE=2 with SCENES=office0 OFFSET=5 and SCENES=room7 (F3's two narrowest hits; 10-13 min).
 # POOL_SET="NAME=VALUE ...": more `--pool-set` items for every bench (PoolConfig fields, e.g. mesh_checkpoints).
 # SENSOR=kinect (office0 only): render the frames through the simulated Kinect v1 (`roigsf scene render --sensor kinect`:
 # depth noise, holes, disparity steps, noisy colour, poses off by 1e-4..4e-4) into runs/office0_<W>_s20_kinect and
