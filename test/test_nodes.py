@@ -792,7 +792,8 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
         params = [Parameter("policy", value="test-every-k"), Parameter(bad, value=why)]
         with pytest.raises(InputError, match=r"policy_params|nosuch"):
             KeyframeSelectorNode(context=ros_context, parameter_overrides=params)
-    with pytest.raises(InputError, match=r"unknown keyframe policy \(did you mean 'test-every-k'\?\)"):
+    typo = r"unknown policy 'test-every-kk' \(did you mean 'test-every-k'\?\); choose one of roi-gsurfisher"
+    with pytest.raises(InputError, match=typo):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="test-every-kk")])
     with pytest.raises(InputError, match=r"policy_params.*asks the planner"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy_params", value="k=1")])

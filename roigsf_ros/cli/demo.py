@@ -626,7 +626,7 @@ def _run(args: argparse.Namespace) -> int:
 
         names = (*PLANNER_POLICIES, *alone_policies())
         if args.policy not in names:
-            raise InputError("--policy", unknown_policy(args.policy, names).problem)
+            raise unknown_policy(args.policy, names, "--policy")
     # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
     camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, domain_id)
     info = bag_info(bag, camera.topics)

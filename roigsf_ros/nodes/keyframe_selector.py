@@ -216,7 +216,7 @@ class KeyframeSelectorNode(SystemNode):
                                             "and, with a planner policy, the planner's service (0 = subscribe at "
                                             "once)"))  # fmt: skip
         if self.policy not in names:
-            raise InputError("parameter 'policy'", unknown_policy(self.policy, names).problem)
+            raise unknown_policy(self.policy, names, "parameter 'policy'")
         self.policy_params = self._parse_policy_params(policy_params)
         if self.fallback not in FALLBACK_POLICIES:
             choices = ", ".join(FALLBACK_POLICIES)

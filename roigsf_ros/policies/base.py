@@ -14,7 +14,7 @@ from __future__ import annotations
 import difflib
 import functools
 import inspect
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -164,14 +164,17 @@ def unknown_parameters(policy: str, unknown: Iterable[str], known: Iterable[str]
     return InputError(f"policy {policy!r}", f"takes no parameter(s) {', '.join(parts)}")
 
 
-def unknown_policy(name: str, choices: Iterable[str] | None = None) -> InputError:
-    """The InputError of a policy name not among ``choices`` (default: every registered one), with the closest names
-    (``evry-n (did you mean 'every-n'?)``).
+def unknown_policy(name: str, choices: Sequence[str] | None = None, where: str | None = None) -> InputError:
+    """The InputError of a policy name not among ``choices`` (default: every registered one, sorted), with the closest
+    names: ``policy 'evry-n': unknown keyframe policy (did you mean 'every-n'?); choose one of ...``, or, ``where``
+    given (a node parameter, a command-line option), ``WHERE: unknown policy 'evry-n' (did you mean ...``.
     """
-    names = sorted(policy_names() if choices is None else choices)
+    names = sorted(policy_names()) if choices is None else list(choices)
     close = difflib.get_close_matches(name, names, n=2, cutoff=0.75)
     hint = f" (did you mean {' or '.join(map(repr, close))}?)" if close else ""
-    return InputError(f"policy {name!r}", f"unknown keyframe policy{hint}; choose one of {', '.join(names)}")
+    if where is None:
+        return InputError(f"policy {name!r}", f"unknown keyframe policy{hint}; choose one of {', '.join(names)}")
+    return InputError(where, f"unknown policy {name!r}{hint}; choose one of {', '.join(names)}")
 
 
 def checked_keyframes(policy: KeyframePolicy, chosen: object, named: set[int], call: str = "observe") -> list[Frame]:
