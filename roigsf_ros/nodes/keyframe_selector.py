@@ -18,16 +18,18 @@ The first frame is always a keyframe. Then, by ``policy``:
   ``ASK_AGAIN_S`` for up to ``map_wait_s`` from its first ask, or until a newer window waits (``planner_not_ready``).
   In three processes the first windows came before the mapper had published its first keyframe's map, and all went
   to the fallback.
-- ``random`` (a seeded pick from the window, as the library's stream baseline), ``every-n``
-  (``every_n``), ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the
-  mapper's ``/roigsf/map``), ``all`` and ``novelty`` (beyond the paper: per window the frame whose depth shows
-  the most surface no keyframe's depth showed, :mod:`roigsf_ros.nbv.novelty`) decide alone with the library's
-  policies. ``gaus-slam`` judges a frame only once the map holds every keyframe it named before (the shared map's
-  keyframe ids, else the positions on ``/roigsf/keyframe_poses``), as GauS-SLAM judges each frame on a map with all
-  earlier keyframes: judged at once on a map the mapper has not caught up with, nearly every frame rendered unmapped
-  and became a keyframe, and the mapper's queue dropped most. A frame waits at most ``map_wait_s`` (then it is
-  judged on the map as it is; ``map_waits_expired``), and at most ``map_wait_frames`` frames wait (the oldest
-  beyond is skipped, not a keyframe; ``frames_skipped_map_lag``).
+- ``random`` (a seeded pick from the window, as the library's stream baseline), ``every-n`` (``every_n``),
+  ``gaus-slam`` (``tau_k``, ``alpha_threshold``: needs the map, the shared one or the mapper's ``/roigsf/map``),
+  ``all`` and ``novelty`` (beyond the paper: per window the frame whose depth shows the most surface no keyframe's
+  depth showed, :mod:`roigsf_ros.nbv.novelty`) decide alone with the library's policies, as does a policy added to the
+  library (found by name, reading the map as ``gaus-slam`` does, given the node's parameters it takes and
+  ``policy_params`` for its own; a frame it fails on is counted in ``policy_errors`` and not decided). ``gaus-slam``
+  judges a frame only once the map holds every keyframe it named before (the shared map's keyframe ids, else the
+  positions on ``/roigsf/keyframe_poses``), as GauS-SLAM judges each frame on a map with all earlier keyframes: judged
+  at once on a map the mapper has not caught up with, nearly every frame rendered unmapped and became a keyframe, and
+  the mapper's queue dropped most. A frame waits at most ``map_wait_s`` (then it is judged on the map as it is;
+  ``map_waits_expired``), and at most ``map_wait_frames`` frames wait (the oldest beyond is skipped, not a keyframe;
+  ``frames_skipped_map_lag``).
 
 Beyond the paper, ``novelty_weight`` > 0 with a planner policy adds ``novelty_weight x z(N)`` to the planner's fused
 scores before the pick (:func:`roigsf_ros.nbv.novelty.fuse_novelty`, as the library's stream policy does), N each
@@ -414,24 +416,22 @@ class KeyframeSelectorNode(SystemNode):
             "novelty_measure": self.novelty_measure,
             "lookahead": self.lookahead,
         }
-        built_in: dict[str, dict[str, Any]] = {
-            "random": {"window": self.window, "trigger_every": self.trigger_every, "seed": self.seed},
-            "novelty": {
-                "window": self.window,
-                "trigger_every": self.trigger_every,
-                "novelty_voxel_m": self.novelty_voxel_m,
-                "novelty_radius_m": self.novelty_radius_m,
-                "novelty_measure": self.novelty_measure,
-                "lookahead": self.lookahead,
-            },
-            "every-n": {"every_n": self.every_n},
-            "gaus-slam": {"tau_k": self.tau_k, "alpha_threshold": self.alpha_threshold},
-            "all": {},
+        built_in = {  # the node parameters each built-in policy gets
+            "random": ("window", "trigger_every", "seed"),
+            "novelty": (
+                "window",
+                "trigger_every",
+                "novelty_voxel_m",
+                "novelty_radius_m",
+                "novelty_measure",
+                "lookahead",
+            ),
+            "every-n": ("every_n",),
+            "gaus-slam": ("tau_k", "alpha_threshold"),
+            "all": (),
         }
-        if name in built_in:
-            params = built_in[name]
-        else:  # a policy added to the library: the node's parameters it takes
-            params = {k: node_values[k] for k in policy_parameters(name) if k in node_values}
+        takes = built_in[name] if name in built_in else policy_parameters(name)  # added: those it takes
+        params = {k: node_values[k] for k in takes if k in node_values}
         if name == self.policy:
             params = params | self.policy_params
         try:
@@ -528,8 +528,12 @@ class KeyframeSelectorNode(SystemNode):
     ) -> None:
         """Run a library policy over ``frames`` and publish the keyframes it names (the first frame always)."""
         for frame in frames:
-            view = None if policy.name in ("random", "every-n", "all") else self._map_view(intr)  # they read no map
-            view = self._depth_view(intr) if policy.name == "novelty" else view
+            if policy.name == "novelty":
+                view = self._depth_view(intr)
+            elif policy.name in ("random", "every-n", "all"):
+                view = None  # they read no map
+            else:  # gaus-slam, and a policy added to the library
+                view = self._map_view(intr)
             try:  # a policy added to the library may fail: the node says so and goes on with the next frame
                 chosen = checked_keyframes(policy, policy.observe(frame, view), self._named)  # type: ignore[arg-type]
             except Exception as exc:
