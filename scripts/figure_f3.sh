@@ -14,8 +14,9 @@
 #   TAG=f3b ...                                    # another set of benches (default TAG=f3)
 #
 # Writes runs/bench_pool_<scene>_240[...]_<TAG>/ (figure_nbv_pool.sh's names), runs/f3_<TAG>/<scene>.json (one
-# verdict each, `roigsf targets --out`) and runs/f3_<TAG>/summary.md: a row per scene (met or not, the deciding check:
-# margin for what it requires) and the count met. Needs the Replica sample in ../shared/data for the office0 scenes.
+# verdict each, `roigsf targets --out`, its report beside as .txt) and runs/f3_<TAG>/summary.md: each scene's verdict
+# line as `roigsf targets` prints it (the checks missed, else the narrowest: margin for what it requires) and the count
+# met. Needs the Replica sample in ../shared/data for the office0 scenes.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/setup.sh
@@ -57,7 +58,7 @@ for entry in "${SCENE_LIST[@]}"; do
         > "$OUT/$name.txt"
 done
 python - "$OUT" "${names[@]}" <<'PY'
-"""runs/f3_<TAG>/summary.md from the verdict JSONs: one row per scene run, the deciding check, the count met."""
+"""runs/f3_<TAG>/summary.md: each scene's verdict line as `roigsf targets` printed it, and the count met."""
 import json
 import os
 import sys
@@ -65,20 +66,15 @@ from pathlib import Path
 
 out, names = Path(sys.argv[1]), sys.argv[2:]
 rows, met, n = [], 0, 0
-for name in names:
+for i, name in enumerate(names):
     path = out / f"{name}.json"
     if not path.is_file():
         continue
-    v = json.loads(path.read_text())
-    checks = v["checks"]
-    missed = [c for c in checks if not c["met"]]
-    deciding = min(missed or checks, key=lambda c: c["slack"])  # a miss, else the least slack
-    against = deciding["against"].split("@")[0]
-    what = f"{deciding['what']} vs `{against}`: {deciding['margin']:+.5f} for {deciding['required']:+.5f}"
-    held = " (held out)" if names.index(name) >= 16 else ""
-    rows.append(f"| {name}{held} | {'met' if v['met'] else '**not met**'} | {what} |")
-    met, n = met + bool(v["met"]), n + 1
-text = "| scene | F3's target | deciding check (margin for what it requires) |\n|---|---|---|\n" + "\n".join(rows)
+    head = (out / f"{name}.txt").read_text().splitlines()[0]  # "pool target for `...`: **met** (narrowest: ...)"
+    held = " (held out)" if i >= 16 else ""
+    rows.append(f"| {name}{held} | {head.split('`: ', 1)[1]} |")
+    met, n = met + bool(json.loads(path.read_text())["met"]), n + 1
+text = "| scene | F3's pool target (`roigsf targets`) |\n|---|---|\n" + "\n".join(rows)
 text += f"\n\nF3 meets the target on {met} of {n} scenes.\n"
 tmp = out / ".summary.md.tmp"
 tmp.write_text(text)
