@@ -143,6 +143,7 @@ def test_cli_bad_input(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     base = ["bench", "--scene", str(scene), "--setting", "pool", "--out", str(tmp_path / "o")]
     for extra, msg in (
         (["--policies", "roi-gsurfisher,bogus"], "unknown policy 'bogus'"),
+        (["--policies", "evry-n,random"], "--policies: unknown policy 'evry-n' (did you mean 'every-n'?); choose one"),
         (["--policies", "gaus-slam"], "stream-only"),
         (["--policies", "random", "--seeds", "0"], "--seeds"),
         (["--policies", "random", "--gt-mesh", str(tmp_path / "m.ply")], "ground-truth mesh not found"),

@@ -149,6 +149,7 @@ def test_demo_warns_of_a_misspelt_section_and_names_the_params_file_of_a_bad_val
         ("--rate", "inf", "--rate: must be a finite number"),
         # a misspelt policy was refused by the selector, once the nodes had started and warmed up
         ("--policy", "evry-n", "--policy: unknown policy 'evry-n' (did you mean 'every-n'?); choose one of roi-gsur"),
+        ("--set", "keyframe_selector.policy=evry-n", "--set keyframe_selector.policy: unknown policy 'evry-n' (did"),
     ],
 )
 def test_demo_refuses_nonsense_numbers_before_any_work(

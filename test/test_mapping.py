@@ -305,7 +305,7 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
         ("none", r"observe\(\) returned NoneType, not a list"),
         ("frame", r"observe\(\) returned Frame, not a list"),
         ("int", r"observe\(\) returned a int among its frames, not a Frame"),
-        ("twice", r"observe\(\) named frame 0 again: it is a keyframe already"),
+        ("twice", r"observe\(\) named frame 0 twice in one answer"),
         ("again", r"observe\(\) named frame 0 again"),
         ("finish", r"finish\(\) named frame 0 again"),
     ],
@@ -327,6 +327,8 @@ def test_a_policy_that_returns_no_list_of_new_frames_is_named(
         def observe(self, frame, keyframe_map):
             self.first = self.first or frame
             if frame.index < 2:
+                if self.returns == "raise" and frame.index == 1:
+                    raise RuntimeError("the policy's own bug")
                 return {"none": None, "frame": frame, "int": [3], "twice": [frame, frame]}.get(self.returns, [frame])
             return [self.first] if self.returns == "again" else []
 
@@ -346,6 +348,10 @@ def test_a_policy_that_returns_no_list_of_new_frames_is_named(
     with pytest.raises(InputError, match=error) as info:
         run_offline(FrameList(), make_policy("test-bad", returns=returns), small_config(), out, progress=False)
     assert info.value.where == "keyframe policy 'test-bad'" and not out.exists()
+    if returns == "none":  # a policy that raises: its own traceback, with a note naming the policy and the frame
+        with pytest.raises(RuntimeError, match="the policy's own bug") as raised:
+            run_offline(FrameList(), make_policy("test-bad", returns="raise"), small_config(), out, progress=False)
+        assert raised.value.__notes__ == ["in keyframe policy 'test-bad': observe() of frame 1"] and not out.exists()
 
 
 def test_score_views_scores_a_built_and_a_loaded_map_alike(frames: list[Frame], tmp_path) -> None:

@@ -750,7 +750,7 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
 
 
 def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
-    ros_context: Any, scene: Any, monkeypatch: pytest.MonkeyPatch
+    ros_context: Any, scene: Any, mapped: Mapper, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """docs/architecture.md: a policy registered in the library is found by name in the keyframe_selector node too,
     with the node's parameters its constructor takes and ``policy_params`` for its own; one that returns nonsense or
@@ -762,7 +762,10 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
     @base.register_policy("test-every-k")
     class EveryK(base.KeyframePolicy):
         def __init__(self, k: int = 2, window: int = 1, fail_at: int = -1) -> None:
-            self.k, self.window, self.fail_at, self.seen = k, window, fail_at, 0
+            self.k, self.window, self.fail_at, self.seen, self.surfels = k, window, fail_at, 0, []
+
+        def params(self) -> dict[str, Any]:
+            return {"k": self.k, "window": self.window, "fail_at": self.fail_at}
 
         def observe(self, frame: Frame, keyframe_map: Any) -> list[Frame]:
             self.seen += 1
@@ -770,7 +773,7 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
                 return frame  # type: ignore[return-value]  # a bare Frame, not a list
             if self.seen == self.fail_at + 1:
                 raise RuntimeError("the policy's own bug")
-            assert keyframe_map is not None and keyframe_map.n_surfels == 0  # it reads the (empty) map
+            self.surfels.append(keyframe_map.n_surfels)  # it reads the map the mapper publishes
             return [frame] if self.seen % self.k == 1 else []
 
     frames, _ = scene
@@ -780,17 +783,26 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
     policy = selector._alone
     assert isinstance(policy, EveryK) and (policy.k, policy.window, policy.fail_at) == (3, 5, 4)
     cam = _Camera(ros_context)
+    map_pub = cam.node.create_publisher(PointCloud2, "/roigsf/map", latched_qos())  # as the mapper in its process
+    map_pub.publish(surfel_map_to_cloud(mapped.map, 1, "map", mapped.h_train, mapped.config.fisher_outputs))
     with _spinning(ros_context, selector, cam.node):
         cam.wait_for()
+        _wait(lambda: selector._cloud is not None, 10.0, "the map")  # it subscribed to gaus-slam's map only
         for i in range(8):
             cam.publish(_frame_msgs(frames[i % len(frames)], (i + 1) * 1000))
         _wait(lambda: selector.status()["frames"] == 8, 20.0, "eight frames")
         status = selector.status()
     # seen 1, 4 (refused: a bare Frame), 5 (raised), 7: the 4th and 5th frames were not decided, the node went on
     assert status["keyframe_ids"] == [1000, 7000] and status["policy_errors"] == 2, status
-    for bad, why in (("policy_params", "k"), ("policy_params", "k=2:nosuch=1")):
-        params = [Parameter("policy", value="test-every-k"), Parameter(bad, value=why)]
-        with pytest.raises(InputError, match=r"policy_params|nosuch"):
+    assert policy.surfels and set(policy.surfels) == {mapped.n_surfels}
+    assert status["policy_params"] == {"k": 3, "window": 5, "fail_at": 4}  # what it ran with, not only its name
+    for why, words in (
+        ("k", "^parameter 'keyframe_selector.policy_params': expected NAME=VALUE pairs"),
+        ("k=2:nosuch=1", r"^parameter 'keyframe_selector.policy_params': takes no parameter\(s\) nosuch"),
+        ("window=3", "^parameter 'keyframe_selector.policy_params': window is a parameter of the node itself: set it"),
+    ):
+        params = [Parameter("policy", value="test-every-k"), Parameter("policy_params", value=why)]
+        with pytest.raises(InputError, match=words):
             KeyframeSelectorNode(context=ros_context, parameter_overrides=params)
     typo = r"unknown policy 'test-every-kk' \(did you mean 'test-every-k'\?\); choose one of roi-gsurfisher"
     with pytest.raises(InputError, match=typo):

@@ -51,6 +51,7 @@ from roigsf_ros.data.bags import (
     BagReader,
     bag_info,
     bag_topic_types,
+    resized_frame,
     sample_path,
 )
 
@@ -487,10 +488,12 @@ def run_demo(
             print(f"\r{end}" if tty else end, file=sys.stderr)
     t_refine = time.perf_counter() - t_refine
 
+    frames = [resized_frame(f, mapper.intr) for f in frames]  # as the mapper took them (input_width/input_height)
     metrics, rows, mesh = evaluate_map(mapper, frames, gt_mesh)
     sel = status["selector"]
     metrics |= {
         "policy": sel["policy"],  # the selector's: --policy, a --set or a params file, else its default
+        "policy_params": sel["policy_params"],  # a policy deciding alone: the parameters it ran with
         "bag": str(bag),
         "gt_mesh": None if gt_mesh is None else str(gt_mesh),  # what the mesh metrics were taken against
         "no_gt_mesh_reason": no_gt_mesh_reason if gt_mesh is None else None,
@@ -620,15 +623,18 @@ def _run(args: argparse.Namespace) -> int:
 
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
         params_file_sections(f, strict=True)
-    if args.policy is not None:  # now, not once the nodes started and warmed up
+    sets = parse_sets(args.set)
+    policy = sets.get("keyframe_selector", {}).get("policy", args.policy)  # a --set wins over --policy
+    if policy is not None:  # now, not once the nodes started and warmed up
         from roigsf_ros.nodes.keyframe_selector import PLANNER_POLICIES, alone_policies
         from roigsf_ros.policies.base import unknown_policy
 
         names = (*PLANNER_POLICIES, *alone_policies())
-        if args.policy not in names:
-            raise unknown_policy(args.policy, names, "--policy")
+        if policy not in names:
+            given = "--policy" if policy == args.policy else "--set keyframe_selector.policy"
+            raise unknown_policy(str(policy), names, given)
     # the nodes' camera settings, read from the bag as they will read it: fails now, naming the topic or parameter
-    camera = demo_camera(bag, parse_sets(args.set), params_files, args.realsense, domain_id)
+    camera = demo_camera(bag, sets, params_files, args.realsense, domain_id)
     info = bag_info(bag, camera.topics)
     given = f" (policy {args.policy})" if args.policy is not None else ""
     size = f"{info['width']}x{info['height']}" if info["width"] is not None else "an undecoded size"

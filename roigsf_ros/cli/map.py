@@ -55,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="gaus-slam",
         metavar="NAME[:KEY=VALUE...]",
         help=f"keyframe policy: {', '.join(policy_names())}; its parameters as in roigsf bench --policies, e.g. "
-        "every-n:n=4 or roi-gsurfisher:window=13:unseen_weight=1",
+        "every-n:every_n=4 or roi-gsurfisher:window=13:unseen_weight=1",
     )
     p.add_argument("--out", required=True, type=Path, help="run folder to write (atomically)")
     p.add_argument(

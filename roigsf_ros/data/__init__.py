@@ -56,6 +56,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "pose_to_matrix",
             "read_bag_frames",
             "realsense_topics",
+            "resized_frame",
             "sample_path",
             "stamp_to_ns",
             "transport_topic",

@@ -39,6 +39,7 @@ from tqdm import tqdm
 from roigsf_ros.core.camera import Intrinsics, load_pose, matrix_to_quat_xyzw, pose_from_position_quat
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
+from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.core.package_files import package_path, package_path_places
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.sync import StampMatcher
@@ -292,6 +293,16 @@ class BagFrame:
     depth_m: np.ndarray  # [H, W] float32 metres, 0 where invalid
     T_wc: np.ndarray  # [4, 4] float64 camera-to-world (optical frame in map)
     intrinsics: Intrinsics
+
+
+def resized_frame(bf: BagFrame, intr: Intrinsics) -> BagFrame:
+    """``bf`` at ``intr``'s image size (colour by area, depth nearest with pixel centres aligned: :func:`resize_frame`),
+    as the camera nodes take a frame with ``input_width``/``input_height``; itself when the size is already that.
+    """
+    if (bf.intrinsics.width, bf.intrinsics.height) == (intr.width, intr.height):
+        return bf
+    small = resize_frame(Frame(index=bf.stamp_ns, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), intr)
+    return BagFrame(bf.stamp_ns, small.rgb, small.depth_m, bf.T_wc, intr)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1126,6 +1137,7 @@ __all__ = [
     "pose_to_matrix",
     "read_bag_frames",
     "realsense_topics",
+    "resized_frame",
     "sample_path",
     "stamp_to_ns",
     "transport_topic",

@@ -45,7 +45,7 @@ from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool, selectable_positions
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer, depth_error_ause, render_surfel_scalar, train_fisher
-from roigsf_ros.policies.base import make_policy, policy_names
+from roigsf_ros.policies.base import make_policy, policy_names, unknown_policy
 from roigsf_ros.policies.stream import StreamNBVPolicy
 from roigsf_ros.render.rasterize import camera_tensors
 from roigsf_ros.render.surfels import SurfelMap
@@ -142,9 +142,8 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
             if not sep or not key.strip():
                 raise InputError("--policies", f"{item!r}: expected name:key=value, got {pair!r}")
             params[key.strip()] = parse_value(value)
-        known = policy_names()
-        if name not in known:
-            raise InputError("--policies", f"unknown policy {name!r}; choose from {', '.join(known)}")
+        if name not in policy_names():
+            raise unknown_policy(name, where="--policies")
         if setting == "pool" and name not in POOL_POLICIES:
             raise InputError(
                 "--policies",

@@ -228,7 +228,12 @@ def run_offline(
         frame_ids.append(int(frame.index))
         # The policy names the frames to insert now: this one, or an earlier one (the NBV window
         # policies); the mapper's keyframe ids below are the truth (it skips a frame without depth).
-        for keyframe in checked_keyframes(policy, policy.observe(frame, mapper), named):
+        try:
+            chosen = policy.observe(frame, mapper)
+        except Exception as exc:  # a policy's own bug: its traceback, and which policy and frame
+            exc.add_note(f"in keyframe policy {policy.name!r}: observe() of frame {frame.index}")
+            raise
+        for keyframe in checked_keyframes(policy, chosen, named):
             mapper.add_keyframe(keyframe)
         bar.update(1)
         bar.set_postfix(keyframes=len(mapper.keyframes), surfels=mapper.n_surfels, refresh=False)

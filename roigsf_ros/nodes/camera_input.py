@@ -43,7 +43,6 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from roigsf_ros.core.camera import Intrinsics, load_pose
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.data.bags import (
     AUTO,
     CAMERA_INFO_TYPE,
@@ -56,6 +55,7 @@ from roigsf_ros.data.bags import (
     CameraTopics,
     assemble_frame,
     assemble_images,
+    resized_frame,
     stamp_to_ns,
     transport_topic,
 )
@@ -584,8 +584,4 @@ class CameraInput:
         """The frame at ``input_size`` (colour by area, depth nearest with centres aligned, intrinsics scaled)."""
         if self.input_size is None:
             return bf
-        intr = bf.intrinsics.resized(*self.input_size)
-        if (intr.width, intr.height) == (bf.intrinsics.width, bf.intrinsics.height):
-            return bf
-        small = resize_frame(Frame(index=bf.stamp_ns, rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc), intr)
-        return BagFrame(bf.stamp_ns, small.rgb, small.depth_m, bf.T_wc, intr)
+        return resized_frame(bf, bf.intrinsics.resized(*self.input_size))

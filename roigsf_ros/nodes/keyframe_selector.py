@@ -295,6 +295,11 @@ class KeyframeSelectorNode(SystemNode):
         """Frames a policy deciding alone failed on (it raised, or returned no list of new frames): not decided."""
         self._named: set[int] = set()
         """The frames a policy deciding alone named (checked_keyframes: none twice)."""
+        self.reads_map = "gaus-slam" in (self.policy, self.fallback) or self.policy not in (
+            *PLANNER_POLICIES,
+            *FALLBACK_POLICIES,
+        )
+        """Whether a policy deciding alone reads the map: gaus-slam, and a policy added to the library."""
         self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
         """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
         live, the mapper inserts them later, and judged at once nearly every frame would render unmapped."""
@@ -337,7 +342,7 @@ class KeyframeSelectorNode(SystemNode):
             self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
-        if shared is None and "gaus-slam" in (self.policy, self.fallback):
+        if shared is None and self.reads_map:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
         if self.waits_for_map:
             if shared is None:
@@ -348,6 +353,8 @@ class KeyframeSelectorNode(SystemNode):
         how = f"asking {self.service_name} (fallback {self.fallback})" if self.uses_planner else "deciding alone"
         window = f"window {self.window}" + (f", lookahead {self.lookahead}" if self.lookahead else "")
         window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
+        if self.policy not in (*PLANNER_POLICIES, *FALLBACK_POLICIES) and self._alone is not None:  # added: its own
+            window = ", ".join(f"{k} {v}" for k, v in self._alone.params().items()) or "no parameters"
         self.get_logger().info(
             f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}; camera: "
             f"{describe_topics(self.camera.topics)}, {camera.reliability}"
@@ -396,6 +403,9 @@ class KeyframeSelectorNode(SystemNode):
             key, sep, value = pair.partition("=")
             if not sep or not key.strip():
                 raise InputError("parameter 'policy_params'", f"expected NAME=VALUE pairs split by ':', got {pair!r}")
+            if self.has_parameter(key.strip()):  # one setting, one place: the node's parameter
+                raise InputError("parameter 'policy_params'", f"{key.strip()} is a parameter of the node itself: set "
+                                 f"it as {key.strip()}:=VALUE")  # fmt: skip
             params[key.strip()] = parse_value(value)
         if params and self.policy in PLANNER_POLICIES:
             raise InputError("parameter 'policy_params'", f"is for a policy that decides alone: policy '{self.policy}' "
@@ -437,7 +447,8 @@ class KeyframeSelectorNode(SystemNode):
         try:
             return make_policy(name, **params)
         except InputError as exc:  # the library names its field: name it as the node's parameter
-            raise InputError(f"parameter '{exc.where}'", exc.problem) from None
+            where = "policy_params" if exc.where == f"policy {name!r}" else exc.where  # a name the policy does not take
+            raise InputError(f"parameter '{where}'", exc.problem) from None
 
     # ------------------------------------------------------------------------------ map (gaus-slam)
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -845,6 +856,7 @@ class KeyframeSelectorNode(SystemNode):
         with self._lock:
             return {
                 "policy": self.policy,
+                "policy_params": {} if self._alone is None else dict(self._alone.params()),
                 "reading_camera": self.camera.subscribed,
                 "frames": cam["frames"],
                 "frames_rejected": cam["rejected"],

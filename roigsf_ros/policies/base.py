@@ -191,7 +191,9 @@ def checked_keyframes(policy: KeyframePolicy, chosen: object, named: set[int], c
     for f in chosen:
         if not isinstance(f, Frame):
             raise InputError(where, f"{call}() returned a {type(f).__name__} among its frames, not a Frame")
-        if f.index in named or f.index in ids:
+        if f.index in ids:
+            raise InputError(where, f"{call}() named frame {f.index} twice in one answer")
+        if f.index in named:
             raise InputError(where, f"{call}() named frame {f.index} again: it is a keyframe already")
         ids.append(f.index)
     named.update(ids)
