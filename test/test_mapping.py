@@ -241,21 +241,27 @@ def test_losses_basics() -> None:
     assert float(losses.depth_l1(plane, plane, torch.zeros_like(valid))) == 0.0
 
 
+class FrameList:
+    """The FrameSource protocol over a list: intrinsics, len, re-iterable frames."""
+
+    intrinsics = INTR
+
+    def __init__(self, frames: list[Frame]) -> None:
+        self.frames = frames
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self):
+        return iter(self.frames)
+
+
 def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_path) -> None:
-    class FrameList:  # the FrameSource protocol: intrinsics, len, re-iterable frames
-        intrinsics = INTR
-
-        def __len__(self) -> int:
-            return len(frames)
-
-        def __iter__(self):
-            return iter(frames)
-
     gt = tmp_path / "gt.ply"
     o3d.io.write_triangle_mesh(str(gt), room_mesh())
     out = tmp_path / "run"
     metrics = run_offline(
-        FrameList(),
+        FrameList(frames),
         make_policy("every-n", n=2),
         small_config(iters_per_keyframe=8, final_iters=4, weight_distortion=100.0),
         out,
@@ -279,7 +285,7 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     assert on_disk["precision@5cm"] > 0.8 and on_disk["recall@5cm"] > 0.8
     assert math.isfinite(on_disk["wall_s"])
     with pytest.raises(FileExistsError):
-        run_offline(FrameList(), make_policy("all"), small_config(), out, progress=False)
+        run_offline(FrameList(frames), make_policy("all"), small_config(), out, progress=False)
 
     loaded = Mapper.load(out)
     assert loaded.n_surfels == metrics["map_size"]
@@ -335,22 +341,14 @@ def test_a_policy_that_returns_no_list_of_new_frames_is_named(
         def finish(self, keyframe_map):
             return [self.first] if self.returns == "finish" else []
 
-    class FrameList:
-        intrinsics = INTR
-
-        def __len__(self) -> int:
-            return len(frames)
-
-        def __iter__(self):
-            return iter(frames)
-
     out = tmp_path / "run"
     with pytest.raises(InputError, match=error) as info:
-        run_offline(FrameList(), make_policy("test-bad", returns=returns), small_config(), out, progress=False)
+        run_offline(FrameList(frames), make_policy("test-bad", returns=returns), small_config(), out, progress=False)
     assert info.value.where == "keyframe policy 'test-bad'" and not out.exists()
     if returns == "none":  # a policy that raises: its own traceback, with a note naming the policy and the frame
         with pytest.raises(RuntimeError, match="the policy's own bug") as raised:
-            run_offline(FrameList(), make_policy("test-bad", returns="raise"), small_config(), out, progress=False)
+            raising = make_policy("test-bad", returns="raise")
+            run_offline(FrameList(frames), raising, small_config(), out, progress=False)
         assert raised.value.__notes__ == ["in keyframe policy 'test-bad': observe() of frame 1"] and not out.exists()
 
 
