@@ -24,13 +24,13 @@ from roigsf_ros.experiments.bench import (
     PolicySpec,
     fisherrf_uncertainty_maps,
     parse_policies,
-    parse_value,
     rescore_ause,
     uncertainty_study,
 )
 from roigsf_ros.experiments.report import AUSE_CAVEAT, TABLE_COLUMNS, cell, parse_markdown_table
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer
+from roigsf_ros.policies import parse_value
 from roigsf_ros.policies.base import make_policy
 
 MAPPER_SET = ["--set", "densify_stride=2", "--set", "mesh_voxel_size_m=0.05", "--set", "mesh_sdf_trunc_m=0.15",

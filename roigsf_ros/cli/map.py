@@ -13,10 +13,9 @@ from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_s
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
 from roigsf_ros.data.sources import FrameSource, open_frames
-from roigsf_ros.experiments.bench import parse_value
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
-from roigsf_ros.policies.base import KeyframePolicy, make_policy, policy_names, policy_parameters
+from roigsf_ros.policies.base import KeyframePolicy, make_policy, parse_params, policy_names, policy_parameters
 
 _SUMMARY_KEYS = (
     ("frames", "n_frames", "{:d}"),
@@ -185,12 +184,7 @@ def policy_from_args(args: argparse.Namespace) -> KeyframePolicy:
     --policies``) and the options ``--every-n``, ``--tau-k``, ``--window``; an error names the option typed.
     """
     name, *pairs = [p.strip() for p in args.policy.split(":")]
-    spec: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise InputError(f"--policy {args.policy}", f"expected NAME:KEY=VALUE..., got {pair!r}")
-        spec[key.strip()] = parse_value(value)
+    spec = parse_params(pairs, f"--policy {args.policy}", "expected NAME:KEY=VALUE...")
     typed = {"n": args.every_n, "tau_k": args.tau_k, "window": args.window}
     options = {k: v for k, v in typed.items() if v is not None}
     if name in policy_names():  # an option the policy does not take: name the option, not the constructor's name

@@ -15,7 +15,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "UncertaintyStudy",
             "fisherrf_uncertainty_maps",
             "parse_policies",
-            "parse_value",
             "pool_curves",
             "read_results",
             "rescore_ause",

@@ -45,7 +45,7 @@ from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool, selectable_positions
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.scorer import NBVScorer, depth_error_ause, render_surfel_scalar, train_fisher
-from roigsf_ros.policies.base import make_policy, policy_names, unknown_policy
+from roigsf_ros.policies.base import make_policy, parse_params, policy_names, unknown_policy
 from roigsf_ros.policies.stream import StreamNBVPolicy
 from roigsf_ros.render.rasterize import camera_tensors
 from roigsf_ros.render.surfels import SurfelMap
@@ -109,23 +109,6 @@ class PolicySpec:
     label: str = ""
 
 
-def parse_value(text: str) -> bool | int | float | str | tuple[str, ...]:
-    """A parameter value from text: true/false, an int, a float, ``a+b+c`` a list of names (for list-valued
-    options such as ``fisher_params``; ``,`` and ``:`` already separate policies and parameters), else the string.
-    """
-    t = text.strip()
-    if t.lower() in ("true", "false"):
-        return t.lower() == "true"
-    for kind in (int, float):
-        try:
-            return kind(t)
-        except ValueError:
-            pass
-    if "+" in t:
-        return tuple(p.strip() for p in t.split("+"))
-    return t
-
-
 def parse_policies(text: str, setting: str) -> list[PolicySpec]:
     """Policy specs from ``"a,b:key=value:key2=value2,..."``, checked against the registry and ``setting``."""
     if setting not in SETTINGS:
@@ -136,12 +119,7 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
         raise InputError("--policies", "no policy given")
     for item in items:
         name, *pairs = [p.strip() for p in item.split(":")]
-        params: dict[str, Any] = {}
-        for pair in pairs:
-            key, sep, value = pair.partition("=")
-            if not sep or not key.strip():
-                raise InputError("--policies", f"{item!r}: expected name:key=value, got {pair!r}")
-            params[key.strip()] = parse_value(value)
+        params = parse_params(pairs, "--policies", f"{item!r}: expected name:key=value")
         if name not in policy_names():
             raise unknown_policy(name, where="--policies")
         if setting == "pool" and name not in POOL_POLICIES:
@@ -702,7 +680,6 @@ __all__ = [
     "UncertaintyStudy",
     "fisherrf_uncertainty_maps",
     "parse_policies",
-    "parse_value",
     "pool_curves",
     "read_results",
     "rescore_ause",

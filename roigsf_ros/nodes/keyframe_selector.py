@@ -90,7 +90,6 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import BagFrame
-from roigsf_ros.experiments.bench import parse_value
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import MODES
 from roigsf_ros.nbv.novelty import (
@@ -119,6 +118,7 @@ from roigsf_ros.policies.base import (
     KeyframePolicy,
     checked_keyframes,
     make_policy,
+    parse_params,
     policy_names,
     policy_parameters,
     unknown_policy,
@@ -398,15 +398,11 @@ class KeyframeSelectorNode(SystemNode):
         """``policy_params`` as a dict (values as ``roigsf bench``'s policy specs read them); only for a policy that
         decides alone.
         """
-        params: dict[str, Any] = {}
-        for pair in (p.strip() for p in text.split(":") if p.strip()):
-            key, sep, value = pair.partition("=")
-            if not sep or not key.strip():
-                raise InputError("parameter 'policy_params'", f"expected NAME=VALUE pairs split by ':', got {pair!r}")
-            if self.has_parameter(key.strip()):  # one setting, one place: the node's parameter
-                raise InputError("parameter 'policy_params'", f"{key.strip()} is a parameter of the node itself: set "
-                                 f"it as {key.strip()}:=VALUE")  # fmt: skip
-            params[key.strip()] = parse_value(value)
+        params = parse_params(text.split(":"), "parameter 'policy_params'", "expected NAME=VALUE pairs split by ':'")
+        for key in params:
+            if self.has_parameter(key):  # one setting, one place: the node's parameter
+                raise InputError("parameter 'policy_params'", f"{key} is a parameter of the node itself: set it as "
+                                 f"{key}:=VALUE")  # fmt: skip
         if params and self.policy in PLANNER_POLICIES:
             raise InputError("parameter 'policy_params'", f"is for a policy that decides alone: policy '{self.policy}' "
                              "asks the planner, whose own parameters set its score")  # fmt: skip

@@ -13,6 +13,8 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "KeyframePolicy",
             "checked_keyframes",
             "make_policy",
+            "parse_params",
+            "parse_value",
             "policy_names",
             "policy_parameters",
             "register_policy",

@@ -164,6 +164,37 @@ def unknown_parameters(policy: str, unknown: Iterable[str], known: Iterable[str]
     return InputError(f"policy {policy!r}", f"takes no parameter(s) {', '.join(parts)}")
 
 
+def parse_value(text: str) -> bool | int | float | str | tuple[str, ...]:
+    """A parameter value from text: true/false, an int, a float, ``a+b+c`` a list of names (for list-valued
+    options such as ``fisher_params``; ``,`` and ``:`` already separate policies and parameters), else the string.
+    """
+    t = text.strip()
+    if t.lower() in ("true", "false"):
+        return t.lower() == "true"
+    for kind in (int, float):
+        try:
+            return kind(t)
+        except ValueError:
+            pass
+    if "+" in t:
+        return tuple(p.strip() for p in t.split("+"))
+    return t
+
+
+def parse_params(pairs: Iterable[str], where: str, expected: str) -> dict[str, Any]:
+    """``KEY=VALUE`` texts (a policy spec's ``name:key=value:...`` after the name) as a dict, values by
+    :func:`parse_value`: the one reader of ``roigsf bench --policies``, ``roigsf map --policy`` and the keyframe
+    selector's ``policy_params``; a pair without ``=`` or key is an InputError at ``where`` saying ``expected``.
+    """
+    params: dict[str, Any] = {}
+    for pair in (p.strip() for p in pairs if p.strip()):
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise InputError(where, f"{expected}, got {pair!r}")
+        params[key.strip()] = parse_value(value)
+    return params
+
+
 def unknown_policy(name: str, choices: Sequence[str] | None = None, where: str | None = None) -> InputError:
     """The InputError of a policy name not among ``choices`` (default: every registered one, sorted), with the closest
     names: ``policy 'evry-n': unknown keyframe policy (did you mean 'every-n'?); choose one of ...``, or, ``where``
@@ -224,6 +255,8 @@ __all__ = [
     "KeyframePolicy",
     "checked_keyframes",
     "make_policy",
+    "parse_params",
+    "parse_value",
     "policy_names",
     "policy_parameters",
     "register_policy",
