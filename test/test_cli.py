@@ -267,6 +267,33 @@ def test_list_values_of_set_and_pool_set_are_comma_separated(
     assert not (tmp_path / "o").exists()
 
 
+def test_map_scores_a_bag_against_the_mesh_beside_it_as_the_demo_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf map bags/synth_room`` skipped the mesh metrics (it looked for mesh.ply inside the bag folder only) while
+    ``roigsf demo`` scored the same bag against ``bags/synth_room_mesh.ply``: both now find ``NAME_mesh.ply`` beside a
+    bag ``NAME`` (and ``mesh.ply`` in its folder), and a bag with neither still gets none, saying so.
+    """
+    import json
+    import shutil
+
+    quick = ["--policy", "every-n", "--no-progress", "--max-frames", "3", "--width", "40", "--iters-per-keyframe",
+             "1", "--final-iters", "0", "--no-h-train"]  # fmt: skip
+    mesh = REPO / "bags" / "synth_room_mesh.ply"
+    assert main(["map", str(REPO / "bags" / "synth_room"), "--out", str(tmp_path / "sample"), *quick]) == 0
+    assert "no ground-truth mesh" not in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "sample" / "metrics.json").read_text())
+    assert metrics["gt_mesh"] == str(mesh) and 0.0 <= metrics["fscore@5cm"] <= 1.0, metrics
+    # a copy under another name, without its mesh: none, and the hint; the mesh beside it under its name: taken
+    shutil.copytree(REPO / "bags" / "synth_room", tmp_path / "robot")
+    assert main(["map", str(tmp_path / "robot"), "--out", str(tmp_path / "none"), *quick]) == 0
+    assert "(no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)" in capsys.readouterr().out
+    shutil.copy(mesh, tmp_path / "robot_mesh.ply")
+    mcap = next((tmp_path / "robot").glob("*.mcap"))  # the .mcap given stands for its folder
+    assert main(["map", str(mcap), "--out", str(tmp_path / "beside"), *quick]) == 0
+    assert json.loads((tmp_path / "beside" / "metrics.json").read_text())["gt_mesh"] == str(tmp_path / "robot_mesh.ply")
+
+
 def test_map_empty_gt_mesh_means_none_as_in_demo(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -69,11 +69,12 @@ def test_demo_scores_mesh_metrics_against_the_sample_mesh_only_for_the_sample_ba
     bag = _bag(tmp_path, 4, 32, 24, seed=1)
     args = ["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]
     assert main(args) == 0
-    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh for this bag", used
+    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh, and no mesh beside the bag", used
     out = capsys.readouterr().out
     first = out.splitlines()[0]
-    assert first.endswith("; no mesh metrics (no --gt-mesh for this bag)"), first
-    assert "\n  keyframes not mapped       0\n  no mesh metrics (no --gt-mesh for this bag)\n" in out, out  # the table
+    assert first.endswith("; no mesh metrics (no --gt-mesh, and no mesh beside the bag)"), first
+    table = "\n  keyframes not mapped       0\n  no mesh metrics (no --gt-mesh, and no mesh beside the bag)\n"
+    assert table in out, out
     mesh = REPO / "bags" / "synth_room_mesh.ply"
     assert main([*args, "--gt-mesh", str(mesh)]) == 0  # given: taken, for any bag
     assert used["gt_mesh"] == mesh
@@ -101,7 +102,7 @@ def test_demo_scores_mesh_metrics_against_the_sample_mesh_only_for_the_sample_ba
     with (tmp_path / "copy" / "metadata.yaml").open("a") as f:
         f.write("\n")
     assert main(sample) == 0
-    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh for this bag", used
+    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh, and no mesh beside the bag", used
 
 
 # ------------------------------------------------------------------------------------ 2. demo: params files

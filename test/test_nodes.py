@@ -749,6 +749,31 @@ def test_selector_picks_by_observed_novelty_alone_and_as_the_fallback(
     assert status["fallbacks"] == (5 if policy == "roi-fisher" else 0)
 
 
+@pytest.mark.parametrize("policy", ["random", "roi-fisher"])
+def test_status_window_shows_the_frames_held_by_a_policy_deciding_alone_too(
+    ros_context: Any, scene: Any, policy: str
+) -> None:
+    """``~/status``'s ``window`` showed the planner path's window only: with ``random`` (its window held by the
+    library's policy) it was always empty. Both now list the frames held, undecided.
+    """
+    frames, _ = scene
+    overrides = [
+        Parameter("policy", value=policy),
+        Parameter("window", value=4),
+        Parameter("planner_service", value="/no_planner_here/nbv"),
+        Parameter("startup_wait_s", value=0.0),
+    ]
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=overrides)
+    cam = _Camera(ros_context)
+    with _spinning(ros_context, selector, cam.node):
+        cam.wait_for()
+        for i in range(3):  # the first is a keyframe; the next two wait for the window to fill
+            cam.publish(_frame_msgs(frames[i], (i + 1) * 1000))
+        _wait(lambda: selector.status()["frames"] == 3, 20.0, "three frames")
+        status = selector.status()
+    assert status["keyframe_ids"] == [1000] and status["window"] == [2000, 3000], status  # frame ids: stamps (ns)
+
+
 def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
     ros_context: Any, scene: Any, mapped: Mapper, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rewrites results.json, results.md and the plots",
     )
     p.add_argument("--seeds", type=int, default=1, help="run seeds 0..N-1 (default 1)")
-    p.add_argument("--gt-mesh", type=_mesh_path, help="ground-truth mesh (default: the scene folder's mesh.ply)")
+    p.add_argument("--gt-mesh", type=_mesh_path, help="ground-truth mesh (default: the source's own, as in roigsf map)")
     p.add_argument("--width", type=int, help="resize frames to this width (alone: the height keeps the aspect ratio)")
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")

@@ -49,6 +49,7 @@ from roigsf_ros.data.bags import (
     SAMPLE_GT_MESH,
     BagFrame,
     BagReader,
+    bag_gt_mesh,
     bag_info,
     bag_topic_types,
     resized_frame,
@@ -580,18 +581,19 @@ def _same_file(a: Path, b: Path) -> bool:
 def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
     """The mesh the demo's mesh metrics are taken against, from ``--gt-mesh`` (``option``), and why there is none.
 
-    Not given: the sample's mesh for the sample bag only; any other bag (another scene, or one made from the sample by
-    ``bag to-robot``, whose frames may differ) gets none, rather than being scored against a mesh it never saw.
-    ``''``: none. Returns (the mesh or None, the reason when None, else "").
+    Not given: the bag's own (:func:`bag_gt_mesh`: in its folder or ``NAME_mesh.ply`` beside it, as ``roigsf map`` and
+    ``roigsf bench`` find it), else the sample's mesh for a copy of the sample bag; any other bag (another scene, or
+    one made from the sample by ``bag to-robot``, whose frames may differ) gets none, rather than being scored against
+    a mesh it never saw. ``''``: none. Returns (the mesh or None, the reason when None, else "").
     """
     if option is not None:
         return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
+    own = bag_gt_mesh(bag)
+    if own is not None:
+        return own, ""
     if is_sample_bag(bag):
-        mesh = sample_path(SAMPLE_GT_MESH)
-        folder = bag.parent if bag.is_dir() else bag.parent.parent  # the bag folder's, for a .mcap given
-        beside = folder / mesh.name  # the checkout's bags/ for scripts/demo.sh: the paths printed then agree
-        return (beside if beside.is_file() and _same_file(beside, mesh) else mesh), ""
-    return None, "no --gt-mesh for this bag"
+        return sample_path(SAMPLE_GT_MESH), ""
+    return None, "no --gt-mesh, and no mesh beside the bag"
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -761,8 +763,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--gt-mesh",
         default=None,
         metavar="PLY",
-        help=f"ground-truth mesh for the mesh metrics (default: for the shipped sample bag its mesh, {SAMPLE_GT_MESH}; "
-        "for any other bag none, so no mesh metrics, also for one made from the sample by `bag to-robot`: pass "
+        help=f"ground-truth mesh for the mesh metrics (default: the bag's own, mesh.ply in its folder or NAME_mesh.ply "
+        f"beside bag NAME, as for the shipped sample, {SAMPLE_GT_MESH}, and a byte-identical copy of it; any other "
+        "bag none, so no mesh metrics, also one made from the sample by `bag to-robot`: pass "
         f"--gt-mesh {SAMPLE_GT_MESH} there; '' for none)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress display")

@@ -60,7 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--gt-mesh",
         metavar="PLY",
-        help="ground-truth mesh (default: the source folder's mesh.ply; '' for none: no mesh metrics)",
+        help="ground-truth mesh (default: the source's own: a scene folder's mesh.ply, a bag's mesh.ply in its folder "
+        "or NAME_mesh.ply beside bag NAME; '' for none: no mesh metrics)",
     )
     p.add_argument("--width", type=int, help="resize frames to this width (alone: the height keeps the aspect ratio)")
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")

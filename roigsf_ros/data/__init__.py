@@ -35,6 +35,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "TYPESTORE",
             "assemble_frame",
             "assemble_images",
+            "bag_gt_mesh",
             "bag_info",
             "bag_topic_types",
             "camera_info_fields",

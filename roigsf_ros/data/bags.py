@@ -82,6 +82,18 @@ SAMPLE_GT_MESH = "bags/synth_room_mesh.ply"
 """The sample bag's ground-truth mesh, relative as :data:`SAMPLE_BAG`."""
 
 
+def bag_gt_mesh(bag: Path) -> Path | None:
+    """A bag's own ground-truth mesh: ``mesh.ply`` in its folder, else ``NAME_mesh.ply`` beside the folder ``NAME`` (the
+    shipped sample's layout: ``bags/synth_room`` and ``bags/synth_room_mesh.ply``); a ``.mcap`` given stands for its
+    folder. None when neither is there: a bag is never scored against a mesh that was not put beside it.
+    """
+    folder = bag if bag.is_dir() else bag.parent
+    for mesh in (folder / "mesh.ply", folder.parent / f"{folder.name}_mesh.ply"):
+        if mesh.is_file():
+            return mesh
+    return None
+
+
 def sample_path(relative: str = SAMPLE_BAG) -> Path:
     """The shipped :data:`SAMPLE_BAG` (or :data:`SAMPLE_GT_MESH`): the checkout's when this runs from one, else the
     installed copy (setup.py puts bags/ into share/roigsf_ros/), so the defaults work from any folder.
@@ -1116,6 +1128,7 @@ __all__ = [
     "CameraTopics",
     "assemble_frame",
     "assemble_images",
+    "bag_gt_mesh",
     "bag_info",
     "bag_topic_types",
     "camera_info_fields",

@@ -61,7 +61,8 @@ word. ``~/status`` (``std_msgs/String`` JSON) counts frames, keyframes,
 planner calls, failures, timeouts, windows that waited for the previous answer (``planner_waited``) and
 fallbacks, and gives the longest wait for an answer to a window of the stream (``max_answer_s``), the slowest
 novelty computation (``max_novelty_s``) and the longest gap between two frames reaching the selector
-(``max_frame_gap_s``; many frame periods: something held the frames back, and windows then came in a burst).
+(``max_frame_gap_s``; many frame periods: something held the frames back, and windows then came in a burst);
+``window`` lists the frames held undecided (their stamps in ns), the planner path's or the deciding policy's own.
 
     keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
 """
@@ -867,7 +868,7 @@ class KeyframeSelectorNode(SystemNode):
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframes_unsent": len(self._unsent),
                 "keyframe_ids": list(self.keyframe_ids),
-                "window": self._window.pending_ids,
+                "window": self._window.pending_ids if self._alone is None else list(self._alone.pending_ids),
                 "planner_pending": self._request is not None,
                 "frames_held_for_map": len(self._held_for_map),
                 "planner_window_waiting": self._waiting is not None,

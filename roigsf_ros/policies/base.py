@@ -118,6 +118,13 @@ class KeyframePolicy:
     def reset(self) -> None:
         """Forget any state, to start a new sequence."""
 
+    @property
+    def pending_ids(self) -> list[int]:
+        """Ids of the frames held as candidates, not decided yet (a windowed policy's window); [] for one that decides
+        each frame as it comes.
+        """
+        return []
+
     def params(self) -> dict[str, Any]:
         """The policy's parameters, for metrics.json and logs."""
         return {}
