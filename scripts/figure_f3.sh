@@ -70,7 +70,7 @@ for i, name in enumerate(names):
     path = out / f"{name}.json"
     if not path.is_file():
         continue
-    head = (out / f"{name}.txt").read_text().splitlines()[0]  # "pool target for `...`: **met** (narrowest: ...)"
+    head = (out / f"{name}.txt").read_text().splitlines()[0]  # "pool target for `...`: **met** (narrowest ...: ...)"
     held = " (held out)" if i >= 16 else ""
     rows.append(f"| {name}{held} | {head.split('`: ', 1)[1]} |")
     met, n = met + bool(json.loads(path.read_text())["met"]), n + 1

@@ -61,6 +61,22 @@ FOURTH_ROOM = {
 }
 
 
+def test_a_met_verdict_names_its_narrowest_check_for_what_it_requires_not_in_absolute_units(tmp_path: Path) -> None:
+    """The verdict line names the check met by the least for what it requires: 0.05 dB above the PSNR bound of -0.3 dB
+    is narrower than 0.0045 of recall above a std of 0.0005, though 0.0045 < 0.05 (the units differ); the line says so.
+    """
+    figures = {
+        "variant": {"recall@5cm": (0.990, 0.0005), "fscore@5cm": (0.995, 0.0005), "psnr": (29.90, 0.1)},
+        "fisherrf": {"recall@5cm": (0.985, 0.0005), "fscore@5cm": (0.990, 0.0005), "psnr": (30.15, 0.1)},
+    }
+    folder = bench(tmp_path / "b", "pool", figures)
+    verdict = pool_target(load_policy(f"{folder}#variant"), [load_policy(f"{folder}#fisherrf")])
+    assert verdict.met and verdict.tightest.what.startswith("psnr")
+    assert min(c.slack for c in verdict.checks) < verdict.tightest.slack  # absolute slack would name another
+    head = verdict.markdown().splitlines()[0]
+    assert "**met** (narrowest for what it requires: psnr" in head and "margin -0.25000 for -0.30000" in head, head
+
+
 def test_pool_target_is_the_larger_std_of_the_two_and_psnr_within_0_3_db(tmp_path: Path) -> None:
     folder = bench(tmp_path / "b", "pool", FOURTH_ROOM)
     cand, fis, rnd = (load_policy(f"{folder}#{label}") for label in ("variant", "fisherrf", "random"))

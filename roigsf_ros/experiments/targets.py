@@ -410,7 +410,7 @@ class Verdict:
             return f"{c.what} against `{c.against.split('@')[0]}`, margin {c.margin:+.5f} for {c.required:+.5f}"
 
         if self.met:
-            head = f"**met** (narrowest: {brief(self.tightest)})"
+            head = f"**met** (narrowest for what it requires: {brief(self.tightest)})"
         else:
             head = f"**not met** (missed: {'; '.join(brief(c) for c in self.failed)})"
         lines = [
