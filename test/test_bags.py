@@ -343,6 +343,36 @@ def test_cli_overwrite(replica: Path, tmp_path: Path, capsys: pytest.CaptureFixt
     assert _leftovers(tmp_path, "again") == ["again"]
 
 
+def test_cli_from_replica_carries_the_scene_mesh_into_the_bag(
+    replica: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bag made from a scene folder kept nothing of its ground truth, so ``roigsf map BAG`` had no mesh metrics:
+    the scene's mesh (``mesh.ply`` in it, or ``NAME_mesh.ply`` beside it as NICE-SLAM's Replica has it) now goes into
+    the bag folder as ``mesh.ply``, which the bag's readers ignore and ``roigsf map``/``bench``/``demo`` find;
+    ``--no-mesh`` leaves it out.
+    """
+    from roigsf_ros.data.replica import scene_gt_mesh
+    from roigsf_ros.data.sources import open_frames
+
+    scene = _copy_replica(replica, tmp_path)
+    assert scene_gt_mesh(scene) is None
+    (tmp_path / "scene_mesh.ply").write_bytes(b"ply mesh beside")  # NICE-SLAM: Replica/office0_mesh.ply
+    assert scene_gt_mesh(scene) == tmp_path / "scene_mesh.ply"
+    (scene / "mesh.ply").write_bytes(b"ply mesh inside")  # roigsf scene folders: their own mesh.ply, which wins
+    assert scene_gt_mesh(scene) == scene / "mesh.ply" and open_frames(scene).gt_mesh_path == scene / "mesh.ply"
+    out = tmp_path / "bag"
+    argv = ["bag", "from-replica", str(scene), "--out", str(out), "--no-progress", "--max-frames", "2"]
+    assert cli_main(argv) == 0
+    assert f"with the ground-truth mesh {scene / 'mesh.ply'} as {out / 'mesh.ply'}" in capsys.readouterr().out
+    assert (out / "mesh.ply").read_bytes() == b"ply mesh inside"
+    assert bags.bag_info(out)["frame_count"] == 2 and len(bags.read_bag_frames(out)[0]) == 2  # read as before
+    assert open_frames(out).gt_mesh_path == out / "mesh.ply"
+    assert open_frames(out / "bag.mcap").gt_mesh_path == out / "mesh.ply"  # a .mcap stands for its folder
+    assert cli_main([*argv[:4], str(tmp_path / "bare"), *argv[5:], "--no-mesh"]) == 0
+    assert sorted(p.name for p in (tmp_path / "bare").iterdir()) == ["bare.mcap", "metadata.yaml"]
+    assert open_frames(tmp_path / "bare").gt_mesh_path is None
+
+
 # ------------------------------------------------------------------------------------------ bad input
 
 

@@ -288,6 +288,10 @@ def test_office0_sample_is_readable(office0: Path) -> None:
     fr = seq.frame(3)
     assert fr.rgb.shape == (680, 1200, 3) and fr.depth_m.dtype == np.float32
     assert 0.1 < float(np.median(fr.depth_m)) < 10.0
+    # its ground truth beside it, NICE-SLAM's layout: what roigsf map scores against without --gt-mesh
+    from roigsf_ros.data.sources import open_frames
+
+    assert open_frames(office0 / "office0", allow_partial=True).gt_mesh_path == office0 / "office0_mesh.ply"
 
 
 def test_intrinsics_no_camera_could_have_are_refused_where_they_are_made() -> None:

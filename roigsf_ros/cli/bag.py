@@ -11,7 +11,7 @@ from typing import Any
 from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
-from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.robot_bag import (
     ROBOT_COLOR_FORMATS,
     ROBOT_DEPTH_TRANSPORTS,
@@ -65,6 +65,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--allow-partial",
         action="store_true",
         help="accept a traj.txt with more poses than frames on disk (a partial download)",
+    )
+    conv.add_argument(
+        "--no-mesh",
+        action="store_true",
+        help="leave the scene's ground-truth mesh out (default: its mesh.ply, or NAME_mesh.ply beside DIR NAME, is "
+        "copied into the bag folder as mesh.ply, where roigsf map, bench and demo find it)",
     )
     conv.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
     conv.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -137,6 +143,7 @@ def _from_replica(args: argparse.Namespace) -> int:
     size = image_size(args)
     check_out(args.out, args.overwrite)
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
+    mesh = None if args.no_mesh else scene_gt_mesh(seq.root)
     n = write_bag(
         seq,
         args.out,
@@ -146,9 +153,12 @@ def _from_replica(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         overwrite=args.overwrite,
         progress=not args.no_progress,
+        gt_mesh=mesh,
     )
     intr = seq.intrinsics
     print(f"wrote {n} frames ({intr.width}x{intr.height}, depth {args.depth_encoding}, {args.rate:g} Hz) to {args.out}")
+    if mesh is not None:
+        print(f"  with the ground-truth mesh {mesh} as {args.out / 'mesh.ply'} (--no-mesh: without)")
     return 0
 
 

@@ -49,12 +49,12 @@ from roigsf_ros.data.bags import (
     SAMPLE_GT_MESH,
     BagFrame,
     BagReader,
-    bag_gt_mesh,
     bag_info,
     bag_topic_types,
     resized_frame,
     sample_path,
 )
+from roigsf_ros.data.replica import scene_gt_mesh
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -581,14 +581,14 @@ def _same_file(a: Path, b: Path) -> bool:
 def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
     """The mesh the demo's mesh metrics are taken against, from ``--gt-mesh`` (``option``), and why there is none.
 
-    Not given: the bag's own (:func:`bag_gt_mesh`: in its folder or ``NAME_mesh.ply`` beside it, as ``roigsf map`` and
+    Not given: the bag's own (:func:`scene_gt_mesh`: in its folder or ``NAME_mesh.ply`` beside it, as ``roigsf map`` and
     ``roigsf bench`` find it), else the sample's mesh for a copy of the sample bag; any other bag (another scene, or
     one made from the sample by ``bag to-robot``, whose frames may differ) gets none, rather than being scored against
     a mesh it never saw. ``''``: none. Returns (the mesh or None, the reason when None, else "").
     """
     if option is not None:
         return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
-    own = bag_gt_mesh(bag)
+    own = scene_gt_mesh(bag if bag.is_dir() else bag.parent)
     if own is not None:
         return own, ""
     if is_sample_bag(bag):

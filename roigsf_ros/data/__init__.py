@@ -35,7 +35,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "TYPESTORE",
             "assemble_frame",
             "assemble_images",
-            "bag_gt_mesh",
             "bag_info",
             "bag_topic_types",
             "camera_info_fields",
@@ -71,6 +70,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "read_depth",
             "read_rgb",
             "save_traj",
+            "scene_gt_mesh",
             "write_replica",
         ],
         "robot_bag": [

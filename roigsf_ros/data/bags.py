@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import struct
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -80,18 +81,6 @@ SAMPLE_BAG = "bags/synth_room"
 """The shipped sample bag (bags/README.md), relative to the checkout or to the installed package's share folder."""
 SAMPLE_GT_MESH = "bags/synth_room_mesh.ply"
 """The sample bag's ground-truth mesh, relative as :data:`SAMPLE_BAG`."""
-
-
-def bag_gt_mesh(bag: Path) -> Path | None:
-    """A bag's own ground-truth mesh: ``mesh.ply`` in its folder, else ``NAME_mesh.ply`` beside the folder ``NAME`` (the
-    shipped sample's layout: ``bags/synth_room`` and ``bags/synth_room_mesh.ply``); a ``.mcap`` given stands for its
-    folder. None when neither is there: a bag is never scored against a mesh that was not put beside it.
-    """
-    folder = bag if bag.is_dir() else bag.parent
-    for mesh in (folder / "mesh.ply", folder.parent / f"{folder.name}_mesh.ply"):
-        if mesh.is_file():
-            return mesh
-    return None
 
 
 def sample_path(relative: str = SAMPLE_BAG) -> Path:
@@ -629,10 +618,14 @@ def write_bag(
     overwrite: bool = False,
     progress: bool = True,
     t0_ns: int = DEFAULT_T0_NS,
+    gt_mesh: Path | None = None,
 ) -> int:
     """Write every ``stride``-th frame of ``seq`` (at most ``max_frames``) as a rosbag2 MCAP bag folder.
 
-    Returns the number of frames written. The bag appears under ``out`` only once complete.
+    ``gt_mesh``: a ground-truth mesh copied into the folder as ``mesh.ply``, where ``roigsf map``, ``roigsf bench`` and
+    ``roigsf demo`` find it (:func:`roigsf_ros.data.replica.scene_gt_mesh`); a bag's readers open the files its
+    ``metadata.yaml`` lists only. Returns the number of frames written. The bag appears under
+    ``out`` only once complete.
     """
     out = Path(out)
     if not (math.isfinite(rate_hz) and rate_hz > 0):
@@ -643,6 +636,8 @@ def write_bag(
         raise InputError("stride", f"must be >= 1, got {stride}")
     if max_frames is not None and max_frames < 1:
         raise InputError("max_frames", f"must be >= 1, got {max_frames}")
+    if gt_mesh is not None and not Path(gt_mesh).is_file():
+        raise InputError(gt_mesh, "ground-truth mesh not found")
     ks = list(range(0, len(seq), stride))[:max_frames]
     intr = seq.intrinsics
     with atomic_dir(out, overwrite=overwrite) as tmp:
@@ -668,6 +663,8 @@ def write_bag(
         for item in staging.iterdir():
             item.rename(tmp / item.name)
         staging.rmdir()
+        if gt_mesh is not None:
+            shutil.copyfile(gt_mesh, tmp / "mesh.ply")
     return len(ks)
 
 
@@ -1128,7 +1125,6 @@ __all__ = [
     "CameraTopics",
     "assemble_frame",
     "assemble_images",
-    "bag_gt_mesh",
     "bag_info",
     "bag_topic_types",
     "camera_info_fields",

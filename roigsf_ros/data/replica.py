@@ -274,6 +274,18 @@ def write_replica(out_dir: str | Path, intr: Intrinsics, frames: Iterable[Frame]
     return len(poses)
 
 
+def scene_gt_mesh(folder: Path) -> Path | None:
+    """The ground-truth mesh of a scene or bag folder: ``mesh.ply`` in it (``roigsf scene`` folders, bags from ``roigsf
+    bag from-replica``), else ``NAME_mesh.ply`` beside the folder ``NAME`` (NICE-SLAM's Replica layout,
+    ``Replica/office0_mesh.ply`` beside ``Replica/office0``, and the shipped sample bag's). None when neither is there:
+    nothing is scored against a mesh that was not put with it.
+    """
+    for mesh in (folder / "mesh.ply", folder.parent / f"{folder.name}_mesh.ply"):
+        if mesh.is_file():
+            return mesh
+    return None
+
+
 __all__ = [
     "MAX_DEPTH_M",
     "ReplicaSequence",
@@ -282,5 +294,6 @@ __all__ = [
     "read_depth",
     "read_rgb",
     "save_traj",
+    "scene_gt_mesh",
     "write_replica",
 ]

@@ -2,8 +2,8 @@
 
 :func:`open_frames` returns a :class:`FrameSource` with the (possibly resized) intrinsics, a frame
 count and re-iterable frames as :class:`roigsf_ros.data.replica.Frame`. Scene folders written by
-``roigsf scene render/synth`` also carry the ground-truth ``mesh.ply``, exposed as ``gt_mesh_path``; a bag's is the one
-:func:`roigsf_ros.data.bags.bag_gt_mesh` finds (in its folder, or ``NAME_mesh.ply`` beside it, as the shipped sample).
+``roigsf scene render/synth`` also carry the ground-truth ``mesh.ply``, exposed as ``gt_mesh_path``: a folder's or a
+bag's is the one :func:`roigsf_ros.data.replica.scene_gt_mesh` finds (in it, or ``NAME_mesh.ply`` beside it).
 
 A frame's ``index`` names it in its source, whatever was skipped: a Replica frame's number, or a bag
 frame's position among all the bag's frames (the sorted distinct stamps of its colour topic), so a
@@ -23,8 +23,8 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
-from roigsf_ros.data.bags import BagReader, CameraTopics, bag_gt_mesh, header_stamp_ns, opened_bag
-from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.bags import BagReader, CameraTopics, header_stamp_ns, opened_bag
+from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 
 
 class FrameSequence(Protocol):
@@ -90,8 +90,7 @@ class ReplicaFrameSource(FrameSource):
     ) -> None:
         self.seq = ReplicaSequence(path, size=size, allow_partial=allow_partial)
         self.ks = list(range(0, len(self.seq), stride))[: max_frames if max_frames is not None else None]
-        mesh = self.seq.root / "mesh.ply"
-        super().__init__(Path(path), self.seq.intrinsics, len(self.ks), mesh if mesh.is_file() else None)
+        super().__init__(Path(path), self.seq.intrinsics, len(self.ks), scene_gt_mesh(self.seq.root))
 
     def __iter__(self) -> Iterator[Frame]:
         for k in self.ks:
@@ -142,7 +141,7 @@ class BagFrameSource(FrameSource):
         self.kept = kept[:max_frames] if max_frames is not None else kept
         """Indices of the bag frames given (those skipped too): every stride-th, at most ``max_frames``."""
         intr = native.resized(*size) if size is not None else native
-        super().__init__(path, intr, len(self.kept), bag_gt_mesh(path))
+        super().__init__(path, intr, len(self.kept), scene_gt_mesh(path if path.is_dir() else path.parent))
 
     def index_of(self, stamp_ns: int) -> int:
         """The bag frame index of a frame's stamp (its position in the sorted colour stamps)."""
