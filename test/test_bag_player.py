@@ -324,6 +324,7 @@ def test_main_without_subscribers_says_so_after_the_timeout_and_plays(bag: Path)
     for topic in (bags.CameraTopics().color, bags.CameraTopics().depth, bags.POSE_TOPIC):
         assert f"{topic} (0)" in output
     assert "playing anyway" in output and "finished: published 20 messages on 4 topics" in output
+    assert "wait longer with -p wait_timeout_s:=30.0" in output  # the hint for nodes still starting
     assert time.monotonic() - t0 >= 1.0
 
 

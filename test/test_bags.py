@@ -348,29 +348,50 @@ def test_cli_from_replica_carries_the_scene_mesh_into_the_bag(
 ) -> None:
     """A bag made from a scene folder kept nothing of its ground truth, so ``roigsf map BAG`` had no mesh metrics:
     the scene's mesh (``mesh.ply`` in it, or ``NAME_mesh.ply`` beside it as NICE-SLAM's Replica has it) now goes into
-    the bag folder as ``mesh.ply``, which the bag's readers ignore and ``roigsf map``/``bench``/``demo`` find;
-    ``--no-mesh`` leaves it out.
+    the bag folder as ``mesh.ply``, which the bag's readers ignore and ``roigsf map``/``bench``/``demo`` find, and on
+    into a ``bag to-robot`` of it; ``--no-mesh`` leaves it out, and a broken mesh is refused naming it.
     """
+    import open3d as o3d
+
     from roigsf_ros.data.replica import scene_gt_mesh
     from roigsf_ros.data.sources import open_frames
 
+    box, sphere = o3d.geometry.TriangleMesh.create_box(), o3d.geometry.TriangleMesh.create_sphere()
     scene = _copy_replica(replica, tmp_path)
     assert scene_gt_mesh(scene) is None
-    (tmp_path / "scene_mesh.ply").write_bytes(b"ply mesh beside")  # NICE-SLAM: Replica/office0_mesh.ply
+    assert o3d.io.write_triangle_mesh(str(tmp_path / "scene_mesh.ply"), box)  # NICE-SLAM: Replica/office0_mesh.ply
     assert scene_gt_mesh(scene) == tmp_path / "scene_mesh.ply"
-    (scene / "mesh.ply").write_bytes(b"ply mesh inside")  # roigsf scene folders: their own mesh.ply, which wins
+    assert o3d.io.write_triangle_mesh(str(scene / "mesh.ply"), sphere)  # roigsf scene folders: their own, which wins
     assert scene_gt_mesh(scene) == scene / "mesh.ply" and open_frames(scene).gt_mesh_path == scene / "mesh.ply"
     out = tmp_path / "bag"
     argv = ["bag", "from-replica", str(scene), "--out", str(out), "--no-progress", "--max-frames", "2"]
     assert cli_main(argv) == 0
     assert f"with the ground-truth mesh {scene / 'mesh.ply'} as {out / 'mesh.ply'}" in capsys.readouterr().out
-    assert (out / "mesh.ply").read_bytes() == b"ply mesh inside"
+    assert (out / "mesh.ply").read_bytes() == (scene / "mesh.ply").read_bytes()
     assert bags.bag_info(out)["frame_count"] == 2 and len(bags.read_bag_frames(out)[0]) == 2  # read as before
     assert open_frames(out).gt_mesh_path == out / "mesh.ply"
     assert open_frames(out / "bag.mcap").gt_mesh_path == out / "mesh.ply"  # a .mcap stands for its folder
+    assert cli_main(["bag", "info", str(out), "--no-decode"]) == 0
+    assert f"ground truth: {out / 'mesh.ply'}\n" in capsys.readouterr().out  # bag info says what map will score against
+    # bag to-robot keeps it (the poses stay in the source's world frame), unless --no-mesh
+    assert cli_main(["bag", "to-robot", str(out), "--out", str(tmp_path / "robot"), "--no-progress"]) == 0
+    assert (tmp_path / "robot" / "mesh.ply").read_bytes() == (scene / "mesh.ply").read_bytes()
+    assert cli_main(["bag", "to-robot", str(out), "--out", str(tmp_path / "robot2"), "--no-progress", "--no-mesh"]) == 0
+    assert not (tmp_path / "robot2" / "mesh.ply").exists()
+    assert "no ground-truth mesh: none in" in capsys.readouterr().out
     assert cli_main([*argv[:4], str(tmp_path / "bare"), *argv[5:], "--no-mesh"]) == 0
     assert sorted(p.name for p in (tmp_path / "bare").iterdir()) == ["bare.mcap", "metadata.yaml"]
     assert open_frames(tmp_path / "bare").gt_mesh_path is None
+    capsys.readouterr()
+    assert cli_main(["bag", "info", str(tmp_path / "bare"), "--json", "--no-decode"]) == 0
+    assert json.loads(capsys.readouterr().out)["gt_mesh"] is None
+    # a broken mesh: refused before anything is written, naming the file it is, not the copy it would become
+    data = (scene / "mesh.ply").read_bytes()
+    (scene / "mesh.ply").write_bytes(data[: len(data) // 2])
+    assert cli_main([*argv[:4], str(tmp_path / "broken"), *argv[5:]]) == 2
+    err = capsys.readouterr().err
+    assert f"{scene / 'mesh.ply'}: " in err and "--no-mesh: without it" in err, err
+    assert not (tmp_path / "broken").exists()
 
 
 # ------------------------------------------------------------------------------------------ bad input

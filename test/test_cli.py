@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from roigsf_ros.cli import build_parser, main
+from roigsf_ros.cli import NO_OWN_MESH, build_parser, main
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -281,13 +281,13 @@ def test_map_scores_a_bag_against_the_mesh_beside_it_as_the_demo_does(
              "1", "--final-iters", "0", "--no-h-train"]  # fmt: skip
     mesh = REPO / "bags" / "synth_room_mesh.ply"
     assert main(["map", str(REPO / "bags" / "synth_room"), "--out", str(tmp_path / "sample"), *quick]) == 0
-    assert "no ground-truth mesh" not in capsys.readouterr().out
+    assert f"  mesh metrics against {mesh}\n" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "sample" / "metrics.json").read_text())
     assert metrics["gt_mesh"] == str(mesh) and 0.0 <= metrics["fscore@5cm"] <= 1.0, metrics
     # a copy under another name, without its mesh: none, and the hint; the mesh beside it under its name: taken
     shutil.copytree(REPO / "bags" / "synth_room", tmp_path / "robot")
     assert main(["map", str(tmp_path / "robot"), "--out", str(tmp_path / "none"), *quick]) == 0
-    assert "(no ground-truth mesh: mesh metrics skipped; pass --gt-mesh)" in capsys.readouterr().out
+    assert f"  no mesh metrics ({NO_OWN_MESH})" in capsys.readouterr().out
     shutil.copy(mesh, tmp_path / "robot_mesh.ply")
     mcap = next((tmp_path / "robot").glob("*.mcap"))  # the .mcap given stands for its folder
     assert main(["map", str(mcap), "--out", str(tmp_path / "beside"), *quick]) == 0
@@ -309,7 +309,7 @@ def test_map_empty_gt_mesh_means_none_as_in_demo(
     out = tmp_path / "run"
     argv = ["map", str(tiny_scene), "--out", str(out), "--policy", "every-n", "--no-progress", "--gt-mesh", ""]
     assert main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
-    assert "(no ground-truth mesh: mesh metrics skipped)" in capsys.readouterr().out
+    assert "  no mesh metrics (--gt-mesh '')" in capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())
     assert "gt_mesh" not in metrics and "fscore@5cm" not in metrics
     # roigsf bench compares the policies' meshes: '' is refused naming the option, not read as the folder "."

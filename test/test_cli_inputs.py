@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from roigsf_ros.cli import main
+from roigsf_ros.cli import NO_OWN_MESH, main
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
@@ -55,11 +55,12 @@ def _fake_run_demo(used: dict[str, Any]) -> Callable[..., dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------------ 1. demo: the default mesh
-def test_demo_scores_mesh_metrics_against_the_sample_mesh_only_for_the_sample_bag(
+def test_demo_scores_mesh_metrics_against_a_bags_own_mesh_only(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """``roigsf demo --bag OTHER`` scored the mesh metrics against the shipped sample's mesh; now another bag gets no
-    mesh metrics unless ``--gt-mesh`` is given, and the start line and the table say which mesh, or none and why.
+    """``roigsf demo --bag OTHER`` scored the mesh metrics against the shipped sample's mesh; now a bag is scored
+    against its own mesh only (as ``roigsf map`` finds it), else none unless ``--gt-mesh`` is given, and the start line
+    and the table say which mesh, or none and why.
     """
     pytest.importorskip("rclpy")
     from roigsf_ros.cli import demo
@@ -69,11 +70,11 @@ def test_demo_scores_mesh_metrics_against_the_sample_mesh_only_for_the_sample_ba
     bag = _bag(tmp_path, 4, 32, 24, seed=1)
     args = ["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]
     assert main(args) == 0
-    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh, and no mesh beside the bag", used
+    assert used["gt_mesh"] is None and used["why"] == NO_OWN_MESH, used
     out = capsys.readouterr().out
     first = out.splitlines()[0]
-    assert first.endswith("; no mesh metrics (no --gt-mesh, and no mesh beside the bag)"), first
-    table = "\n  keyframes not mapped       0\n  no mesh metrics (no --gt-mesh, and no mesh beside the bag)\n"
+    assert first.endswith(f"; no mesh metrics ({NO_OWN_MESH})"), first
+    table = f"\n  keyframes not mapped       0\n  no mesh metrics ({NO_OWN_MESH})\n"
     assert table in out, out
     mesh = REPO / "bags" / "synth_room_mesh.ply"
     assert main([*args, "--gt-mesh", str(mesh)]) == 0  # given: taken, for any bag
@@ -93,16 +94,15 @@ def test_demo_scores_mesh_metrics_against_the_sample_mesh_only_for_the_sample_ba
     assert f"mesh metrics against {beside}" in capsys.readouterr().out
     assert main([*sample, "--gt-mesh", ""]) == 0
     assert used["gt_mesh"] is None and used["why"] == "--gt-mesh ''"
-    # a byte-identical copy is the sample too (scripts/demo.sh names the checkout's, the installed roigsf finds the
-    # share folder's); the same files with one byte changed are not
+    # a copy of the sample without its mesh is one more bag (one rule with roigsf map: it used to take the sample's
+    # mesh for a byte-identical copy); with the mesh put beside it under its name, or into it, it has its own
     shutil.copytree(REPO / "bags" / "synth_room", tmp_path / "copy")
     sample[2] = str(tmp_path / "copy")
     assert main(sample) == 0
-    assert used["gt_mesh"] == REPO / "bags" / "synth_room_mesh.ply", used
-    with (tmp_path / "copy" / "metadata.yaml").open("a") as f:
-        f.write("\n")
-    assert main(sample) == 0
-    assert used["gt_mesh"] is None and used["why"] == "no --gt-mesh, and no mesh beside the bag", used
+    assert used["gt_mesh"] is None and used["why"] == NO_OWN_MESH, used
+    shutil.copy(REPO / "bags" / "synth_room_mesh.ply", tmp_path / "copy" / "mesh.ply")
+    assert main([*sample[:2], str(tmp_path / "copy" / "synth_room.mcap"), *sample[3:]]) == 0  # a .mcap: its folder's
+    assert used["gt_mesh"] == tmp_path / "copy" / "mesh.ply", used
 
 
 # ------------------------------------------------------------------------------------ 2. demo: params files

@@ -351,8 +351,9 @@ def test_demo_says_why_it_fails_when_frames_did_not_reach_the_nodes(
     metrics = {"policy": "every-n", "frames_received": 3, "fallbacks": 0, "keyframes_not_mapped": 0}
     monkeypatch.setattr(demo, "run_demo", lambda *args, **kwargs: metrics)
     assert main(["demo", "--bag", str(bag), "--out", str(tmp_path / "run"), "--rate", "0", "--no-progress"]) == 1
-    err = capsys.readouterr().err
-    assert "error: 1 of the bag's 4 frames did not reach the nodes complete and valid (at rate x0" in err, err
+    out, err = capsys.readouterr()
+    assert "1 of the bag's 4 frames did not reach the nodes complete and valid (in lockstep (each frame" in err, err
+    assert "s; playing in lockstep (each frame once the nodes took the one before) into active_mapping" in out, out
     real_info = demo.bag_info  # the same bag, read as if its stamps went back once: said as the likely cause
 
     def stamps_back(*args: Any, **kwargs: Any) -> dict[str, Any]:

@@ -754,7 +754,8 @@ def test_status_window_shows_the_frames_held_by_a_policy_deciding_alone_too(
     ros_context: Any, scene: Any, policy: str
 ) -> None:
     """``~/status``'s ``window`` showed the planner path's window only: with ``random`` (its window held by the
-    library's policy) it was always empty. Both now list the frames held, undecided.
+    library's policy) it was always empty. Both now list the candidate window; ``~/finish`` without lookahead said
+    "nothing held" beside it, and now says why there is nothing to decide.
     """
     frames, _ = scene
     overrides = [
@@ -772,6 +773,8 @@ def test_status_window_shows_the_frames_held_by_a_policy_deciding_alone_too(
         _wait(lambda: selector.status()["frames"] == 3, 20.0, "three frames")
         status = selector.status()
     assert status["keyframe_ids"] == [1000] and status["window"] == [2000, 3000], status  # frame ids: stamps (ns)
+    answer = selector._on_finish(Trigger.Request(), Trigger.Response())
+    assert answer.success and "with lookahead 0 every window was decided at its trigger (the 2 frames" in answer.message
 
 
 def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(

@@ -143,6 +143,20 @@ def realsense_hint(bag: Path, present: dict[str, str], given: str | None, named:
     return ""
 
 
+NO_OWN_MESH = "no --gt-mesh, and no mesh.ply in the source's folder nor NAME_mesh.ply beside it"
+"""Why a run without ``--gt-mesh`` has no mesh metrics (:func:`roigsf_ros.data.replica.scene_gt_mesh` found none)."""
+
+
+def chosen_gt_mesh(option: str | None, own: Path | None) -> tuple[Path | None, str]:
+    """The mesh ``roigsf map`` and ``roigsf demo`` take their mesh metrics against, and why there is none: ``--gt-mesh``
+    (``option``; ``''``: none) when given, else the source's own (``own``, as
+    :func:`~roigsf_ros.data.replica.scene_gt_mesh` finds it). Returns (the mesh or None, the reason when None, else "").
+    """
+    if option is not None:
+        return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
+    return (own, "") if own is not None else (None, NO_OWN_MESH)
+
+
 def check_out(out: Path, overwrite: bool) -> None:
     """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written."""
     if out.exists() and not overwrite:

@@ -66,12 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="accept a traj.txt with more poses than frames on disk (a partial download)",
     )
-    conv.add_argument(
-        "--no-mesh",
-        action="store_true",
-        help="leave the scene's ground-truth mesh out (default: its mesh.ply, or NAME_mesh.ply beside DIR NAME, is "
-        "copied into the bag folder as mesh.ply, where roigsf map, bench and demo find it)",
-    )
+    conv.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the scene's", src="DIR"))
     conv.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
     conv.add_argument("--no-progress", action="store_true", help="no progress bar")
     conv.set_defaults(func=_from_replica)
@@ -109,6 +104,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="MS",
         help="record each frame's /tf this long after its images, as on a robot (default 1)",
     )
+    robot.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the bag's", src="SRC"))
     robot.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
     robot.add_argument("--no-progress", action="store_true", help="no progress bar")
     robot.set_defaults(func=_to_robot)
@@ -132,6 +128,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     info.set_defaults(func=_info)
 
 
+_NO_MESH_HELP = (
+    "leave {what} ground-truth mesh out (default: its mesh.ply, or NAME_mesh.ply beside {src} NAME, is checked and "
+    "copied into the bag folder as mesh.ply, where roigsf map, bench and demo find it; the bag's readers ignore it)"
+)
+
+
+def _source_mesh(folder: Path, no_mesh: bool) -> Path | None:
+    """The ground-truth mesh to copy into a bag made from ``folder`` (:func:`scene_gt_mesh`), read and checked now, so
+    that a broken one is refused naming it, not found broken later as the bag's ``mesh.ply``; None with ``--no-mesh``.
+    """
+    from roigsf_ros.data.scene import load_mesh  # open3d: only where a mesh is read
+
+    mesh = None if no_mesh else scene_gt_mesh(folder)
+    if mesh is not None:
+        try:
+            load_mesh(mesh)
+        except InputError as exc:
+            raise InputError(exc.where, f"{exc.problem} (the ground-truth mesh to copy into the bag; --no-mesh: "
+                             "without it)") from None  # fmt: skip
+    return mesh
+
+
+def _print_mesh(mesh: Path | None, folder: Path, out: Path) -> None:
+    """Say which mesh went into the bag, or that none was there to copy."""
+    if mesh is not None:
+        print(f"  with the ground-truth mesh {mesh} as {out / 'mesh.ply'} (--no-mesh: without)")
+    else:
+        print(f"  no ground-truth mesh: none in {folder} nor {folder.name}_mesh.ply beside it, or --no-mesh")
+
+
 def _from_replica(args: argparse.Namespace) -> int:
     # Checked here, before any work, so that errors name the options typed (write_bag's are rate_hz, ...).
     if not (math.isfinite(args.rate) and args.rate > 0):
@@ -143,7 +169,7 @@ def _from_replica(args: argparse.Namespace) -> int:
     size = image_size(args)
     check_out(args.out, args.overwrite)
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
-    mesh = None if args.no_mesh else scene_gt_mesh(seq.root)
+    mesh = _source_mesh(seq.root, args.no_mesh)
     n = write_bag(
         seq,
         args.out,
@@ -157,8 +183,7 @@ def _from_replica(args: argparse.Namespace) -> int:
     )
     intr = seq.intrinsics
     print(f"wrote {n} frames ({intr.width}x{intr.height}, depth {args.depth_encoding}, {args.rate:g} Hz) to {args.out}")
-    if mesh is not None:
-        print(f"  with the ground-truth mesh {mesh} as {args.out / 'mesh.ply'} (--no-mesh: without)")
+    _print_mesh(mesh, seq.root, args.out)
     return 0
 
 
@@ -168,6 +193,8 @@ def _to_robot(args: argparse.Namespace) -> int:
     if args.out.resolve() == args.src.resolve():  # before check_out: --overwrite would let it replace the source
         raise InputError("--out", f"{args.out} is the bag being rewritten: write the robot's bag elsewhere")
     check_out(args.out, args.overwrite)
+    src_folder = args.src if args.src.is_dir() else args.src.parent
+    mesh = _source_mesh(src_folder, args.no_mesh)
     n = write_robot_bag(
         args.src,
         args.out,
@@ -177,11 +204,13 @@ def _to_robot(args: argparse.Namespace) -> int:
         tf_lag_s=args.tf_lag_ms * 1e-3,
         overwrite=args.overwrite,
         progress=not args.no_progress,
+        gt_mesh=mesh,
     )
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else "/"
     params = " ".join(f"-p {k}:={v}" for k, v in robot_node_parameters(args.namespace, args.depth_transport).items())
     print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns}`, or give the "
           f"nodes: {params}")  # fmt: skip
+    _print_mesh(mesh, src_folder, args.out)
     return 0
 
 
@@ -227,6 +256,8 @@ def format_info(info: dict[str, Any]) -> str:
             "nodes drop a frame stamped before one they delivered, unless the next frame stays back too (read as "
             "a restarted stream)"
         )
+    mesh = info["gt_mesh"] or "none (no mesh.ply in the bag folder nor NAME_mesh.ply beside it: no mesh metrics)"
+    lines.append(f"ground truth: {mesh}")
     for problem in info.get("missing_topics") or []:
         lines.append(f"missing:      {problem}")
     if info.get("hint"):

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roigsf_ros.cli import check_writable, realsense_hint
+from roigsf_ros.cli import check_writable, chosen_gt_mesh, realsense_hint
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import (
@@ -368,7 +368,7 @@ def run_demo(
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
 
     ``gt_mesh``: the mesh the map's mesh metrics are taken against (None: none, and ``no_gt_mesh_reason`` says why in
-    metrics.json; the sample bag's is ``sample_path(SAMPLE_GT_MESH)``: :func:`default_gt_mesh`). ``camera``: the
+    metrics.json; the demo's: :func:`default_gt_mesh`). ``camera``: the
     bag's camera as :func:`demo_camera` resolved it (its ``params`` then replace ``params`` and ``realsense``); None
     resolves it here. Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
     """
@@ -550,50 +550,16 @@ def run_demo(
     return metrics
 
 
-def is_sample_bag(bag: Path) -> bool:
-    """Whether ``bag`` is the shipped sample (:data:`SAMPLE_BAG`, its folder or its .mcap): by resolved path, else as a
-    byte-identical copy of it; False when the sample is not installed.
-
-    The copy counts because the installed ``roigsf`` finds the share folder's sample while ``scripts/demo.sh`` names the
-    checkout's ``bags/synth_room``: the same bag, which must keep its mesh metrics.
-    """
-    try:
-        sample = sample_path(SAMPLE_BAG).resolve()
-    except InputError:
-        return False
-    here = bag.resolve()
-    if here == sample or (here.parent == sample and here.suffix == ".mcap"):
-        return True
-    files = sorted(f for f in sample.iterdir() if f.is_file())
-    if here.is_file():  # a .mcap given as the bag: one of the sample's files, byte for byte
-        return any(f.suffix == ".mcap" and _same_file(here, f) for f in files)
-    theirs = sorted(f for f in here.iterdir() if f.is_file()) if here.is_dir() else []
-    return [f.name for f in theirs] == [f.name for f in files] and all(map(_same_file, theirs, files))
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether two files hold the same bytes (the sizes first: a bag of another scene differs at once)."""
-    import filecmp
-
-    return a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
-
-
 def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
-    """The mesh the demo's mesh metrics are taken against, from ``--gt-mesh`` (``option``), and why there is none.
-
-    Not given: the bag's own (:func:`scene_gt_mesh`: in its folder or ``NAME_mesh.ply`` beside it, as ``roigsf map`` and
-    ``roigsf bench`` find it), else the sample's mesh for a copy of the sample bag; any other bag (another scene, or
-    one made from the sample by ``bag to-robot``, whose frames may differ) gets none, rather than being scored against
-    a mesh it never saw. ``''``: none. Returns (the mesh or None, the reason when None, else "").
+    """The mesh the demo's mesh metrics are taken against, and why there is none: ``--gt-mesh`` (``option``), else the
+    bag's own (a bag folder's, or a ``.mcap``'s folder's), by the rule of ``roigsf map`` (:func:`chosen_gt_mesh`).
     """
-    if option is not None:
-        return (Path(option), "") if option.strip() else (None, "--gt-mesh ''")
-    own = scene_gt_mesh(bag if bag.is_dir() else bag.parent)
-    if own is not None:
-        return own, ""
-    if is_sample_bag(bag):
-        return sample_path(SAMPLE_GT_MESH), ""
-    return None, "no --gt-mesh, and no mesh beside the bag"
+    return chosen_gt_mesh(option, scene_gt_mesh(bag if bag.is_dir() else bag.parent))
+
+
+def _pace(rate: float) -> str:
+    """How the bag is played, in words: ``at rate x2``, or ``in lockstep`` (``--rate`` <= 0)."""
+    return f"at rate x{rate:g}" if rate > 0 else "in lockstep (each frame once the nodes took the one before)"
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -647,7 +613,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     print(
         f"bag {bag}: {info['frame_count']} frames{unposed} of {size}, depth {info['depth_encoding']}, pose from "
-        f"{info['pose_source']}, {info['duration_s']:.1f} s; playing at rate x{args.rate:g} into active_mapping"
+        f"{info['pose_source']}, {info['duration_s']:.1f} s; playing {_pace(args.rate)} into active_mapping"
         f"{given}, then {args.final_iters} refinement steps; {mesh_note}"
     )
     metrics = run_demo(
@@ -678,7 +644,7 @@ def _run(args: argparse.Namespace) -> int:
                else "")  # fmt: skip
         print(
             f"roigsf demo: error: {missed} of the bag's {info['frame_count']} frames did not reach the nodes complete "
-            f"and valid (at rate x{args.rate:g}; replay.json has the player's and the nodes' counts{why}): the "
+            f"and valid ({_pace(args.rate)}; replay.json has the player's and the nodes' counts{why}): the "
             "results are of the rest",
             file=sys.stderr,
         )
@@ -763,10 +729,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--gt-mesh",
         default=None,
         metavar="PLY",
-        help=f"ground-truth mesh for the mesh metrics (default: the bag's own, mesh.ply in its folder or NAME_mesh.ply "
-        f"beside bag NAME, as for the shipped sample, {SAMPLE_GT_MESH}, and a byte-identical copy of it; any other "
-        "bag none, so no mesh metrics, also one made from the sample by `bag to-robot`: pass "
-        f"--gt-mesh {SAMPLE_GT_MESH} there; '' for none)",
+        help="ground-truth mesh for the mesh metrics (default: the bag's own, as roigsf map finds it: mesh.ply in the "
+        f"bag folder, else NAME_mesh.ply beside the folder NAME, as {SAMPLE_GT_MESH} beside the shipped sample; "
+        "without either, no mesh metrics; '' for none)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress display")
     p.set_defaults(func=_run)

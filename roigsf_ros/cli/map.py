@@ -9,7 +9,7 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size, realsense_hint
+from roigsf_ros.cli import add_camera_options, camera_topics, check_out, chosen_gt_mesh, image_size, realsense_hint
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
 from roigsf_ros.data.sources import FrameSource, open_frames
@@ -60,8 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--gt-mesh",
         metavar="PLY",
-        help="ground-truth mesh (default: the source's own: a scene folder's mesh.ply, a bag's mesh.ply in its folder "
-        "or NAME_mesh.ply beside bag NAME; '' for none: no mesh metrics)",
+        help="ground-truth mesh (default: the source's own: mesh.ply in the scene or bag folder, else NAME_mesh.ply "
+        "beside the folder NAME, as Replica's office0_mesh.ply beside office0/; '' for none: no mesh metrics)",
     )
     p.add_argument("--width", type=int, help="resize frames to this width (alone: the height keeps the aspect ratio)")
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")
@@ -211,6 +211,8 @@ def run(args: argparse.Namespace) -> int:
     check_out(args.out, args.overwrite)
     policy = policy_from_args(args)
     cfg = config_from_args(args)
+    if args.gt_mesh and not Path(args.gt_mesh).is_file():  # now, before the sources are read
+        raise InputError(args.gt_mesh, "ground-truth mesh not found (--gt-mesh)")
     source = _open(args, args.source, topics, size=size, stride=args.stride, max_frames=args.max_frames,
                    allow_partial=args.allow_partial)  # fmt: skip
     eval_source = None
@@ -218,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
         eval_source = _open(args, args.eval_against, topics, size=size, stride=args.stride,
                             max_frames=args.max_frames, allow_partial=args.allow_partial)  # fmt: skip
     test_source = _open(args, args.test_scene, topics, size=size) if args.test_scene is not None else None
-    gt_mesh = gt_mesh_of(args.gt_mesh, source.gt_mesh_path)
+    gt_mesh, no_mesh = chosen_gt_mesh(args.gt_mesh, source.gt_mesh_path)
     metrics = run_offline(
         source,
         policy,
@@ -235,9 +237,7 @@ def run(args: argparse.Namespace) -> int:
     if eval_source is not None:
         print(f"  (PSNR, SSIM, depth L1 against {args.eval_against})")
     print_summary(metrics)
-    if gt_mesh is None:
-        hint = "" if args.gt_mesh == "" else "; pass --gt-mesh"
-        print(f"  (no ground-truth mesh: mesh metrics skipped{hint})")
+    print(f"  mesh metrics against {gt_mesh}" if gt_mesh is not None else f"  no mesh metrics ({no_mesh})")
     return 0
 
 
@@ -261,13 +261,6 @@ def _open(args: argparse.Namespace, path: str | Path, topics: CameraTopics, **kw
         if not hint:
             raise
         raise InputError(exc.where, exc.problem + hint) from None
-
-
-def gt_mesh_of(option: str | None, default: Path | None) -> Path | None:
-    """The ground-truth mesh of ``--gt-mesh``: the source's own (``default``) when not given, none for ``''``."""
-    if option is None:
-        return default
-    return Path(option) if option.strip() else None
 
 
 _SKIPPED_KEYS = (

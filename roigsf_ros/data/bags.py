@@ -42,7 +42,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.core.package_files import package_path, package_path_places
-from roigsf_ros.data.replica import ReplicaSequence
+from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.sync import StampMatcher
 from roigsf_ros.data.tf import (
     DEFAULT_TOLERANCE_S,
@@ -972,7 +972,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
     frame is then complete, and the stamps of the topics it has count as incomplete); ``realsense_namespace``
     is then the namespace of a RealSense camera the bag does hold in full (:func:`realsense_topics`), else
     None. Image fields are None when the bag has no such topic; a compressed stream's encoding is its
-    ``format``.
+    ``format``. ``gt_mesh``: the bag's ground-truth mesh (:func:`~roigsf_ros.data.replica.scene_gt_mesh`, what
+    ``roigsf map``, ``bench`` and ``demo`` score against), else None.
     """
     requested = topics or CameraTopics()
     with opened_bag(path) as reader:
@@ -1032,8 +1033,11 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
                     size = None
             else:
                 size = (int(msg.width), int(msg.height))
+    path = Path(path)
+    mesh = scene_gt_mesh(path if path.is_dir() else path.parent)
     return {
         "path": str(path),
+        "gt_mesh": None if mesh is None else str(mesh),
         "topics": counts,
         "message_count": sum(v["count"] for v in counts.values()),
         "start_ns": first_ns,

@@ -17,6 +17,7 @@ names.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -113,6 +114,7 @@ def write_robot_bag(
     keep_tf: Callable[[int], bool] | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    gt_mesh: Path | None = None,
 ) -> int:
     """Rewrite the camera bag ``src`` (this package's layout, :func:`~roigsf_ros.data.bags.write_bag`) at ``out``
     as a robot records it (module docstring); returns the number of frames written. ``out`` appears only once
@@ -120,7 +122,9 @@ def write_robot_bag(
 
     Frame k's odom -> base_link is stamped with its images' stamp and recorded ``tf_lag_s`` after them (TF
     lags the camera on a robot), unless ``keep_tf(k)`` is False (a lost transform, for tests). Depth is
-    rounded to millimetres (what a RealSense gives), so a 32FC1 source reads back within 0.5 mm.
+    rounded to millimetres (what a RealSense gives), so a 32FC1 source reads back within 0.5 mm. ``gt_mesh``: copied
+    into the bag folder as ``mesh.ply``, as :func:`~roigsf_ros.data.bags.write_bag` does (the poses keep the source's
+    world frame, ``map``, so the source's ground truth holds).
     """
     if color_format not in ROBOT_COLOR_FORMATS:
         raise InputError("color_format", f"'{color_format}' is not one of {', '.join(ROBOT_COLOR_FORMATS)}")
@@ -130,6 +134,8 @@ def write_robot_bag(
         raise InputError("tf_lag_s", f"must be a number of seconds >= 0, got {tf_lag_s}")
     if Path(out).resolve() == Path(src).resolve():
         raise InputError(out, "is the bag being rewritten: write the robot's bag elsewhere")
+    if gt_mesh is not None and not Path(gt_mesh).is_file():
+        raise InputError(gt_mesh, "ground-truth mesh not found")
     topics = bags.realsense_topics(namespace, color_transport="compressed", depth_transport=depth_transport)
     resolved = topics.resolved()
     types = resolved.types() | {TF_TOPIC: TF_MESSAGE_TYPE, TF_STATIC_TOPIC: TF_MESSAGE_TYPE}
@@ -182,6 +188,8 @@ def write_robot_bag(
         for item in staging.iterdir():
             item.rename(tmp / item.name)
         staging.rmdir()
+        if gt_mesh is not None:
+            shutil.copyfile(gt_mesh, tmp / "mesh.ply")
     return n
 
 

@@ -324,7 +324,8 @@ class BagPlayer(Node):
             self.get_logger().warning(
                 f"after {self.wait_timeout_s:g} s (wait_timeout_s), topics still short of the "
                 f"{self.wait_for_subscribers} subscriber(s) wait_for_subscribers asks for: {have}; playing anyway "
-                "(play only the topics a node reads with -p topics:=[...], or -p wait_for_subscribers:=0)"
+                "(nodes still starting, on a loaded machine: wait longer with -p wait_timeout_s:=30.0; else play only "
+                "the topics a node reads with -p topics:=[...], or -p wait_for_subscribers:=0)"
             )
         else:
             self.get_logger().info(

@@ -62,7 +62,9 @@ planner calls, failures, timeouts, windows that waited for the previous answer (
 fallbacks, and gives the longest wait for an answer to a window of the stream (``max_answer_s``), the slowest
 novelty computation (``max_novelty_s``) and the longest gap between two frames reaching the selector
 (``max_frame_gap_s``; many frame periods: something held the frames back, and windows then came in a burst);
-``window`` lists the frames held undecided (their stamps in ns), the planner path's or the deciding policy's own.
+``window`` lists the candidate window (stamps in ns; the planner path's or the deciding policy's own): the last
+``window`` frames not chosen, those that lost a selection too until newer frames push them out (with ``trigger_every``
+< ``window`` a later selection can still pick them).
 
     keyframe_selector --ros-args -p policy:=gaus-slam -p tau_k:=0.02
 """
@@ -583,7 +585,14 @@ class KeyframeSelectorNode(SystemNode):
     def _on_finish(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         n = self.finish()
         res.success = True
-        res.message = f"decided among {n} held frames" if n else "nothing held (lookahead 0, or no frames)"
+        if n:
+            res.message = f"decided among {n} held frames"
+        elif not self.lookahead:  # the window's frames are no debt: each window was decided at its trigger
+            res.message = (f"nothing to decide: with lookahead 0 every window was decided at its trigger (the "
+                           f"{len(self._window_ids())} frames in ~/status' window are candidates of later triggers "
+                           "only)")  # fmt: skip
+        else:
+            res.message = "nothing held (no frames since the last decision, or finish was called already)"
         return res
 
     # ------------------------------------------------------------------------------ planner
@@ -868,7 +877,7 @@ class KeyframeSelectorNode(SystemNode):
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframes_unsent": len(self._unsent),
                 "keyframe_ids": list(self.keyframe_ids),
-                "window": self._window.pending_ids if self._alone is None else list(self._alone.pending_ids),
+                "window": self._window_ids(),
                 "planner_pending": self._request is not None,
                 "frames_held_for_map": len(self._held_for_map),
                 "planner_window_waiting": self._waiting is not None,
@@ -878,6 +887,11 @@ class KeyframeSelectorNode(SystemNode):
                 "max_novelty_s": self.slowest_s["novelty"],
                 "max_frame_gap_s": self.slowest_s["frame_gap"],
             }
+
+    def _window_ids(self) -> list[int]:
+        """The candidate window's frame ids (stamps, ns): the planner path's, or the deciding policy's own."""
+        with self._lock:
+            return self._window.pending_ids if self._alone is None else list(self._alone.pending_ids)
 
     def publish_status(self) -> None:
         """Publish :meth:`status` as JSON on ``~/status``."""

@@ -120,8 +120,8 @@ class KeyframePolicy:
 
     @property
     def pending_ids(self) -> list[int]:
-        """Ids of the frames held as candidates, not decided yet (a windowed policy's window); [] for one that decides
-        each frame as it comes.
+        """Ids of the frames in the policy's candidate window (the last frames not chosen, those that lost a selection
+        too until newer ones push them out); [] for a policy that decides each frame as it comes.
         """
         return []
 
