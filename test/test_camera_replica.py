@@ -280,10 +280,12 @@ def test_truncated_images_are_refused_naming_the_file(seq_dir: Path, name: str) 
     assert seq.frame(0).rgb.shape == (24, 32, 3)  # the intact frames still read
 
 
-def test_office0_sample_is_readable(office0: Path) -> None:
+def test_office0_sample_is_readable(office0: Path, caplog: pytest.LogCaptureFixture) -> None:
     with pytest.raises(InputError, match="2000 poses"):
         ReplicaSequence(office0 / "office0")
-    seq = ReplicaSequence(office0 / "office0", allow_partial=True)
+    with caplog.at_level("WARNING"):
+        seq = ReplicaSequence(office0 / "office0", allow_partial=True)
+    assert "4 frames on disk of the 2000 poses in traj.txt; reading those (allow_partial)" in caplog.text  # said
     assert len(seq) == 4 and seq.intrinsics.width == 1200 and seq.intrinsics.height == 680
     fr = seq.frame(3)
     assert fr.rgb.shape == (680, 1200, 3) and fr.depth_m.dtype == np.float32

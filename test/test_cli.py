@@ -311,7 +311,7 @@ def test_map_empty_gt_mesh_means_none_as_in_demo(
     assert main([*argv, "--iters-per-keyframe", "1", "--final-iters", "0", "--no-h-train"]) == 0
     assert "  no mesh metrics (--gt-mesh '')" in capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())
-    assert "gt_mesh" not in metrics and "fscore@5cm" not in metrics
+    assert metrics["gt_mesh"] is None and metrics["no_gt_mesh_reason"] == "--gt-mesh ''" and "fscore@5cm" not in metrics
     # roigsf bench compares the policies' meshes: '' is refused naming the option, not read as the folder "."
     with pytest.raises(SystemExit):
         main(["bench", str(tiny_scene), "--gt-mesh", ""])

@@ -232,6 +232,7 @@ def run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         eval_source=eval_source,
         test_source=test_source,
+        no_gt_mesh_reason=no_mesh,
     )
     print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
     if eval_source is not None:

@@ -225,6 +225,9 @@ class ReplicaSequence:
                 "(line count must match the frames; a partial download needs allow_partial=True, "
                 "on the command line --allow-partial)",
             )
+        if len(all_poses) != len(self.indices):  # said, so that a run over 4 of 2000 frames does not pass unnoticed
+            _LOG.warning("%s: %d frames on disk of the %d poses in traj.txt; reading those (allow_partial)",
+                         self.results, len(self.indices), len(all_poses))  # fmt: skip
         self.poses = all_poses[self.indices]
         self.native = native
         self.intrinsics = native.resized(*size) if size is not None else native

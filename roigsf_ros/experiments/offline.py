@@ -166,12 +166,14 @@ def run_offline(
     overwrite: bool = False,
     eval_source: FrameSequence | None = None,
     test_source: FrameSequence | None = None,
+    no_gt_mesh_reason: str = "no ground-truth mesh given",
 ) -> dict[str, Any]:
     """Map a whole frame sequence (e.g. :func:`roigsf_ros.data.sources.open_frames`) offline into ``out_dir``.
 
     Files (written atomically): ``metrics.json``, ``mesh.ply``, ``map.ply``, ``keyframes.json`` and
     ``strip.png`` (input vs rendered colour and depth of a few evaluated frames). Image metrics are
-    over non-keyframes; mesh metrics need ``gt_mesh``. Frames with a non-rigid pose are skipped and
+    over non-keyframes; mesh metrics need ``gt_mesh`` (without: ``gt_mesh`` null and ``no_gt_mesh_reason``, as in
+    ``roigsf demo``'s metrics.json). Frames with a non-rigid pose are skipped and
     counted, and so are those the source skips (a bag's frames without a pose on TF, incomplete stamps, frames
     whose messages do not convert: ``frames_skipped_no_tf`` and ``frames_skipped_refused`` with the reason,
     ``frames_skipped_incomplete``; frames repeating an earlier frame's stamp: ``frames_skipped_repeated_stamp``), and
@@ -336,6 +338,8 @@ def run_offline(
     if gt_path is not None:
         valid = [p for p in poses if np.isfinite(p).all()]
         metrics |= run_mesh_metrics(mesh, gt_path, np.stack(valid) if valid else None, source.intrinsics, ev, cfg)
+    else:
+        metrics |= {"gt_mesh": None, "no_gt_mesh_reason": no_gt_mesh_reason}
     metrics["wall_s"] = time.perf_counter() - t0
     metrics["mapping_wall_s"] = t_map
     metrics["config"] = cfg.to_dict()
