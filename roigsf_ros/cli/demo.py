@@ -368,9 +368,9 @@ def run_demo(
     """Replay ``bag`` into the nodes (one process), refine the map, evaluate it, write ``out``; the metrics.
 
     ``gt_mesh``: the mesh the map's mesh metrics are taken against (None: none, and ``no_gt_mesh_reason`` says why in
-    metrics.json; the demo's: :func:`default_gt_mesh`). ``camera``: the
-    bag's camera as :func:`demo_camera` resolved it (its ``params`` then replace ``params`` and ``realsense``); None
-    resolves it here. Raises KeyboardInterrupt after a clean stop on Ctrl-C (nothing written).
+    metrics.json; the demo's: :func:`default_gt_mesh`). ``camera``: the bag's camera as :func:`demo_camera` resolved
+    it (its ``params`` then replace ``params`` and ``realsense``); None resolves it here. Raises KeyboardInterrupt
+    after a clean stop on Ctrl-C (nothing written).
     """
     from rclpy.parameter import Parameter
 
