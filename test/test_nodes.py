@@ -420,6 +420,7 @@ def test_a_keyframe_whose_frame_is_gone_says_why(ros_context: Any, scene: Any, c
         other = mapper.status()["last_keyframe_drop"]
     # was: "their frames did not arrive within 10 s", for frames that came with another camera's intrinsics
     assert other.startswith("keyframe 5000: its frame was refused (bad_intrinsics: camera_info: intrinsics "), other
+    assert "the map takes its camera from the first frame it receives" in other  # a wrong first camera_info: restart
     assert refused.startswith("keyframe 1000: its frame was refused (bad_encoding: "), refused
     assert "keyframe 1000: its frame was refused (bad_encoding: " in capfd.readouterr().err
     assert old.startswith("keyframe 2000: its frame was already out of the buffer, which holds the last 2 frames"), old
@@ -775,6 +776,24 @@ def test_status_window_shows_the_frames_held_by_a_policy_deciding_alone_too(
     assert status["keyframe_ids"] == [1000] and status["window"] == [2000, 3000], status  # frame ids: stamps (ns)
     answer = selector._on_finish(Trigger.Request(), Trigger.Response())
     assert answer.success and "with lookahead 0 every window was decided at its trigger (the 2 frames" in answer.message
+
+
+def test_a_parameter_set_at_run_time_is_refused_saying_it_is_read_at_start(ros_context: Any) -> None:
+    """``ros2 param set /nbv_planner max_candidates -5`` answered successful and the node went on with its old value
+    (it reads its parameters once): every parameter is now read-only once declared, and its description says how to
+    change it; the value stays the one the node runs with.
+    """
+    from roigsf_ros.nodes.node_params import READ_AT_START
+
+    selector = KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("startup_wait_s", value=0.0)])
+    try:
+        result = selector.set_parameters([Parameter("window", value=-5)])[0]
+        assert not result.successful and "read-only parameter: window" in result.reason, result
+        assert selector.get_parameter("window").value == 8 and selector.window == 8
+        assert selector.describe_parameter("window").description.endswith(f"({READ_AT_START})")
+        assert selector.describe_parameter("window").read_only
+    finally:
+        selector.destroy_node()
 
 
 def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(

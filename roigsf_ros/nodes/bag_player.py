@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -52,7 +51,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import open_any_reader
 from roigsf_ros.data.tf import TF_MESSAGE_TYPE
-from roigsf_ros.nodes.node_params import check_parameter_overrides, declare, parameter_error
+from roigsf_ros.nodes.node_params import check_parameter_overrides, declare, parameter_error, read_at_start
 from roigsf_ros.nodes.node_process import init_ros, script_args
 
 
@@ -142,7 +141,7 @@ class BagPlayer(Node):
         declare(self, "wait_timeout_s", 10.0, "seconds to wait for them; then a warning and playback anyway")
         declare(self, "start_delay_s", 0.5, "seconds to pause after the subscribers matched (their side of discovery)")
         topics_param = self.declare_parameter(
-            "topics", Parameter.Type.STRING_ARRAY, ParameterDescriptor(description="topics to play; unset = all")
+            "topics", Parameter.Type.STRING_ARRAY, read_at_start("topics to play; unset = all")
         )
         declare(self, "progress_period_s", 2.0, "seconds between progress lines; <= 0 = none")
         declare(self, "qos_depth", 100, "keep-last depth of the publishers")

@@ -176,6 +176,14 @@ def frame_of(bf: BagFrame) -> Frame:
     return Frame(index=int(bf.stamp_ns), rgb=bf.rgb, depth_m=bf.depth_m, T_wc=bf.T_wc)
 
 
+FIXED_BY_FIRST = (
+    " (the map takes its camera from the first frame it receives, or a loaded map's: if that frame's camera_info "
+    "was wrong, restart the mapper; another camera needs a map of its own)"
+)
+"""The end of a refused frame's reason when its intrinsics are not the map's: how the map's came to be, and the way
+out (a wrong first camera_info fixed them for the whole run)."""
+
+
 class MapperNode(SystemNode):
     """The mapper; see the module docstring. ``shared`` given: map into that in-process SharedMapper."""
 
@@ -342,7 +350,9 @@ class MapperNode(SystemNode):
             if intr is None:
                 self._intr = self.shared.ensure(bf.intrinsics).intr
             elif not same_camera(intr, bf.intrinsics):
-                raise InputError("camera_info", f"intrinsics {bf.intrinsics} differ from the map's {intr}")
+                raise InputError(
+                    "camera_info", f"intrinsics {bf.intrinsics} differ from the map's {intr}{FIXED_BY_FIRST}"
+                )
         except InputError as exc:
             with self._lock:
                 self.counters["frames_bad_intrinsics"] += 1

@@ -122,16 +122,27 @@ def _type_error(node: Node, name: str, default: Any) -> InputError:
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
     """Declare one parameter with a default and a description; returns its (possibly overridden) value.
 
-    A ``*_topic`` or ``*_service`` parameter's name is checked as ROS will expand it (:func:`check_ros_name`).
+    Read-only (:data:`READ_AT_START`): the nodes read their parameters once, at start-up, so a change at run time
+    (``ros2 param set``) is refused saying so, where it was accepted and then ignored. A ``*_topic`` or ``*_service``
+    parameter's name is checked as ROS will expand it (:func:`check_ros_name`).
     """
     value = list(default) if isinstance(default, tuple) else default
     try:
-        got = node.declare_parameter(name, value, ParameterDescriptor(description=description)).value
+        got = node.declare_parameter(name, value, read_at_start(description)).value
     except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
         raise _type_error(node, name, default) from None
     if isinstance(got, str) and got and name.endswith(("_topic", "_service")):
         check_ros_name(node, name, got)
     return got
+
+
+READ_AT_START = "read at start-up: set it with -p NAME:=VALUE or a params file, and restart the node"
+"""What a parameter's description ends with: every parameter of the package's nodes is read-only once declared."""
+
+
+def read_at_start(description: str) -> ParameterDescriptor:
+    """The read-only descriptor of a parameter the node reads once, at start-up (:func:`declare`)."""
+    return ParameterDescriptor(description=f"{description} ({READ_AT_START})", read_only=True)
 
 
 def check_ros_name(node: Node, name: str, value: str) -> str:
