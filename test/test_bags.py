@@ -16,6 +16,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from roigsf_ros.cli import main as cli_main
+from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
@@ -565,3 +566,38 @@ def test_converters_accept_rclpy_messages() -> None:
     pose.pose.position.x, pose.pose.orientation.z, pose.pose.orientation.w = 1.5, math.sqrt(0.5), math.sqrt(0.5)
     T = bags.pose_to_matrix(pose)
     assert np.allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]]) and T[0, 3] == 1.5
+
+
+def test_a_pose_outside_the_map_frame_and_distortion_are_said_once_per_topic(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A pose stamped in ``odom`` and a camera_info with distortion coefficients were used without a word (the pose as
+    if in ``map``, the images as if rectified): each is now said once per topic, and the frame still converts.
+    """
+    monkeypatch.setattr(bags, "_noted", set())
+    pose = bags.TYPESTORE.types[bags.POSE_TYPE](
+        header=bags.header_msg(1, "odom"),
+        pose=bags.TYPESTORE.types["geometry_msgs/msg/Pose"](
+            position=bags.TYPESTORE.types["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=3.0),
+            orientation=bags.TYPESTORE.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+    )
+    intr_in = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    info = bags.camera_info_msg(1, intr_in)
+    info.distortion_model, info.d = "plumb_bob", np.array([-0.3, 0.1, 0.001, 0.001, 0.0])
+    with caplog.at_level("WARNING"):
+        for _ in range(3):
+            T = bags.pose_to_matrix(pose, "/camera/pose @ 1 ns")
+            intr = bags.camera_info_to_intrinsics(info, "/camera/camera_info @ 1 ns")
+    assert np.allclose(T[:3, 3], [1.0, 2.0, 3.0]) and intr == intr_in  # still converted
+    notes = [r.getMessage() for r in caplog.records]
+    assert len(notes) == 2, notes  # once each, not once a message
+    assert notes[0].startswith("/camera/pose: poses in frame 'odom', not 'map', are taken as") and "TF" in notes[0]
+    assert notes[1].startswith("/camera/camera_info: distortion coefficients (plumb_bob, D=[-0.3, 0.1, 0.001")
+    caplog.clear()
+    pose.header.frame_id = "map"
+    info.d = np.zeros(5)
+    with caplog.at_level("WARNING"):
+        bags.pose_to_matrix(pose, "/other/pose @ 2 ns")
+        bags.camera_info_to_intrinsics(info, "/other/camera_info @ 2 ns")
+    assert not caplog.records  # in map, no distortion: nothing to say

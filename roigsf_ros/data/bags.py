@@ -18,6 +18,7 @@ messages both work, and ROS nodes reuse them.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import shutil
 import struct
@@ -93,6 +94,7 @@ def sample_path(relative: str = SAMPLE_BAG) -> Path:
     return path
 
 
+_LOG = logging.getLogger(__name__)
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 QOS_RELIABLE = Qos(
     history=QosHistory.KEEP_LAST,
@@ -494,8 +496,33 @@ def encode_compressed_depth(depth_m: np.ndarray, transport: str = "compressedDep
     return "16UC1; compressedDepth png", header + png.tobytes()
 
 
+_noted: set[tuple[str, str]] = set()
+_MAX_NOTED = 256
+"""Notes logged once per (source, what): a stream that carries the same thing in every message is said once."""
+
+
+def _note_once(source: str, what: str, text: str) -> None:
+    """Log ``text`` as a warning the first time ``(source, what)`` comes (bounded: beyond it, notes repeat)."""
+    key = (source, what)
+    if key in _noted:
+        return
+    if len(_noted) < _MAX_NOTED:
+        _noted.add(key)
+    _LOG.warning(text)
+
+
 def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intrinsics:
-    """Pinhole intrinsics from a ``sensor_msgs/CameraInfo`` (its K and width/height; images assumed rectified)."""
+    """Pinhole intrinsics from a ``sensor_msgs/CameraInfo`` (its K and width/height; images assumed rectified).
+
+    Non-zero distortion coefficients are not applied: said once per topic, since unrectified images then map with
+    bent edges (a camera's rectified stream, or image_proc's, is what to feed).
+    """
+    d = np.asarray(getattr(msg, "d", ()), dtype=np.float64).reshape(-1)
+    if d.size and np.any(d[np.isfinite(d)] != 0):
+        model = getattr(msg, "distortion_model", "") or "unnamed model"
+        topic = where.split(" @ ")[0]
+        _note_once(topic, "distortion", f"{topic}: distortion coefficients ({model}, D={d.tolist()}) are not "
+                   "applied: the images are mapped as if rectified; feed the camera's rectified images")  # fmt: skip
     k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
     width, height = int(msg.width), int(msg.height)
     if k.size != 9 or not np.all(np.isfinite(k)):
@@ -509,8 +536,15 @@ def pose_to_matrix(msg: Any, where: str = POSE_TOPIC, source: str | None = None)
     """[4, 4] float64 T_wc of a ``geometry_msgs/PoseStamped`` (or a bare ``Pose``); must be finite and rigid.
 
     Checked by :func:`roigsf_ros.core.camera.load_pose` like every loaded pose; ``source`` (the topic,
-    default ``where``) is what its once-only warning names.
+    default ``where``) is what its once-only warning names. A header frame other than :data:`MAP_FRAME_ID` is said
+    once per topic: the pose is taken as the camera's pose in the map as it is (no transform applied).
     """
+    frame_id = getattr(getattr(msg, "header", None), "frame_id", "")
+    if frame_id not in ("", MAP_FRAME_ID):
+        topic = (source or where).split(" @ ")[0]
+        _note_once(topic, f"frame {frame_id}", f"{topic}: poses in frame '{frame_id}', not '{MAP_FRAME_ID}', are "
+                   "taken as the camera's pose in the map as they are (no transform applied); publish them in "
+                   f"'{MAP_FRAME_ID}', or read the pose from TF (pose_source tf), which transforms it")  # fmt: skip
     pose = msg.pose if hasattr(msg, "pose") else msg
     p, q = pose.position, pose.orientation
     T = pose_from_position_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]), where)
