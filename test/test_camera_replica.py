@@ -94,6 +94,13 @@ def test_quaternion_round_trip_and_pose_checks() -> None:
     bad[1, 3] = np.nan
     with pytest.raises(InputError, match="non-finite"):
         check_pose(bad, "here")
+    # a pose in GPS/UTM metres (one such keyframe stopped every later planner request): refused as the pose it is
+    far = np.eye(4)
+    far[0, 3] = 1e6
+    with pytest.raises(InputError, match=r"^/camera/pose @ 5 ns: pose position \[1000000.0, 0.0, 0.0\] m is 1000000 m"):
+        check_pose(far, "/camera/pose @ 5 ns")
+    far[0, 3] = 9_000.0  # a large site is still mapped
+    assert check_pose(far, "here")[0, 3] == 9_000.0
     with pytest.raises(InputError, match="unit quaternion"):
         quat_xyzw_to_matrix(np.array([0.0, 0.0, 0.0, 2.0]))
 

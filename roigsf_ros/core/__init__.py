@@ -9,6 +9,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "camera": [
             "Intrinsics",
+            "MAX_POSITION_M",
             "POSE_RIGID_TOL",
             "REPLICA_DEPTH_SCALE",
             "check_pose",

@@ -170,6 +170,10 @@ POSE_RIGID_TOL = 1e-2
 
 Real-sensor trajectories (KinectFusion poses in 7-Scenes, ScanNet) are off by 1e-4 to 4e-4 from
 float round-off accumulated over the sequence; a clearly non-rigid matrix is off by far more."""
+MAX_POSITION_M = 10_000.0
+"""Farthest a camera may be from the map origin, m. The scoring's voxel maps key +-2^20 voxels a side (+-21 km at the
+default 2 cm, +-10.5 km at 1 cm): one keyframe posed in GPS/UTM metres (or after an odometry jump of that size) filled
+the map with surfels no voxel could key, and every later planner request failed. Refused as the pose it is instead."""
 _EXACT_TOL = 1e-9
 """Below this deviation a rotation is left as it is."""
 _WARN_TOL = 1e-5
@@ -188,6 +192,11 @@ def _rigid_pose(T_wc: np.ndarray, where: str, tol: float) -> tuple[np.ndarray, f
         raise InputError(where, f"pose must be 4x4, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise InputError(where, "pose has non-finite values")
+    far = float(np.linalg.norm(T[:3, 3]))
+    if far > MAX_POSITION_M:
+        raise InputError(where, f"pose position {np.round(T[:3, 3], 1).tolist()} m is {far:.0f} m from the map origin, "
+                         f"beyond the {MAX_POSITION_M:g} m this package maps (MAX_POSITION_M): GPS/UTM poses need a "
+                         "local map frame")  # fmt: skip
     R = T[:3, :3]
     dev = float(np.abs(R.T @ R - np.eye(3)).max())
     det = float(np.linalg.det(R))
@@ -303,6 +312,7 @@ def depth_points_w(depth_m: np.ndarray, T_wc: np.ndarray, intr: Intrinsics, vali
 
 
 __all__ = [
+    "MAX_POSITION_M",
     "POSE_RIGID_TOL",
     "REPLICA_DEPTH_SCALE",
     "Intrinsics",
