@@ -101,6 +101,37 @@ def _wait_received(camera: CameraInput, n: int, timeout_s: float = 5.0) -> None:
     time.sleep(0.1)
 
 
+@pytest.mark.parametrize("pending", [16, 64])
+def test_a_pose_topic_late_by_20_frames_loses_no_frame_within_pending_frames(ros_context: Any, pending: int) -> None:
+    """A pose topic 20 frames behind the images (a VIO node's): with a fixed 16 stamps waiting, 4 frames of every 20
+    were kept and the rest dropped incomplete; ``pending_frames`` (64 by default) holds them until their pose comes.
+    """
+    frames: list[BagFrame] = []
+    node = Node(f"late_pose_{pending}", context=ros_context)
+    qos = reliable_qos(100)
+    camera = CameraInput(node, frames.append, qos, max_pending=pending)
+    pub_node, pubs = _camera_publishers(ros_context, camera, qos, f"late_pose_pub_{pending}")
+    pose_topic = camera.topics.pose
+    stamps = [(k + 1) * 1_000 for k in range(30)]
+    with _spinning(ros_context, node, pub_node):
+        _wait_matched(pubs)
+        for k, stamp in enumerate(stamps + [None] * 20):  # the pose of frame k comes with the images of frame k + 20
+            if stamp is not None:
+                msgs = _messages(stamp)
+                for topic in (camera.topics.color, camera.topics.depth, camera.topics.camera_info):
+                    pubs[topic].publish(msgs[topic])
+            if k >= 20:
+                pubs[pose_topic].publish(_messages(stamps[k - 20])[pose_topic])
+            time.sleep(0.005)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and len(frames) + camera.dropped_incomplete < 30:
+            time.sleep(0.02)
+    if pending == 16:
+        assert camera.dropped_incomplete > 0 and len(frames) < 30  # what a fixed 16 did
+    else:
+        assert [f.stamp_ns for f in frames] == stamps and camera.dropped_incomplete == 0
+
+
 def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
     frames: list[BagFrame] = []
     node = Node("camera_input_test", context=ros_context)
@@ -527,7 +558,7 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
     nodes = [Node(name, context=ros_context) for name in ("wrong_depth", "pose_topic", "reliable_in", "best_in")]
     got: list[list[BagFrame]] = [[] for _ in nodes]
     inputs = [
-        CameraInput(nodes[0], got[0].append, qos, wrong_depth),
+        CameraInput(nodes[0], got[0].append, qos, wrong_depth, max_pending=16),
         CameraInput(nodes[1], got[1].append, qos, pose_topic),
         CameraInput(nodes[2], got[2].append, camera_qos(10, "reliable"), be_topics),
         CameraInput(nodes[3], got[3].append, camera_qos(10, "best_effort"), be_topics),
@@ -555,7 +586,10 @@ def test_a_topic_that_delivers_nothing_is_named_with_what_the_graph_offers(
     assert "camera_reliability: best_effort" in silent[2]["/be/color"]
     assert inputs[2].received["/be/color"] == 0 and "/be/color" not in inputs[3].qos_incompatible
     err = capfd.readouterr().err
-    assert f"1 incomplete frame(s) dropped so far (more than 16 waiting): nothing ever received on {depth}" in err
+    assert (
+        f"1 incomplete frame(s) dropped so far (more than 16 waiting, pending_frames): nothing ever received on {depth}"
+        in err
+    )
     assert "/be/color: a publisher's QoS does not match this subscription (RELIABILITY" in err, err
     line = describe_topics(published)
     assert line == (

@@ -42,6 +42,7 @@ CAMERA_PARAMETERS = {
 _PROBED = {
     *CAMERA_PARAMETERS.values(),
     *("tf_wait_s", "tf_wait_frames", "tf_cache_s", "input_width", "input_height", "camera_reliability"),
+    "pending_frames",
 }
 """Every parameter ``camera_params`` declares: the ``--set`` values a probe node gets."""
 REALSENSE_FIELDS = ("color", "depth", "camera_info", "pose_source", "tf_child_frame")

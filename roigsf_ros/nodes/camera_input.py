@@ -176,6 +176,10 @@ class CameraSettings:
     tf_cache_s: float = DEFAULT_CACHE_S
     """Seconds of TF history kept behind the newest transform (tf2's cache time; a replay as fast as possible
     sends the whole bag's /tf before the images are decoded, so it needs the bag's length)."""
+    pending_frames: int = 64
+    """At most this many stamps wait for their other messages (the oldest beyond is dropped, counted incomplete): 64
+    are 2.1 s at 30 Hz (a fixed 16 were 0.53 s, and a pose topic from a VIO node 20 frames behind the images lost 44
+    of 60 frames)."""
 
 
 @dataclass
@@ -198,7 +202,7 @@ class CameraInput:
         on_frame: Callable[[BagFrame], None],
         qos: QoSProfile,
         topics: CameraTopics | None = None,
-        max_pending: int = 16,
+        max_pending: int = 64,
         callback_group: CallbackGroup | None = None,
         input_size: tuple[int | None, int | None] | None = None,
         tf_wait_s: float = 1.0,
@@ -265,6 +269,7 @@ class CameraInput:
             tf_wait_s=settings.tf_wait_s,
             tf_cache_s=settings.tf_cache_s,
             tf_wait_frames=settings.tf_wait_frames,
+            max_pending=settings.pending_frames,
             subscribe=subscribe,
         )
 
@@ -479,7 +484,8 @@ class CameraInput:
                 missing = [name for name in self.topics.types() if self.received[name] == 0]
             why = f"nothing ever received on {', '.join(missing)}" if missing else "one of their messages never came"
             self.node.get_logger().warning(
-                f"{dropped} incomplete frame(s) dropped so far (more than {self.max_pending} waiting): {why}",
+                f"{dropped} incomplete frame(s) dropped so far (more than {self.max_pending} waiting, pending_frames): "
+                f"{why}",
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
         if parts is None:

@@ -144,8 +144,10 @@ def camera_params(node: Node) -> CameraSettings:
     )
     tf_cache_s = float(declare(node, "tf_cache_s", DEFAULT_CACHE_S, "tf: seconds of history behind the newest"))
     tf_wait_frames = int(declare(node, "tf_wait_frames", 64, "tf: at most this many frames wait for their pose"))
+    pending_frames = int(declare(node, "pending_frames", 64, "at most this many stamps wait for their other messages"))
     check_positive("tf_cache_s", tf_cache_s)
     check_positive("tf_wait_frames", tf_wait_frames)
+    check_positive("pending_frames", pending_frames)
     width = int(declare(node, "input_width", 0, "frames resized on arrival to this width (0 = camera's)"))
     height = int(declare(node, "input_height", 0, "frames resized on arrival to this height (0 = camera's)"))
     check_positive("tf_wait_s", tf_wait_s, allow_zero=True)
@@ -161,7 +163,7 @@ def camera_params(node: Node) -> CameraSettings:
         }
         raise InputError(f"parameter '{name.get(exc.where, exc.where)}'", exc.problem) from None
     camera_qos(1, reliability)  # an unknown value: an error naming the parameter
-    return CameraSettings(topics, size, tf_wait_s, reliability, tf_wait_frames, tf_cache_s)
+    return CameraSettings(topics, size, tf_wait_s, reliability, tf_wait_frames, tf_cache_s, pending_frames)
 
 
 def request_folder(directory: str) -> Path:
