@@ -470,7 +470,8 @@ class CameraInput:
         if repeated != stamps_before[0]:
             self.node.get_logger().warning(
                 f"dropped frame at stamp {when} s on {topic}: it repeats the stamp of a frame already "
-                f"received ({repeated} so far)",
+                f"received ({repeated} so far; complete or not: each stamp is read once, so a bag played again into "
+                "a running node repeats every stamp)",
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
         if back != stamps_before[1]:
