@@ -287,3 +287,26 @@ def test_an_empty_parameter_value_error_shows_how_to_give_one() -> None:
             remove_ros_args(["mapper", "--ros-args", "-p", typed])
         assert str(ros_args_error(caught.value)) == said
     assert remove_ros_args(["mapper", "--ros-args", "-p", "load_map:=''"]) == ["mapper"]
+
+
+def test_a_node_process_says_the_librarys_warnings_through_ros_logging() -> None:
+    """Library warnings (a frame without valid depth, a pose outside ``map``) came as bare lines on stderr, without the
+    level, time or logger a node's own lines carry, and never reached ``/rosout``: a console script's ``init_ros`` now
+    routes them through ROS logging, once each, at WARNING and up as before.
+    """
+    code = (
+        "import logging, rclpy\n"
+        "from roigsf_ros.nodes.node_process import init_ros, route_library_logging\n"
+        "init_ros(['probe'])\n"
+        "assert route_library_logging() is route_library_logging()  # once per process\n"
+        "log = logging.getLogger('roigsf_ros.data.bags')\n"
+        "log.warning('a library note')\n"
+        "log.info('not said at info')\n"
+        "rclpy.shutdown()\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if "a library note" in line]
+    assert len(lines) == 1 and lines[0].startswith("[WARN]"), proc.stderr
+    assert "[roigsf_ros.data.bags]: a library note" in lines[0], lines
+    assert "not said at info" not in proc.stderr + proc.stdout

@@ -8,6 +8,7 @@ import argparse
 import ast
 import concurrent.futures
 import contextlib
+import logging
 import os
 import re
 import signal
@@ -17,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
+import rclpy.logging
 from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -128,10 +130,50 @@ def script_args(program: str, description: str | None, args: list[str] | None, b
     return argv  # rclpy.init ignores the plain arguments
 
 
+class RosLogHandler(logging.Handler):
+    """Python log records of the library (``roigsf_ros.*``: a frame without valid depth, a pose outside ``map``) through
+    the ROS logger of their module's name, so a node process says them as its own lines are said: on the console with
+    level and time, in its ROS log file and on ``/rosout`` (they came as bare lines on stderr).
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Say ``record`` with the ROS logger of its name, at its level."""
+        try:
+            logger = rclpy.logging.get_logger(record.name)
+            text = self.format(record)
+            if record.levelno >= logging.ERROR:
+                logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                logger.info(text)
+            else:
+                logger.debug(text)
+        except Exception:  # a log line must never take the node down
+            self.handleError(record)
+
+
+def route_library_logging() -> RosLogHandler:
+    """Send the library's Python logging (``roigsf_ros``, warnings and up unless configured) through ROS logging
+    (:class:`RosLogHandler`); once per process. Returns the handler.
+    """
+    library = logging.getLogger("roigsf_ros")
+    for handler in library.handlers:
+        if isinstance(handler, RosLogHandler):
+            return handler
+    handler = RosLogHandler()
+    library.addHandler(handler)
+    library.propagate = False  # said once, by ROS
+    if library.level == logging.NOTSET:
+        library.setLevel(logging.WARNING)  # what Python said without a handler
+    return handler
+
+
 def init_ros(args: list[str] | None = None) -> None:
     """``rclpy.init`` for a console script: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread.
 
-    Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`). ROS arguments rclpy cannot
+    Also lowers the thread switch interval (:func:`reduce_gil_switch_interval`) and sends the library's Python logging
+    through ROS logging (:func:`route_library_logging`). ROS arguments rclpy cannot
     parse raise InputError (:func:`ros_args_error`), as a bad ``ROIGSF_GIL_SWITCH_INTERVAL_S`` or ``ROS_DOMAIN_ID``
     does. The arguments are noted (:func:`remember_ros_args`): the nodes' errors and warnings name their params files.
 
@@ -148,6 +190,7 @@ def init_ros(args: list[str] | None = None) -> None:
     except ROS_ARGS_ERRORS as exc:
         raise ros_args_error(exc) from None
     remember_ros_args(get_default_context(), sys.argv if args is None else args)
+    route_library_logging()
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
 
@@ -263,9 +306,11 @@ __all__ = [
     "ROS_ARGS_ERRORS",
     "ROS_ARGS_HELP",
     "BackgroundSpin",
+    "RosLogHandler",
     "init_ros",
     "reduce_gil_switch_interval",
     "ros_args_error",
+    "route_library_logging",
     "run_nodes",
     "script_args",
     "shutdown_executor",
