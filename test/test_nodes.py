@@ -1758,6 +1758,11 @@ def test_stale_requests_are_refused_before_any_map_work(ros_context: Any, scene:
         res = planner._on_request(old, GetNextBestView.Response())
         assert not res.success and "stale request: sent 5." in res.message and "max_request_age_s 2" in res.message
         assert planner.status()["stale"] == 1 and planner.status()["tsdf_frames"] == 0  # refused before any work
+        ahead = _request([frames[1].T_wc, frames[2].T_wc])
+        ahead.candidates.header = header(now + 3_600_000_000_000, "map")  # a clock an hour ahead: was scored
+        res = planner._on_request(ahead, GetNextBestView.Response())
+        assert not res.success and "request stamped 3600." in res.message and "in the future" in res.message
+        assert planner.status()["stale"] == 2 and planner.status()["tsdf_frames"] == 0
         fresh = _request([frames[1].T_wc, frames[2].T_wc])
         fresh.candidates.header = header(planner.get_clock().now().nanoseconds, "map")
         assert planner._on_request(fresh, GetNextBestView.Response()).success

@@ -37,8 +37,10 @@ were decided by the fallback. With a warm cache it takes about a second.
 
 Requests older than ``max_request_age_s`` (their ``candidates.header.stamp``; 0 = unstamped, always
 served) are refused before scoring, "stale request": the selector has given up on them by then, and
-scoring them would only delay the next window's request. A stamp ahead of the planner's clock is served (two
-machines' clocks differ by that much without anything being wrong); an empty ``frame_id`` means the map frame.
+scoring them would only delay the next window's request. A stamp ahead of the planner's clock is served up to the
+same bound (two machines' clocks differ a little without anything being wrong); beyond it the request is refused
+naming the clocks (a sender an hour ahead used to pass the age check unseen, and a sender as far behind is refused as
+stale anyway). An empty ``frame_id`` means the map frame.
 
 Service ``~/get_next_best_view`` (``roigsf_interfaces/srv/GetNextBestView``) runs in a callback group of
 its own, so a multi-threaded executor keeps serving the node's other callbacks while it scores. It
@@ -453,7 +455,9 @@ class NBVPlannerNode(SystemNode):
         return result, snap, cands
 
     def _check_age(self, req: GetNextBestView.Request) -> None:
-        """InputError "stale request" when the candidates' stamp is older than ``max_request_age_s``."""
+        """InputError "stale request" when the candidates' stamp is older than ``max_request_age_s``, and one naming the
+        clocks when it is that far in the future (a sender whose clock runs ahead got past the age check unseen).
+        """
         stamp_ns = stamp_to_ns(req.candidates.header.stamp)
         if stamp_ns <= 0 or self.max_request_age_s <= 0:
             return
@@ -462,6 +466,12 @@ class NBVPlannerNode(SystemNode):
             raise InputError(
                 "candidates.header.stamp",
                 f"stale request: sent {age_s:.1f} s ago (max_request_age_s {self.max_request_age_s:g}); not scored",
+            )
+        if -age_s > self.max_request_age_s:
+            raise InputError(
+                "candidates.header.stamp",
+                f"request stamped {-age_s:.1f} s in the future: the sender's clock and the planner's differ by more "
+                f"than max_request_age_s ({self.max_request_age_s:g}, which bounds both ways); not scored",
             )
 
     def score_markers(self, cands: np.ndarray, result: NBVResult, stamp_ns: int) -> MarkerArray:
