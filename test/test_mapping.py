@@ -155,6 +155,10 @@ def test_bad_input_is_masked_skipped_or_refused(frames: list[Frame], caplog: pyt
     assert mapper.stats.frames_skipped_no_depth == 3 and mapper.n_surfels == 0 and not mapper.keyframes
     assert mapper.stats.invalid_depth_pixels == 3 * INTR.width * INTR.height
     assert "no valid depth" in caplog.text
+    # each says what it saw: nothing usable, or values out of range with a hint for millimetres given as metres
+    assert "frame 10: no valid depth (every value NaN, infinite, zero or negative; valid is min_depth_m" in caplog.text
+    assert "frame 12: no valid depth (finite values 1e+04-1e+04 m, outside min_depth_m" in caplog.text
+    assert "millimetres given as metres?" in caplog.text
 
     # Partly broken depth: the bad pixels are masked and counted, the map stays finite.
     depth = f0.depth_m.copy()

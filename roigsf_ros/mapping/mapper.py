@@ -512,6 +512,20 @@ class Mapper:
             except StopIteration as done:
                 return bool(done.value)
 
+    def no_depth_reason(self, depth_m: np.ndarray) -> str:
+        """Why a frame has no valid depth, with the values it does have: a sensor's millimetres given as metres (a
+        16UC1 image published as 32FC1) read as "values 450-4000, above max_depth_m 10", not only "out of range".
+        """
+        cfg = self.config
+        d = np.asarray(depth_m, dtype=np.float64)
+        d = d[np.isfinite(d) & (d > 0)]
+        bounds = f"min_depth_m {cfg.min_depth_m:g} to max_depth_m {cfg.max_depth_m:g}"
+        if d.size == 0:
+            return f"no valid depth (every value NaN, infinite, zero or negative; valid is {bounds})"
+        lo, hi = float(d.min()), float(d.max())
+        hint = "; millimetres given as metres? (16UC1 depth is mm, 32FC1 m)" if lo > 5 * cfg.max_depth_m else ""
+        return f"no valid depth (finite values {lo:.3g}-{hi:.3g} m, outside {bounds}{hint})"
+
     def keyframe_schedule(
         self, frame: Frame, slice_iters: int = 0, optimise: bool = True, flush_fisher: bool | None = None
     ) -> Generator[int, None, bool]:
@@ -529,7 +543,7 @@ class Mapper:
             log.debug("frame %d: %d of %d depth pixels invalid (masked)", frame.index, n_bad, valid.numel())
         if not bool(valid.any()):
             self.stats.frames_skipped_no_depth += 1
-            log.warning("frame %d: no valid depth (NaN, zero or out of range); keyframe skipped", frame.index)
+            log.warning("frame %d: %s; keyframe skipped", frame.index, self.no_depth_reason(frame.depth_m))
             return False
         kf = Keyframe(frame_id=int(frame.index), T_wc=T, rgb_u8=rgb_u8, depth_m=depth, valid=valid)
         self.densify(kf)
