@@ -763,7 +763,7 @@ CASES = [
     # bags -> roigsf map / demo
     Case("bag missing a topic (map)", bag_missing_a_topic_map, (TOPICS.depth, "missing")),
     Case("bag missing a topic (demo)", bag_missing_a_topic_demo, (TOPICS.camera_info, "missing")),
-    Case("truncated .mcap", truncated_mcap, ("bag",)),
+    Case("truncated .mcap", truncated_mcap, ("bag", "cut short")),
     # outputs that cannot be written
     Case("bag output under a regular file", convert_into_a_path_under_a_file, ("a_regular_file",)),
     Case("map run under a regular file", map_into_a_path_under_a_file, ("a_regular_file",)),

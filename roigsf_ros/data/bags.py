@@ -720,7 +720,16 @@ def open_any_reader(path: str | Path) -> AnyReader:
     try:
         return AnyReader([path])
     except (AnyReaderError, OSError, ValueError) as exc:
-        raise InputError(path, f"cannot open bag: {exc}") from None
+        raise InputError(path, f"cannot open bag: {exc}{_cut_short_hint(exc)}") from None
+
+
+def _cut_short_hint(exc: Exception) -> str:
+    """A hint after rosbags' error for an MCAP file cut short (a copy or a recording that never closed its file)."""
+    text = str(exc).lower()
+    if "magic" in text or "truncated" in text or "unexpected end" in text:
+        return (" (the .mcap file is cut short or not MCAP: a copy stopped early, or a recording that never closed "
+                "its file; `mcap recover` from the mcap CLI rewrites what it holds)")  # fmt: skip
+    return ""
 
 
 @contextlib.contextmanager
@@ -730,7 +739,7 @@ def opened_bag(path: str | Path) -> Iterator[AnyReader]:
     try:
         reader.open()
     except (AnyReaderError, OSError, ValueError) as exc:
-        raise InputError(path, f"cannot open bag: {exc}") from None
+        raise InputError(path, f"cannot open bag: {exc}{_cut_short_hint(exc)}") from None
     try:
         yield reader
     finally:
@@ -791,7 +800,7 @@ class BagReader:
         try:
             self._reader.open()
         except (AnyReaderError, OSError, ValueError) as exc:
-            raise InputError(self.path, f"cannot open bag: {exc}") from None
+            raise InputError(self.path, f"cannot open bag: {exc}{_cut_short_hint(exc)}") from None
         self._open = True
         try:
             present = {c.topic: c.msgtype for c in self._reader.connections}
