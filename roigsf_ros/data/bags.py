@@ -441,6 +441,10 @@ def compressed_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
             raise InputError(where, f"compressedDepth format '{fmt}' (RVL) is not supported; use png")
         if buf.size <= COMPRESSED_DEPTH_HEADER_BYTES:
             raise InputError(where, f"compressedDepth data has {buf.size} bytes: no room for the header and a PNG")
+        if bytes(buf[:8]) == b"\x89PNG\r\n\x1a\n":  # a plain PNG where the header should be
+            raise InputError(where, f"compressedDepth message ('{fmt}') starts with a PNG, not the 12-byte header "
+                             "image_transport's compressedDepth puts before it: a plain 16-bit PNG is what "
+                             "depth_transport: compressed reads")  # fmt: skip
         quant_a, quant_b = struct.unpack_from("<ff", bytes(buf[4:COMPRESSED_DEPTH_HEADER_BYTES]))
         px = _decode(buf[COMPRESSED_DEPTH_HEADER_BYTES:], cv2.IMREAD_UNCHANGED, where, fmt)
         if px.dtype != np.uint16 or px.ndim != 2:
