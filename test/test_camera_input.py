@@ -132,7 +132,7 @@ def test_a_pose_topic_late_by_20_frames_loses_no_frame_within_pending_frames(ros
         assert [f.stamp_ns for f in frames] == stamps and camera.dropped_incomplete == 0
 
 
-def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
+def test_bad_messages_are_dropped_and_counted(ros_context: Any, capfd: pytest.CaptureFixture[str]) -> None:
     frames: list[BagFrame] = []
     node = Node("camera_input_test", context=ros_context)
     qos = reliable_qos(50)
@@ -163,6 +163,9 @@ def test_bad_messages_are_dropped_and_counted(ros_context: Any) -> None:
     # counted by short categories (bounded), not by the error text
     assert stats["rejected"] == {"bad_encoding": 1, "size_mismatch": 1, "bad_pose": 1}
     assert "quaternion" in stats["last_rejection"]
+    # each fault said, though they came within the throttle's 5 s (one throttle for all said only the first)
+    said = [line for line in capfd.readouterr().err.splitlines() if "dropped frame: " in line]
+    assert len(said) == 3 and "quaternion" in said[2], said
     # the lone depth message: out of order if every topic had passed 5 000 when it came (it is sent
     # last), else it waits, bounded by max_pending; never delivered
     assert stats["out_of_order"] + stats["pending"] == 1

@@ -237,6 +237,7 @@ class CameraInput:
         self._tf: TransformBuffer | None = None
         self._awaiting: deque[_AwaitingPose] = deque()
         self._last_silent_warning = -float("inf")
+        self._last_reject_warning: dict[str, float] = {}  # reason category -> when it was last logged
         self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
         self._qos = qos
         self._group = callback_group
@@ -583,9 +584,18 @@ class CameraInput:
             self._rejections.popitem(last=False)
 
     def _reject(self, exc: InputError, stamp_ns: int) -> None:
+        """Count and keep why a frame was refused; log it, at most once per WARN_THROTTLE_S for each reason category
+        (one throttle for all hid a second fault behind the first: a bad pose after a bad encoding went unsaid).
+        """
+        reason = reject_reason(exc, self.topics)
+        now = time.monotonic()
         with self._lock:
-            self._remember_rejection(stamp_ns, reject_reason(exc, self.topics), exc)
-        self.node.get_logger().warning(f"dropped frame: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._remember_rejection(stamp_ns, reason, exc)
+            due = now - self._last_reject_warning.get(reason, -float("inf")) >= WARN_THROTTLE_S
+            if due:
+                self._last_reject_warning[reason] = now
+        if due:
+            self.node.get_logger().warning(f"dropped frame: {exc}")
 
     def _downscale(self, bf: BagFrame) -> BagFrame:
         """The frame at ``input_size`` (colour by area, depth nearest with centres aligned, intrinsics scaled)."""
