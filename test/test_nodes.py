@@ -418,6 +418,15 @@ def test_a_keyframe_whose_frame_is_gone_says_why(ros_context: Any, scene: Any, c
         cam.keyframes.publish(pose_stamped(frames[3].T_wc, 5_000))
         _wait(lambda: mapper.status()["keyframes_missing"] == 3, 10.0, "the other camera's keyframe")
         other = mapper.status()["last_keyframe_drop"]
+        # named before its frame came, then the frame refused: dropped with the reason at once, not after the wait
+        cam.keyframes.publish(pose_stamped(frames[3].T_wc, 6_000))
+        _wait(lambda: mapper.status()["pending_keyframes"] == 0 and mapper._waiting, 10.0, "the keyframe waiting")
+        t0 = time.monotonic()
+        cam.publish(_frame_msgs(frames[3], 6_000, encoding="8UC1"))
+        _wait(lambda: mapper.status()["keyframes_missing"] == 4, 5.0, "the waiting keyframe's refusal")
+        waited = time.monotonic() - t0
+        early = mapper.status()["last_keyframe_drop"]
+    assert waited < 3.0 and early.startswith("keyframe 6000: its frame was refused (bad_encoding: "), (waited, early)
     # was: "their frames did not arrive within 10 s", for frames that came with another camera's intrinsics
     assert other.startswith("keyframe 5000: its frame was refused (bad_intrinsics: camera_info: intrinsics "), other
     assert "the map takes its camera from the first frame it receives" in other  # a wrong first camera_info: restart

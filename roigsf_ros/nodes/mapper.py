@@ -442,6 +442,22 @@ class MapperNode(SystemNode):
         self._wake.notify()
 
     def _expire_waiting(self) -> None:
+        """Drop the keyframes that wait for a frame refused since they were named (at once, with the reason: they
+        used to wait out ``keyframe_wait_s`` first), then those that waited longer than that.
+        """
+        with self._lock:
+            refused_now = {
+                s: why
+                for s in self._waiting
+                if (why := self.camera.rejection_of(s) or self._intrinsics_refusals.get(s))
+            }
+            for s in refused_now:
+                del self._waiting[s]
+            self.counters["keyframes_missing"] += len(refused_now)
+            for s, why in refused_now.items():
+                self.last_keyframe_drop = f"keyframe {s}: its frame was refused ({why}); dropped"
+        for s, why in refused_now.items():
+            self.get_logger().warning(f"keyframe {s}: its frame was refused ({why}); dropped")
         now = time.monotonic()
         with self._lock:
             expired = [s for s, (t, _) in self._waiting.items() if now - t > self.wait_s]
