@@ -524,7 +524,7 @@ class Mapper:
             return f"no valid depth (every value NaN, infinite, zero or negative; valid is {bounds})"
         lo, hi = float(d.min()), float(d.max())
         hint = "; millimetres given as metres? (16UC1 depth is mm, 32FC1 m)" if lo > 5 * cfg.max_depth_m else ""
-        return f"no valid depth (finite values {lo:.3g}-{hi:.3g} m, outside {bounds}{hint})"
+        return f"no valid depth (finite values {lo:.4g}-{hi:.4g} m, outside {bounds}{hint})"
 
     def keyframe_schedule(
         self, frame: Frame, slice_iters: int = 0, optimise: bool = True, flush_fisher: bool | None = None
