@@ -16,6 +16,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from roigsf_ros.cli import main as cli_main
+from roigsf_ros.core import errors
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
@@ -574,7 +575,7 @@ def test_a_pose_outside_the_map_frame_and_distortion_are_said_once_per_topic(
     """A pose stamped in ``odom`` and a camera_info with distortion coefficients were used without a word (the pose as
     if in ``map``, the images as if rectified): each is now said once per topic, and the frame still converts.
     """
-    monkeypatch.setattr(bags, "_noted", set())
+    monkeypatch.setattr(errors, "_warned", set())
     pose = bags.TYPESTORE.types[bags.POSE_TYPE](
         header=bags.header_msg(1, "odom"),
         pose=bags.TYPESTORE.types["geometry_msgs/msg/Pose"](

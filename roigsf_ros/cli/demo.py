@@ -554,7 +554,7 @@ def default_gt_mesh(bag: Path, option: str | None) -> tuple[Path | None, str]:
     """The mesh the demo's mesh metrics are taken against, and why there is none: ``--gt-mesh`` (``option``), else the
     bag's own (a bag folder's, or a ``.mcap``'s folder's), by the rule of ``roigsf map`` (:func:`chosen_gt_mesh`).
     """
-    return chosen_gt_mesh(option, scene_gt_mesh(bag if bag.is_dir() else bag.parent))
+    return chosen_gt_mesh(option, scene_gt_mesh(bag))
 
 
 def _pace(rate: float) -> str:

@@ -23,7 +23,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "save_cam_params",
         ],
         "config": ["Config", "annotation_words", "check_annotation", "fits_annotation"],
-        "errors": ["InputError"],
+        "errors": ["InputError", "warn_once"],
         "exports": ["lazy_exports"],
         "fileio": [
             "atomic_dir",

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.errors import InputError, warn_once
 
 REPLICA_DEPTH_SCALE = 6553.5
 """Replica (NICE-SLAM layout) stores depth as uint16 with metres = value / 6553.5."""
@@ -180,8 +180,6 @@ _WARN_TOL = 1e-5
 """Above this deviation re-orthonormalising is worth a warning. Text rounding cannot reach it: a rotation printed to 6
 decimals (``%f``) or more is off by at most 2 * sqrt(3) * 5e-7 = 1.7e-6 (8 decimals: 1.7e-8), where real-sensor
 trajectories (and ``scene synth --sensor``) are off by 1e-4 or more."""
-_MAX_WARNED_SOURCES = 1024
-_warned_sources: set[str] = set()
 _log = logging.getLogger(__name__)
 
 
@@ -236,10 +234,11 @@ def load_pose(T_wc: np.ndarray, where: str, source: str | None = None) -> np.nda
     """
     T, dev = _rigid_pose(T_wc, where, POSE_RIGID_TOL)
     key = source if source is not None else where
-    if dev > _WARN_TOL and key not in _warned_sources:
-        if len(_warned_sources) < _MAX_WARNED_SOURCES:  # bounded: beyond it, warnings repeat rather than grow
-            _warned_sources.add(key)
-        _log.warning(
+    if dev > _WARN_TOL:
+        warn_once(
+            _log,
+            key,
+            "not orthonormal",
             "%s: pose rotations are not exactly orthonormal (|R^T R - I| = %.2g at %s); re-orthonormalised "
             "(nearest rotation), further ones from this source silently",
             key,

@@ -39,7 +39,7 @@ from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
 from roigsf_ros.core.camera import Intrinsics, load_pose, matrix_to_quat_xyzw, pose_from_position_quat
-from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.errors import InputError, warn_once
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.core.package_files import package_path, package_path_places
@@ -500,21 +500,6 @@ def encode_compressed_depth(depth_m: np.ndarray, transport: str = "compressedDep
     return "16UC1; compressedDepth png", header + png.tobytes()
 
 
-_noted: set[tuple[str, str]] = set()
-_MAX_NOTED = 256
-"""Notes logged once per (source, what): a stream that carries the same thing in every message is said once."""
-
-
-def _note_once(source: str, what: str, text: str) -> None:
-    """Log ``text`` as a warning the first time ``(source, what)`` comes (bounded: beyond it, notes repeat)."""
-    key = (source, what)
-    if key in _noted:
-        return
-    if len(_noted) < _MAX_NOTED:
-        _noted.add(key)
-    _LOG.warning(text)
-
-
 def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intrinsics:
     """Pinhole intrinsics from a ``sensor_msgs/CameraInfo`` (its K and width/height; images assumed rectified).
 
@@ -525,8 +510,9 @@ def camera_info_to_intrinsics(msg: Any, where: str = CAMERA_INFO_TOPIC) -> Intri
     if d.size and np.any(d[np.isfinite(d)] != 0):
         model = getattr(msg, "distortion_model", "") or "unnamed model"
         topic = where.split(" @ ")[0]
-        _note_once(topic, "distortion", f"{topic}: distortion coefficients ({model}, D={d.tolist()}) are not "
-                   "applied: the images are mapped as if rectified; feed the camera's rectified images")  # fmt: skip
+        text = (f"{topic}: distortion coefficients ({model}, D={d.tolist()}) are not applied: the images are mapped "
+                "as if rectified; feed the camera's rectified images")  # fmt: skip
+        warn_once(_LOG, topic, "distortion", text)
     k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
     width, height = int(msg.width), int(msg.height)
     if k.size != 9 or not np.all(np.isfinite(k)):
@@ -546,9 +532,10 @@ def pose_to_matrix(msg: Any, where: str = POSE_TOPIC, source: str | None = None)
     frame_id = getattr(getattr(msg, "header", None), "frame_id", "")
     if frame_id not in ("", MAP_FRAME_ID):
         topic = (source or where).split(" @ ")[0]
-        _note_once(topic, f"frame {frame_id}", f"{topic}: poses in frame '{frame_id}', not '{MAP_FRAME_ID}', are "
-                   "taken as the camera's pose in the map as they are (no transform applied); publish them in "
-                   f"'{MAP_FRAME_ID}', or read the pose from TF (pose_source tf), which transforms it")  # fmt: skip
+        text = (f"{topic}: poses in frame '{frame_id}', not '{MAP_FRAME_ID}', are taken as the camera's pose in the "
+                f"map as they are (no transform applied); publish them in '{MAP_FRAME_ID}', or read the pose from TF "
+                "(pose_source tf), which transforms it")  # fmt: skip
+        warn_once(_LOG, topic, f"frame {frame_id}", text)
     pose = msg.pose if hasattr(msg, "pose") else msg
     p, q = pose.position, pose.orientation
     T = pose_from_position_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]), where)
@@ -1080,8 +1067,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
                     size = None
             else:
                 size = (int(msg.width), int(msg.height))
-    path = Path(path)
-    mesh = scene_gt_mesh(path if path.is_dir() else path.parent)
+    mesh = scene_gt_mesh(Path(path))
     return {
         "path": str(path),
         "gt_mesh": None if mesh is None else str(mesh),

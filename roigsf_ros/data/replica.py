@@ -278,11 +278,12 @@ def write_replica(out_dir: str | Path, intr: Intrinsics, frames: Iterable[Frame]
 
 
 def scene_gt_mesh(folder: Path) -> Path | None:
-    """The ground-truth mesh of a scene or bag folder: ``mesh.ply`` in it (``roigsf scene`` folders, bags from ``roigsf
-    bag from-replica``), else ``NAME_mesh.ply`` beside the folder ``NAME`` (NICE-SLAM's Replica layout,
-    ``Replica/office0_mesh.ply`` beside ``Replica/office0``, and the shipped sample bag's). None when neither is there:
-    nothing is scored against a mesh that was not put with it.
+    """The ground-truth mesh of a scene or bag folder (a bag's ``.mcap`` file stands for its folder): ``mesh.ply`` in it
+    (``roigsf scene`` folders, bags from ``roigsf bag from-replica``), else ``NAME_mesh.ply`` beside the folder ``NAME``
+    (NICE-SLAM's Replica layout, ``Replica/office0_mesh.ply`` beside ``Replica/office0``, and the shipped sample bag's).
+    None when neither is there: nothing is scored against a mesh that was not put with it.
     """
+    folder = folder if folder.is_dir() else folder.parent
     for mesh in (folder / "mesh.ply", folder.parent / f"{folder.name}_mesh.ply"):
         if mesh.is_file():
             return mesh

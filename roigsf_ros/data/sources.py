@@ -141,7 +141,7 @@ class BagFrameSource(FrameSource):
         self.kept = kept[:max_frames] if max_frames is not None else kept
         """Indices of the bag frames given (those skipped too): every stride-th, at most ``max_frames``."""
         intr = native.resized(*size) if size is not None else native
-        super().__init__(path, intr, len(self.kept), scene_gt_mesh(path if path.is_dir() else path.parent))
+        super().__init__(path, intr, len(self.kept), scene_gt_mesh(path))
 
     def index_of(self, stamp_ns: int) -> int:
         """The bag frame index of a frame's stamp (its position in the sorted colour stamps)."""
