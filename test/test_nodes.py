@@ -436,6 +436,38 @@ def test_a_keyframe_whose_frame_is_gone_says_why(ros_context: Any, scene: Any, c
     assert old.endswith("raise frame_buffer_size; dropped")
 
 
+def test_a_keyframe_without_valid_depth_is_said_with_its_topic(ros_context: Any, scene: Any, capfd: Any) -> None:
+    """A keyframe whose depth image has no valid pixel was counted as ``keyframes_failed`` ("inserting them failed")
+    and said only as the library's "frame N: no valid depth": the sensor's fault read as the mapper's, with no topic.
+    Now its own counter, the depth topic and the values in the warning and in ``last_keyframe_drop``."""
+    frames, _ = scene
+    mapper = MapperNode(context=ros_context, parameter_overrides=[Parameter("iters_per_keyframe", value=1)])
+    cam = _Camera(ros_context)
+    depth_topic = bags.CameraTopics().depth
+    with _spinning(ros_context, mapper, cam.node):
+        cam.wait_for()
+        cam.publish(_frame_msgs(frames[0], 1_000))
+        cam.publish(_frame_msgs(replace(frames[1], depth_m=np.zeros_like(frames[1].depth_m)), 2_000))
+        cam.publish(_frame_msgs(replace(frames[2], depth_m=frames[2].depth_m * 1000.0), 3_000))  # mm as metres
+        _wait(lambda: mapper.status()["frames_received"] == 3, 10.0, "three frames")
+        cam.keyframes.publish(pose_stamped(frames[0].T_wc, 1_000))
+        _wait(lambda: mapper.status()["keyframes"] == 1, 30.0, "the good keyframe")
+        cam.keyframes.publish(pose_stamped(frames[1].T_wc, 2_000))
+        _wait(lambda: mapper.status()["keyframes_no_depth"] == 1, 30.0, "the depthless keyframe counted")
+        empty = mapper.status()["last_keyframe_drop"]
+        cam.keyframes.publish(pose_stamped(frames[2].T_wc, 3_000))
+        _wait(lambda: mapper.status()["keyframes_no_depth"] == 2, 30.0, "the millimetre keyframe counted")
+        status = mapper.status()
+    assert status["keyframes_failed"] == 0 and status["keyframe_ids"] == [1_000], status
+    said = f"its depth image on {depth_topic} has no valid depth"
+    assert empty.startswith(f"keyframe 2000: {said} (every value NaN"), empty
+    assert empty.endswith("; not mapped"), empty
+    mm = status["last_keyframe_drop"]
+    assert mm.startswith(f"keyframe 3000: {said} (finite values "), mm
+    assert "millimetres given as metres?" in mm
+    assert f"keyframe 2000: its depth image on {depth_topic}" in capfd.readouterr().err  # said, not only counted
+
+
 # ---------------------------------------------------------------------------------------- selector
 def _windowed_selector(
     ctx: Any, service: str, timeout_s: float = 10.0, **params: Any

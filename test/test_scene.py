@@ -6,6 +6,7 @@ import argparse
 import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -140,7 +141,7 @@ def test_office0_render_matches_real_depth(office0: Path) -> None:
             assert np.median(nominal) > 3 * np.median(err)
 
 
-def test_load_mesh_errors_name_the_file(tmp_path: Path) -> None:
+def test_load_mesh_errors_name_the_file(tmp_path: Path, capfd: Any) -> None:
     with pytest.raises(InputError, match="not found") as exc:
         load_mesh(tmp_path / "nope.ply")
     assert "nope.ply" in str(exc.value)
@@ -149,6 +150,14 @@ def test_load_mesh_errors_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no triangles") as exc:
         load_mesh(junk)
     assert "junk.ply" in str(exc.value)
+    points = tmp_path / "points.ply"  # vertices only: a point cloud
+    points.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                      "property float z\nend_header\n0 0 0\n")  # fmt: skip
+    with pytest.raises(InputError, match="no triangles"):
+        load_mesh(points)
+    # Our error says it; Open3D's warnings ("Read PLY failed", "appears to be a PointCloud") printed before it did not
+    out, err = capfd.readouterr()
+    assert "Open3D WARNING" not in out + err
 
 
 # ---------------------------------------------------------------------------------------------

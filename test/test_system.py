@@ -51,6 +51,7 @@ from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
 from roigsf_ros.data.scene import render_sequence, synth_room, synth_trajectory
+from roigsf_ros.nodes.lockstep import KEYFRAMES_NOT_MAPPED
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[1]
@@ -428,8 +429,7 @@ def replay_once(
 
     def settled() -> bool:
         m, s = w.get("mapper"), w.get("keyframe_selector")
-        handled = m["keyframes_inserted"] + m["keyframes_missing"] + m["keyframes_failed"]
-        handled += m["keyframes_dropped_overflow"] + m["keyframes_duplicate"]
+        handled = m["keyframes_inserted"] + m["keyframes_duplicate"] + sum(m[k] for k in KEYFRAMES_NOT_MAPPED)
         return (
             not s["planner_pending"]
             and m["keyframe_msgs"] == s["keyframes_published"]
@@ -909,6 +909,7 @@ def test_four_times_real_time_bounded_queues_counted_drops_flat_memory(
     dropped = m["keyframes_dropped_overflow"] + m["keyframes_missing"]
     assert dropped > 0, "the mapper cannot insert 20 keyframes/s: drops must show in its status"
     accounted = dropped + m["keyframes_inserted"] + m["keyframes_duplicate"] + m["keyframes_failed"]
+    accounted += m["keyframes_no_depth"]
     accounted += m["pending_keyframes"] + m["waiting_keyframes"]
     assert m["keyframe_msgs"] - 1 <= accounted <= m["keyframe_msgs"]  # one may be in insertion
     # The loaded keyframes are all kept; the new ones come on top (one may still be in insertion).

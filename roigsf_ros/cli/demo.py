@@ -55,6 +55,7 @@ from roigsf_ros.data.bags import (
     sample_path,
 )
 from roigsf_ros.data.replica import scene_gt_mesh
+from roigsf_ros.nodes.lockstep import KEYFRAMES_NOT_MAPPED
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -277,16 +278,13 @@ def fallback_hint(metrics: dict[str, Any]) -> str | None:
     )
 
 
-KEYFRAME_LOSSES = ("keyframes_dropped_overflow", "keyframes_missing", "keyframes_failed")
-"""The mapper's counters of keyframes the selector named that never reached the map."""
-
-
 def mapping_hint(metrics: dict[str, Any]) -> str | None:
     """A line saying how many of the keyframes the selector named the mapper did not map, and why; None if all."""
     lost = metrics.get("keyframes_not_mapped") or 0
     if not lost:
         return None
     why = {"keyframes_dropped_overflow": "its keyframe queue was full", "keyframes_missing": "their frame was gone",
+           "keyframes_no_depth": "their depth had no valid pixel",
            "keyframes_failed": "inserting them failed"}  # fmt: skip
     parts = ", ".join(f"{n} {why[k]}" for k, n in (metrics.get("keyframe_losses") or {}).items() if n)
     line = f"  note: the mapper did not map {lost} of the {metrics['keyframes_published']} keyframes named ({parts})"
@@ -523,8 +521,8 @@ def run_demo(
         "selector_max_novelty_s": sel["max_novelty_s"] if sel["max_novelty_s"] > 0 else None,
         "selector_max_frame_gap_s": sel["max_frame_gap_s"],
         "keyframes_published": sel["keyframes_published"],
-        "keyframes_not_mapped": sum(status["mapper"][k] for k in KEYFRAME_LOSSES),
-        "keyframe_losses": {k: status["mapper"][k] for k in KEYFRAME_LOSSES},
+        "keyframes_not_mapped": sum(status["mapper"][k] for k in KEYFRAMES_NOT_MAPPED),
+        "keyframe_losses": {k: status["mapper"][k] for k in KEYFRAMES_NOT_MAPPED},
         "stream_s": t_stream,
         "final_iters": final_iters,
         "refine_s": t_refine,

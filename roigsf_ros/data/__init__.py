@@ -58,6 +58,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "realsense_topics",
             "resized_frame",
             "sample_path",
+            "staged_bag",
             "stamp_to_ns",
             "transport_topic",
             "write_bag",

@@ -628,6 +628,27 @@ def _pose_msg(stamp_ns: int, T_wc: np.ndarray) -> Any:
     return t[POSE_TYPE](header=header_msg(stamp_ns, MAP_FRAME_ID), pose=pose)
 
 
+@contextlib.contextmanager
+def staged_bag(out: Path, gt_mesh: Path | None = None, overwrite: bool = False) -> Iterator[Path]:
+    """The folder a rosbags ``Writer`` writes the bag ``out`` into, which becomes ``out`` only once complete.
+
+    rosbags names the storage file after its folder, so the bag is written into ``<tmp>/<name>`` and moved up into the
+    temporary folder at the end; ``gt_mesh`` is copied in as ``mesh.ply`` (InputError now if it is missing), where
+    :func:`roigsf_ros.data.replica.scene_gt_mesh` finds it. An exception in the block leaves nothing at ``out``.
+    """
+    if gt_mesh is not None and not Path(gt_mesh).is_file():
+        raise InputError(gt_mesh, "ground-truth mesh not found")
+    out = Path(out)
+    with atomic_dir(out, overwrite=overwrite) as tmp:
+        staging = tmp / out.name
+        yield staging
+        for item in staging.iterdir():
+            item.rename(tmp / item.name)
+        staging.rmdir()
+        if gt_mesh is not None:
+            shutil.copyfile(gt_mesh, tmp / "mesh.ply")
+
+
 def frame_stamp_ns(k: int, rate_hz: float, t0_ns: int = DEFAULT_T0_NS) -> int:
     """Stamp of the ``k``-th written frame: ``t0 + k / rate_hz`` in integer nanoseconds."""
     return int(t0_ns) + round(k * 1e9 / rate_hz)
@@ -661,35 +682,28 @@ def write_bag(
         raise InputError("stride", f"must be >= 1, got {stride}")
     if max_frames is not None and max_frames < 1:
         raise InputError("max_frames", f"must be >= 1, got {max_frames}")
-    if gt_mesh is not None and not Path(gt_mesh).is_file():
-        raise InputError(gt_mesh, "ground-truth mesh not found")
     ks = list(range(0, len(seq), stride))[:max_frames]
     intr = seq.intrinsics
-    with atomic_dir(out, overwrite=overwrite) as tmp:
-        # rosbags names the storage file after its folder: write into tmp/<name>, then move it up.
-        staging = tmp / out.name
-        with Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-            conns = {
-                topic: writer.add_connection(topic, typ, typestore=TYPESTORE, offered_qos_profiles=[QOS_RELIABLE])
-                for topic, typ in CameraTopics().types().items()
-            }
-            for n, k in enumerate(tqdm(ks, desc=f"bag {out.name}", unit="frame", disable=not progress)):
-                frame = seq.frame(k)
-                stamp = frame_stamp_ns(n, rate_hz, t0_ns)
-                depth_px = depth_to_image_data(frame.depth_m, depth_encoding)
-                msgs = (
-                    (COLOR_TOPIC, _image_msg(stamp, frame.rgb, "rgb8")),
-                    (DEPTH_TOPIC, _image_msg(stamp, depth_px, depth_encoding)),
-                    (CAMERA_INFO_TOPIC, camera_info_msg(stamp, intr)),
-                    (POSE_TOPIC, _pose_msg(stamp, frame.T_wc)),
-                )
-                for topic, msg in msgs:
-                    writer.write(conns[topic], stamp, TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
-        for item in staging.iterdir():
-            item.rename(tmp / item.name)
-        staging.rmdir()
-        if gt_mesh is not None:
-            shutil.copyfile(gt_mesh, tmp / "mesh.ply")
+    with (
+        staged_bag(out, gt_mesh, overwrite) as staging,
+        Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer,
+    ):
+        conns = {
+            topic: writer.add_connection(topic, typ, typestore=TYPESTORE, offered_qos_profiles=[QOS_RELIABLE])
+            for topic, typ in CameraTopics().types().items()
+        }
+        for n, k in enumerate(tqdm(ks, desc=f"bag {out.name}", unit="frame", disable=not progress)):
+            frame = seq.frame(k)
+            stamp = frame_stamp_ns(n, rate_hz, t0_ns)
+            depth_px = depth_to_image_data(frame.depth_m, depth_encoding)
+            msgs = (
+                (COLOR_TOPIC, _image_msg(stamp, frame.rgb, "rgb8")),
+                (DEPTH_TOPIC, _image_msg(stamp, depth_px, depth_encoding)),
+                (CAMERA_INFO_TOPIC, camera_info_msg(stamp, intr)),
+                (POSE_TOPIC, _pose_msg(stamp, frame.T_wc)),
+            )
+            for topic, msg in msgs:
+                writer.write(conns[topic], stamp, TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
     return len(ks)
 
 
@@ -1185,6 +1199,7 @@ __all__ = [
     "realsense_topics",
     "resized_frame",
     "sample_path",
+    "staged_bag",
     "stamp_to_ns",
     "transport_topic",
     "write_bag",

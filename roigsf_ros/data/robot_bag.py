@@ -17,7 +17,6 @@ names.
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,6 @@ from tqdm import tqdm
 
 from roigsf_ros.core.camera import matrix_to_quat_xyzw
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.data import bags
 from roigsf_ros.data.tf import TF_MESSAGE_TYPE, TF_STATIC_TOPIC, TF_TOPIC
 
@@ -134,8 +132,6 @@ def write_robot_bag(
         raise InputError("tf_lag_s", f"must be a number of seconds >= 0, got {tf_lag_s}")
     if Path(out).resolve() == Path(src).resolve():
         raise InputError(out, "is the bag being rewritten: write the robot's bag elsewhere")
-    if gt_mesh is not None and not Path(gt_mesh).is_file():
-        raise InputError(gt_mesh, "ground-truth mesh not found")
     topics = bags.realsense_topics(namespace, color_transport="compressed", depth_transport=depth_transport)
     resolved = topics.resolved()
     types = resolved.types() | {TF_TOPIC: TF_MESSAGE_TYPE, TF_STATIC_TOPIC: TF_MESSAGE_TYPE}
@@ -143,8 +139,7 @@ def write_robot_bag(
     out = Path(out)
     n = 0
     source_topics = bags.CameraTopics(color_transport=bags.AUTO, depth_transport=bags.AUTO)
-    with bags.BagReader(src, source_topics) as reader, atomic_dir(out, overwrite=overwrite) as tmp:
-        staging = tmp / out.name  # rosbags names the storage file after its folder, as in write_bag
+    with bags.BagReader(src, source_topics) as reader, bags.staged_bag(out, gt_mesh, overwrite) as staging:
         with Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             conns = {
                 topic: writer.add_connection(
@@ -185,11 +180,6 @@ def write_robot_bag(
                 write(TF_TOPIC, record_ns, msg)
         if n == 0:
             raise InputError(src, "no complete frame to rewrite")
-        for item in staging.iterdir():
-            item.rename(tmp / item.name)
-        staging.rmdir()
-        if gt_mesh is not None:
-            shutil.copyfile(gt_mesh, tmp / "mesh.ply")
     return n
 
 

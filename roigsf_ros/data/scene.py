@@ -70,12 +70,17 @@ def _ply_element_counts(path: Path) -> dict[str, int]:
 
 
 def load_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
-    """Read a triangle mesh (PLY/OBJ/...); InputError naming the file if missing, unreadable or empty."""
+    """Read a triangle mesh (PLY/OBJ/...); InputError naming the file if missing, unreadable or empty.
+
+    Open3D's own warnings ("Read PLY failed", "appears to be a PointCloud") are kept out of the output, the InputError
+    saying it; the PLY parser's "RPly: ..." lines are printed by its C code and stay.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "mesh file not found")
     try:
-        mesh = o3d.io.read_triangle_mesh(str(path))
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            mesh = o3d.io.read_triangle_mesh(str(path))
     except (OSError, RuntimeError) as exc:
         raise InputError(path, f"cannot read mesh: {exc}") from None
     if len(mesh.triangles) == 0:

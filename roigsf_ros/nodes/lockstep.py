@@ -16,13 +16,17 @@ if TYPE_CHECKING:
     from roigsf_ros.nodes.bag_player import BagPlayer
 
 
+KEYFRAMES_NOT_MAPPED = ("keyframes_dropped_overflow", "keyframes_missing", "keyframes_no_depth", "keyframes_failed")
+"""The mapper's ``~/status`` counters of keyframes named to it that never reached the map; with ``keyframes_inserted``
+and ``keyframes_duplicate`` every keyframe message ends in one of them."""
+
+
 def system_busy(status: dict[str, Any]) -> bool:
     """Whether the nodes still work on what they received: a planner request or a window waiting for one, frames
     held until the map catches up (gaus-slam), or keyframes named and not yet inserted, dropped or refused.
     """
     sel, mp = status["selector"], status["mapper"]
-    handled = sum(mp[k] for k in ("keyframes_inserted", "keyframes_missing", "keyframes_failed"))
-    handled += mp["keyframes_dropped_overflow"] + mp["keyframes_duplicate"]
+    handled = mp["keyframes_inserted"] + mp["keyframes_duplicate"] + sum(mp[k] for k in KEYFRAMES_NOT_MAPPED)
     return bool(
         sel["planner_pending"]
         or sel["planner_window_waiting"]

@@ -288,6 +288,7 @@ class MapperNode(SystemNode):
                 "keyframes_missing",
                 "keyframes_dropped_overflow",
                 "keyframes_duplicate",
+                "keyframes_no_depth",
                 "keyframes_failed",
                 "frames_evicted",
                 "frames_bad_intrinsics",
@@ -522,6 +523,14 @@ class MapperNode(SystemNode):
             m = self.shared.mapper
             if m is None:
                 return
+        if not m.valid_depth_mask(frame.depth_m).any():  # the sensor's, not a failed insertion: said with its topic
+            warn = (f"keyframe {frame.index}: its depth image on {self.camera.topics.depth} has "
+                    f"{m.no_depth_reason(frame.depth_m)}; not mapped")  # fmt: skip
+            with self._lock:
+                self.counters["keyframes_no_depth"] += 1
+                self.last_keyframe_drop = warn
+            self.get_logger().warning(warn, throttle_duration_sec=WARN_THROTTLE_S)
+            return
         steps = m.keyframe_schedule(frame, self.slice_iters, flush_fisher=True)  # Fisher now: snapshots only clone
         ok = False
         while not self._stop.is_set():
