@@ -899,6 +899,37 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy_params", value="k=1")])
 
 
+def test_the_selector_takes_the_map_only_for_a_policy_that_reads_it(
+    ros_context: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The selector kept its own list of the policies that need no map beside the library's registry, so a policy
+    added to the library was always given the map; now each policy says (``KeyframePolicy.reads_map``) and the
+    selector subscribes to the mapper's map for those that read it only (alone, or as the fallback)."""
+    from roigsf_ros.policies import base
+
+    monkeypatch.setattr(base, "_REGISTRY", dict(base._REGISTRY))  # registered for this test only
+
+    @base.register_policy("test-no-map")
+    class NoMap(base.KeyframePolicy):
+        reads_map = False
+
+        def observe(self, frame: Frame, keyframe_map: Any) -> list[Frame]:
+            return [frame]
+
+    cases = [("gaus-slam", "random", True), ("random", "random", False), ("every-n", "random", False),
+             ("all", "random", False), ("novelty", "random", False), ("test-no-map", "random", False),
+             ("roi-gsurfisher", "random", False), ("roi-gsurfisher", "gaus-slam", True)]  # fmt: skip
+    for policy, fallback, reads in cases:
+        params = [Parameter("policy", value=policy), Parameter("fallback_policy", value=fallback),
+                  Parameter("startup_wait_s", value=0.0)]  # fmt: skip
+        node = KeyframeSelectorNode(context=ros_context, parameter_overrides=params)
+        try:
+            subscribed = any(sub.topic_name == "/roigsf/map" for sub in node.subscriptions)
+            assert (node.reads_map, subscribed) == (reads, reads), (policy, fallback)
+        finally:
+            node.destroy_node()
+
+
 @pytest.mark.parametrize(("policy", "measure"), [("novelty", "area"), ("roi-fisher", "area"), ("novelty", "pixels")])
 def test_selector_lookahead_decides_each_window_as_the_library_does(
     ros_context: Any, scene: Any, policy: str, measure: str

@@ -298,11 +298,9 @@ class KeyframeSelectorNode(SystemNode):
         """Frames a policy deciding alone failed on (it raised, or returned no list of new frames): not decided."""
         self._named: set[int] = set()
         """The frames a policy deciding alone named (checked_keyframes: none twice)."""
-        self.reads_map = "gaus-slam" in (self.policy, self.fallback) or self.policy not in (
-            *PLANNER_POLICIES,
-            *FALLBACK_POLICIES,
-        )
-        """Whether a policy deciding alone reads the map: gaus-slam, and a policy added to the library."""
+        self.reads_map = any(p is not None and p.reads_map for p in (self._alone, self._fallback))
+        """Whether a policy deciding alone reads the map (:attr:`KeyframePolicy.reads_map`): gaus-slam, and a policy
+        added to the library unless it says it does not."""
         self.waits_for_map = self.policy == "gaus-slam" and self.map_wait_s > 0
         """GauS-SLAM's rule judges a frame against a map holding every keyframe named before it, as GauS-SLAM does;
         live, the mapper inserts them later, and judged at once nearly every frame would render unmapped."""

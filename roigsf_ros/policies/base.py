@@ -100,6 +100,9 @@ class KeyframePolicy:
     """
 
     name = "base"
+    reads_map = True
+    """Whether :meth:`observe` reads the keyframe map (renders or scores on it); the keyframe selector subscribes to
+    the mapper's map only for a policy that does. True unless a policy says otherwise: one added to the library may."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Wrap the subclass's own ``__init__`` (if it defines one) in the argument type check."""

@@ -15,6 +15,8 @@ from roigsf_ros.policies.base import KeyframeMap, KeyframePolicy, register_polic
 class AllFrames(KeyframePolicy):
     """Every frame is a keyframe."""
 
+    reads_map = False
+
     def observe(self, frame: Frame, keyframe_map: KeyframeMap) -> list[Frame]:
         """Always the frame itself."""
         return [frame]
@@ -27,6 +29,8 @@ class EveryN(KeyframePolicy):
     The parameter's public name is ``every_n`` (the node parameter, ``roigsf map --every-n``, a spec
     ``every-n:every_n=10``); ``n`` (positional here, and in older specs and results) is an accepted alias.
     """
+
+    reads_map = False
 
     def __init__(self, n: int | None = None, *, every_n: int | None = None) -> None:
         if n is not None and every_n is not None and n != every_n:

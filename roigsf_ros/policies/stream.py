@@ -509,7 +509,12 @@ def _make(name: str, mode: str | None, novelty_only: bool = False) -> type[Strea
     cls = type(
         "StreamPolicy_" + name.replace("-", "_"),
         (StreamNBVPolicy,),
-        {"mode": mode, "novelty_only": novelty_only, "__doc__": f"Stream policy {name!r}: {what}"},
+        {
+            "mode": mode,
+            "novelty_only": novelty_only,
+            "reads_map": mode is not None,
+            "__doc__": f"Stream policy {name!r}: {what}",
+        },
     )
     return register_policy(name)(cls)  # type: ignore[return-value]
 
