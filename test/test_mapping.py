@@ -377,6 +377,60 @@ def test_score_views_scores_a_built_and_a_loaded_map_alike(frames: list[Frame], 
         assert list(again.ranking) == list(built.ranking)
 
 
+def test_the_library_names_a_researchers_easy_mistakes(frames: list[Frame], tmp_path) -> None:
+    """A sixty-fourth-session walk of the Python API: each of these went through silently or failed deep inside on a
+    missing attribute; now each is an error naming the argument (or, for an empty map, a reason that fits)."""
+    from roigsf_ros.evaluation.metrics import ssim
+    from roigsf_ros.experiments.pool import PoolConfig, run_pool
+    from roigsf_ros.nbv import RECOMMENDED_UNSEEN, NBVConfig, score_views
+    from roigsf_ros.render.rasterize import rasterize_surfels, render_map
+    from roigsf_ros.render.surfels import surfels_from_rgbd
+
+    f = frames[0]
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=0, track_h_train=False))
+    mapper.add_keyframe(f)
+    candidates = np.stack([g.T_wc for g in frames[1:4]])
+    with pytest.raises(InputError, match=r"^config: expected a NBVConfig, got mappingproxy: give NBVConfig\(\*\*it\)"):
+        score_views(mapper, candidates, RECOMMENDED_UNSEEN)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="top_k"):
+        score_views(mapper, candidates, top_k=0)  # was taken as the default 5
+    empty = score_views(Mapper(INTR, small_config()), candidates, NBVConfig(**RECOMMENDED_UNSEEN))
+    assert "no TSDF given" not in empty.reason and "no keyframe fused into it" in empty.reason, empty.reason
+    with pytest.raises(InputError, match=r"^surfel_map: expected a SurfelMap \(a Mapper's is mapper.map\), got Mapper"):
+        render_map(mapper, f.T_wc, INTR)
+    with pytest.raises(InputError, match=r"^intr: expected an Intrinsics, got NoneType"):
+        render_map(mapper.map, f.T_wc, None)  # type: ignore[arg-type]
+    scaled = f.T_wc.copy()
+    scaled[:3, :3] *= 2.0
+    for bad, words in ((np.full((4, 4), np.nan), "non-finite"), (scaled, "not orthonormal")):
+        with pytest.raises(InputError, match=f"^T_wc: pose.*{words}"):  # rendered an empty or warped image
+            render_map(mapper.map, bad, INTR)
+    view = torch.as_tensor(np.linalg.inv(f.T_wc), dtype=torch.float32)
+    m = mapper.map
+    with pytest.raises(ValueError, match=r"^viewmat must be a torch.Tensor, got ndarray"):
+        rasterize_surfels(m.means, m.quats, m.scales(), m.opacities(), m.colors(), view.numpy(),
+                          torch.as_tensor(INTR.K, dtype=torch.float32), INTR.width, INTR.height)  # fmt: skip
+    as_floats = f.rgb.astype(np.float32)  # 0-255 as floats: clipped to a white map / a 2 dB PSNR before
+    with pytest.raises(InputError, match=r"^rgb: colour floats reach 2\d\d: floats must be in \[0, 1\]"):
+        surfels_from_rgbd(as_floats, f.depth_m, f.T_wc, INTR)
+    with pytest.raises(InputError, match=r"^pred_rgb: colour floats have median \d+"):
+        psnr(as_floats, f.rgb)
+    assert psnr(f.rgb.astype(np.float32) / 255.0, f.rgb) > 40  # floats in [0, 1] as before
+    with pytest.raises(InputError, match=r"SSIM needs images of at least 11x11 px .* got 8x8"):
+        ssim(f.rgb[:8, :8], f.rgb[:8, :8])
+    with pytest.raises(InputError, match=r"^intr: expected an Intrinsics"):
+        Mapper(None)  # type: ignore[arg-type]  # failed at the first keyframe
+    (tmp_path / "file").write_text("in the way")
+    with pytest.raises(InputError, match="cannot create the map folder"):
+        mapper.save(tmp_path / "file" / "map")
+    with pytest.raises(InputError, match=r"^source: expected a frame sequence, got str: open a folder or bag with"):
+        run_offline(str(tmp_path), make_policy("all"), small_config(), tmp_path / "out")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^source: expected a frame sequence, got PosixPath"):
+        run_pool(tmp_path, PoolConfig(), small_config())  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="is a file, not a scene folder"):
+        open_frames(tmp_path / "file")
+
+
 def test_the_demo_says_against_what_its_recall_is_taken(frames: list[Frame], tmp_path) -> None:
     """``roigsf demo``'s report takes the mesh metrics as ``roigsf map`` does (:func:`run_mesh_metrics`): the GT culled
     to what every frame's pose observes, and says so in ``gt_culling`` (its metrics.json did not say)."""

@@ -35,7 +35,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "remove_stale_temporaries",
             "write_json",
         ],
-        "frame": ["Frame", "resize_frame", "spread_indices"],
+        "frame": ["COLOUR_FLOAT_MAX", "Frame", "check_float_colour", "resize_frame", "spread_indices"],
         "package_files": ["CHECKOUT_ROOT", "PACKAGE", "package_path", "package_path_places", "share_folders"],
         "ros_domain": ["MAX_DOMAIN_ID", "check_domain_id", "domain_id_from_env"],
     },

@@ -81,6 +81,18 @@ class Config:
         return self
 
     @classmethod
+    def given(cls, value: Any, where: str = "config") -> Self:
+        """``value`` as this config (None: the defaults), else an InputError naming ``where``: a mapping of fields
+        (``RECOMMENDED_UNSEEN`` itself) used to fail deep in the work on a missing attribute.
+        """
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        hint = f": give {cls.__name__}(**it)" if isinstance(value, Mapping) else ""
+        raise InputError(where, f"expected a {cls.__name__}, got {type(value).__name__}{hint}")
+
+    @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> Self:
         """A config from a {name: value} mapping (ROS parameters, JSON); lists become tuples, unknown names raise."""
         names = {f.name for f in fields(cls)}

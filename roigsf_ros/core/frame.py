@@ -8,6 +8,11 @@ import cv2
 import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.errors import InputError
+
+COLOUR_FLOAT_MAX = 1.001
+"""The most a float colour value may be: floats are [0, 1] (a little over 1 is clipped, as noise may reach it); more is
+an image in 0-255 given as floats, refused rather than clipped to white."""
 
 
 @dataclass
@@ -18,6 +23,16 @@ class Frame:
     rgb: np.ndarray  # [H, W, 3] uint8
     depth_m: np.ndarray  # [H, W] float32 metres, 0 where invalid
     T_wc: np.ndarray  # [4, 4] float64 camera-to-world
+
+
+def check_float_colour(rgb: np.ndarray, where: str) -> None:
+    """InputError naming ``where`` when float colour values (non-finite ones aside) exceed :data:`COLOUR_FLOAT_MAX`:
+    a 0-255 image given as floats, which clipping to [0, 1] would silently turn white.
+    """
+    a = np.asarray(rgb)
+    top = float(a[np.isfinite(a)].max(initial=0.0))
+    if top > COLOUR_FLOAT_MAX:
+        raise InputError(where, f"colour floats reach {top:g}: floats must be in [0, 1] (0-255: give uint8)")
 
 
 def resize_frame(frame: Frame, intr: Intrinsics) -> Frame:
@@ -42,4 +57,4 @@ def spread_indices(n: int, k: int) -> list[int]:
     return sorted({round(float(x)) for x in np.linspace(0, n - 1, min(int(k), n))})
 
 
-__all__ = ["Frame", "resize_frame", "spread_indices"]
+__all__ = ["COLOUR_FLOAT_MAX", "Frame", "check_float_colour", "resize_frame", "spread_indices"]

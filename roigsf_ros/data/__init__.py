@@ -137,6 +137,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "FrameSource",
             "MemoryFrameSource",
             "ReplicaFrameSource",
+            "check_frame_source",
             "open_frames",
         ],
         "sync": ["FrameLedger", "REJECT_REASONS", "StampGapCounter", "StampMatcher", "T"],

@@ -164,7 +164,7 @@ class ReplicaSequence:
     ) -> None:
         root = Path(root)
         if not root.is_dir():
-            raise InputError(root, "scene folder not found")
+            raise InputError(root, "is a file, not a scene folder" if root.exists() else "scene folder not found")
         if (root / "results").is_dir():
             self.root, self.results = root, root / "results"
         elif any(_FRAME_RE.match(p.name) for p in root.iterdir()):  # results/ itself, or a flat folder

@@ -37,6 +37,15 @@ class FrameSequence(Protocol):
     def __iter__(self) -> Iterator[Frame]: ...
 
 
+def check_frame_source(source: object, where: str = "source") -> None:
+    """InputError naming ``where`` unless ``source`` is a :class:`FrameSequence` (a path given in its place failed deep
+    in the work on a missing attribute).
+    """
+    if not all(hasattr(source, a) for a in ("intrinsics", "__len__", "__iter__")):
+        hint = ": open a folder or bag with open_frames(path)" if isinstance(source, str | Path) else ""
+        raise InputError(where, f"expected a frame sequence, got {type(source).__name__}{hint}")
+
+
 class FrameSource:
     """Posed RGB-D frames from disk, re-iterable; ``len`` is the number of frames after stride and cap.
 
@@ -261,7 +270,8 @@ def open_frames(
 ) -> FrameSource:
     """A :class:`FrameSource` over a bag or Replica folder; ``size`` = (width, height) resizes on load.
 
-    One side of ``size`` may be None: it follows the source's aspect ratio.
+    One side of ``size`` may be None: it follows the source's aspect ratio. Both given, the picture takes that shape
+    whatever the source's (the intrinsics follow: fx and fy scale apart), so a (height, width) pair squashes it.
 
     ``stride`` keeps every stride-th frame, ``max_frames`` caps the count after the stride;
     ``allow_partial`` lets a Replica ``traj.txt`` hold more poses than frames on disk; ``topics`` says
@@ -287,5 +297,6 @@ __all__ = [
     "FrameSource",
     "MemoryFrameSource",
     "ReplicaFrameSource",
+    "check_frame_source",
     "open_frames",
 ]

@@ -19,7 +19,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "depth_l1",
             "gt_visible_mask",
             "mesh_metrics",
-            "o3c",
             "psnr",
             "raycast_depth",
             "raycasting_scene",

@@ -28,6 +28,7 @@ from skimage.metrics import structural_similarity
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path
+from roigsf_ros.core.frame import COLOUR_FLOAT_MAX
 from roigsf_ros.data.scene import camera_rays, load_mesh
 
 o3c = o3d.core
@@ -64,6 +65,9 @@ def _as_rgb01(img: Any, where: str) -> np.ndarray:
     a = a.astype(np.float64)
     if not np.all(np.isfinite(a)):
         raise InputError(where, "colour image has non-finite values")
+    if a.size and float(np.median(a)) > COLOUR_FLOAT_MAX:  # a render's few values above 1 are clipped; not these
+        raise InputError(where, f"colour floats have median {float(np.median(a)):g}: floats must be in [0, 1] "
+                                "(0-255: give uint8), else clipping turns the image white")  # fmt: skip
     return np.clip(a, 0.0, 1.0)
 
 
@@ -81,7 +85,8 @@ def _pair_rgb(pred_rgb: Any, gt_rgb: Any) -> tuple[np.ndarray, np.ndarray]:
 def psnr(pred_rgb: Any, gt_rgb: Any) -> float:
     """Peak signal-to-noise ratio in dB, ``10 log10(1 / MSE)`` over [0, 1] colours (inf if identical).
 
-    Accepts numpy or torch, [H, W, 3] or [3, H, W], uint8 (divided by 255) or float (clipped to [0, 1]).
+    Accepts numpy or torch, [H, W, 3] or [3, H, W], uint8 (divided by 255) or float (clipped to [0, 1]; refused when
+    most values are above 1, an image in 0-255 given as floats).
     """
     pred, gt = _pair_rgb(pred_rgb, gt_rgb)
     return _psnr_of_mse(float(np.mean((pred - gt) ** 2)))
@@ -101,7 +106,7 @@ def check_eval_size(intr: Intrinsics, where: str = "image size") -> None:
     """
     if min(intr.width, intr.height) < MIN_EVAL_SIDE:
         raise InputError(where, f"{intr.width}x{intr.height} px: evaluating a map needs at least {MIN_EVAL_SIDE} px a "
-                         "side (SSIM's 11x11 window); give a larger --width/--height")  # fmt: skip
+                         "side (SSIM's 11x11 window); give a larger image size (--width/--height)")  # fmt: skip
 
 
 def ssim(pred_rgb: Any, gt_rgb: Any) -> float:
@@ -111,6 +116,9 @@ def ssim(pred_rgb: Any, gt_rgb: Any) -> float:
     over the three channels; the same inputs as :func:`psnr`.
     """
     pred, gt = _pair_rgb(pred_rgb, gt_rgb)
+    if min(pred.shape[:2]) < MIN_EVAL_SIDE:  # skimage's own message names a 7x7 minimum and a win_size not taken here
+        raise InputError("pred_rgb", f"SSIM needs images of at least {MIN_EVAL_SIDE}x{MIN_EVAL_SIDE} px (its Gaussian "
+                                     f"window), got {pred.shape[1]}x{pred.shape[0]}")  # fmt: skip
     try:
         value = structural_similarity(
             pred,
@@ -605,7 +613,6 @@ __all__ = [
     "depth_l1",
     "gt_visible_mask",
     "mesh_metrics",
-    "o3c",
     "psnr",
     "raycast_depth",
     "raycasting_scene",

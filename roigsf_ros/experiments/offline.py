@@ -19,7 +19,7 @@ from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
-from roigsf_ros.data.sources import FrameSequence
+from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.novelty import ObservedSurface
 from roigsf_ros.policies.base import KeyframePolicy, checked_keyframes
@@ -188,6 +188,7 @@ def run_offline(
         raise InputError("config", f"must be a MapperConfig (MapperConfig(**values)), got a {type(config).__name__}")
     if not callable(getattr(policy, "observe", None)):  # a policy's name gave a bare AttributeError
         raise InputError("policy", f"must be a keyframe policy (make_policy(name, ...)), got {policy!r}")
+    check_frame_source(source, "source")
     if eval_source is not None:
         if len(eval_source) != len(source):
             raise InputError("eval_source", f"has {len(eval_source)} frames, the mapped sequence {len(source)}")

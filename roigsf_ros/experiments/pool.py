@@ -38,7 +38,7 @@ from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
-from roigsf_ros.data.sources import FrameSequence
+from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import ROI_MODES, NBVConfig
 from roigsf_ros.policies.base import make_policy
@@ -290,6 +290,7 @@ def run_pool(
     metrics then name it by its ``name`` attribute); ``config.seed`` still seeds the mapper.
     """
     t_start = time.perf_counter()
+    check_frame_source(source, "source")
     evaluation.check_eval_size(source.intrinsics)
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
     if gt_path is not None:

@@ -17,7 +17,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "ssim_map",
         ],
         "mapper": [
-            "COLOUR_FLOAT_MAX",
             "DEPTH_MODES",
             "Keyframe",
             "MapMeta",
@@ -29,6 +28,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "write_map_meta",
         ],
         "observed_space": ["FREE", "OCCUPIED", "UNKNOWN", "ObservedSpace"],
-        "tsdf": ["SurfaceVoxels", "TSDFVolume", "canonical_mesh", "o3c", "tsdf_mesh_from_depths"],
+        "tsdf": ["SurfaceVoxels", "TSDFVolume", "canonical_mesh", "tsdf_mesh_from_depths"],
     },
 )

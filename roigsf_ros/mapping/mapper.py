@@ -27,7 +27,7 @@ from roigsf_ros.core.camera import Intrinsics, check_pose, load_pose
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
-from roigsf_ros.core.frame import Frame
+from roigsf_ros.core.frame import Frame, check_float_colour
 from roigsf_ros.mapping import losses
 from roigsf_ros.render.fisher import fisher_diag, frustum_subset
 from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, numba_available, prange
@@ -41,10 +41,6 @@ log = logging.getLogger(__name__)
 
 DEPTH_MODES = ("expected", "median")
 """Rendered depth used for evaluation or meshing: alpha-normalised expected depth, or median depth."""
-
-COLOUR_FLOAT_MAX = 1.001
-"""The most a float colour value may be: floats are [0, 1] (a little over 1 is clipped, as noise may reach it); more is
-an image in 0-255 given as floats, refused rather than clipped to white."""
 
 
 @dataclass(frozen=True)
@@ -375,7 +371,9 @@ class Mapper:
     """Incremental 2DGS surfel map over posed RGB-D keyframes of one camera."""
 
     def __init__(self, intr: Intrinsics, config: MapperConfig | None = None) -> None:
-        self.config = config or MapperConfig()
+        if not isinstance(intr, Intrinsics):  # else an AttributeError at the first keyframe
+            raise InputError("intr", f"expected an Intrinsics (a source's .intrinsics), got {type(intr).__name__}")
+        self.config = MapperConfig.given(config)
         self.intr = intr
         self.device = torch.device(self.config.device)
         self.dtype = torch.float32
@@ -480,9 +478,7 @@ class Mapper:
             if not np.issubdtype(rgb.dtype, np.floating):
                 raise InputError(where, f"colour has dtype {rgb.dtype}: give uint8 (0-255) or floats in [0, 1]")
             rgb_f = rgb.astype(np.float64)
-            top = float(rgb_f[np.isfinite(rgb_f)].max(initial=0.0))
-            if top > COLOUR_FLOAT_MAX:  # a 0-255 image as floats would be clipped to white, silently
-                raise InputError(where, f"colour floats reach {top:g}: floats must be in [0, 1] (0-255: give uint8)")
+            check_float_colour(rgb_f, where)
             bad = ~np.isfinite(rgb_f).all(-1)
             if bad.any():
                 self.stats.invalid_colour_pixels += int(bad.sum())
@@ -874,7 +870,10 @@ class Mapper:
         ones first; intrinsics, config), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d``.
         """
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a regular file on the way: said as the package's error, naming the folder
+            raise InputError(out, f"cannot create the map folder: {exc.strerror or exc}") from None
         self.map.save_ply(out / "map.ply")
         write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
 
@@ -1039,7 +1038,6 @@ def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
 
 
 __all__ = [
-    "COLOUR_FLOAT_MAX",
     "DEPTH_MODES",
     "Keyframe",
     "MapMeta",

@@ -371,6 +371,5 @@ __all__ = [
     "SurfaceVoxels",
     "TSDFVolume",
     "canonical_mesh",
-    "o3c",
     "tsdf_mesh_from_depths",
 ]

@@ -215,8 +215,10 @@ class NBVResult:
 
     ``fisher`` [M]: F of Eq. 10 (ROI modes) or the FisherRF score (``fisherrf``), 0 where not computed;
     ``close_front`` [M]: I_vis of Eq. 14, 0 where not computed; ``best_index``: the argmax (Eq. 16);
-    ``ranking`` [M]: best first, flagged candidates last, ties by index; ``flagged`` [M]: candidates that
-    see no surface (behind or outside the map; their raw scores are 0); ``reason``: why scores are
+    ``ranking`` [M]: best first, flagged candidates last, ties by index; ``flagged`` [M]: candidates with nothing
+    to score: they see no surface (behind or outside the map; their raw scores are 0) and, with the unseen term
+    (``unseen_weight`` > 0), no unseen space either (on an empty map every candidate sees only unseen space, so
+    none is flagged); ``reason``: why scores are
     degenerate ("" when they are not); diagnostics per candidate: ``n_roi_pixels``, ``roi_mass``,
     ``n_visible_voxels``; ``timings_s``: wall seconds per phase (``setup``, ``h_train``, ``roi`` (with close-front:
     one pass over all candidates), ``close_front`` (0, kept for callers), ``fisher``, ``unseen`` (the unseen term:
@@ -297,7 +299,7 @@ class NBVScorer:
     """Scores candidate views of a surfel map + TSDF for next-best-view selection (all modes)."""
 
     def __init__(self, config: NBVConfig | None = None) -> None:
-        self.config = config or NBVConfig()
+        self.config = NBVConfig.given(config)
 
     # -------------------------------------------------------------------------------- parts
     def surface(self, tsdf: TSDFVolume | None) -> SurfaceVoxels | None:
@@ -436,7 +438,9 @@ class NBVScorer:
             vox = self.surface(tsdf)
             if vox is None or len(vox.centres_m) == 0:
                 reasons.append(
-                    "no TSDF given" if tsdf is None else "the TSDF has no surface voxels: ROI and close-front are 0"
+                    "no TSDF (none given, or no keyframe fused into it): ROI and close-front are 0"
+                    if tsdf is None
+                    else "the TSDF has no surface voxels: ROI and close-front are 0"
                 )
                 vox = None
             else:

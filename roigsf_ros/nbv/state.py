@@ -245,7 +245,7 @@ class ScoringState:
         refresh_every: int = 0,
         should_stop: ShouldStop = None,
     ) -> None:
-        self.config = config
+        self.config = config = NBVConfig.given(config)
         self.should_stop = should_stop
         self.voxel_size_m = float(voxel_size_m)
         self.sdf_trunc_m = float(sdf_trunc_m)
@@ -392,7 +392,7 @@ class ScoringState:
         """Score ``candidates`` [N, 4, 4] against the map with keyframe ``poses``; the best is ``result.best_index``."""
         mode = mode or self.config.mode
         voxels, close_front, h = self.update(surfel_map, running, map_fisher_outputs, poses, intr, render_rgbd, mode)
-        cfg = replace(self.config, mode=mode, top_k=top_k or self.config.top_k)
+        cfg = replace(self.config, mode=mode, top_k=self.config.top_k if top_k is None else top_k)  # 0 refused
         tsdf = self.tsdf if mode != "fisherrf" else None
         scorer = PreparedScorer(cfg, tsdf, voxels)
         return scorer.score(
@@ -418,7 +418,7 @@ def score_views(
     """
     cfg = mapper.config
     voxel = cfg.mesh_voxel_size_m
-    state = ScoringState(config or NBVConfig(), voxel, max(cfg.mesh_sdf_trunc_m, voxel), cfg.max_depth_m)
+    state = ScoringState(NBVConfig.given(config), voxel, max(cfg.mesh_sdf_trunc_m, voxel), cfg.max_depth_m)
     _, poses = mapper.map_keyframes()
     running = None if mapper.loaded_keyframe_ids or not cfg.track_h_train else mapper.h_train
     outputs = tuple(cfg.fisher_outputs)  # the map rendered as its mesh is fused: depth, and alpha threshold

@@ -30,7 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.errors import InputError
 from roigsf_ros.render.numba_setup import (
     KERNEL_LOCK,
     Kernels,
@@ -2106,6 +2107,12 @@ def render_map(
     and ``visible`` is still one flag per surfel of the map.
     """
     m = surfel_map
+    if not hasattr(m, "opacity_logits"):  # a Mapper, say: its map is Mapper.map
+        raise InputError("surfel_map", f"expected a SurfelMap (a Mapper's is mapper.map), got {type(m).__name__}")
+    if not isinstance(intr, Intrinsics):
+        raise InputError("intr", f"expected an Intrinsics, got {type(intr).__name__}")
+    if not isinstance(T_wc, Tensor):  # a NaN or scaled pose rendered an empty or warped image without a word
+        check_pose(T_wc, "T_wc")  # checked, not replaced: the render uses the pose as given
     viewmat, K = camera_tensors(T_wc, intr, device=m.device, dtype=m.dtype)
     if cull:
         from roigsf_ros.render.fisher import frustum_subset  # here: fisher imports this module
@@ -2144,6 +2151,10 @@ def _check_inputs(
     near: float,
     far: float,
 ) -> None:
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features}
+    for name, t in (tensors | {"viewmat": viewmat, "K": K}).items():
+        if not isinstance(t, Tensor):  # numpy failed later on a missing attribute (requires_grad)
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__} (torch.as_tensor converts it)")
     n = means.shape[0]
     shapes = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 2))}
     shapes |= {"opacities": (opacities, (n,)), "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))}

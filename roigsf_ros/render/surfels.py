@@ -22,6 +22,7 @@ from torch import Tensor
 from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_path
+from roigsf_ros.core.frame import check_float_colour
 
 SH_C0 = 0.28209479177387814
 """Zeroth-order real spherical-harmonic constant: colour = 0.5 + SH_C0 * sh_dc."""
@@ -471,6 +472,8 @@ def surfels_from_rgbd(
         isinstance(rgb, Tensor) and rgb.dtype == torch.uint8
     )
     rgb_t = _as_tensor(rgb, "rgb", torch.float64) / (255.0 if rgb_is_u8 else 1.0)
+    if not rgb_is_u8:
+        check_float_colour(rgb_t.cpu().numpy(), "rgb")  # 0-255 as floats: refused, as Mapper.add_keyframe does
     depth = _as_tensor(depth_m, "depth", torch.float64)
     if tuple(rgb_t.shape) != (h, w, 3):
         raise InputError("rgb", f"expected shape [{h}, {w}, 3] (intrinsics {w}x{h}), got {list(rgb_t.shape)}")
