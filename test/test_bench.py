@@ -425,6 +425,30 @@ def test_interrupted_overwrite_keeps_the_old_bench(
     assert [p.name for p in tmp_path.iterdir()] == ["bench"]  # no temporary folder left beside it
 
 
+def test_overwrite_never_replaces_the_scene_or_a_folder_of_other_things(
+    scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk ran ``roigsf bench --scene X --out X --overwrite`` (rc 0: the scene was gone, and ``--out PARENT`` took
+    a notes file with it) and ``roigsf map X --out X --overwrite`` (its mesh.ply replaced by the reconstruction while
+    it said "mesh metrics against X/mesh.ply"). Now both are refused before any work, naming the folder, and
+    ``--overwrite`` replaces only an earlier output of the same command or an empty folder."""
+    work = tmp_path / "work"
+    shutil.copytree(scene, work / "scene")
+    (work / "notes.txt").write_text("mine")
+    before = snapshot(work)
+    for out in (work / "scene", work):
+        assert main(tiny_bench_argv(work / "scene", out, "every-n:n=4", 1, "--overwrite")) == 2
+        assert "which this command reads: writing there would delete it" in capsys.readouterr().err
+        assert main(["map", str(work / "scene"), "--out", str(out), "--overwrite", "--max-frames", "2"]) == 2
+        assert "which this command reads: writing there would delete it" in capsys.readouterr().err
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "thesis.tex").write_text("mine")
+    assert main(tiny_bench_argv(work / "scene", other, "every-n:n=4", 1, "--overwrite")) == 2
+    assert "is a folder without results.json, not a bench's output: overwrite replaces only" in capsys.readouterr().err
+    assert snapshot(work) == before and (other / "thesis.tex").read_text() == "mine"
+
+
 def test_overwrite_leaves_no_file_of_the_old_bench(scene: Path, old_bench: Path, tmp_path: Path) -> None:
     """A completed ``--overwrite`` leaves only what the new bench wrote: no run, seed or plot of the old one."""
     out = tmp_path / "bench"

@@ -11,7 +11,15 @@ from pathlib import Path
 import pytest
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, atomic_path, check_writable, deferred_interrupts, read_json, write_json
+from roigsf_ros.core.fileio import (
+    atomic_dir,
+    atomic_path,
+    check_replaceable,
+    check_writable,
+    deferred_interrupts,
+    read_json,
+    write_json,
+)
 
 
 def _write_dir(final: Path, overwrite: bool = True) -> None:
@@ -35,6 +43,38 @@ def test_overwrite_leaves_only_the_new_folder(tmp_path: Path, old: str) -> None:
     assert final.is_dir() and not final.is_symlink() and [p.name for p in final.iterdir()] == ["map.ply"]
     if old == "symlink":
         assert (tmp_path / "elsewhere").is_dir()  # the link's target is not ours to delete
+
+
+def test_overwrite_never_deletes_an_input_or_a_folder_of_other_things(tmp_path: Path) -> None:
+    """``roigsf bench --scene X --out X --overwrite`` deleted the scene it had benchmarked, and ``--overwrite`` on a
+    mistyped ``--out`` any folder: with ``inputs`` an output holding one is refused, and with ``marks`` only an earlier
+    output of the same kind (or an empty folder) is replaced; whatever stood there stays as it was."""
+    scene = tmp_path / "work" / "scene"
+    scene.mkdir(parents=True)
+    (scene / "traj.txt").write_text("poses")
+    (tmp_path / "work" / "notes.txt").write_text("mine")
+    for out in (scene, tmp_path / "work"):  # the input itself, and a folder above it
+        with (
+            pytest.raises(InputError, match="which this command reads: writing there would delete it"),
+            atomic_dir(out, overwrite=True, marks=("results.json",), what="a bench's output", inputs=[scene]),
+        ):
+            pass
+    with (
+        pytest.raises(InputError, match=r"is a folder without results.json, not a bench's output: overwrite"),
+        atomic_dir(tmp_path / "work", overwrite=True, marks=("results.json",), what="a bench's output"),
+    ):
+        pass
+    assert (scene / "traj.txt").read_text() == "poses" and (tmp_path / "work" / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]  # no temporary left beside it
+    earlier = tmp_path / "bench"
+    earlier.mkdir()
+    (earlier / "results.json").write_text("{}")
+    (tmp_path / "empty").mkdir()
+    for out in (earlier, tmp_path / "empty"):  # an earlier output, or an empty folder: replaced as before
+        with atomic_dir(out, overwrite=True, marks=("results.json",), what="a bench's output", inputs=[scene]) as tmp:
+            (tmp / "results.json").write_text("new")
+        assert (out / "results.json").read_text() == "new"
+    check_replaceable(tmp_path / "nothing-yet", ("results.json",), "a bench's output", [tmp_path / "gone"])  # no-op
 
 
 def test_failure_leaves_the_old_output_and_no_temporaries(tmp_path: Path) -> None:

@@ -18,9 +18,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import check_writable, deferred_interrupts
+from roigsf_ros.core.fileio import check_replaceable, check_writable, deferred_interrupts
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from roigsf_ros.data.bags import CameraTopics
 
 # Subcommand modules, in the order `roigsf --help` lists them.
@@ -157,12 +159,20 @@ def chosen_gt_mesh(option: str | None, own: Path | None) -> tuple[Path | None, s
     return (own, "") if own is not None else (None, NO_OWN_MESH)
 
 
-def check_out(out: Path, overwrite: bool) -> None:
-    """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written."""
+def check_out(
+    out: Path, overwrite: bool, marks: Sequence[str], what: str, inputs: Sequence[str | Path | None] = ()
+) -> None:
+    """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written.
+
+    ``--overwrite`` replaces an empty folder or ``what``, an earlier output of the command (a folder holding one of
+    ``marks``), and never a folder holding one of the command's ``inputs``
+    (:func:`~roigsf_ros.core.fileio.check_replaceable`).
+    """
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
+    check_replaceable(out, marks, what, [p for p in inputs if p is not None])
     check_writable(out)
 
 

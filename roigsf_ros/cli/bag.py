@@ -10,7 +10,7 @@ from typing import Any
 
 from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import AUTO, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
+from roigsf_ros.data.bags import AUTO, BAG_MARKS, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.robot_bag import (
     ROBOT_COLOR_FORMATS,
@@ -167,7 +167,7 @@ def _from_replica(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
     size = image_size(args)
-    check_out(args.out, args.overwrite)
+    check_out(args.out, args.overwrite, BAG_MARKS, "a bag", [args.dir])
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
     mesh = _source_mesh(seq.root, args.no_mesh)
     n = write_bag(
@@ -192,7 +192,7 @@ def _to_robot(args: argparse.Namespace) -> int:
         raise InputError("--tf-lag-ms", f"must be a number of milliseconds >= 0, got {args.tf_lag_ms:g}")
     if args.out.resolve() == args.src.resolve():  # before check_out: --overwrite would let it replace the source
         raise InputError("--out", f"{args.out} is the bag being rewritten: write the robot's bag elsewhere")
-    check_out(args.out, args.overwrite)
+    check_out(args.out, args.overwrite, BAG_MARKS, "a bag", [args.src])
     src_folder = args.src if args.src.is_dir() else args.src.parent
     mesh = _source_mesh(src_folder, args.no_mesh)
     n = write_robot_bag(

@@ -131,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
                if v is None]  # fmt: skip
     if missing:
         raise InputError(" ".join(missing), "required (unless --rescore-ause)")
-    check_out(args.out, args.overwrite)
+    check_out(args.out, args.overwrite, ("results.json",), "a bench's output",
+              [args.scene, args.gt_mesh, args.test_scene])  # fmt: skip
     cfg = config_from_args(args)
     command = "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
     run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command)

@@ -43,6 +43,7 @@ import numpy as np
 
 from roigsf_ros.cli import check_writable, chosen_gt_mesh, realsense_hint
 from roigsf_ros.core.errors import InputError
+from roigsf_ros.core.fileio import check_replaceable
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import (
     SAMPLE_BAG,
@@ -347,6 +348,10 @@ def demo_camera(
         raise InputError(exc.where, f"{exc.problem}{hint}") from None
 
 
+DEMO_MARKS, DEMO_OUTPUT = ("metrics.json",), "a demo's output"
+"""What a demo's ``--out`` may replace (it always replaces its own earlier run): an empty folder or one with these."""
+
+
 def run_demo(
     bag: Path,
     out: Path,
@@ -535,7 +540,8 @@ def run_demo(
         gt_points = evaluation.sample_surface(evaluation.as_legacy_mesh(gt_mesh, "gt_mesh"), 20_000, 0)
     import open3d as o3d
 
-    with atomic_dir(out, overwrite=True) as tmp:
+    reads = [p for p in (bag, gt_mesh, *params_files) if p is not None]
+    with atomic_dir(out, overwrite=True, marks=DEMO_MARKS, what=DEMO_OUTPUT, inputs=reads) as tmp:
         save_snapshot(system.shared.snapshot(with_h_train=False), tmp)  # map.ply + keyframes.json
         if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
             raise OSError(f"{out / 'mesh.ply'}: open3d could not write the mesh")
@@ -585,6 +591,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(out, "exists and is not a folder")
     check_writable(out)  # the run folder is written at the end: fail now, not after the replay
     params_files = [Path(f) for f in args.params_file]
+    check_replaceable(out, DEMO_MARKS, DEMO_OUTPUT, [p for p in (bag, gt_mesh, *params_files) if p is not None])
     from roigsf_ros.nodes.node_params import params_file_sections  # rclpy: imported once a demo runs
 
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read

@@ -208,7 +208,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     size = image_size(args)
     topics = camera_topics(args)
-    check_out(args.out, args.overwrite)
+    check_out(args.out, args.overwrite, ("metrics.json",), "a map's output",
+              [args.source, args.gt_mesh, args.test_scene])  # fmt: skip
     policy = policy_from_args(args)
     cfg = config_from_args(args)
     if args.gt_mesh and not Path(args.gt_mesh).is_file():  # now, before the sources are read

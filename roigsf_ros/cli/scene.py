@@ -17,7 +17,7 @@ from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.cli.map import parse_set_value
 from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size, load_cam_params
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.replica import load_traj
+from roigsf_ros.data.replica import SCENE_MARKS, load_traj
 from roigsf_ros.data.sensor import CAMERAS, SENSORS, SensorConfig, SensorModel
 
 SYNTH_WIDTH, SYNTH_HEIGHT = 320, 240
@@ -77,7 +77,7 @@ def _render(args: argparse.Namespace) -> int:
     from roigsf_ros.data.scene import load_mesh, render_sequence  # open3d import only when used
 
     out = Path(args.out)
-    check_out(out, args.overwrite)
+    check_out(out, args.overwrite, SCENE_MARKS, "a scene", [args.mesh, args.traj, args.cam])
     _check_texture(args.texture_strength)
     sensor = _sensor(args)
     if args.stride < 1:
@@ -128,7 +128,7 @@ def _synth(args: argparse.Namespace) -> int:
     )
 
     out = Path(args.out)
-    check_out(out, args.overwrite)
+    check_out(out, args.overwrite, SCENE_MARKS, "a scene")
     _check_texture(args.texture_strength)
     sensor = _sensor(args)
     if args.frames < 1:

@@ -13,7 +13,7 @@ import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +27,43 @@ def _umask() -> int:
     return mask
 
 
+def check_replaceable(
+    final: str | Path, marks: Sequence[str] = (), what: str = "", inputs: Sequence[str | Path] = ()
+) -> None:
+    """Refuse an output at ``final`` that would delete what it must not (InputError naming it).
+
+    An input of the command (``inputs``: the scene, bag or mesh it reads) at ``final`` or under it: ``roigsf bench
+    --scene X --out X --overwrite`` deleted the scene it had just benchmarked. With ``marks``, an existing ``final``
+    that is neither an empty folder nor ``what``, an earlier output of the same kind (a real folder holding one of the
+    files ``marks`` names): ``--overwrite`` on a mistyped ``--out`` deleted a folder of other things.
+    """
+    path = Path(final)
+    target = path.resolve()
+    for item in inputs:
+        if not Path(item).exists():  # nothing to lose (a frame source in memory names no file)
+            continue
+        read = Path(item).resolve()
+        if read == target or target in read.parents:
+            raise InputError(final, f"holds {item}, which this command reads: writing there would delete it (give "
+                                    "another output path)")  # fmt: skip
+    if not marks or not (path.exists() or path.is_symlink()):
+        return
+    real_dir = path.is_dir() and not path.is_symlink()
+    if real_dir and (not any(path.iterdir()) or any((path / m).is_file() for m in marks)):
+        return
+    desc = f"a folder without {' or '.join(marks)}" if real_dir else "not a folder"
+    raise InputError(final, f"is {desc}, not {what}: overwrite replaces only {what}")
+
+
 @contextlib.contextmanager
-def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str | None = None) -> Iterator[Path]:
+def atomic_dir(
+    final: str | Path,
+    overwrite: bool = False,
+    overwrite_hint: str | None = None,
+    marks: Sequence[str] = (),
+    what: str = "",
+    inputs: Sequence[str | Path] = (),
+) -> Iterator[Path]:
     """Yield a fresh temporary folder beside ``final``; rename it to ``final`` on success.
 
     On an exception the temporary folder is removed and ``final`` is untouched. With
@@ -36,9 +71,11 @@ def atomic_dir(final: str | Path, overwrite: bool = False, overwrite_hint: str |
     is complete, and removed: nothing but the new folder remains. Without it an existing ``final`` is a
     FileExistsError whose ``overwrite_hint`` tells how the caller's user asks to replace it: the command line's
     ``pass --overwrite`` by default, a request field for a service (``set overwrite: true in the request``).
+    ``marks``, ``what``, ``inputs``: what may be replaced and what never (:func:`check_replaceable`), checked first.
     """
     final = Path(final)
     check_output_name(final)
+    check_replaceable(final, marks if overwrite else (), what, inputs)
     if final.exists() and not overwrite:
         hint = "pass --overwrite" if overwrite_hint is None else overwrite_hint
         raise FileExistsError(f"{final}: already exists ({hint} to replace it)")
@@ -232,6 +269,7 @@ __all__ = [
     "atomic_dir",
     "atomic_path",
     "check_output_name",
+    "check_replaceable",
     "check_writable",
     "deferred_interrupts",
     "read_json",

@@ -7,6 +7,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "bags": [
             "AUTO",
+            "BAG_MARKS",
             "BagFrame",
             "BagReader",
             "CAMERA_FRAME_ID",
@@ -65,6 +66,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         ],
         "replica": [
             "MAX_DEPTH_M",
+            "SCENE_MARKS",
             "ReplicaSequence",
             "find_cam_params",
             "load_traj",

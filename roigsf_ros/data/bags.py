@@ -23,7 +23,7 @@ import math
 import shutil
 import struct
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
@@ -80,6 +80,8 @@ MAX_PENDING_STAMPS = 64
 
 SAMPLE_BAG = "bags/synth_room"
 """The shipped sample bag (bags/README.md), relative to the checkout or to the installed package's share folder."""
+BAG_MARKS = ("metadata.yaml",)
+"""The file of a rosbag2 bag folder: ``--overwrite`` replaces a folder holding it, or an empty one, and no other."""
 SAMPLE_GT_MESH = "bags/synth_room_mesh.ply"
 """The sample bag's ground-truth mesh, relative as :data:`SAMPLE_BAG`."""
 
@@ -629,17 +631,21 @@ def _pose_msg(stamp_ns: int, T_wc: np.ndarray) -> Any:
 
 
 @contextlib.contextmanager
-def staged_bag(out: Path, gt_mesh: Path | None = None, overwrite: bool = False) -> Iterator[Path]:
+def staged_bag(
+    out: Path, gt_mesh: Path | None = None, overwrite: bool = False, inputs: Sequence[str | Path] = ()
+) -> Iterator[Path]:
     """The folder a rosbags ``Writer`` writes the bag ``out`` into, which becomes ``out`` only once complete.
 
     rosbags names the storage file after its folder, so the bag is written into ``<tmp>/<name>`` and moved up into the
     temporary folder at the end; ``gt_mesh`` is copied in as ``mesh.ply`` (InputError now if it is missing), where
-    :func:`roigsf_ros.data.replica.scene_gt_mesh` finds it. An exception in the block leaves nothing at ``out``.
+    :func:`roigsf_ros.data.replica.scene_gt_mesh` finds it. An exception in the block leaves nothing at ``out``;
+    ``overwrite`` replaces an earlier bag only, never a folder holding ``inputs`` (what the bag is made from).
     """
     if gt_mesh is not None and not Path(gt_mesh).is_file():
         raise InputError(gt_mesh, "ground-truth mesh not found")
     out = Path(out)
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    reads = [*inputs, *([gt_mesh] if gt_mesh is not None else [])]
+    with atomic_dir(out, overwrite, marks=BAG_MARKS, what="a bag", inputs=reads) as tmp:
         staging = tmp / out.name
         yield staging
         for item in staging.iterdir():
@@ -685,7 +691,7 @@ def write_bag(
     ks = list(range(0, len(seq), stride))[:max_frames]
     intr = seq.intrinsics
     with (
-        staged_bag(out, gt_mesh, overwrite) as staging,
+        staged_bag(out, gt_mesh, overwrite, [seq.root]) as staging,
         Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer,
     ):
         conns = {
@@ -1148,6 +1154,7 @@ def _encoding_of(msg: Any) -> str | None:
 
 __all__ = [
     "AUTO",
+    "BAG_MARKS",
     "CAMERA_FRAME_ID",
     "CAMERA_INFO_TOPIC",
     "CAMERA_INFO_TYPE",

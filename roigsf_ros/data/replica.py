@@ -33,6 +33,11 @@ MAX_DEPTH_M = 65535 / 6553.5
 """Largest depth a Replica uint16 PNG can hold at the standard scale (about 10 m)."""
 
 
+SCENE_MARKS = ("cam_params.json", "traj.txt")
+"""The files of a scene folder (this package's renders and NICE-SLAM's Replica): ``--overwrite`` replaces a folder
+holding one of them, or an empty one, and no other."""
+
+
 def load_traj(path: str | Path) -> np.ndarray:
     """Read ``traj.txt``: [N, 4, 4] float64 camera-to-world poses, each checked to be rigid, one a line (line k is
     frame k's: a blank line among them is refused, blank lines at the end are ignored).
@@ -292,6 +297,7 @@ def scene_gt_mesh(folder: Path) -> Path | None:
 
 __all__ = [
     "MAX_DEPTH_M",
+    "SCENE_MARKS",
     "ReplicaSequence",
     "find_cam_params",
     "load_traj",

@@ -139,7 +139,7 @@ def write_robot_bag(
     out = Path(out)
     n = 0
     source_topics = bags.CameraTopics(color_transport=bags.AUTO, depth_transport=bags.AUTO)
-    with bags.BagReader(src, source_topics) as reader, bags.staged_bag(out, gt_mesh, overwrite) as staging:
+    with bags.BagReader(src, source_topics) as reader, bags.staged_bag(out, gt_mesh, overwrite, [src]) as staging:
         with Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             conns = {
                 topic: writer.add_connection(

@@ -27,7 +27,7 @@ from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.core.frame import Frame
-from roigsf_ros.data.replica import save_traj, write_replica
+from roigsf_ros.data.replica import SCENE_MARKS, save_traj, write_replica
 from roigsf_ros.data.sensor import SensorModel, orthonormality_error
 
 ROOM_MIN = np.array([-2.5, -2.0, 0.0])
@@ -758,7 +758,7 @@ def render_sequence(
         check_pose(T, f"pose {i}")
     renderer = MeshRenderer(mesh, texture_strength=texture_strength, texture_seed=texture_seed)
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir, overwrite=overwrite) as tmp:
+    with atomic_dir(out_dir, overwrite, marks=SCENE_MARKS, what="a scene") as tmp:
         show = progress and sys.stderr.isatty()
 
         written = poses if sensor is None else sensor.poses(poses)

@@ -443,7 +443,8 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     runs: list[dict[str, Any]] = []
     labels = [p.label for p in cfg.policies]
     total = len(labels) * cfg.seeds
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    reads = [p for p in (cfg.scene, cfg.gt_mesh, cfg.test_scene, source.gt_mesh_path) if p is not None]
+    with atomic_dir(out, overwrite, marks=("results.json",), what="a bench's output", inputs=reads) as tmp:
         if progress:
             print(f"writing into {tmp}, renamed to {out} when the bench is complete", flush=True)
         for spec in cfg.policies:

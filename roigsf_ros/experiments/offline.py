@@ -17,7 +17,7 @@ from roigsf_ros import evaluation
 from roigsf_ros.core.camera import Intrinsics, check_pose, depth_points_w
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, write_json
+from roigsf_ros.core.fileio import atomic_dir, check_replaceable, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
@@ -208,6 +208,9 @@ def run_offline(
         raise FileExistsError(
             f"{out_final}: already exists (overwrite=True replaces it; on the command line --overwrite)"
         )
+    reads = [p for p in (getattr(source, "path", None), gt_path) if p is not None]
+    keep: dict[str, Any] = {"marks": ("metrics.json",) if overwrite else (), "what": "a map's output", "inputs": reads}
+    check_replaceable(out_final, **keep)  # now, not after the mapping
     cfg = config or MapperConfig()
     mapper = Mapper(source.intrinsics, cfg)
     policy.reset()
@@ -346,7 +349,7 @@ def run_offline(
     metrics["config"] = cfg.to_dict()
     metrics["eval_config"] = ev.to_dict()
 
-    with atomic_dir(out_final, overwrite=overwrite) as tmp:
+    with atomic_dir(out_final, overwrite, **keep) as tmp:
         mapper.save(tmp)
         if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
             raise OSError(f"{out_final / 'mesh.ply'}: open3d could not write the mesh")

@@ -36,7 +36,7 @@ import open3d as o3d
 from roigsf_ros import evaluation
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, write_json
+from roigsf_ros.core.fileio import atomic_dir, check_replaceable, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
@@ -299,6 +299,11 @@ def run_pool(
         raise FileExistsError(
             f"{out_dir}: already exists (overwrite=True replaces it; on the command line --overwrite)"
         )
+    reads = [p for p in (getattr(source, "path", None), gt_path) if p is not None]
+    marks = ("metrics.json",) if overwrite else ()
+    keep: dict[str, Any] = {"marks": marks, "what": "a pool run's output", "inputs": reads}
+    if out_dir is not None:
+        check_replaceable(out_dir, **keep)  # now, not after the views are chosen
     mcfg = replace(mapper_config or MapperConfig(), seed=config.seed)
     policy_name = config.policy if policy is None else str(getattr(policy, "name", type(policy).__name__))
     if policy is None:
@@ -439,7 +444,7 @@ def run_pool(
     metrics["config"] = mcfg.to_dict()
     metrics = evaluation.to_json_safe(metrics)
     if out_dir is not None:
-        with atomic_dir(out_dir, overwrite=overwrite) as tmp:
+        with atomic_dir(out_dir, overwrite, **keep) as tmp:
             mapper.save(tmp)
             if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
                 raise OSError(f"{Path(out_dir) / 'mesh.ply'}: open3d could not write the mesh")

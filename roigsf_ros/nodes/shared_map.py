@@ -24,7 +24,7 @@ from torch import Tensor
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir
+from roigsf_ros.core.fileio import atomic_dir, check_replaceable
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig, write_map_meta
 from roigsf_ros.render.surfels import SurfelMap
 
@@ -268,13 +268,7 @@ def check_replaceable_map(directory: str | Path) -> None:
     """Refuse to replace anything at ``directory`` but a saved map (a folder with keyframes.json) or an empty folder:
     a mistyped ``overwrite: true`` save must not delete a file or a folder of other things.
     """
-    path = Path(directory)
-    if not (path.exists() or path.is_symlink()):
-        return
-    if is_saved_map(path) or (path.is_dir() and not path.is_symlink() and not any(path.iterdir())):
-        return
-    what = "a folder without keyframes.json" if path.is_dir() else "not a folder"
-    raise InputError(directory, f"is {what}, not a saved map: overwrite replaces only a map")
+    check_replaceable(directory, ("keyframes.json",), "a saved map")
 
 
 def save_snapshot(snap: MapSnapshot, directory: Path, with_mesh: bool = False) -> None:
