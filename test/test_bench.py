@@ -425,6 +425,30 @@ def test_interrupted_overwrite_keeps_the_old_bench(
     assert [p.name for p in tmp_path.iterdir()] == ["bench"]  # no temporary folder left beside it
 
 
+def test_a_policy_spelt_twice_and_a_setting_s_unused_options_are_refused(scene: Path) -> None:
+    """A walk ran ``roi-gsurfisher:unseen_weight=1,roi-gsurfisher:unseen_weight=1.0`` as two rows (and the keys in
+    another order, and every-n's alias ``n``), took ``window`` and ``trigger_every`` in the pool setting and
+    ``--pool-set`` in the stream one, each changing nothing, without a word."""
+    from roigsf_ros.experiments.bench import parse_policies
+
+    for text in ("roi-gsurfisher:unseen_weight=1,roi-gsurfisher:unseen_weight=1.0",
+                 "roi-gsurfisher:epsilon=0.5:delta=0.5,roi-gsurfisher:delta=0.5:epsilon=0.5",
+                 "every-n:n=4,every-n:every_n=4"):  # fmt: skip
+        setting = "stream" if text.startswith("every-n") else "pool"
+        with pytest.raises(InputError, match=r"^--policies: policy given twice: .* and .* \(the same policy and"):
+            parse_policies(text, setting)
+    with pytest.raises(InputError, match=r"^--policies: policy given twice: random \(the same"):
+        parse_policies("random,random", "pool")
+    assert len(parse_policies("roi-gsurfisher:unseen_weight=1,roi-gsurfisher:unseen_weight=2", "pool")) == 2
+    with pytest.raises(InputError, match="unseen_weight"):  # read as 25 by Python's numbers, and taken
+        parse_policies("roi-gsurfisher:unseen_weight=2_5", "pool")
+    for spec in ("roi-gsurfisher:window=13", "roi-gsurfisher:trigger_every=3"):
+        with pytest.raises(InputError, match="decides when a stream frame becomes a keyframe: stream setting only"):
+            parse_policies(spec, "pool")
+    argv = tiny_bench_argv(scene, scene.parent / "never", "every-n:n=4", 1, "--pool-set", "n_views=5")
+    assert main(argv) == 2 and not (scene.parent / "never").exists()
+
+
 def test_overwrite_never_replaces_the_scene_or_a_folder_of_other_things(
     scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

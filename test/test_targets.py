@@ -429,3 +429,17 @@ def test_the_scene_is_compared_by_its_resolved_path_where_both_benches_have_it(t
     old = load_policy(bench(tmp_path / "old", "pool", fisherrf, scene=here))  # no scene_resolved: compares 'scene'
     with pytest.raises(InputError, match=r"old/results.json: field 'scene'"):
         pool_target(cand, [old])
+
+
+def test_a_pool_target_needs_two_seeds_and_an_alias_finds_its_policy(tmp_path: Path) -> None:
+    """A walk judged a one-seed pool bench: every std 0, "ahead by one std" asked nothing, and it printed **met**; now
+    refused, naming the field. ``every-n:n=5`` (the README's alias of ``every_n``) was "no policy" in a bench that
+    ran ``every-n:every_n=5``; now the policies' own parameters match them."""
+    one = bench(tmp_path / "one", "pool", FOURTH_ROOM, seeds=[0])
+    with pytest.raises(InputError, match=r"one/results.json: field 'seeds': 1; the pool target asks a lead of one std"):
+        pool_target(load_policy(f"{one}#variant"), [load_policy(f"{one}#fisherrf")])
+    figures = {"every-n:every_n=5": {"recall@5cm": (0.97, 0.0), "psnr": (29.0, 0.0), "keyframes": (80.0, 0.0)}}
+    stream = bench(tmp_path / "stream", "stream", figures)
+    assert load_policy(f"{stream}#every-n:n=5").label == "every-n:every_n=5"
+    with pytest.raises(InputError, match=r"no policy 'every-n:n=6' in 'summary'"):
+        load_policy(f"{stream}#every-n:n=6")

@@ -93,6 +93,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def config_from_args(args: argparse.Namespace) -> BenchConfig:
     """The :class:`BenchConfig` of the command line (validated)."""
     policies = parse_policies(args.policies, args.setting)
+    if args.setting == "stream" and args.pool_set:  # was ignored without a word
+        raise InputError("--pool-set", "sets the pool setting: not used with --setting stream")
     mdefaults = {f.name: getattr(MapperConfig(), f.name) for f in fields(MapperConfig)}
     mapper = replace(MapperConfig(), **parse_overrides(args.set, mdefaults, "--set", skip=("seed",)))
     pdefaults = {f.name: getattr(PoolConfig(), f.name) for f in fields(PoolConfig)}

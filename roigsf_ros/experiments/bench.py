@@ -20,6 +20,7 @@ whole spec is the row label, so one policy can appear with several parameter set
 from __future__ import annotations
 
 import fnmatch
+import json
 import logging
 import os
 import platform
@@ -131,15 +132,29 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
         if setting == "pool":
             check_pool_params(params)
         try:  # unknown, mistyped or out-of-range parameters fail here, before any work
-            make_policy(name, **params)
+            policy = make_policy(name, **params)
         except InputError as e:
             raise InputError("--policies", f"{item!r}: {e}") from e
+        same = [s.label for s in specs if _identity(s.name, make_policy(s.name, **s.params)) == _identity(name, policy)]
+        if same:  # one policy spelt twice (1 and 1.0, keys in another order, an alias) ran twice under two labels
+            twice = item if same[0] == item else f"{same[0]} and {item}"
+            raise InputError("--policies", f"policy given twice: {twice} (the same policy and parameters)")
         specs.append(PolicySpec(name=name, params=params, label=item))
-    labels = [s.label for s in specs]
-    dup = sorted({x for x in labels if labels.count(x) > 1})
-    if dup:
-        raise InputError("--policies", f"policy given twice: {', '.join(dup)}")
     return specs
+
+
+def _identity(name: str, policy: Any) -> tuple[str, str]:
+    """A policy and the parameters it runs with (its own ``params()``, defaults and aliases resolved; 1 and 1.0 one)."""
+    params = {k: float(v) if isinstance(v, int) and not isinstance(v, bool) else v for k, v in policy.params().items()}
+    return name, json.dumps(params, sort_keys=True, default=str)
+
+
+def policy_identity(label: str) -> tuple[str, str]:
+    """A spec label's policy and the parameters it runs with: ``every-n:n=4`` and ``every-n:every_n=4`` (an alias),
+    ``x=1`` and ``x=1.0``, keys in any order, have one identity; InputError if the label names no policy that builds.
+    """
+    name, *pairs = [p.strip() for p in label.split(":")]
+    return _identity(name, make_policy(name, **parse_params(pairs, label, "expected name:key=value")))
 
 
 # ---------------------------------------------------------------------------------- uncertainty
@@ -681,6 +696,7 @@ __all__ = [
     "UncertaintyStudy",
     "fisherrf_uncertainty_maps",
     "parse_policies",
+    "policy_identity",
     "pool_curves",
     "read_results",
     "rescore_ause",

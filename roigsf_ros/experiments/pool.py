@@ -53,13 +53,24 @@ SCHEDULES = ("fixed", "epochs")
 """``fixed``: step counts as given; ``epochs``: counts times the current number of training views."""
 
 
+STREAM_TRIGGER_PARAMS = ("window", "trigger_every", "trigger", "adaptive_ratio", "adaptive_history",
+                         "adaptive_max_gap", "budget_every", "budget_burst")  # fmt: skip
+"""A stream policy's parameters of when it decides, which the pool setting has no use for."""
+
+
 def check_pool_params(params: dict[str, Any]) -> None:
-    """InputError for policy parameters that need a candidate's images: the pool scores poses only."""
+    """InputError for policy parameters that need a candidate's images (the pool scores poses only), or that decide
+    when a stream frame is judged (:data:`STREAM_TRIGGER_PARAMS`).
+    """
     for name, off in (("novelty_weight", 0), ("lookahead", 0), ("novelty_measure", "area")):
         value = params.get(name)
         if value is not None and value != off:
             raise InputError(name, "reads a candidate's captured depth: stream setting only (the pool scores "
                              "views before they are taken, from their poses)")  # fmt: skip
+    for name in STREAM_TRIGGER_PARAMS:  # accepted and kept in the label, they changed nothing
+        if name in params:
+            raise InputError(name, "decides when a stream frame becomes a keyframe: stream setting only (the pool "
+                             "adds one view per step; --pool-set n_views sets how many)")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -455,6 +466,7 @@ def run_pool(
 __all__ = [
     "POOL_POLICIES",
     "SCHEDULES",
+    "STREAM_TRIGGER_PARAMS",
     "PoolConfig",
     "PoolPolicy",
     "PoolResult",

@@ -271,12 +271,31 @@ def load_policy(spec: str | Path) -> PolicyResults:
         label = next(iter(summary))
     if label not in summary:
         same = [held for held in summary if policy_key(held) == policy_key(label)]
+        if not same:  # an alias (every-n's n) or a default spelt out: the policies' own parameters decide
+            same = _same_policy(label, list(summary))
         if len(same) != 1:
             raise InputError(path, f"no policy {label!r} in 'summary'; it holds {list(summary)}")
         label = same[0]  # the same policy and parameters, spelt otherwise (order, a key given twice, 2 vs 2.0)
     if not isinstance(summary[label], dict):
         raise InputError(path, f"field 'summary.{label}' is not an object of metrics")
     return PolicyResults(label=label, source=folder, bench=bench, summary=summary[label])
+
+
+def _same_policy(label: str, held: list[str]) -> list[str]:
+    """The labels of ``held`` whose policy runs with the parameters ``label``'s does (its ``params()``: aliases and
+    defaults resolved). Builds the policies, so it imports the registry: only when the labels' spelling differs more
+    than :func:`policy_key` reads.
+    """
+    from roigsf_ros.experiments.bench import policy_identity
+
+    def identity(text: str) -> tuple[str, str] | None:
+        try:
+            return policy_identity(text)
+        except InputError:
+            return None
+
+    want = identity(label)
+    return [] if want is None else [h for h in held if identity(h) == want]
 
 
 def config_differences(a: PolicyResults, b: PolicyResults) -> list[str]:
@@ -484,6 +503,11 @@ def pool_target(
     if not baselines:
         raise InputError("baselines", "the pool target needs at least one baseline (fisherrf, random)")
     _require_setting(candidate, "pool")
+    seeds = candidate.bench["seeds"]
+    if not isinstance(seeds, list) or len(seeds) < 2:  # one seed: every std is 0, and "ahead by one std" asks nothing
+        n = len(seeds) if isinstance(seeds, list) else seeds
+        raise InputError(candidate.source / "results.json", f"field 'seeds': {n}; the pool target asks a lead of one "
+                         "std of the seeds, which needs at least 2 (issue 10 states it over 3: --seeds 3)")  # fmt: skip
     diffs = {b.name: d for b in baselines if (d := check_comparable(candidate, b, allow_config_difference))}
     checks = []
     for key in metrics:

@@ -181,7 +181,7 @@ def parse_value(text: str) -> bool | int | float | str | tuple[str, ...]:
     t = text.strip()
     if t.lower() in ("true", "false"):
         return t.lower() == "true"
-    for kind in (int, float):
+    for kind in (int, float) if "_" not in t else ():  # Python reads 2_5 as 25: a typo, kept as text (refused)
         try:
             return kind(t)
         except ValueError:
