@@ -260,6 +260,10 @@ def test_list_values_of_set_and_pool_set_are_comma_separated(
             ["--set", "fisher_params=means+quats"],
             ["--set fisher_params", "separate the items with commas, e.g. means,quats"],
         ),
+        (  # commas already: the hint "e.g. 4,x" repeated the input; the item at fault is named
+            ["--pool-set", "mesh_checkpoints=4,x"],
+            ["--pool-set mesh_checkpoints: cannot parse 'x' of '4,x' as int"],
+        ),
     ):
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err

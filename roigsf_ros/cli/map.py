@@ -112,10 +112,13 @@ def parse_set_value(name: str, text: str, default: object, flag: str = "--set") 
     if isinstance(default, tuple):
         items = [v.strip() for v in text.split(LIST_SEPARATOR) if v.strip()]
         if default and isinstance(default[0], int | float) and not isinstance(default[0], bool):
-            try:
-                return tuple(type(default[0])(v) for v in items)
-            except ValueError:
-                raise InputError(f"{flag} {name}", _list_problem(text, "numbers")) from None
+            kind = type(default[0])
+            bad = [v for v in items if not _parses(kind, v)]
+            if bad and "+" not in text:  # commas already: an item is no number (the hint would repeat the input)
+                raise InputError(f"{flag} {name}", f"cannot parse {bad[0]!r} of {text!r} as {kind.__name__}")
+            if bad:
+                raise InputError(f"{flag} {name}", _list_problem(text, "numbers"))
+            return tuple(kind(v) for v in items)
         if "+" in text and LIST_SEPARATOR not in text:  # a policy spec's list syntax: one name that matches nothing
             raise InputError(f"{flag} {name}", _list_problem(text, "a list"))
         return tuple(items)
@@ -127,6 +130,15 @@ def parse_set_value(name: str, text: str, default: object, flag: str = "--set") 
         return type(default)(text)
     except ValueError:
         raise InputError(f"{flag} {name}", f"cannot parse {text!r} as {type(default).__name__}") from None
+
+
+def _parses(kind: type, text: str) -> bool:
+    """Whether ``kind(text)`` is a value (int or float from a command line item)."""
+    try:
+        kind(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _list_problem(text: str, what: str) -> str:

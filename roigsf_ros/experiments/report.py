@@ -20,6 +20,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from roigsf_ros.core.fileio import atomic_path
 
@@ -93,7 +94,7 @@ def markdown(results: dict[str, Any]) -> str:
         f"- scene: `{results['scene']}` ({results['n_frames']} frames at {results['size'][0]}x{results['size'][1]},"
         f" stride {results['stride']})",
         f"- ground-truth mesh: `{results['gt_mesh']}`" if results.get("gt_mesh") else "- no ground-truth mesh",
-        f"- seeds: {', '.join(str(s) for s in seeds)} (mean ± std over {len(seeds)} seed(s))",
+        f"- seeds: {', '.join(str(s) for s in seeds)} (mean ± population std over {len(seeds)} seed(s))",
         f"- total wall time: {results['wall_s']:.0f} s",
     ]
     if results.get("command"):
@@ -171,7 +172,7 @@ def _save(fig: plt.Figure, path: Path) -> None:
 def plot_quality(results: dict[str, Any], path: Path) -> None:
     """Quality against #views (pool: curves, mean +- std) or #keyframes (stream: one point per policy)."""
     metrics = [m for m in CURVE_METRICS if m[0] == "test_psnr" or results.get("gt_mesh")]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.6), squeeze=False, layout="constrained")
     for ax, (key, label, _) in zip(axes[0], metrics, strict=True):
         for p in results["policies"]:
             if results["setting"] == "pool":
@@ -192,7 +193,9 @@ def plot_quality(results: dict[str, Any], path: Path) -> None:
         ax.set_xlabel("training views" if results["setting"] == "pool" else "keyframes")
         ax.set_ylabel(label if results["setting"] == "pool" or key != "test_psnr" else "PSNR (dB)")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
+    handles, names = axes[0][0].get_legend_handles_labels()
+    if handles:  # below the panels: inside the first one it hid a policy's point
+        fig.legend(handles, names, loc="outside lower center", ncol=min(len(names), 3), fontsize=7)
     fig.suptitle(f"{results['setting']}: quality vs number of views")
     _save(fig, path)
 
@@ -203,7 +206,7 @@ def plot_chosen_views(results: dict[str, Any], runs: list[dict[str, Any]], path:
     n = len(labels)
     cols = min(n, 3)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 4.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 4.0 * rows), squeeze=False, layout="constrained")
     for ax in axes.flat[n:]:
         ax.axis("off")
     for ax, label in zip(axes.flat, labels, strict=False):
@@ -218,12 +221,13 @@ def plot_chosen_views(results: dict[str, Any], runs: list[dict[str, Any]], path:
             ax.scatter(c[test, 0], c[test, 1], marker="x", s=14, color="0.4", label="test", zorder=2)
         chosen = run["chosen_positions"]
         if chosen:
-            sc = ax.scatter(c[chosen, 0], c[chosen, 1], c=np.arange(len(chosen)), cmap="viridis", s=22,
+            sc = ax.scatter(c[chosen, 0], c[chosen, 1], c=np.arange(1, len(chosen) + 1), cmap="viridis", s=22,
                             edgecolors="k", linewidths=0.4, zorder=3, label="chosen")  # fmt: skip
             fwd = traj[chosen, :3, 2]  # optical axes
             ax.quiver(c[chosen, 0], c[chosen, 1], fwd[:, 0], fwd[:, 1], angles="xy", scale=12, width=0.004,
                       color="C3", zorder=4)  # fmt: skip
-            fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.02, label="selection order")
+            bar = fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.02, label="selection order")
+            bar.ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # 1st, 2nd, ... pick: no 0.5
         ax.set_title(f"{label}: {len(chosen)} views", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (m)")
