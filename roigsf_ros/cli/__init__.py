@@ -159,6 +159,10 @@ def chosen_gt_mesh(option: str | None, own: Path | None) -> tuple[Path | None, s
     return (own, "") if own is not None else (None, NO_OWN_MESH)
 
 
+OVERWRITE_HELP = "replace an earlier {what} at {out} (once the new one is complete; never another folder)"
+"""``--overwrite``'s help: what it replaces (:func:`check_out`)."""
+
+
 def check_out(
     out: Path, overwrite: bool, marks: Sequence[str], what: str, inputs: Sequence[str | Path | None] = ()
 ) -> None:

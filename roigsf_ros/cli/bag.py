@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import add_camera_options, camera_topics, check_out, image_size
+from roigsf_ros.cli import OVERWRITE_HELP, add_camera_options, camera_topics, check_out, image_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, BAG_MARKS, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
@@ -67,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="accept a traj.txt with more poses than frames on disk (a partial download)",
     )
     conv.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the scene's", src="DIR"))
-    conv.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    conv.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="bag", out="--out"))
     conv.add_argument("--no-progress", action="store_true", help="no progress bar")
     conv.set_defaults(func=_from_replica)
 
@@ -105,7 +105,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="record each frame's /tf this long after its images, as on a robot (default 1)",
     )
     robot.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the bag's", src="SRC"))
-    robot.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    robot.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="bag", out="--out"))
     robot.add_argument("--no-progress", action="store_true", help="no progress bar")
     robot.set_defaults(func=_to_robot)
 

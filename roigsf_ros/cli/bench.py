@@ -67,8 +67,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace an existing --out folder: all of it, and only once the new bench is complete (until then, and "
-        "if interrupted, the old one stays as it was)",
+        help="replace an earlier bench at --out (a folder with results.json; never another folder, nor one holding "
+        "the scene): all of it, and only once the new bench is complete (until then, and if interrupted, the old one "
+        "stays as it was)",
     )
     p.add_argument("--no-progress", action="store_true", help="no per-run progress lines")
     p.add_argument(

@@ -9,7 +9,15 @@ from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import add_camera_options, camera_topics, check_out, chosen_gt_mesh, image_size, realsense_hint
+from roigsf_ros.cli import (
+    OVERWRITE_HELP,
+    add_camera_options,
+    camera_topics,
+    check_out,
+    chosen_gt_mesh,
+    image_size,
+    realsense_hint,
+)
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
 from roigsf_ros.data.sources import FrameSource, open_frames
@@ -88,7 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-h-train", action="store_true", help="do not track the training Fisher (faster)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mapper")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="map run", out="--out"))
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--set",

@@ -21,6 +21,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from roigsf_ros.cli import OVERWRITE_HELP
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 
@@ -331,7 +332,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                "mapper")  # fmt: skip
     a.add_argument("directory", metavar="DIR", help="the folder to write (made whole or not at all)")
     a.add_argument("--with-mesh", action="store_true", help="also the TSDF mesh (mesh.ply; slower)")
-    a.add_argument("--overwrite", action="store_true", help="replace DIR when it exists")
+    a.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="saved map", out="DIR"))
 
     a = action("load-map", "ask the mapper to replace its map with a saved one", _load_map, DEFAULT_TIMEOUT_S, "mapper")
     a.add_argument("directory", metavar="DIR", help="a folder written by save-map or `roigsf map`")

@@ -13,7 +13,7 @@ import argparse
 import math
 from pathlib import Path
 
-from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.cli import OVERWRITE_HELP, check_out, image_size
 from roigsf_ros.cli.map import parse_set_value
 from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size, load_cam_params
 from roigsf_ros.core.errors import InputError
@@ -258,7 +258,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "re-render a synth scene's mesh in its colours)",
     )
     _add_sensor_options(p)
-    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (only once the new one is done)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="scene", out="OUT"))
     p.set_defaults(func=_render)
 
     p = scene_sub.add_parser(
@@ -314,5 +314,5 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="procedural surface texture multiplied onto vertex colours: 0 off, 1 full (default 1)",
     )
     _add_sensor_options(p)
-    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (only once the new one is done)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="scene", out="OUT"))
     p.set_defaults(func=_synth)
