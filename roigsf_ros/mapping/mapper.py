@@ -886,6 +886,8 @@ class Mapper:
         caller that keeps a map can keep it when the folder is bad. ``config`` replaces the saved one.
         """
         d = Path(in_dir)
+        if not d.is_dir():  # said as a folder, not as its keyframes.json not found
+            raise InputError(d, "is a file, not a saved map folder" if d.exists() else "no such map folder")
         meta_path = d / "keyframes.json"
         meta = read_map_meta(meta_path, with_config=config is None)
         surfel_map = SurfelMap.load_ply(d / "map.ply", dtype=torch.float32)  # on the CPU until the mapper exists

@@ -141,7 +141,10 @@ def alone_policies() -> tuple[str, ...]:
     return (*FALLBACK_POLICIES, *added)
 
 
-PLANNER_SERVICE = "/nbv_planner/get_next_best_view"
+PLANNER_SERVICE = "nbv_planner/get_next_best_view"
+"""The planner's ``~/get_next_best_view``, relative: in the selector's namespace, where the planner's private service
+is when both run under one (``-r __ns:=/robot1``; an absolute default asked ``/nbv_planner/...``, which was not there,
+and every window went to the fallback)."""
 MATCH_GRACE_S = 0.5
 """Seconds after the keyframe topic's first subscriber matched before keyframes go out: the subscriber's side of
 discovery (as the bag player's ``start_delay_s``)."""
@@ -224,6 +227,8 @@ class KeyframeSelectorNode(SystemNode):
             raise unknown_policy(self.policy, names, "parameter 'policy'")
         self.policy_params = self._parse_policy_params(policy_params)
         if self.fallback not in FALLBACK_POLICIES:
+            if self.fallback not in names:  # a typo: said as one, with the closest names
+                raise unknown_policy(self.fallback, FALLBACK_POLICIES, "parameter 'fallback_policy'")
             choices = ", ".join(FALLBACK_POLICIES)
             raise InputError("parameter 'fallback_policy'", f"'{self.fallback}' must decide alone: one of {choices}")
         check_positive("window", self.window)
@@ -335,6 +340,7 @@ class KeyframeSelectorNode(SystemNode):
         self._holding_since: float | None = None
         self._status_pub = self.create_publisher(String, "~/status", reliable_qos(10))
         self._client = self.create_client(GetNextBestView, self.service_name, callback_group=planner)
+        self.service_name = self._client.service_name  # resolved in the node's namespace, as the logs name it
         self.create_service(Trigger, "~/finish", self._on_finish, callback_group=planner)
         self.create_timer(0.05, self._check_request, callback_group=planner)
         self.create_timer(0.05, self._send_unsent, callback_group=inputs)
@@ -386,9 +392,11 @@ class KeyframeSelectorNode(SystemNode):
         if self.camera.subscribed:
             return
         if missing:
+            then = "keyframes are held until a subscriber matches"  # a policy deciding alone has no planner to wait for
+            then += "; windows go to the fallback until the planner answers" if self.uses_planner else ""
             self.get_logger().warning(
                 f"still no {' and no '.join(missing)} after {waited:.1f} s (startup_wait_s): reading the camera anyway "
-                "(keyframes are held until a subscriber matches; windows go to the fallback until the planner answers)"
+                f"({then})"
             )
         else:
             self.get_logger().info(f"keyframe subscriber{' and planner' if self.uses_planner else ''} found after "
@@ -517,6 +525,12 @@ class KeyframeSelectorNode(SystemNode):
                 while len(self._held_for_map) > self.map_wait_frames:  # the mapper is that far behind: skip
                     self._held_for_map.popleft()
                     self.counters["frames_skipped_map_lag"] += 1
+                    self.get_logger().warning(  # counted only in ~/status, two thirds of a bag went unsaid
+                        f"{self.counters['frames_skipped_map_lag']} frame(s) skipped, not judged: the map lags more "
+                        f"than map_wait_frames ({self.map_wait_frames}) frames behind the camera (a slower --rate, or "
+                        "fewer mapper iters_per_keyframe, lets it keep up)",
+                        throttle_duration_sec=WARN_THROTTLE_S,
+                    )
                 self._judge_held()
                 return
             if not self.uses_planner:

@@ -263,7 +263,10 @@ class MapperNode(SystemNode):
             shared.config = self.config
         self.shared = shared
         if load_dir:
-            loaded = shared.load(load_dir)
+            try:
+                loaded = shared.load(load_dir)
+            except InputError as exc:  # named as the parameter that asked for it, as the other start-up errors are
+                raise InputError(f"parameter '{self.get_name()}.load_map'", str(exc)) from None
             self.get_logger().info(
                 f"resumed map {load_dir}: {len(loaded.loaded_keyframe_ids)} keyframes, {loaded.n_surfels} surfels"
             )

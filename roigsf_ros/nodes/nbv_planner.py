@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import sys
 import threading
 import time
@@ -193,6 +194,7 @@ class NBVPlannerNode(SystemNode):
         )  # fmt: skip
         """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
+        self._last_refusal: dict[str, float] = {}  # fault kind -> when a refusal of that kind was last logged
         self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
         self.counters["last_scoring_s"] = 0.0
         self.counters["max_scoring_s"] = 0.0
@@ -384,10 +386,16 @@ class NBVPlannerNode(SystemNode):
             return res
         except InputError as exc:
             res.success, res.message, res.best_index = False, str(exc), -1
+            now = time.monotonic()
+            kind = re.sub(r"\[\d+\]", "[i]", str(exc.where))  # candidates[3] and candidates[7]: one kind of fault
             with self._lock:
                 self.counters["failed"] += 1
                 self.counters["stale"] += int(exc.where == "candidates.header.stamp")
-            self.get_logger().warning(f"get_next_best_view: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+                due = now - self._last_refusal.get(kind, -float("inf")) >= WARN_THROTTLE_S
+                if due:  # one throttle for all hid a second fault behind the first (each caller had its message)
+                    self._last_refusal[kind] = now
+            if due:
+                self.get_logger().warning(f"get_next_best_view: {exc}")
             return res
         stamp = self.get_clock().now().nanoseconds
         best = int(result.best_index)
