@@ -1626,7 +1626,7 @@ def test_saved_map_is_resumed_by_a_new_mapper(ros_context: Any, scene: Any, mapp
         bad = _call(load, LoadMap.Request(directory=str(tmp_path / "nothing")))
         status = second.status()
     assert status["keyframe_ids"] == [0, 4, 8, 6]
-    assert not bad.success and "not found" in bad.message
+    assert not bad.success and "nothing: no such map folder" in bad.message
 
 
 def test_the_first_keyframes_map_is_published_at_once_not_at_the_next_tick(ros_context: Any, scene: Any) -> None:
