@@ -617,8 +617,11 @@ def test_map_load_errors_name_the_file(saved_map, tmp_path) -> None:
     (folder / "keyframes.json").write_text("{truncated")
     with pytest.raises(InputError, match=r"m/keyframes\.json: cannot read"):
         Mapper.load(folder)
-    with pytest.raises(InputError, match=r"nothing/keyframes\.json: not found"):
+    with pytest.raises(InputError, match=r"nothing: no such map folder"):  # the folder, not its keyframes.json
         Mapper.load(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match=r"empty/keyframes\.json: not found"):
+        Mapper.load(tmp_path / "empty")
 
 
 def test_sparse_adam_numba_matches_torch() -> None:
