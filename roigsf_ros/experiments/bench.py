@@ -115,6 +115,7 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
     if setting not in SETTINGS:
         raise InputError("--setting", f"unknown setting {setting!r} (choose from {', '.join(SETTINGS)})")
     specs: list[PolicySpec] = []
+    identities: list[tuple[str, str]] = []  # each spec's policy and the parameters it runs with
     items = [s.strip() for s in str(text).split(",") if s.strip()]
     if not items:
         raise InputError("--policies", "no policy given")
@@ -135,10 +136,12 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
             policy = make_policy(name, **params)
         except InputError as e:
             raise InputError("--policies", f"{item!r}: {e}") from e
-        same = [s.label for s in specs if _identity(s.name, make_policy(s.name, **s.params)) == _identity(name, policy)]
-        if same:  # one policy spelt twice (1 and 1.0, keys in another order, an alias) ran twice under two labels
-            twice = item if same[0] == item else f"{same[0]} and {item}"
+        identity = _identity(name, policy)
+        if identity in identities:  # one policy spelt twice (1 and 1.0, keys in another order, an alias) ran twice
+            first = specs[identities.index(identity)].label
+            twice = item if first == item else f"{first} and {item}"
             raise InputError("--policies", f"policy given twice: {twice} (the same policy and parameters)")
+        identities.append(identity)
         specs.append(PolicySpec(name=name, params=params, label=item))
     return specs
 
