@@ -26,6 +26,7 @@ or a best-effort camera (``camera_reliability``) is not a silent node.
 from __future__ import annotations
 
 import importlib
+import math
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -64,6 +65,27 @@ from roigsf_ros.data.tf import DEFAULT_CACHE_S, TransformBuffer, TransformUnavai
 
 WARN_THROTTLE_S = 5.0
 """At most one dropped-frame warning in this many seconds (counters keep every drop)."""
+
+
+class ThrottleByKind:
+    """At most one warning per ``WARN_THROTTLE_S`` for each kind of fault: one throttle for all hid a second fault
+    behind the first (a bad pose after a bad encoding, a NaN pose after an empty candidate list). Not locked: callers
+    ask under their own lock.
+    """
+
+    def __init__(self, period_s: float = WARN_THROTTLE_S) -> None:
+        self.period_s = period_s
+        self._last: dict[str, float] = {}  # kind -> when it was last said
+
+    def due(self, kind: str) -> bool:
+        """Whether a warning of ``kind`` may be said now (and if so, note that it is)."""
+        now = time.monotonic()
+        if now - self._last.get(kind, -math.inf) < self.period_s:
+            return False
+        self._last[kind] = now
+        return True
+
+
 REMEMBERED_REJECTIONS = 256
 """How many refused frames' stamps the input remembers with their reason (:meth:`CameraInput.rejection_of`)."""
 TF_EXPIRE_PERIOD_S = 0.1
@@ -237,7 +259,7 @@ class CameraInput:
         self._tf: TransformBuffer | None = None
         self._awaiting: deque[_AwaitingPose] = deque()
         self._last_silent_warning = -float("inf")
-        self._last_reject_warning: dict[str, float] = {}  # reason category -> when it was last logged
+        self._reject_warnings = ThrottleByKind()  # by reason category
         self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
         self._qos = qos
         self._group = callback_group
@@ -588,12 +610,9 @@ class CameraInput:
         (one throttle for all hid a second fault behind the first: a bad pose after a bad encoding went unsaid).
         """
         reason = reject_reason(exc, self.topics)
-        now = time.monotonic()
         with self._lock:
             self._remember_rejection(stamp_ns, reason, exc)
-            due = now - self._last_reject_warning.get(reason, -float("inf")) >= WARN_THROTTLE_S
-            if due:
-                self._last_reject_warning[reason] = now
+            due = self._reject_warnings.due(reason)
         if due:
             self.node.get_logger().warning(f"dropped frame: {exc}")
 

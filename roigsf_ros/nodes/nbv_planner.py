@@ -86,7 +86,7 @@ from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.nbv.stop import ScoringStoppedError
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, camera_qos
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, ThrottleByKind, camera_qos
 from roigsf_ros.nodes.map_msgs import (
     array_to_poses,
     cloud_h_train,
@@ -194,7 +194,7 @@ class NBVPlannerNode(SystemNode):
         )  # fmt: skip
         """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
-        self._last_refusal: dict[str, float] = {}  # fault kind -> when a refusal of that kind was last logged
+        self._refusal_warnings = ThrottleByKind()  # by the request field at fault
         self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
         self.counters["last_scoring_s"] = 0.0
         self.counters["max_scoring_s"] = 0.0
@@ -386,14 +386,11 @@ class NBVPlannerNode(SystemNode):
             return res
         except InputError as exc:
             res.success, res.message, res.best_index = False, str(exc), -1
-            now = time.monotonic()
             kind = re.sub(r"\[\d+\]", "[i]", str(exc.where))  # candidates[3] and candidates[7]: one kind of fault
             with self._lock:
                 self.counters["failed"] += 1
                 self.counters["stale"] += int(exc.where == "candidates.header.stamp")
-                due = now - self._last_refusal.get(kind, -float("inf")) >= WARN_THROTTLE_S
-                if due:  # one throttle for all hid a second fault behind the first (each caller had its message)
-                    self._last_refusal[kind] = now
+                due = self._refusal_warnings.due(kind)  # each caller has its message; the log, each kind
             if due:
                 self.get_logger().warning(f"get_next_best_view: {exc}")
             return res

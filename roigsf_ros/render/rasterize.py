@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -41,6 +42,9 @@ from roigsf_ros.render.numba_setup import (
     use_numba,
 )
 from roigsf_ros.render.vecmath import exp_neg
+
+if TYPE_CHECKING:
+    from roigsf_ros.render.surfels import SurfelMap
 
 ALPHA_MIN = 1.0 / 255.0
 """Contributions with alpha below this are skipped (2DGS)."""
@@ -2120,11 +2124,28 @@ def render_map(
         idx = frustum_subset(m, viewmat.detach(), intr, near, far)
         if idx.numel() < len(m):
             sub_features = None if features is None else features.index_select(0, idx)
-            out = render_map(m.select(idx), T_wc, intr, sub_features, background, near, far, with_distortion,
-                             tile_size, backend)  # fmt: skip
+            out = _render_checked(m.select(idx), viewmat, K, intr, sub_features, background, near, far,
+                                  with_distortion, tile_size, backend)  # fmt: skip
             visible = torch.zeros(len(m), dtype=torch.bool, device=m.device)
             out.visible = visible.index_copy_(0, idx, out.visible)
             return out
+    return _render_checked(m, viewmat, K, intr, features, background, near, far, with_distortion, tile_size, backend)
+
+
+def _render_checked(
+    m: SurfelMap,
+    viewmat: Tensor,
+    K: Tensor,
+    intr: Intrinsics,
+    features: Tensor | None,
+    background: Tensor | None,
+    near: float,
+    far: float,
+    with_distortion: bool,
+    tile_size: int,
+    backend: str,
+) -> RenderOutput:
+    """:func:`render_map` of a map and camera already checked and turned into ``viewmat`` and ``K``."""
     if features is None:
         viewdirs = None
         if m.sh_rest is not None:
