@@ -15,6 +15,7 @@ from roigsf_ros.core.fileio import (
     atomic_dir,
     atomic_path,
     check_replaceable,
+    check_run_output,
     check_writable,
     deferred_interrupts,
     read_json,
@@ -75,6 +76,29 @@ def test_overwrite_never_deletes_an_input_or_a_folder_of_other_things(tmp_path: 
             (tmp / "results.json").write_text("new")
         assert (out / "results.json").read_text() == "new"
     check_replaceable(tmp_path / "nothing-yet", ("results.json",), "a bench's output", [tmp_path / "gone"])  # no-op
+
+
+def test_a_run_checks_its_output_before_its_work_and_writes_it_the_same_way(tmp_path: Path) -> None:
+    """``check_run_output`` (run_offline's and run_pool's check before hours of mapping): an existing folder without
+    overwrite, a folder holding an input (None: an input not given) or other things are refused; what it returns
+    makes ``atomic_dir`` write by the same rule, so an earlier output is replaced."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "traj.txt").write_text("poses")
+    earlier = tmp_path / "run"
+    earlier.mkdir()
+    (earlier / "metrics.json").write_text("{}")
+    with pytest.raises(FileExistsError, match=r"run: already exists \(overwrite=True replaces it"):
+        check_run_output(earlier, False, "a map's output", (scene, None), ("metrics.json",))
+    with pytest.raises(InputError, match="which this command reads"):
+        check_run_output(tmp_path, True, "a map's output", (scene, None), ("metrics.json",))
+    with pytest.raises(InputError, match=r"is a folder without metrics\.json, not a map's output"):
+        check_run_output(scene, True, "a map's output", (None,), ("metrics.json",))
+    keep = check_run_output(earlier, True, "a map's output", (scene, None), ("metrics.json",))
+    with atomic_dir(earlier, True, **keep) as tmp:
+        (tmp / "metrics.json").write_text("new")
+    assert (earlier / "metrics.json").read_text() == "new" and scene.is_dir()
+    assert check_run_output(tmp_path / "new", False, "a map's output", (scene,), ("metrics.json",))["marks"] == ()
 
 
 def test_failure_leaves_the_old_output_and_no_temporaries(tmp_path: Path) -> None:

@@ -1422,8 +1422,9 @@ def test_active_mapping_warms_the_planner_up_before_any_camera_subscription(
 ) -> None:
     """The README's one-process command: the planner's warm-up (1 s, a minute with a cold cache) came between the
     mapper's camera subscriptions and the selector's, and a bag player waiting for one subscriber (its default)
-    started on the mapper's alone: the selector missed the first frames (37 of 40 in a new user's run). Built
-    planner first, the process subscribes to the camera only after the warm-up, mapper and selector together."""
+    started on the mapper's alone: the selector missed the first frames (37 of 40 in a new user's run). With the
+    planner built before the mapper (the selector first, its camera deferred), the process subscribes to the camera
+    only after the warm-up, mapper and selector together."""
     probe = Node("test_probe", context=ros_context)
     seen: list[int] = []
 
@@ -1439,6 +1440,24 @@ def test_active_mapping_warms_the_planner_up_before_any_camera_subscription(
     finally:
         for node in (*nodes, probe):
             node.destroy_node()
+
+
+def test_active_mapping_refuses_a_mistyped_selector_policy_before_the_planner_warms_up(
+    ros_context: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One process with ``policy:=roi-gsurfishr``: the planner warmed up (a minute with a cold cache) and the mapper
+    started before the selector refused the name. Built first, the selector refuses it before either is built (and,
+    deferred, its camera is not read until the mapper's is)."""
+    built: list[str] = []
+    monkeypatch.setattr(nbv_planner_module, "warm_up_once", lambda cfg: built.append("warm-up") or {"total_s": 0.0})
+    with pytest.raises(InputError, match=r"parameter 'keyframe_selector.policy'.*did you mean 'roi-gsurfisher'"):
+        build_nodes(ros_context, {"keyframe_selector": {"policy": "roi-gsurfishr"}})
+    assert built == []
+    probe = Node("test_probe", context=ros_context)
+    try:
+        assert not any(name in {"mapper", "nbv_planner", "keyframe_selector"} for name in probe.get_node_names())
+    finally:
+        probe.destroy_node()
 
 
 def test_mapper_warms_its_kernels_up_before_it_subscribes(ros_context: Any, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -13,6 +13,7 @@ from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.scene import MeshRenderer, synth_room, synth_trajectory
 from roigsf_ros.data.sources import MemoryFrameSource
 from roigsf_ros.experiments.pool import (
+    STREAM_TRIGGER_PARAMS,
     PoolConfig,
     ReplayPicks,
     farthest_point_views,
@@ -153,6 +154,7 @@ def test_carved_unseen_term_reaches_the_scorer_with_the_keyframes(source: Memory
 
     m = run_pool(source, cfg, mapper_config(), on_select=hook).metrics
     assert m["chosen_positions"][4:] == expected and m["policy_params"].items() >= params.items()
+    assert not set(m["policy_params"]) & set(STREAM_TRIGGER_PARAMS)  # the stream's window decides nothing here
     assert all(s > 0.05 for s in spreads)  # U tells the candidates apart
 
 

@@ -176,7 +176,7 @@ def check_out(
         raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
-    check_replaceable(out, marks, what, [p for p in inputs if p is not None])
+    check_replaceable(out, marks, what, inputs)
     check_writable(out)
 
 

@@ -591,7 +591,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(out, "exists and is not a folder")
     check_writable(out)  # the run folder is written at the end: fail now, not after the replay
     params_files = [Path(f) for f in args.params_file]
-    check_replaceable(out, DEMO_MARKS, DEMO_OUTPUT, [p for p in (bag, gt_mesh, *params_files) if p is not None])
+    check_replaceable(out, DEMO_MARKS, DEMO_OUTPUT, (bag, gt_mesh, *params_files))
     from roigsf_ros.nodes.node_params import params_file_sections  # rclpy: imported once a demo runs
 
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read

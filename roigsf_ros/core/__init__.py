@@ -30,6 +30,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "atomic_path",
             "check_output_name",
             "check_replaceable",
+            "check_run_output",
             "check_writable",
             "deferred_interrupts",
             "read_json",

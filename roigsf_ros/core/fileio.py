@@ -28,11 +28,12 @@ def _umask() -> int:
 
 
 def check_replaceable(
-    final: str | Path, marks: Sequence[str] = (), what: str = "", inputs: Sequence[str | Path] = ()
+    final: str | Path, marks: Sequence[str] = (), what: str = "", inputs: Sequence[str | Path | None] = ()
 ) -> None:
     """Refuse an output at ``final`` that would delete what it must not (InputError naming it).
 
-    An input of the command (``inputs``: the scene, bag or mesh it reads) at ``final`` or under it: ``roigsf bench
+    An input of the command (``inputs``: the scene, bag or mesh it reads; None: not given) at ``final`` or under it:
+    ``roigsf bench
     --scene X --out X --overwrite`` deleted the scene it had just benchmarked. With ``marks``, an existing ``final``
     that is neither an empty folder nor ``what``, an earlier output of the same kind (a real folder holding one of the
     files ``marks`` names): ``--overwrite`` on a mistyped ``--out`` deleted a folder of other things.
@@ -40,7 +41,7 @@ def check_replaceable(
     path = Path(final)
     target = path.resolve()
     for item in inputs:
-        if not Path(item).exists():  # nothing to lose (a frame source in memory names no file)
+        if item is None or not Path(item).exists():  # nothing to lose (a frame source in memory names no file)
             continue
         read = Path(item).resolve()
         if read == target or target in read.parents:
@@ -53,6 +54,21 @@ def check_replaceable(
         return
     desc = f"a folder without {' or '.join(marks)}" if real_dir else "not a folder"
     raise InputError(final, f"is {desc}, not {what}: overwrite replaces only {what}")
+
+
+def check_run_output(
+    out_dir: str | Path, overwrite: bool, what: str, inputs: Sequence[str | Path | None], marks: Sequence[str]
+) -> dict[str, Any]:
+    """Check a run's output folder before the run, not after its work: an existing one without ``overwrite`` is a
+    FileExistsError, one holding an input or other things than ``what`` (``marks``) an InputError
+    (:func:`check_replaceable`). Returns :func:`atomic_dir`'s keyword arguments that write it the same way.
+    """
+    out = Path(out_dir)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it; on the command line --overwrite)")
+    keep: dict[str, Any] = {"marks": marks if overwrite else (), "what": what, "inputs": list(inputs)}
+    check_replaceable(out, **keep)
+    return keep
 
 
 @contextlib.contextmanager
@@ -270,6 +286,7 @@ __all__ = [
     "atomic_path",
     "check_output_name",
     "check_replaceable",
+    "check_run_output",
     "check_writable",
     "deferred_interrupts",
     "read_json",

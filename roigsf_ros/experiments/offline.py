@@ -17,7 +17,7 @@ from roigsf_ros import evaluation
 from roigsf_ros.core.camera import Intrinsics, check_pose, depth_points_w
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, check_replaceable, write_json
+from roigsf_ros.core.fileio import atomic_dir, check_run_output, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
@@ -204,13 +204,8 @@ def run_offline(
     if gt_path is not None:
         evaluation.check_gt_mesh(gt_path)
     out_final = Path(out_dir)
-    if out_final.exists() and not overwrite:
-        raise FileExistsError(
-            f"{out_final}: already exists (overwrite=True replaces it; on the command line --overwrite)"
-        )
-    reads = [p for p in (getattr(source, "path", None), gt_path) if p is not None]
-    keep: dict[str, Any] = {"marks": ("metrics.json",) if overwrite else (), "what": "a map's output", "inputs": reads}
-    check_replaceable(out_final, **keep)  # now, not after the mapping
+    reads = (getattr(source, "path", None), gt_path)
+    keep = check_run_output(out_final, overwrite, "a map's output", reads, ("metrics.json",))
     cfg = config or MapperConfig()
     mapper = Mapper(source.intrinsics, cfg)
     policy.reset()

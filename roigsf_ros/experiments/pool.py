@@ -36,7 +36,7 @@ import open3d as o3d
 from roigsf_ros import evaluation
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import atomic_dir, check_replaceable, write_json
+from roigsf_ros.core.fileio import atomic_dir, check_run_output, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.sources import FrameSequence, check_frame_source
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
@@ -306,15 +306,10 @@ def run_pool(
     gt_path = Path(gt_mesh) if gt_mesh is not None else None
     if gt_path is not None:
         evaluation.check_gt_mesh(gt_path)
-    if out_dir is not None and Path(out_dir).exists() and not overwrite:
-        raise FileExistsError(
-            f"{out_dir}: already exists (overwrite=True replaces it; on the command line --overwrite)"
-        )
-    reads = [p for p in (getattr(source, "path", None), gt_path) if p is not None]
-    marks = ("metrics.json",) if overwrite else ()
-    keep: dict[str, Any] = {"marks": marks, "what": "a pool run's output", "inputs": reads}
+    keep: dict[str, Any] = {}
     if out_dir is not None:
-        check_replaceable(out_dir, **keep)  # now, not after the views are chosen
+        reads = (getattr(source, "path", None), gt_path)
+        keep = check_run_output(out_dir, overwrite, "a pool run's output", reads, ("metrics.json",))
     mcfg = replace(mapper_config or MapperConfig(), seed=config.seed)
     policy_name = config.policy if policy is None else str(getattr(policy, "name", type(policy).__name__))
     if policy is None:
@@ -422,7 +417,8 @@ def run_pool(
     metrics: dict[str, Any] = {
         "setting": "pool",
         "policy": policy_name,
-        "policy_params": policy.params(),
+        # what chose the views: a stream policy's window and trigger decide nothing here (check_pool_params)
+        "policy_params": {k: v for k, v in policy.params().items() if k not in STREAM_TRIGGER_PARAMS},
         "n_frames": len(frames),
         "n_test_views": len(split.test),
         "n_pool": len(split.pool),

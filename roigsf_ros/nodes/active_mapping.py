@@ -54,15 +54,19 @@ def build_nodes(
     built: list[Node] = []
     try:
         kw: dict[str, Any] = {"context": context, "shared": shared, "warn_undeclared": False}
-        # The planner first: its warm-up (1 s, a minute with a cold cache) came between the mapper's camera
-        # subscriptions and the selector's, and a player waiting for one subscriber (its default) started on the
-        # mapper's: the selector missed the first frames of the README's one-process command.
+        # The selector first, its camera deferred: a mistyped policy is refused before the planner's warm-up (1 s, a
+        # minute with a cold cache) and the mapper's. The planner before the mapper: its warm-up came between the
+        # mapper's camera subscriptions and the selector's, and a player waiting for one subscriber (its default)
+        # started on the mapper's: the selector missed the first frames of the README's one-process command. The
+        # selector subscribes right after the mapper.
+        overrides = _as_parameters(params.get("keyframe_selector"))
+        selector = KeyframeSelectorNode(parameter_overrides=overrides, defer_camera=True, **kw)
+        built.append(selector)
         planner = NBVPlannerNode(parameter_overrides=_as_parameters(params.get("nbv_planner")), **kw)
         built.append(planner)
         mapper = MapperNode(parameter_overrides=_as_parameters(params.get("mapper")), **kw)
         built.append(mapper)
-        selector = KeyframeSelectorNode(parameter_overrides=_as_parameters(params.get("keyframe_selector")), **kw)
-        built.append(selector)
+        selector.camera.subscribe()
         for node in built:
             node.ignored_parameters = check_parameter_overrides(node, siblings=built)
     except BaseException:

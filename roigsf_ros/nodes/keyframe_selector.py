@@ -47,11 +47,12 @@ input stops are decided when ``~/finish`` (``std_srvs/Trigger``) is called, as t
 (``roigsf demo`` calls it when the bag ends); without lookahead it does nothing.
 
 In a process of its own the selector subscribes to the camera only once its keyframe topic has a subscriber (the
-mapper) and, with a planner policy, the planner's service is there, or ``startup_wait_s`` after start-up (then saying
-what is missing; 0 = at once; ``reading_camera`` in the status): a bag player that waits for its subscribers then
-waits for the whole pipeline. With the shared map (one process) it subscribes at once. In three processes the
-mapper's discovery came 2.5-3 s late in about a third of the runs, and the selector, reading frames already, held its
-first keyframe that long while its first windows went to the fallback.
+mapper) and, with a planner policy, the planner's service is there, or ``startup_wait_s`` after start-up (then
+saying what is missing; 0 = at once; ``reading_camera`` in the status): a bag player that waits for its subscribers
+then waits for the whole pipeline. With the shared map (one process) it subscribes at once (built by
+``active_mapping``: right after the mapper). In three processes the mapper's discovery came 2.5-3 s late in about a
+third of the runs, and the selector, reading frames already, held its first keyframe that long while its first
+windows went to the fallback.
 
 The published ``geometry_msgs/PoseStamped`` carries the chosen frame's header stamp (the mapper finds
 the frame by it) and its pose. Keyframes named before any subscriber matched the topic are held and sent, in order,
@@ -184,6 +185,14 @@ class KeyframeSelectorNode(SystemNode):
     """The keyframe selector; see the module docstring. ``shared`` given: gaus-slam reads the in-process map."""
 
     default_name = "keyframe_selector"
+
+    def __init__(self, *, defer_camera: bool = False, **kw: Any) -> None:
+        """``defer_camera``: no camera subscription until the caller calls ``self.camera.subscribe()`` (one process
+        builds the selector first, so a mistyped policy is refused before the planner warms up, and subscribes it
+        with the mapper's: :func:`roigsf_ros.nodes.active_mapping.build_nodes`). ``kw``: :class:`SystemNode`'s.
+        """
+        self._defer_camera = defer_camera
+        super().__init__(**kw)
 
     # ------------------------------------------------------------------------------ set-up
     def _setup(self, shared: SharedMapper | None) -> None:
@@ -330,9 +339,10 @@ class KeyframeSelectorNode(SystemNode):
             camera,
             qos_depth,
             callback_group=inputs,
-            # In one process (the shared map) mapper and planner are there already, and a player waiting for one
-            # subscriber must find the mapper's and the selector's together; else once they are: _start_camera.
-            subscribe=self.startup_wait_s == 0 or shared is not None,
+            # In one process (the shared map) mapper and planner are there already (or, deferred, the process
+            # subscribes it with the mapper's), and a player waiting for one subscriber must find the mapper's and the
+            # selector's together; else once they are: _start_camera.
+            subscribe=(self.startup_wait_s == 0 or shared is not None) and not self._defer_camera,
         )
         self._pub = self.create_publisher(PoseStamped, keyframe_topic, reliable_qos(100))
         self._unsent: collections.deque[PoseStamped] = collections.deque()  # named, not yet sent (_send_unsent)
@@ -345,7 +355,7 @@ class KeyframeSelectorNode(SystemNode):
         self.create_timer(0.05, self._check_request, callback_group=planner)
         self.create_timer(0.05, self._send_unsent, callback_group=inputs)
         self._created_at = time.monotonic()
-        if not self.camera.subscribed:
+        if not self.camera.subscribed and not self._defer_camera:
             self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
