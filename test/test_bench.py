@@ -469,7 +469,7 @@ def test_overwrite_never_replaces_the_scene_or_a_folder_of_other_things(
     other.mkdir()
     (other / "thesis.tex").write_text("mine")
     assert main(tiny_bench_argv(work / "scene", other, "every-n:n=4", 1, "--overwrite")) == 2
-    assert "is a folder without results.json, not a bench's output: overwrite replaces only" in capsys.readouterr().err
+    assert "is a folder without results.json, not a bench's output: only a bench's output" in capsys.readouterr().err
     assert snapshot(work) == before and (other / "thesis.tex").read_text() == "mine"
 
 

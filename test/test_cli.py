@@ -110,6 +110,38 @@ def test_output_under_a_file_fails_up_front_naming_it(
     assert len(err) == 1 and str(blocker) in err[0] and "not a folder" in err[0], err
 
 
+NESTED_OUTPUTS = [
+    ("map", "metrics.json", "results/bag/metadata.yaml"),
+    ("bag", "metadata.yaml", "run/metrics.json"),
+    ("scene", "cam_params.json", "sub/cam_params.json"),
+]
+
+
+@pytest.mark.parametrize(("command", "mark", "nested"), NESTED_OUTPUTS)
+def test_overwrite_never_deletes_another_output_written_inside_the_earlier_one(
+    command: str,
+    mark: str,
+    nested: str,
+    tiny_scene: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A new user wrote a bag and a map run into a scene folder, then ``roigsf scene synth --out ROOM --overwrite``:
+    both went with the scene, without a word. An earlier output holding another output (a bag, a run, a scene, a
+    bench, a saved map) is refused up front, and everything stays."""
+    _stub_work(monkeypatch)
+    out = tmp_path / "earlier"
+    (out / nested).parent.mkdir(parents=True)
+    (out / mark).write_text("{}")
+    (out / nested).write_text("{}")
+    assert main([*_commands(tiny_scene, out)[command], "--overwrite"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    rel = nested.rsplit("/", 1)[0]
+    assert len(err) == 1 and f"{out}: holds {rel}/ ({nested.rsplit('/', 1)[1]}), an output of its own" in err[0], err
+    assert (out / nested).read_text() == "{}" and (out / mark).read_text() == "{}"
+
+
 @pytest.mark.parametrize("command", ["map", "bag", "scene"])
 def test_read_only_output_folder_fails_up_front_naming_it(
     command: str, tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch

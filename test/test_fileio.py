@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -61,7 +62,7 @@ def test_overwrite_never_deletes_an_input_or_a_folder_of_other_things(tmp_path: 
         ):
             pass
     with (
-        pytest.raises(InputError, match=r"is a folder without results.json, not a bench's output: overwrite"),
+        pytest.raises(InputError, match=r"is a folder without results.json, not a bench's output: only a bench's"),
         atomic_dir(tmp_path / "work", overwrite=True, marks=("results.json",), what="a bench's output"),
     ):
         pass
@@ -99,6 +100,31 @@ def test_a_run_checks_its_output_before_its_work_and_writes_it_the_same_way(tmp_
         (tmp / "metrics.json").write_text("new")
     assert (earlier / "metrics.json").read_text() == "new" and scene.is_dir()
     assert check_run_output(tmp_path / "new", False, "a map's output", (scene,), ("metrics.json",))["marks"] == ()
+
+
+def test_overwrite_replaces_a_bench_with_its_own_runs_but_never_another_output_inside(tmp_path: Path) -> None:
+    """A bench's runs (``runs/<label>/seed<k>/metrics.json``) are its own and go with it (``own``); a map run or a bag
+    that a user put into the bench folder is another output, and refuses the replacement (it would be deleted)."""
+    bench = tmp_path / "bench"
+    (bench / "runs" / "random" / "seed0").mkdir(parents=True)
+    (bench / "results.json").write_text("{}")
+    (bench / "runs" / "random" / "seed0" / "metrics.json").write_text("{}")
+    kind = {"marks": ("results.json",), "what": "a bench's output", "own": ("runs/*/*",)}
+    with atomic_dir(bench, overwrite=True, **kind) as tmp:
+        (tmp / "results.json").write_text("new")
+    assert sorted(p.name for p in bench.iterdir()) == ["results.json"]
+    for inside in ("maps/run1/metrics.json", "runs/bag/metadata.yaml", "keep/map/keyframes.json"):
+        (bench / inside).parent.mkdir(parents=True, exist_ok=True)
+        (bench / inside).write_text("{}")
+        rel, mark = inside.rsplit("/", 1)
+        with (
+            pytest.raises(InputError, match=rf"holds {rel}/ \({mark}\), an output of its own: replacing a bench's"),
+            atomic_dir(bench, overwrite=True, **kind),
+        ):
+            pass
+        assert (bench / inside).read_text() == "{}"
+        shutil.rmtree(bench / inside.split("/")[0]) if not inside.startswith("runs/") else (bench / inside).unlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench"]  # no temporary left beside it
 
 
 def test_failure_leaves_the_old_output_and_no_temporaries(tmp_path: Path) -> None:

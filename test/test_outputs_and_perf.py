@@ -97,6 +97,46 @@ def test_perf_checks_out_before_any_work(
     assert sorted(p.name for p in tmp_path.iterdir()) == [out.name if where == "folder" else "afile"]
 
 
+@pytest.mark.parametrize("benchmark", sorted(FIRST_WORK))
+def test_perf_never_writes_over_a_file_that_is_not_its_earlier_result(
+    benchmark: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf perf io --out bags/synth_room/metadata.yaml`` wrote its JSON over the shipped bag's metadata (and
+    ``--out SCENE/traj.txt`` over a trajectory): an existing file is replaced only when it is an earlier result of
+    the same benchmark; anything else is refused before any work and stays as it was."""
+    module, name = FIRST_WORK[benchmark]
+    monkeypatch.setattr(f"{module}.{name}", _no_work)
+    meta = tmp_path / "metadata.yaml"
+    meta.write_text("rosbag2_bagfile_information:\n  version: 5\n")
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"benchmark": "not-" + benchmark}))
+    for out in (meta, other):
+        assert main(["perf", benchmark, "--repeats", "1", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"roigsf perf: error: {out}: exists and is not an earlier `roigsf perf {benchmark}` "
+                              "result (a JSON object with benchmark: "), err  # fmt: skip
+    assert meta.read_text() == "rosbag2_bagfile_information:\n  version: 5\n"
+    assert json.loads(other.read_text()) == {"benchmark": "not-" + benchmark}
+
+
+def test_perf_io_says_where_it_ran_and_replaces_its_earlier_result(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every ``roigsf perf`` JSON carries one ``environment`` block (the CPU model, not only ``x86_64``; the load; the
+    versions; the commit): the io benchmark's had none, and each benchmark named the machine differently. A second
+    run with the same ``--out`` replaces the first one's result, and says where it wrote."""
+    from roigsf_ros.perf import cpu_model
+
+    monkeypatch.setattr("roigsf_ros.perf.io.bench_conversion", lambda *_a: {})
+    out = tmp_path / "io.json"
+    for _ in range(2):
+        assert main(["perf", "io", "--repeats", "1", "--skip-player", "--out", str(out)]) == 0
+        assert capsys.readouterr().out.rstrip().endswith(f"wrote {out}")
+    env = json.loads(out.read_text())["environment"]
+    assert env["cpu"] == cpu_model() and env["cpu_count"] >= 1 and len(env["load_average_1min"]) == 2
+    assert env["versions"]["torch"] is not None and env["finished_utc"].endswith("+00:00")
+
+
 def _fake_player(seen: list[int]) -> Any:
     """A ``_play_and_listen`` that records the domain id and returns two pose arrivals 0.1 s apart."""
 

@@ -164,19 +164,24 @@ OVERWRITE_HELP = "replace an earlier {what} at {out} (once the new one is comple
 
 
 def check_out(
-    out: Path, overwrite: bool, marks: Sequence[str], what: str, inputs: Sequence[str | Path | None] = ()
+    out: Path,
+    overwrite: bool,
+    marks: Sequence[str],
+    what: str,
+    inputs: Sequence[str | Path | None] = (),
+    own: Sequence[str] = (),
 ) -> None:
     """Fail early, before any work, if the output folder ``out`` exists and may not be replaced or cannot be written.
 
     ``--overwrite`` replaces an empty folder or ``what``, an earlier output of the command (a folder holding one of
-    ``marks``), and never a folder holding one of the command's ``inputs``
-    (:func:`~roigsf_ros.core.fileio.check_replaceable`).
+    ``marks``), and never a folder holding one of the command's ``inputs`` or another output (other than its ``own``
+    nested ones: :func:`~roigsf_ros.core.fileio.check_replaceable`).
     """
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
-    check_replaceable(out, marks, what, inputs)
+    check_replaceable(out, marks, what, inputs, own)
     check_writable(out)
 
 

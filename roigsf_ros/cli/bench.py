@@ -22,7 +22,7 @@ from pathlib import Path
 from roigsf_ros.cli import check_out, image_size
 from roigsf_ros.cli.map import parse_overrides
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.experiments.bench import BenchConfig, parse_policies, rescore_ause, run_bench
+from roigsf_ros.experiments.bench import BENCH_OUTPUT, BenchConfig, parse_policies, rescore_ause, run_bench
 from roigsf_ros.experiments.pool import PoolConfig
 from roigsf_ros.mapping.mapper import MapperConfig
 
@@ -134,8 +134,10 @@ def run(args: argparse.Namespace) -> int:
                if v is None]  # fmt: skip
     if missing:
         raise InputError(" ".join(missing), "required (unless --rescore-ause)")
-    check_out(args.out, args.overwrite, ("results.json",), "a bench's output",
-              [args.scene, args.gt_mesh, args.test_scene])  # fmt: skip
+    out = BENCH_OUTPUT
+    check_out(
+        args.out, args.overwrite, out["marks"], out["what"], [args.scene, args.gt_mesh, args.test_scene], out["own"]
+    )
     cfg = config_from_args(args)
     command = "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
     run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command)

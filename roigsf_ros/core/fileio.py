@@ -7,6 +7,7 @@ missing or cut short is an ``InputError`` naming it.
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import json
 import os
 import shutil
@@ -27,16 +28,27 @@ def _umask() -> int:
     return mask
 
 
+OUTPUT_MARKS = ("cam_params.json", "keyframes.json", "metadata.yaml", "metrics.json", "results.json")
+"""Files that make a folder an output of this package's writers, or of rosbag2: a scene, a saved map, a bag, a map,
+pool or demo run, a bench. Such a folder inside an earlier output is never deleted by replacing it."""
+
+
 def check_replaceable(
-    final: str | Path, marks: Sequence[str] = (), what: str = "", inputs: Sequence[str | Path | None] = ()
+    final: str | Path,
+    marks: Sequence[str] = (),
+    what: str = "",
+    inputs: Sequence[str | Path | None] = (),
+    own: Sequence[str] = (),
 ) -> None:
     """Refuse an output at ``final`` that would delete what it must not (InputError naming it).
 
     An input of the command (``inputs``: the scene, bag or mesh it reads; None: not given) at ``final`` or under it:
-    ``roigsf bench
-    --scene X --out X --overwrite`` deleted the scene it had just benchmarked. With ``marks``, an existing ``final``
-    that is neither an empty folder nor ``what``, an earlier output of the same kind (a real folder holding one of the
-    files ``marks`` names): ``--overwrite`` on a mistyped ``--out`` deleted a folder of other things.
+    ``roigsf bench --scene X --out X --overwrite`` deleted the scene it had just benchmarked. With ``marks``, an
+    existing ``final`` that is neither an empty folder nor ``what``, an earlier output of the same kind (a real folder
+    holding one of the files ``marks`` names): ``--overwrite`` on a mistyped ``--out`` deleted a folder of other
+    things. And an earlier output holding another output (a folder with one of :data:`OUTPUT_MARKS` inside it, other
+    than the command's ``own``, glob patterns relative to ``final`` such as a bench's ``runs/*/*``): a bag or a map
+    run written into a scene folder went with the scene's ``--overwrite``.
     """
     path = Path(final)
     target = path.resolve()
@@ -50,10 +62,52 @@ def check_replaceable(
     if not marks or not (path.exists() or path.is_symlink()):
         return
     real_dir = path.is_dir() and not path.is_symlink()
-    if real_dir and (not any(path.iterdir()) or any((path / m).is_file() for m in marks)):
+    if real_dir and not any(path.iterdir()):
         return
-    desc = f"a folder without {' or '.join(marks)}" if real_dir else "not a folder"
-    raise InputError(final, f"is {desc}, not {what}: overwrite replaces only {what}")
+    if not (real_dir and any((path / m).is_file() for m in marks)):
+        desc = f"a folder without {' or '.join(marks)}" if real_dir else "not a folder"
+        raise InputError(final, f"is {desc}, not {what}: only {what} (or an empty folder) is replaced")
+    nested = nested_output(path, own)
+    if nested is not None:
+        raise InputError(final, f"holds {nested}, an output of its own: replacing {what} would delete it (move it "
+                                "out first, or give another output path)")  # fmt: skip
+
+
+def nested_output(folder: Path, own: Sequence[str] = ()) -> str | None:
+    """The first folder under ``folder`` (relative, with the file that marks it) that holds one of
+    :data:`OUTPUT_MARKS`, other than those matching the ``own`` patterns; None if there is none.
+    """
+    for dirpath, dirnames, filenames in os.walk(folder):
+        dirnames.sort()
+        rel = Path(dirpath).relative_to(folder)
+        if rel == Path("."):
+            continue
+        if any(fnmatch.fnmatch(rel.as_posix(), pattern) for pattern in own):
+            dirnames.clear()  # the command's own output, and what it holds
+            continue
+        for mark in OUTPUT_MARKS:
+            if mark in filenames:
+                return f"{rel.as_posix()}/ ({mark})"
+    return None
+
+
+def check_replaceable_file(out: str | Path, mark: dict[str, Any], what: str) -> None:
+    """Refuse a single-file output ``out`` that exists and is not ``what``, an earlier result of the same command (a
+    JSON object holding every key of ``mark`` with its value, any value where None): ``roigsf perf io --out
+    bags/x/metadata.yaml`` wrote
+    its JSON over a bag's metadata. An earlier result is replaced (a re-run benchmark's).
+    """
+    path = Path(out)
+    if not path.is_file():
+        return
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        data = None
+    if not (isinstance(data, dict) and all(k in data and (v is None or data[k] == v) for k, v in mark.items())):
+        keys = ", ".join(f"{k}: {v!r}" if v is not None else k for k, v in mark.items())
+        raise InputError(out, f"exists and is not {what} (a JSON object with {keys}): only such a file is replaced; "
+                              "give another output path")  # fmt: skip
 
 
 def check_run_output(
@@ -78,7 +132,8 @@ def atomic_dir(
     overwrite_hint: str | None = None,
     marks: Sequence[str] = (),
     what: str = "",
-    inputs: Sequence[str | Path] = (),
+    inputs: Sequence[str | Path | None] = (),
+    own: Sequence[str] = (),
 ) -> Iterator[Path]:
     """Yield a fresh temporary folder beside ``final``; rename it to ``final`` on success.
 
@@ -87,11 +142,12 @@ def atomic_dir(
     is complete, and removed: nothing but the new folder remains. Without it an existing ``final`` is a
     FileExistsError whose ``overwrite_hint`` tells how the caller's user asks to replace it: the command line's
     ``pass --overwrite`` by default, a request field for a service (``set overwrite: true in the request``).
-    ``marks``, ``what``, ``inputs``: what may be replaced and what never (:func:`check_replaceable`), checked first.
+    ``marks``, ``what``, ``inputs``, ``own``: what may be replaced and what never (:func:`check_replaceable`), checked
+    first.
     """
     final = Path(final)
     check_output_name(final)
-    check_replaceable(final, marks if overwrite else (), what, inputs)
+    check_replaceable(final, marks if overwrite else (), what, inputs, own)
     if final.exists() and not overwrite:
         hint = "pass --overwrite" if overwrite_hint is None else overwrite_hint
         raise FileExistsError(f"{final}: already exists ({hint} to replace it)")
@@ -282,13 +338,16 @@ def read_json(path: str | Path, missing: str = "not found") -> dict[str, Any]:
 
 
 __all__ = [
+    "OUTPUT_MARKS",
     "atomic_dir",
     "atomic_path",
     "check_output_name",
     "check_replaceable",
+    "check_replaceable_file",
     "check_run_output",
     "check_writable",
     "deferred_interrupts",
+    "nested_output",
     "read_json",
     "remove_stale_temporaries",
     "write_json",

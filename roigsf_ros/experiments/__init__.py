@@ -7,6 +7,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "bench": [
             "AUSE_VIEW_KEYS",
+            "BENCH_OUTPUT",
             "BenchConfig",
             "PolicySpec",
             "SETTINGS",

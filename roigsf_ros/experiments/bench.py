@@ -110,6 +110,11 @@ class PolicySpec:
     label: str = ""
 
 
+BENCH_OUTPUT: dict[str, Any] = {"marks": ("results.json",), "what": "a bench's output", "own": ("runs/*/*",)}
+"""What a bench's output folder is (:func:`roigsf_ros.core.fileio.check_replaceable`): results.json marks it, and its
+runs (``runs/<label>/seed<k>/``, each with its metrics.json) are its own."""
+
+
 def parse_policies(text: str, setting: str) -> list[PolicySpec]:
     """Policy specs from ``"a,b:key=value:key2=value2,..."``, checked against the registry and ``setting``."""
     if setting not in SETTINGS:
@@ -462,7 +467,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     labels = [p.label for p in cfg.policies]
     total = len(labels) * cfg.seeds
     reads = [p for p in (cfg.scene, cfg.gt_mesh, cfg.test_scene, source.gt_mesh_path) if p is not None]
-    with atomic_dir(out, overwrite, marks=("results.json",), what="a bench's output", inputs=reads) as tmp:
+    with atomic_dir(out, overwrite, inputs=reads, **BENCH_OUTPUT) as tmp:
         if progress:
             print(f"writing into {tmp}, renamed to {out} when the bench is complete", flush=True)
         for spec in cfg.policies:
@@ -691,6 +696,7 @@ def _fmt(x: float | None) -> str:
 
 __all__ = [
     "AUSE_VIEW_KEYS",
+    "BENCH_OUTPUT",
     "SETTINGS",
     "STREAM_ONLY",
     "SUMMARY_KEYS",

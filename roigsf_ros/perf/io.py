@@ -23,12 +23,11 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
-from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
 from roigsf_ros.data.bags import BagReader, CameraTopics, write_bag
 from roigsf_ros.data.replica import ReplicaSequence, write_replica
-from roigsf_ros.perf import check_options, check_out_file
+from roigsf_ros.perf import check_options, check_out_file, environment, write_results
 
 NATIVE_SIZE = (1200, 680)
 SMALL_SIZE = (240, 136)
@@ -243,15 +242,15 @@ def run(args: argparse.Namespace) -> int:
     check_options(args, {"frames": 2, "messages": 2, "repeats": 1})
     if args.domain_id is not None:  # also with --skip-player: a nonsense id is refused wherever it is typed
         check_domain_id(args.domain_id)
-    check_out_file(args.out)
+    check_out_file(args.out, "io")
+    load_before = os.getloadavg()[0]
     domain_id = None if args.skip_player else choose_domain_id(args.domain_id)
     results: dict[str, Any] = {"benchmark": "io", "repeats": args.repeats}
     with tempfile.TemporaryDirectory(prefix="roigsf_perf_io_") as tmp:
         results["conversion"] = bench_conversion(Path(tmp), args.frames, args.repeats)
         if domain_id is not None:
             results["player"] = bench_player(Path(tmp), args.messages, args.repeats, domain_id)
+    results["environment"] = environment(load_before)
     print(format_table(results))
-    if args.out is not None:
-        write_json(args.out, results)
-        print(f"wrote {args.out}")
+    write_results(args.out, results)
     return 0

@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -52,12 +51,11 @@ import torch
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
 from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
-from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, write_results
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -372,7 +370,7 @@ def run(args: argparse.Namespace) -> int:
     }
     check_options(args, least, positive=("voxel_size",), most={"threads": MAX_THREADS, "voxel_size": MAX_VOXEL_M})
     keyframe_counts = _keyframe_counts(args.keyframes)
-    check_out_file(args.out)
+    check_out_file(args.out, "nbv")
     torch.set_num_threads(args.threads)
     backend = "torch"
     if numba_available():
@@ -406,15 +404,9 @@ def run(args: argparse.Namespace) -> int:
         "candidates": args.candidates,
         "repeats": args.repeats,
         "build_state_s": build_s,
-        "environment": {
+        "environment": environment(load_before)
+        | {
             "threads": args.threads,
-            "torch": torch.__version__,
-            "numpy": np.__version__,
-            "numba": _numba_version(),
-            "python": platform.python_version(),
-            "cpu": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "load_average_1min": [load_before, os.getloadavg()[0]],
             "env": {
                 k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
             },
@@ -461,15 +453,5 @@ def run(args: argparse.Namespace) -> int:
         f"last keyframe; F3 = {':'.join(f'{k}={v}' for k, v in RECOMMENDED_UNSEEN.items())}, kept grid = "
         f"unseen_carve_rerender=false)"
     )
-    if args.out:
-        write_json(args.out, result)
+    write_results(args.out, result)
     return 0
-
-
-def _numba_version() -> str | None:
-    """Numba's version, None when it is not installed."""
-    try:
-        import numba
-    except ImportError:
-        return None
-    return str(numba.__version__)

@@ -27,7 +27,7 @@ measured in one run; ``--out`` writes it all as JSON.
 from __future__ import annotations
 
 import argparse
-import platform
+import os
 import statistics
 import threading
 import time
@@ -38,7 +38,6 @@ import numpy as np
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.data.bags import SAMPLE_BAG, read_bag_frames, sample_path
 from roigsf_ros.mapping.mapper import MapperConfig
@@ -49,7 +48,7 @@ from roigsf_ros.nbv.novelty import (
     frame_points,
     lookahead_new_voxels_plain,
 )
-from roigsf_ros.perf import check_options, check_out_file
+from roigsf_ros.perf import check_options, check_out_file, environment, write_results
 from roigsf_ros.policies.stream import RECOMMENDED_STREAM
 
 
@@ -159,7 +158,8 @@ def run_windows(
 def run(args: argparse.Namespace) -> int:
     """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
     check_options(args, {"repeats": 1, "window": 1, "lookahead": 0, "hash_capacity": 1, "hash_chunk_rows": 1})
-    check_out_file(args.out)
+    check_out_file(args.out, "novelty")
+    load_before = os.getloadavg()[0]
     bag = args.bag if args.bag is not None else sample_path(SAMPLE_BAG)
     bag_frames, _ = read_bag_frames(bag)
     if not bag_frames:
@@ -180,9 +180,9 @@ def run(args: argparse.Namespace) -> int:
         "max_stall_s": max(r["stall_s"] for r in rows),
         "all_equal": all(r["equal"] for r in rows),
     }
-    result = {"bag": str(bag), "window": args.window, "lookahead": args.lookahead, "repeats": args.repeats,
-              "hash_capacity": args.hash_capacity, "hash_chunk_rows": args.hash_chunk_rows,
-              "machine": platform.processor() or platform.machine(), "windows": rows, "summary": summary}  # fmt: skip
+    result = {"benchmark": "novelty", "bag": str(bag), "window": args.window, "lookahead": args.lookahead,
+              "repeats": args.repeats, "hash_capacity": args.hash_capacity, "hash_chunk_rows": args.hash_chunk_rows,
+              "environment": environment(load_before), "windows": rows, "summary": summary}  # fmt: skip
     print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({bag})")
     print(f"  {'':22s}{'median (s)':>12s}{'largest (s)':>13s}")
     print(f"  {'fast (the selector)':22s}{summary['fast_median_s']:12.3f}{summary['fast_max_s']:13.3f}")
@@ -190,9 +190,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {'add a keyframe':22s}{summary['add_median_s']:12.3f}{summary['add_max_s']:13.3f}")
     print(f"  plain / fast: {summary['plain_over_fast']:.1f}x; counts equal in every window: {summary['all_equal']}")
     print(f"  longest another thread waited for Python's lock (fast path and adds): {summary['max_stall_s']:.3f} s")
-    if args.out:
-        write_json(args.out, result)
-        print(f"  -> {args.out}")
+    write_results(args.out, result)
     return 0 if summary["all_equal"] else 1
 
 

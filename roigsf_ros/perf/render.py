@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -35,8 +34,7 @@ import torch
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
-from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, write_results
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS, fisher_diag
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -216,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
     """Run every case, print a table, optionally write JSON."""
     check_options(args, {"repeats": 1, "threads": 1, "torch_threads": 1}, most=dict.fromkeys(
         ("threads", "torch_threads"), MAX_THREADS))  # fmt: skip
-    check_out_file(args.out)
+    check_out_file(args.out, "render")
     torch.set_num_threads(args.torch_threads or args.threads)
     device = check_device(args.device, "--device")
     backend = args.backend
@@ -241,8 +239,7 @@ def run(args: argparse.Namespace) -> int:
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
-        "load_average_1min": [load_before, os.getloadavg()[0]],
-        "cpu": platform.processor() or platform.machine(),
+        "environment": environment(load_before),
         "numba_threads": args.threads if backend == "numba" else None,
         "env": {
             k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
@@ -272,8 +269,7 @@ def run(args: argparse.Namespace) -> int:
         f"{result['load_average_1min'][0]:.1f} -> "
         f"{result['load_average_1min'][1]:.1f}: other processes inflate these times)"
     )
-    if args.out:
-        write_json(args.out, result)
+    write_results(args.out, result)
     return 0
 
 
