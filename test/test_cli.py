@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -108,6 +109,25 @@ def test_output_under_a_file_fails_up_front_naming_it(
     assert main(_commands(tiny_scene, blocker / "sub" / "out")[command]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(blocker) in err[0] and "not a folder" in err[0], err
+
+
+@pytest.mark.parametrize("command", ["map", "bench"])
+def test_a_missing_input_is_said_before_an_output_already_there(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf map /nope --out EXISTING`` answered ``EXISTING: already exists``: the real mistake came only after
+    the user had changed ``--out``."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")
+    missing = tmp_path / "nope"
+    argv = {
+        "map": ["map", str(missing), "--out", str(out)],
+        "bench": ["bench", "--scene", str(missing), "--setting", "pool", "--policies", "random", "--out", str(out)],
+    }[command]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{missing}: no such bag or scene folder" in err[0], err
 
 
 NESTED_OUTPUTS = [
@@ -491,3 +511,63 @@ def test_ctrl_c_while_the_commands_import_is_one_line(
     for argv in (["--help"], ["mapp", "x"], []):  # no command named: the program's name alone
         assert main(argv) == 130
         assert capsys.readouterr().err == "roigsf: interrupted\n"
+
+
+def test_a_runs_table_says_what_recall_counts_and_why_psnr_is_missing(capsys: pytest.CaptureFixture[str]) -> None:
+    """A 4-frame office0 run printed recall @5cm 0.998 (of the GT its poses see, 20% of the room) with nothing to say
+    so, and a run whose every frame became a keyframe dropped its PSNR rows without a word."""
+    from roigsf_ros.cli import metric_notes
+    from roigsf_ros.cli.demo import format_table
+    from roigsf_ros.cli.map import print_summary
+
+    culled = "GT samples culled to those seen (in image, in range, unoccluded) from the poses of all frames"
+    metrics = {"n_frames": 4, "n_eval_frames": 0, "recall@5cm": 0.998, "gt_observed_fraction": 0.2}
+    metrics["gt_culling"] = culled
+    print_summary(metrics)
+    out = capsys.readouterr().out
+    assert "recall and completion count the GT in view of the run's poses: 20% of the GT mesh" in out
+    assert "no PSNR/SSIM: every frame was a keyframe" in out
+    assert "20% of the GT mesh" in format_table(metrics)
+    whole = {"gt_culling": "none: recall/completion against the whole GT mesh", "gt_observed_fraction": 1.0}
+    assert metric_notes(whole | {"n_eval_frames": 3}) == []
+
+
+def test_a_map_run_says_what_it_mapped_and_how(
+    tiny_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf map``'s metrics.json named neither the bag or scene it mapped nor the options (only the GT mesh
+    hinted at it), unlike the demo's and a bench's: now the source, the image size and the command line."""
+    out = tmp_path / "run dir"
+    argv = ["map", str(tiny_scene), "--out", str(out), "--policy", "every-n", "--no-progress", "--width", "16"]
+    monkeypatch.setattr(sys, "argv", ["roigsf", *argv])
+    assert main(argv) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["source"] == str(tiny_scene) and metrics["image_size"] == [16, 12]
+    assert metrics["command"] == f"roigsf map {tiny_scene} --out '{out}' --policy every-n --no-progress --width 16"
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--policy", "roi-gsurfisher:window=abc"], "--policy roi-gsurfisher:window=abc: window: must be a whole"),
+        (["--policy", "roi-gsurfisher", "--window", "0"], "--window: must be a positive integer, got 0"),
+    ],
+)
+def test_a_bad_policy_value_names_where_it_was_typed(
+    extra: list[str], words: str, tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--policy roi-gsurfisher:window=abc`` was blamed on ``--window``, an option the user had not typed."""
+    assert main(["map", str(tiny_scene), "--out", str(tmp_path / "out"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert f"roigsf map: error: {words}" in err, err
+
+
+def test_bag_info_says_no_message_rather_than_none() -> None:
+    """A bag without a depth message on the topic read printed ``depth None``."""
+    from roigsf_ros.cli.bag import format_info
+
+    info = {"path": "b", "gt_mesh": None, "topics": {}, "message_count": 0, "start_ns": None, "width": 4, "height": 3,
+            "color_encoding": "rgb8", "depth_encoding": None, "pose_source": "pose topic", "frame_count": 0,
+            "incomplete_stamps": 0}  # fmt: skip
+    line = next(line for line in format_info(info).splitlines() if line.startswith("images:"))
+    assert line.endswith("colour rgb8, depth no message, pose from pose topic"), line

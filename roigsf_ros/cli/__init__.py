@@ -11,11 +11,12 @@ import argparse
 import contextlib
 import importlib
 import os
+import shlex
 import signal
 import sys
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_replaceable, check_writable, deferred_interrupts
@@ -190,6 +191,29 @@ _UNINTERRUPTIBLE_IMPORTS = ("open3d",)
 open3d's pybind11 module init turns a Ctrl-C into "ImportError: initialization failed" and leaves a half-made library
 whose exit then fails (status 1 after the one line, and a memory-leak report on stdout).
 """
+
+
+def command_line(command: str) -> str | None:
+    """The ``roigsf COMMAND ...`` line this process runs (shell-quoted), for an output to say how it was made; None
+    when the process is not that command (the library called from Python, a test).
+    """
+    if sys.argv[1:2] != [command]:
+        return None
+    return "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def metric_notes(metrics: dict[str, Any]) -> list[str]:
+    """Lines under a run's table that say what its figures count: recall and completion against the GT in view of the
+    run's poses (a 4-frame run's recall 0.998 read as a whole room's), and why PSNR/SSIM are missing.
+    """
+    notes = []
+    seen = metrics.get("gt_observed_fraction")
+    if seen is not None and not str(metrics.get("gt_culling", "none")).startswith("none"):
+        notes.append(f"recall and completion count the GT in view of the run's poses: {seen:.0%} of the GT mesh "
+                     "(gt_culling in metrics.json)")  # fmt: skip
+    if metrics.get("n_eval_frames") == 0:
+        notes.append("no PSNR/SSIM: every frame was a keyframe, and they are measured on the frames that were not")
+    return notes
 
 
 def build_parser() -> argparse.ArgumentParser:

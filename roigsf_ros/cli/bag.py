@@ -226,8 +226,8 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append("duration:     empty bag")
     if info["width"] is not None:
         lines.append(
-            f"images:       {info['width']}x{info['height']}, colour {info['color_encoding']}, "
-            f"depth {info['depth_encoding']}, pose from {info['pose_source']}"
+            f"images:       {info['width']}x{info['height']}, colour {info['color_encoding'] or 'no message'}, "
+            f"depth {info['depth_encoding'] or 'no message'}, pose from {info['pose_source']}"
         )
     no_tf, refused = info.get("frames_without_tf"), info.get("frames_refused")
     read = "complete" if no_tf is None else "complete and posed by TF"

@@ -14,12 +14,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shlex
-import sys
 from dataclasses import fields, replace
 from pathlib import Path
 
-from roigsf_ros.cli import check_out, image_size
+from roigsf_ros.cli import check_out, command_line, image_size
 from roigsf_ros.cli.map import parse_overrides
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.experiments.bench import BENCH_OUTPUT, BenchConfig, parse_policies, rescore_ause, run_bench
@@ -134,12 +132,11 @@ def run(args: argparse.Namespace) -> int:
                if v is None]  # fmt: skip
     if missing:
         raise InputError(" ".join(missing), "required (unless --rescore-ause)")
+    cfg = config_from_args(args)  # first: a missing scene is said as such, not as an --out already there
     out = BENCH_OUTPUT
     check_out(
         args.out, args.overwrite, out["marks"], out["what"], [args.scene, args.gt_mesh, args.test_scene], out["own"]
     )
-    cfg = config_from_args(args)
-    command = "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
-    run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command)
+    run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command_line("bench"))
     print((args.out / "results.md").read_text())
     return 0

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roigsf_ros.cli import check_writable, chosen_gt_mesh, realsense_hint
+from roigsf_ros.cli import check_writable, chosen_gt_mesh, metric_notes, realsense_hint
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_replaceable
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
@@ -215,6 +215,7 @@ def format_table(metrics: dict[str, Any]) -> str:
         value = metrics.get(key)
         if value is not None:
             lines.append(f"  {label:<26} {fmt.format(value)}")
+    lines += [f"  {note}" for note in metric_notes(metrics)]
     return "\n".join(lines)
 
 

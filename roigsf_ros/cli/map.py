@@ -15,7 +15,9 @@ from roigsf_ros.cli import (
     camera_topics,
     check_out,
     chosen_gt_mesh,
+    command_line,
     image_size,
+    metric_notes,
     realsense_hint,
 )
 from roigsf_ros.core.errors import InputError
@@ -219,8 +221,14 @@ def policy_from_args(args: argparse.Namespace) -> KeyframePolicy:
     try:
         return make_policy(name, **spec, **options)
     except InputError as exc:
-        where = f"--policy {args.policy}" if exc.where == f"policy {name!r}" else exc.where
-        raise InputError(_POLICY_OPTIONS.get(where, where), exc.problem) from None
+        where = exc.where
+        if where == f"policy {name!r}":
+            where = f"--policy {args.policy}"
+        elif where in options:  # the option typed, not the --policy spec's key of the same name
+            where = _POLICY_OPTIONS[where]
+        elif where in spec:
+            where = f"--policy {args.policy}: {where}"
+        raise InputError(where, exc.problem) from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -228,12 +236,19 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     size = image_size(args)
     topics = camera_topics(args)
-    check_out(args.out, args.overwrite, ("metrics.json",), "a map's output",
-              [args.source, args.gt_mesh, args.test_scene])  # fmt: skip
     policy = policy_from_args(args)
     cfg = config_from_args(args)
     if args.gt_mesh and not Path(args.gt_mesh).is_file():  # now, before the sources are read
         raise InputError(args.gt_mesh, "ground-truth mesh not found (--gt-mesh)")
+    for path, option in (
+        (args.source, ""),
+        (args.eval_against, " (--eval-against)"),
+        (args.test_scene, " (--test-scene)"),
+    ):
+        if path is not None and not Path(path).exists():  # said as such, not as an --out already there
+            raise InputError(path, f"no such bag or scene folder{option}")
+    check_out(args.out, args.overwrite, ("metrics.json",), "a map's output",
+              [args.source, args.gt_mesh, args.test_scene])  # fmt: skip
     source = _open(args, args.source, topics, size=size, stride=args.stride, max_frames=args.max_frames,
                    allow_partial=args.allow_partial)  # fmt: skip
     eval_source = None
@@ -254,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
         eval_source=eval_source,
         test_source=test_source,
         no_gt_mesh_reason=no_mesh,
+        command=command_line("map"),
     )
     print(f"\nroigsf map: policy {args.policy} on {args.source} -> {args.out}")
     if eval_source is not None:
@@ -311,3 +327,5 @@ def print_summary(metrics: dict) -> None:
                 if metrics.get(skip_key):
                     reason = metrics.get(reason_key) if reason_key is not None else None
                     print(f"  {skip_label:<24} {metrics[skip_key]:d}" + (f" ({reason})" if reason else ""))
+    for note in metric_notes(metrics):
+        print(f"  {note}")

@@ -287,7 +287,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "hemisphere (the scene the NBV options are tuned on; clutter-dome is reported); bins-dome: two open-top bins, "
         "a tunnel and a screen with a crate behind it, from the same hemisphere (made after the options were fixed); "
         "dining-dome: a table with two chairs pushed under it, a cabinet with its door half open, a plank leaning on "
-        "it and a stool, from the same hemisphere (made in the fiftieth session, after every option was fixed); "
+        "it and a stool, from the same hemisphere (made after every option was fixed, a held-out scene); "
         "suite: two rooms (seeds SEED and SEED + 1) joined by a doorway, a loop in the first, a walk through the "
         "doorway and a loop in the second (a stream that meets a new room; made for the stream NBV check)",
     )

@@ -167,6 +167,7 @@ def run_offline(
     eval_source: FrameSequence | None = None,
     test_source: FrameSequence | None = None,
     no_gt_mesh_reason: str = "no ground-truth mesh given",
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Map a whole frame sequence (e.g. :func:`roigsf_ros.data.sources.open_frames`) offline into ``out_dir``.
 
@@ -182,7 +183,8 @@ def run_offline(
     order and size: e.g. the noise-free render of a simulated sensor's sequence, so that sensor noise is not
     counted as map error). ``test_source``: frames the policy never sees (e.g. poses between the mapped ones,
     ``roigsf scene render --offset``), the same set for every policy, also evaluated (``test_scene_*`` metrics;
-    the non-keyframes differ from one policy to the next). Returns the metrics dict.
+    the non-keyframes differ from one policy to the next). ``command``: the command line that ran it, kept in
+    metrics.json beside the source's path and image size (what was mapped). Returns the metrics dict.
     """
     if not isinstance(config, MapperConfig | None):  # a dict gave a bare AttributeError deep in the Mapper
         raise InputError("config", f"must be a MapperConfig (MapperConfig(**values)), got a {type(config).__name__}")
@@ -309,6 +311,9 @@ def run_offline(
     test_metrics = _test_scene_metrics(mapper, test_source, progress) if test_source is not None else {}
     mesh = mapper.mesh()
     metrics: dict[str, Any] = {
+        "source": str(getattr(source, "path", "in memory")),
+        "image_size": [source.intrinsics.width, source.intrinsics.height],
+        "command": command,
         "policy": policy.name,
         "policy_params": policy.params(),
         "n_frames": len(is_keyframe),

@@ -25,8 +25,8 @@ threads (torch and numba):
 for the modes ``roi-gsurfisher`` and ``fisherrf`` and ``fisher_downsample`` 1 and 2. Then, by keyframe count
 (``--keyframes``: the four training poses and seeded room poses after them), one planner request of the same candidates
 with the paper's score and with the unseen term of the variant README recommends (``F3``,
-:data:`~roigsf_ros.nbv.config.RECOMMENDED_UNSEEN`: carved grid, ray measure; F2, the forty-ninth session's rows, differs
-only in the term's weight, which costs nothing), its grid rendered and carved again at every request (the default) or
+:data:`~roigsf_ros.nbv.config.RECOMMENDED_UNSEEN`: carved grid, ray measure; F2, an earlier variant, differs only in
+the term's weight, which costs nothing), its grid rendered and carved again at every request (the default) or
 kept (``unseen_carve_rerender=false``): ``request_s`` and its ``unseen_s`` phase, and ``sync_one_s``, the
 work the planner's sync timer does between requests when one keyframe comes (TSDF fusion, W_f and, kept, one render and
 carve). FisherRF's ``h_train`` (colour, every parameter) is computed once outside the timed calls, as a caller that

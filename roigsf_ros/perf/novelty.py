@@ -3,8 +3,8 @@
 The stream variant (``RECOMMENDED_STREAM``: window 13, lookahead 13, novelty weight 4) decides each window once the
 next 13 frames are in, by the planner's fused score plus the window's observed novelty judged against those frames
 (:meth:`~roigsf_ros.nbv.novelty.ObservedSurface.frames_novelty`). The selector node computed it in its timer, holding
-itself: the frames that came meanwhile waited, then arrived in a burst (the fifty-third session found the main job's
-fallbacks came from that, not from the planner); now a thread of its own computes it while the planner scores.
+itself: the frames that came meanwhile waited, then arrived in a burst (the main job's fallbacks came from that, not
+from the planner); now a thread of its own computes it while the planner scores.
 Here, on the frames of a bag (default the shipped one), a keyframe is taken in the middle of each window (as a
 selector would, roughly) and each window's novelty is timed twice:
 
@@ -17,8 +17,8 @@ selector would, roughly) and each window's novelty is timed twice:
 Also the window's keyframe being added (``add``, :meth:`~roigsf_ros.nbv.novelty.ObservedSurface.add_frame`, which the
 selector's novelty thread does too), and ``stall``: the longest a second Python thread, waking every millisecond, had to
 wait while the fast path and the adds ran (a call that holds Python's lock holds up every thread of the node, the
-executor's among them: open3d's hash set held it for whole inserts and rehashes, 0.07-0.2 s, until the fifty-fourth
-session).
+executor's among them: open3d's hash set held it for whole inserts and rehashes, 0.07-0.2 s, before the package's own
+set replaced it).
 
 Medians over ``--repeats`` per window, then the median and the largest over the windows, and the ratio of the medians,
 measured in one run; ``--out`` writes it all as JSON.
@@ -70,8 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lookahead", type=int, default=lookahead, metavar="L", help=f"frames ahead (default {lookahead})"
     )
     parser.add_argument("--hash-capacity", type=int, default=HASH_CAPACITY, metavar="N",
-                        help=f"the observed surface's hash set's initial capacity (default {HASH_CAPACITY}; 65536 as "
-                        "before the fifty-fourth session)")  # fmt: skip
+                        help=f"the observed surface's hash set's initial capacity (default {HASH_CAPACITY}; 65536 was "
+                        "the earlier default)")  # fmt: skip
     parser.add_argument("--hash-chunk-rows", type=int, default=HASH_CHUNK_ROWS, metavar="N",
                         help=f"rows per call into it (default {HASH_CHUNK_ROWS}; a large number: one call, as "
                         "before)")  # fmt: skip
