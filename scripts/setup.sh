@@ -86,6 +86,18 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
 
+# pip's warning about each index location of this machine's pip config that does not exist (one per package looked up:
+# 326 lines on a fresh set-up here) buried the set-up's own lines: counted in one line; anything else pip says is shown.
+PIP_IGNORED='is ignored: it is neither a file nor a directory'
+pip_install() {
+    local out rc=0 n
+    out="$("$VENV/bin/python" -m pip install "$@" 2>&1)" || rc=$?
+    printf '%s\n' "$out" | { grep -v -e "$PIP_IGNORED" -e '^$' >&2 || true; }
+    n="$(printf '%s\n' "$out" | grep -c -e "$PIP_IGNORED" || true)"
+    [ "$n" = 0 ] || log "pip: $n warnings hidden (index locations in this machine's pip config that do not exist)"
+    return "$rc"
+}
+
 # 3. Pinned packages, reinstalled only when requirements.txt changes: first all but the heavy wheels (torch, open3d,
 #    ...), which the interface build of step 4 does not need; then, while the interfaces build, the heavy ones. (The
 #    build used to wait for every wheel and then compete with the kernel compile of step 6 for the 2 cores.)
@@ -95,9 +107,9 @@ STAMP="$VENV/.roigsf-requirements.sha256"
 REQ_HEAVY=0
 if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$REQ_HASH" ]; then
     log "installing pinned packages (requirements.txt; the heavy wheels while the interfaces build)"
-    "$VENV/bin/python" -m pip install -q --upgrade pip
+    pip_install -q --upgrade pip
     grep -v -E "^($HEAVY)==" "$REPO/requirements.txt" > "$VENV/.roigsf-requirements-light.txt"
-    "$VENV/bin/python" -m pip install -q -r "$VENV/.roigsf-requirements-light.txt"
+    pip_install -q -r "$VENV/.roigsf-requirements-light.txt"
     REQ_HEAVY=1
 fi
 
@@ -116,7 +128,7 @@ if [ "$(cat "$IFACE_STAMP" 2>/dev/null || true)" != "$IFACE_HASH" ]; then
     SETUP_BG_PIDS+=("$IFACE_PID")
 fi
 if [ "$REQ_HEAVY" = 1 ]; then
-    "$VENV/bin/python" -m pip install -q -r "$REPO/requirements.txt" \
+    pip_install -q -r "$REPO/requirements.txt" \
         || setup_fail "pip could not install $REPO/requirements.txt (exit $?)"
     echo "$REQ_HASH" > "$STAMP"
 fi
@@ -124,7 +136,7 @@ fi
 # 5. This package (not editable: pip -e drops the ament marker and config data_files).
 log "installing roigsf_ros into $VENV"
 "$VENV/bin/python" -m pip install -q --no-deps --no-build-isolation --force-reinstall "$REPO" 2>&1 \
-    | { grep -v -e 'DEPRECATION' -e '^$' >&2 || true; } || setup_fail "pip could not install roigsf_ros from $REPO"
+    | { grep -v -e 'DEPRECATION' -e "$PIP_IGNORED" -e '^$' >&2 || true; } || setup_fail "pip could not install roigsf_ros from $REPO"
 rm -rf "$REPO/build" "$REPO"/*.egg-info
 
 # 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
