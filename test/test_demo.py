@@ -449,6 +449,29 @@ def test_demo_refuses_camera_settings_with_which_a_node_reads_nothing(
     assert "without a pose on TF" in err and not run.exists(), err
 
 
+def test_demo_refuses_a_set_value_of_the_wrong_type_before_anything_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--set mapper.iters_per_keyframe=abc`` was refused by the mapper node once the nodes had started and warmed
+    their kernels up: a method setting (MapperConfig's, NBVConfig's: the node parameters of the same names) of the
+    wrong type is refused with the bag unread; names the nodes alone declare are still theirs to check."""
+    from roigsf_ros.cli import main
+    from roigsf_ros.cli.demo import parse_sets
+
+    started: list[str] = []
+    monkeypatch.setattr("roigsf_ros.cli.demo.demo_camera", lambda *a, **k: started.append("bag read") or 1 / 0)
+    for item, words in (("mapper.iters_per_keyframe=abc", "must be a whole number, got 'abc'"),
+                        ("nbv_planner.unseen_weight=high", "must be a number, got 'high'")):  # fmt: skip
+        assert main(["demo", "--out", str(tmp_path / "run"), "--no-progress", "--set", item]) == 2
+        err = capsys.readouterr().err
+        assert f"roigsf demo: error: --set {item}: {words}" in err, err
+    assert started == [] and not (tmp_path / "run").exists()
+    assert parse_sets(["keyframe_selector.window=abc", "mapper.iters_per_keyframe=12"]) == {
+        "keyframe_selector": {"window": "abc"},
+        "mapper": {"iters_per_keyframe": 12},
+    }
+
+
 def test_demo_defaults_to_the_sample_bag_and_mesh_from_any_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

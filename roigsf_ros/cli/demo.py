@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roigsf_ros.cli import check_writable, chosen_gt_mesh, metric_notes, realsense_hint
+from roigsf_ros.core.config import check_field_value
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_replaceable
 from roigsf_ros.core.ros_domain import check_domain_id, domain_id_from_env
@@ -228,9 +229,16 @@ def _ros_value(text: str) -> Any:
 
 
 def parse_sets(items: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """``NODE.NAME=VALUE`` strings as ``{node: {name: value}}`` (NODE: mapper, nbv_planner, keyframe_selector)."""
+    """``NODE.NAME=VALUE`` strings as ``{node: {name: value}}`` (NODE: mapper, nbv_planner, keyframe_selector).
+
+    A value that does not fit the type of the method's setting of that name (the mapper's :class:`MapperConfig`, the
+    planner's :class:`NBVConfig`: the node parameters of the same names) is refused now, not once the nodes started.
+    """
+    from roigsf_ros.mapping.mapper import MapperConfig
+    from roigsf_ros.nbv.config import NBVConfig
     from roigsf_ros.nodes.active_mapping import NODE_NAMES
 
+    configs: dict[str, type] = {"mapper": MapperConfig, "nbv_planner": NBVConfig}
     out: dict[str, dict[str, Any]] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -240,6 +248,8 @@ def parse_sets(items: Sequence[str]) -> dict[str, dict[str, Any]]:
         if node not in NODE_NAMES:
             raise InputError("--set", f"'{item}': unknown node '{node}' (one of {', '.join(NODE_NAMES)})")
         out.setdefault(node, {})[name] = _ros_value(value)
+        if node in configs:
+            check_field_value(configs[node], name, out[node][name], f"--set {item}")
     return out
 
 

@@ -22,7 +22,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "quat_xyzw_to_matrix",
             "save_cam_params",
         ],
-        "config": ["Config", "annotation_words", "check_annotation", "fits_annotation"],
+        "config": ["Config", "annotation_words", "check_annotation", "check_field_value", "fits_annotation"],
         "errors": ["InputError", "warn_once"],
         "exports": ["lazy_exports"],
         "fileio": [

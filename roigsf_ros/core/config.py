@@ -57,6 +57,18 @@ def check_annotation(name: str, value: Any, annotation: Any) -> None:
         raise InputError(name, f"must be {annotation_words(annotation)}, got {value!r}")
 
 
+def check_field_value(cls: type, name: str, value: Any, where: str) -> bool:
+    """Whether config class ``cls`` has a field ``name``; if it has, an InputError naming ``where`` unless ``value``
+    fits the field's type (:func:`fits_annotation`): a command line's check before any work (``roigsf demo --set
+    mapper.iters_per_keyframe=abc`` was refused only once the nodes had started).
+    """
+    hints = _field_types(cls)
+    if name not in hints or name.startswith("_"):
+        return False
+    check_annotation(where, value, hints[name])
+    return True
+
+
 @functools.cache
 def _field_types(cls: type) -> dict[str, Any]:
     """A config class's field annotations, resolved once per class."""
@@ -124,4 +136,4 @@ class Config:
         return out
 
 
-__all__ = ["Config", "annotation_words", "check_annotation", "fits_annotation"]
+__all__ = ["Config", "annotation_words", "check_annotation", "check_field_value", "fits_annotation"]
