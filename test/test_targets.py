@@ -251,6 +251,12 @@ def test_cli_prints_the_table_writes_json_and_fails_only_when_asked(
     )
     verdict = json.loads(out.read_text())
     assert verdict["met"] is False and len(verdict["checks"]) == 5 and verdict["setting"] == "pool"
+    assert main([*argv, "--out", str(out)]) == 0 and json.loads(out.read_text()) == verdict  # its earlier verdict
+    capsys.readouterr()
+    mine = folder / "results.json"  # any other file is never written over (the bench's own results, here)
+    table = mine.read_text()
+    assert main([*argv, "--out", str(mine)]) == 2 and mine.read_text() == table
+    assert f"{mine}: exists and is not an earlier `roigsf targets` verdict" in capsys.readouterr().err
     assert main([*argv, "--fail-if-not-met"]) == 1
     assert main([*argv, "--psnr-margin-db", "0.3", "--fail-if-not-met", "--against", str(tmp_path / "none")]) == 2
     assert "none/results.json: not found" in capsys.readouterr().err

@@ -15,12 +15,13 @@ from pathlib import Path
 
 from roigsf_ros.cli import check_writable
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.fileio import check_replaceable_file, write_json
 from roigsf_ros.experiments.targets import (
     POOL_PSNR_MARGIN_DB,
     STREAM_MAX_KEYFRAME_RATIO,
     STREAM_PSNR_MARGIN_DB,
     STREAM_RECALL_MARGIN,
+    VERDICT_MARK,
     PolicyResults,
     check_margin,
     load_policy,
@@ -91,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     """Load, compare, print; write JSON atomically."""
     _check_margins(args)
     if args.out is not None:
-        check_writable(args.out)
+        check_writable(args.out, file=True)
+        check_replaceable_file(args.out, VERDICT_MARK, "an earlier `roigsf targets` verdict")
     candidate = load_policy(args.candidate)
     others = [load_policy(spec) for spec in args.against]
     for spec, other in zip(args.against, others, strict=True):

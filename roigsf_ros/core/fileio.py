@@ -94,8 +94,7 @@ def nested_output(folder: Path, own: Sequence[str] = ()) -> str | None:
 def check_replaceable_file(out: str | Path, mark: dict[str, Any], what: str) -> None:
     """Refuse a single-file output ``out`` that exists and is not ``what``, an earlier result of the same command (a
     JSON object holding every key of ``mark`` with its value, any value where None): ``roigsf perf io --out
-    bags/x/metadata.yaml`` wrote
-    its JSON over a bag's metadata. An earlier result is replaced (a re-run benchmark's).
+    bags/x/metadata.yaml`` wrote its JSON over a bag's metadata. An earlier result is replaced (a re-run benchmark's).
     """
     path = Path(out)
     if not path.is_file():

@@ -52,6 +52,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "STREAM_MAX_KEYFRAME_RATIO",
             "STREAM_PSNR_MARGIN_DB",
             "STREAM_RECALL_MARGIN",
+            "VERDICT_MARK",
             "VIEW_METRICS",
             "Check",
             "PolicyResults",

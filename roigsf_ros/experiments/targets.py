@@ -385,6 +385,11 @@ class Check:
         }
 
 
+VERDICT_MARK: dict[str, None] = {"setting": None, "candidate": None, "checks": None}
+"""The keys of a verdict's JSON (:meth:`Verdict.as_dict`): a file holding them is an earlier verdict, which ``roigsf
+targets --out`` may replace (:func:`roigsf_ros.core.fileio.check_replaceable_file`); any other file it refuses."""
+
+
 @dataclass(frozen=True)
 class Verdict:
     """All the checks of one target for one candidate, and the configuration differences that were allowed."""
@@ -570,6 +575,7 @@ __all__ = [
     "STREAM_MAX_KEYFRAME_RATIO",
     "STREAM_PSNR_MARGIN_DB",
     "STREAM_RECALL_MARGIN",
+    "VERDICT_MARK",
     "VIEW_METRICS",
     "Check",
     "PolicyResults",
