@@ -729,3 +729,28 @@ def test_repeated_and_backward_stamps_are_said_not_only_counted(ros_context: Any
     repeated = "repeats the stamp of a frame already received (1 so far; complete or not"
     assert any("0.000003000 s" in w and repeated in w for w in said), said
     assert any("0.000002500 s" in w and "the stamps went back (1 so far)" in w for w in said), said
+
+
+def test_a_tf_frame_that_changes_parent_is_logged_and_counted(
+    ros_context: Any, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Two publishers of the camera's frame (a static ``base -> cam`` and a driver's ``map -> cam``): every pose moved
+    without a word in the log or the status. Now a warning names the frame and both parents, and ``tf_reparented``
+    counts the changes."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.data.bags import realsense_topics
+
+    node = Node("two_parents", context=ros_context)
+    try:
+        camera = CameraInput(node, lambda bf: None, reliable_qos(10), realsense_topics(tf_child_frame="cam"))
+        camera._on_tf("/tf_static", True, TFMessage(transforms=[_transform("base", "cam", np.eye(4), T0_NS)]))
+        assert camera.stats()["tf_reparented"] == 0
+        camera._on_tf("/tf", False, TFMessage(transforms=[_transform("map", "cam", np.eye(4), T0_NS)]))
+        assert camera.stats()["tf_reparented"] == 1
+    finally:
+        node.destroy_node()
+    err = capfd.readouterr().err
+    assert "TF: frame 'cam' changed parent: 'base' (/tf_static), then 'map' (/tf)" in err, err
+    assert "(1 change(s) of parent so far)" in err

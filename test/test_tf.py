@@ -184,3 +184,22 @@ def test_vendored_tf2_msgs_has_the_jazzy_type_hash() -> None:
         == want
         == ("RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087")
     )
+
+
+def test_a_frame_that_changes_parent_is_counted_and_said_once_with_both_parents() -> None:
+    """Two publishers of one frame (robot_state_publisher's static ``base_footprint -> base_link``, a driver's
+    ``odom -> base_link``): the newest parent wins, as before, and the first change is said with both parents and
+    where each came from, the later ones counted."""
+    buf = TransformBuffer()
+    T = _pose((0.0, 0.0, 0.2), (1.0, 0.0, 0.0))
+    buf.set_transform("base_footprint", "base_link", T[:3, 3], matrix_to_quat_xyzw(T[:3, :3]), 0, True, "/tf_static")
+    assert buf.reparented == 0 and buf.reparent_note == ""
+    buf.add_message(_tf_message("odom", "base_link", np.eye(4), 5 * S), where="/tf")
+    buf.add_message(_tf_message("odom", "base_link", np.eye(4), 6 * S), where="/tf")  # the same parent: no change
+    assert buf.reparented == 1
+    assert buf.reparent_note.startswith(
+        "frame 'base_link' changed parent: 'base_footprint' (/tf_static), then 'odom' (/tf); a frame has one parent"
+    )
+    buf.set_transform("base_footprint", "base_link", T[:3, 3], matrix_to_quat_xyzw(T[:3, :3]), 0, True, "/tf_static")
+    assert buf.reparented == 2 and "then 'odom' (/tf)" in buf.reparent_note  # the first change, said once
+    np.testing.assert_allclose(buf.lookup("base_footprint", "base_link", 7 * S), T, atol=1e-12)  # the newest wins

@@ -203,10 +203,14 @@ def command_line(command: str) -> str | None:
 
 
 def metric_notes(metrics: dict[str, Any]) -> list[str]:
-    """Lines under a run's table that say what its figures count: recall and completion against the GT in view of the
-    run's poses (a 4-frame run's recall 0.998 read as a whole room's), and why PSNR/SSIM are missing.
+    """Lines under a run's table that say what its figures count: a TF frame that changed parent (its poses may be
+    wrong), recall and completion against the GT in view of the run's poses (a 4-frame run's recall 0.998 read as a
+    whole room's), and why PSNR/SSIM are missing.
     """
     notes = []
+    if metrics.get("tf_reparented"):
+        notes.append(f"TF: {metrics.get('tf_reparent_note')} ({metrics['tf_reparented']} change(s) of parent): the "
+                     "poses, and every figure, may be wrong")  # fmt: skip
     seen = metrics.get("gt_observed_fraction")
     if seen is not None and not str(metrics.get("gt_culling", "none")).startswith("none"):
         notes.append(f"recall and completion count the GT in view of the run's poses: {seen:.0%} of the GT mesh "

@@ -407,6 +407,7 @@ def run_demo(
         frames, skipped, no_tf = list(reader.frames()), reader.skipped_frames, reader.no_tf
         no_tf_reason = reader.last_tf_error if no_tf else ""
         refused, refusal = reader.refused, reader.last_refusal
+        reparented, reparent_note = reader.tf_reparented, reader.tf_reparent_note
     if not frames:
         why = f" ({refused} refused: {refusal})" if refused else ""
         raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}{why}")
@@ -522,6 +523,8 @@ def run_demo(
         "bag_frames_without_tf_reason": no_tf_reason,
         "bag_frames_refused": refused,  # complete and posed, but their messages do not convert: not in n_frames
         "bag_frames_refused_reason": refusal,
+        "tf_reparented": reparented,  # a TF frame changed parent: the poses through it moved (metric_notes says it)
+        "tf_reparent_note": reparent_note or None,
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],

@@ -798,6 +798,9 @@ class BagReader:
         self.tf_rejected = 0
         """Transforms refused (bad values); the rest of their messages is kept."""
         self.last_tf_error = ""
+        self.tf_reparented = 0
+        """Times a frame of the TF tree changed parent (:attr:`roigsf_ros.data.tf.TransformBuffer.reparent_note`)."""
+        self.tf_reparent_note = ""
         self.repeated_stamps: list[int] = []
         """Stamps of the complete, posed frames skipped because a frame read before had the same stamp."""
         self.stamps_back = 0
@@ -920,6 +923,7 @@ class BagReader:
         self.tf_rejected += len(errors)
         if errors:
             self.last_tf_error = str(errors[-1])
+        self.tf_reparented, self.tf_reparent_note = tf.reparented, tf.reparent_note
 
     def _posed(
         self, tf: TransformBuffer, waiting: deque[tuple[int, dict[str, tuple[Any, bytes]]]], final: bool
@@ -1020,6 +1024,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
     last one's error; ``incomplete_stamps`` the other stamps. ``frames_repeating_stamp`` counts the frames
     skipped because a frame before them had their stamp; ``frames_stamped_back`` those stamped before the frame
     before them, ``first_stamped_back`` where the first is (both as :class:`BagReader` counts them).
+    ``tf_reparented`` counts the TF frames that changed parent (None with poses from a topic; ``tf_reparent_note``
+    says the first: two publishers of one frame move every pose through it, and nothing else shows it).
     ``frames_other_size`` counts the frames whose images are not the first frame's size, not in ``frame_count``
     (``roigsf map`` and the nodes refuse them; None without ``decode``), ``first_other_size`` names the first.
     ``missing_topics`` names each topic the bag lacks or holds with another type (empty when all are there; no
@@ -1054,8 +1060,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             # have no header, counted as "166 incomplete stamps" of a 150-frame bag read with a wrong --realsense)
             stamps = reader.messages(connections=camera) if camera else ()
             incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
-    frames = refused = no_tf = repeated = back = 0
-    reason = refusal = first_back = first_other = ""
+    frames = refused = no_tf = repeated = back = reparented = 0
+    reason = refusal = first_back = first_other = reparent_note = ""
     other: list[int] = []  # places (in the bag's order) of frames not at the first frame's size
     if not missing:
         with BagReader(path, requested, skip_refused=True) as frame_reader:
@@ -1073,6 +1079,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
             reason, refusal = frame_reader.last_tf_error, frame_reader.last_refusal
             repeated, back = len(frame_reader.repeated_stamps), frame_reader.stamps_back
+            reparented, reparent_note = frame_reader.tf_reparented, frame_reader.tf_reparent_note
             if frame_reader.first_back is not None:
                 place, stamp, before = frame_reader.first_back
                 first_back = f"frame {place} (in the bag's order) at {stamp / 1e9:.3f} s, after {before / 1e9:.3f} s"
@@ -1104,6 +1111,8 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         "frame_count": frames,
         "frames_without_tf": no_tf if t.uses_tf else None,
         "no_tf_reason": reason if t.uses_tf and no_tf else None,
+        "tf_reparented": reparented if t.uses_tf else None,
+        "tf_reparent_note": reparent_note or None,
         "frames_refused": refused if decode else None,
         "refused_reason": refusal if decode and refused else None,
         "incomplete_stamps": incomplete,

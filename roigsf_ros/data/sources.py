@@ -52,7 +52,7 @@ class FrameSource:
     A source that skips frames it cannot read (a bag: incomplete stamps, no pose on TF, messages that do not
     convert) yields fewer than ``len`` and counts them, of those the stride and cap keep, after each full pass:
     ``skipped_incomplete``, ``skipped_no_tf`` and why (``no_tf_reason``), ``skipped_refused`` and why
-    (``refused_reason``).
+    (``refused_reason``); and the TF frames that changed parent (``tf_reparented``, ``tf_reparent_note``).
     """
 
     kind = "base"
@@ -72,6 +72,9 @@ class FrameSource:
         """Frames skipped on the last full pass because their messages did not convert (a bad image, sizes)."""
         self.refused_reason = ""
         """The last refused frame's error, when ``skipped_refused``."""
+        self.tf_reparented = 0
+        """Times a TF frame changed parent on the last full pass (poses through it moved; ``tf_reparent_note``)."""
+        self.tf_reparent_note = ""
 
     def __len__(self) -> int:
         return self.n_frames
@@ -212,6 +215,7 @@ class BagFrameSource(FrameSource):
             else:
                 self.skipped_incomplete = len(missing)
             self.no_tf_reason = reader.last_tf_error if self.skipped_no_tf else ""
+            self.tf_reparented, self.tf_reparent_note = reader.tf_reparented, reader.tf_reparent_note
             self.skipped_refused = sum(1 for k in self.kept if k in refused)
             self.refused_reason = "; ".join([*reasons, *([resized_reason] if resized else [])])
 

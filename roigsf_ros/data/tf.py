@@ -83,6 +83,8 @@ class _Edge:
 
     parent: str
     static: bool
+    where: str = ""
+    """Where its transforms came from (a topic): said when another parent replaces this one."""
     stamps: list[int] = field(default_factory=list)
     translations: list[np.ndarray] = field(default_factory=list)  # each [3] metres
     rotations: list[np.ndarray] = field(default_factory=list)  # each [4] unit quaternion (x, y, z, w)
@@ -110,6 +112,10 @@ class TransformBuffer:
         self.max_frames = int(max_frames)
         self.reparented = 0
         """Times a child frame's parent changed (its history then starts afresh, as a new edge)."""
+        self.reparent_note = ""
+        """The first change of parent, said with both parents and where each came from ("" while none): a frame has
+        one parent in a TF tree, and two publishers of one frame (a driver's ``odom -> base_link`` beside
+        robot_state_publisher's) silently moved every pose through it."""
         self.frames_refused = 0
         """Transforms refused because ``max_frames`` frames were already known."""
         self._edges: dict[str, _Edge] = {}
@@ -144,7 +150,12 @@ class TransformBuffer:
                 raise InputError(where, f"more than {self.max_frames} frames; transform to '{child}' ignored")
             if edge is not None and edge.parent != parent:
                 self.reparented += 1
-            edge = self._edges[child] = _Edge(parent=parent, static=static)
+                if not self.reparent_note:
+                    self.reparent_note = (
+                        f"frame '{child}' changed parent: '{edge.parent}' ({edge.where}), then '{parent}' ({where}); a "
+                        "frame has one parent in a TF tree (two publishers of it?): poses through it follow the newest"
+                    )
+            edge = self._edges[child] = _Edge(parent=parent, static=static, where=where)
         if static:
             edge.stamps, edge.translations, edge.rotations = [0], [t], [q]
             return

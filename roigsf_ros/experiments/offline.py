@@ -249,6 +249,10 @@ def run_offline(
     given_back = int(getattr(source, "given_back", 0))
     no_tf_reason = str(getattr(source, "no_tf_reason", "")) if skipped_no_tf else ""
     refused_reason = str(getattr(source, "refused_reason", "")) if skipped_refused else ""
+    reparented = int(getattr(source, "tf_reparented", 0))
+    reparent_note = str(getattr(source, "tf_reparent_note", "")) if reparented else ""
+    if reparented:  # every pose through that frame may be wrong, and nothing else would show it
+        log.warning("%s: TF %s (%d change(s) of parent)", getattr(source, "path", "source"), reparent_note, reparented)
     skipped = skipped_no_tf + skipped_incomplete + skipped_refused + skipped_repeated
     if skipped:
         log.warning(
@@ -330,6 +334,8 @@ def run_offline(
         "frames_skipped_bad_pose": bad_pose,
         "frames_skipped_no_tf": skipped_no_tf,
         "frames_skipped_no_tf_reason": no_tf_reason or None,
+        "tf_reparented": reparented,
+        "tf_reparent_note": reparent_note or None,
         "frames_skipped_refused": skipped_refused,
         "frames_skipped_refused_reason": refused_reason or None,
         "frames_skipped_incomplete": skipped_incomplete,

@@ -344,7 +344,8 @@ class CameraInput:
         ``awaiting_tf`` (complete, waiting for their pose on TF), ``dropped_incomplete``, ``pending``,
         ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its messages
         arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages: ``received``
-        and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``; ``in_callback``,
+        and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``; ``tf_reparented``
+        (TF frames that changed parent: the poses through them moved); ``in_callback``,
         callbacks still running that may deliver a frame (a message's, counted in ``received`` first, or the TF
         expiry timer's), with the ``on_frame`` calls they make.
         """
@@ -364,6 +365,7 @@ class CameraInput:
                 "frames_missed_estimate": counts["missed_estimate"],
                 "missed_estimate": {topic: g.missed for topic, g in self._gaps.items()},
                 "tf_rejected": self.tf_rejected,
+                "tf_reparented": 0 if self._tf is None else self._tf.reparented,
                 "last_rejection": self.last_rejection,
                 "qos_incompatible": dict(self.qos_incompatible),
             }
@@ -542,10 +544,17 @@ class CameraInput:
         assert self._tf is not None
         with self._lock:
             self.received[topic] += 1
+            before = self._tf.reparented
             errors = self._tf.add_message(msg, static, topic)
             self.tf_rejected += len(errors)
+            reparented = self._tf.reparented
         if errors:
             self.node.get_logger().warning(f"ignored transform: {errors[-1]}", throttle_duration_sec=WARN_THROTTLE_S)
+        if reparented > before:  # two publishers of one frame: every pose through it moves, and nothing else says so
+            self.node.get_logger().warning(
+                f"TF: {self._tf.reparent_note} ({reparented} change(s) of parent so far)",
+                throttle_duration_sec=WARN_THROTTLE_S,
+            )
         self._deliver_posed()
 
     def _expire_awaiting(self) -> None:
