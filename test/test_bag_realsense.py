@@ -357,3 +357,18 @@ def test_a_tf_frame_with_two_parents_is_said_by_bag_info_and_map(
     assert f"TF: {note}" in printed and "the poses, and every figure, may be wrong" in printed, printed
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["tf_reparented"] == 1 and metrics["tf_reparent_note"].startswith(note)
+
+
+def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(
+    rs_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot's images in ``camera_optical`` read with the RealSense default child frame: every frame failed on
+    "frame 'camera_color_optical_frame' is unknown" with no word of the frame the images carry. The reason now names
+    it and the option (the images' header, read from the raw CDR: :func:`bags.header_frame_id`)."""
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "--tf-child-frame", "camera_optical", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frame_count"] == 0 and info["frames_without_tf"] == N, info
+    assert info["no_tf_reason"].endswith(
+        f"; the images are in frame '{OPTICAL}': set tf_child_frame / --tf-child-frame to it"
+    ), info["no_tf_reason"]
+    assert bags.child_frame_hint(OPTICAL, f"/{OPTICAL}") == ""  # tf2 compares names without a leading "/"

@@ -754,3 +754,25 @@ def test_a_tf_frame_that_changes_parent_is_logged_and_counted(
     err = capfd.readouterr().err
     assert "TF: frame 'cam' changed parent: 'base' (/tf_static), then 'map' (/tf)" in err, err
     assert "(1 change(s) of parent so far)" in err
+
+
+def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(ros_context: Any) -> None:
+    """Images in ``camera_color_optical_frame`` while ``tf_child_frame`` names a frame TF never had: every frame was
+    dropped as "frame 'cam' is unknown" without a word of the frame the images carry; the reason now names it."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    rig = _TfRig(ros_context, "hint", ({"tf_wait_s": 0.2}, {"tf_wait_s": 0.2}))
+    stamps = [T0_NS + k * 100_000_000 for k in range(3)]
+
+    def other_frame() -> None:
+        for stamp in stamps:
+            rig.tf_pub.publish(TFMessage(transforms=[_transform("map", "other", np.eye(4), stamp)]))
+
+    rig.run([other_frame, lambda: rig.images(stamps)], 3)
+    for camera in rig.inputs:
+        assert camera.stats()["rejected"] == {"no_tf": 3}, camera.stats()
+        assert (
+            "frame 'cam' is unknown (frames known: map, other); the images are in frame 'camera_color_optical_frame': "
+            "set tf_child_frame / --tf-child-frame to it" in camera.stats()["last_rejection"]
+        ), camera.stats()["last_rejection"]

@@ -92,6 +92,8 @@ def test_out_of_range_stamps_and_gaps_say_whether_to_wait() -> None:
     with pytest.raises(TransformUnavailableError, match=r"within 0\.1 s") as gap:
         buf.lookup("map", "cam", 100 * S + S // 2)  # 0.3 s after and 0.5 s before the samples around it
     assert not gap.value.retry and isinstance(gap.value, InputError)
+    # tf2 would interpolate across the gap: the error says how often the edge comes and what widens the tolerance
+    assert "the edge comes every 0.1 s here: a larger TF tolerance, tf_tolerance_s / --tf-tolerance" in str(gap.value)
     buf.lookup("map", "cam", 100 * S + S // 20)  # inside the regular part: fine
 
 
@@ -101,6 +103,11 @@ def test_unknown_or_unconnected_frames_are_named() -> None:
     _set(buf, "base_link", "camera_color_optical_frame", np.eye(4), static=True)
     with pytest.raises(InputError, match="frame 'camera_optical' is unknown \\(frames known: base_link, "):
         buf.lookup("map", "camera_optical", 0)
+    buf.child_hint = "; the images are in frame 'camera_color_optical_frame': set tf_child_frame"  # a reader's
+    with pytest.raises(InputError, match=r"\); the images are in frame 'camera_color_optical_frame': set tf_child"):
+        buf.lookup("map", "camera_optical", 0)
+    with pytest.raises(InputError, match=r"frame 'world' is unknown .*; roots of the trees: base_link, map \(tf_paren"):
+        buf.lookup("world", "camera_color_optical_frame", 0)  # a bag without map -> odom, or another world name
     with pytest.raises(TransformUnavailableError) as exc:
         buf.lookup("map", "camera_color_optical_frame", 0)  # odom -> base_link never came
     msg = str(exc.value)

@@ -553,6 +553,26 @@ def header_stamp_ns(rawdata: bytes | memoryview) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
+def header_frame_id(rawdata: bytes | memoryview) -> str:
+    """Header frame id of a CDR-serialized message whose first field is ``std_msgs/Header`` ("" if cut short).
+
+    CDR: after the stamp (offset 4, 8 bytes) a uint32 length (with the NUL) and the characters.
+    """
+    try:
+        (n,) = struct.unpack_from("<I" if rawdata[1] else ">I", rawdata, 12)
+        return bytes(rawdata[16 : 16 + max(0, n - 1)]).decode("utf-8", "replace")
+    except (struct.error, IndexError):
+        return ""
+
+
+def child_frame_hint(image_frame_id: str, tf_child_frame: str) -> str:
+    """The hint after an unknown child frame's TF error: the frame the images are in, when it is another one."""
+    image_frame_id = image_frame_id.lstrip("/")
+    if not image_frame_id or image_frame_id == tf_child_frame.lstrip("/"):
+        return ""
+    return f"; the images are in frame '{image_frame_id}': set tf_child_frame / --tf-child-frame to it"
+
+
 # --------------------------------------------------------------------------------------------
 # numpy -> messages (rosbags types) and the bag writer
 # --------------------------------------------------------------------------------------------
@@ -932,6 +952,8 @@ class BagReader:
         t = self.topics
         while waiting:
             stamp, parts = waiting[0]
+            if not tf.child_hint:
+                tf.child_hint = child_frame_hint(header_frame_id(parts[t.color][1]), t.tf_child_frame)
             try:
                 T_wc = tf.lookup(t.tf_parent_frame, t.tf_child_frame, stamp)
             except TransformUnavailableError as exc:
@@ -1197,12 +1219,14 @@ __all__ = [
     "camera_info_fields",
     "camera_info_msg",
     "camera_info_to_intrinsics",
+    "child_frame_hint",
     "compressed_to_depth_m",
     "compressed_to_rgb",
     "depth_to_image_data",
     "encode_compressed_depth",
     "encode_compressed_rgb",
     "frame_stamp_ns",
+    "header_frame_id",
     "header_msg",
     "header_stamp_ns",
     "image_to_depth_m",

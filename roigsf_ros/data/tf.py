@@ -118,6 +118,8 @@ class TransformBuffer:
         robot_state_publisher's) silently moved every pose through it."""
         self.frames_refused = 0
         """Transforms refused because ``max_frames`` frames were already known."""
+        self.child_hint = ""
+        """Appended to an unknown child frame's error by a caller who knows more (the images' own frame id)."""
         self._edges: dict[str, _Edge] = {}
 
     # ------------------------------------------------------------------------------ adding
@@ -225,8 +227,13 @@ class TransformBuffer:
             known = ", ".join(self.frames()) or "none"
             for name in (child, parent):
                 if name not in self._edges and all(e.parent != name for e in self._edges.values()):
+                    if name == child:
+                        hint = self.child_hint
+                    else:  # the frames without a parent: the one the poses are wanted in is likely among them
+                        roots = sorted({e.parent for e in self._edges.values()} - set(self._edges))
+                        hint = f"; roots of the trees: {', '.join(roots)} (tf_parent_frame / --tf-parent-frame)"
                     raise TransformUnavailableError(
-                        where, f"frame '{name}' is unknown (frames known: {known})", retry=True
+                        where, f"frame '{name}' is unknown (frames known: {known}){hint}", retry=True
                     )
             raise TransformUnavailableError(
                 where,
@@ -285,10 +292,14 @@ class TransformBuffer:
             )
         s0, s1 = stamps[i - 1], stamps[i]
         if t - s0 > self.tolerance_ns or s1 - t > self.tolerance_ns:
+            # tf2 interpolates across any gap; this buffer only within the tolerance (a lost stretch of odometry is
+            # not a straight line): say how to widen it, and how often the edge is sampled
+            period = float(np.median(np.diff(stamps))) / 1e9 if len(stamps) > 2 else (s1 - s0) / 1e9
             raise TransformUnavailableError(
                 where,
                 f"no transform {link} within {self.tolerance_ns / 1e9:g} s of stamp {t} ns (nearest at "
-                f"{(t - s0) / 1e9:.3f} s before and {(s1 - t) / 1e9:.3f} s after)",
+                f"{(t - s0) / 1e9:.3f} s before and {(s1 - t) / 1e9:.3f} s after; the edge comes every {period:.3g} s "
+                "here: a larger TF tolerance, tf_tolerance_s / --tf-tolerance, interpolates across the gap)",
                 retry=False,
             )
         alpha = (t - s0) / (s1 - s0)

@@ -56,6 +56,7 @@ from roigsf_ros.data.bags import (
     CameraTopics,
     assemble_frame,
     assemble_images,
+    child_frame_hint,
     resized_frame,
     stamp_to_ns,
     transport_topic,
@@ -538,6 +539,8 @@ class CameraInput:
             return
         with self._lock:
             self._awaiting.append(awaiting)
+            if not self._tf.child_hint:  # an unknown tf_child_frame's error names the images' frame, when another
+                self._tf.child_hint = child_frame_hint(parts[t.color].header.frame_id, t.tf_child_frame)
         self._deliver_posed()
 
     def _on_tf(self, topic: str, static: bool, msg: Any) -> None:
