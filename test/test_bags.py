@@ -602,3 +602,20 @@ def test_a_pose_outside_the_map_frame_and_distortion_are_said_once_per_topic(
         bags.pose_to_matrix(pose, "/other/pose @ 2 ns")
         bags.camera_info_to_intrinsics(info, "/other/camera_info @ 2 ns")
     assert not caplog.records  # in map, no distortion: nothing to say
+
+
+def test_a_size_mismatch_blames_the_odd_one_out() -> None:
+    """Images of 160x120 with a camera_info of 640x480 were blamed on the depth topic: the camera info is named when
+    the two images agree (with what to do), the depth topic when the images disagree."""
+    from roigsf_ros.core.camera import Intrinsics
+
+    stamp = bags.DEFAULT_T0_NS
+    rgb8 = bags._image_msg(stamp, np.zeros((12, 16, 3), np.uint8), "rgb8")
+    depth = bags._image_msg(stamp, np.ones((12, 16), np.float32), "32FC1")
+    wide = bags.camera_info_msg(stamp, Intrinsics(fx=20.0, fy=20.0, cx=32.0, cy=24.0, width=64, height=48))
+    with pytest.raises(InputError, match=r"camera_info: sizes disagree: colour 16x12, depth 16x12, camera info 64x48; "
+                       "the camera info is another stream's"):  # fmt: skip
+        bags.assemble_images(rgb8, depth, wide)
+    small = bags._image_msg(stamp, np.ones((6, 8), np.float32), "32FC1")
+    with pytest.raises(InputError, match=r"image_raw: sizes disagree: colour 16x12, depth 8x6, .*aligned to the col"):
+        bags.assemble_images(rgb8, small, wide)

@@ -571,3 +571,14 @@ def test_bag_info_says_no_message_rather_than_none() -> None:
             "incomplete_stamps": 0}  # fmt: skip
     line = next(line for line in format_info(info).splitlines() if line.startswith("images:"))
     assert line.endswith("colour rgb8, depth no message, pose from pose topic"), line
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["scene", "synth", "--out", "x"], ["scene", "render", "--mesh", "m", "--traj", "t", "--cam", "c", "--out", "x"],
+     ["bag", "from-replica", "s", "--out", "x"], ["bag", "to-robot", "b", "--out", "x"], ["map", "s", "--out", "x"],
+     ["demo"]],
+)  # fmt: skip
+def test_every_command_that_shows_progress_takes_no_progress(argv: list[str]) -> None:
+    """``roigsf scene synth --no-progress`` was "unrecognized arguments" while every other writer took it."""
+    assert build_parser().parse_args([*argv, "--no-progress"]).no_progress is True

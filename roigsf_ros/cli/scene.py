@@ -105,6 +105,7 @@ def _render(args: argparse.Namespace) -> int:
         metadata={"source_mesh": str(args.mesh), "source_traj": str(args.traj), "source_cam": str(args.cam),
                   "stride": args.stride, "offset": args.offset},
         sensor=sensor,
+        progress=not args.no_progress,
     )  # fmt: skip
     print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} to {out}{_sensor_note(sensor)}")
     return 0
@@ -161,6 +162,7 @@ def _synth(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         metadata={"synth_seed": args.seed, "synth_kind": args.kind},
         sensor=sensor,
+        progress=not args.no_progress,
     )
     print(
         f"wrote {len(poses)} frames of {intr.width}x{intr.height} ({args.kind}, seed {args.seed}) to {out}"
@@ -259,6 +261,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _add_sensor_options(p)
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="scene", out="OUT"))
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
     p.set_defaults(func=_render)
 
     p = scene_sub.add_parser(
@@ -315,4 +318,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _add_sensor_options(p)
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="scene", out="OUT"))
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
     p.set_defaults(func=_synth)

@@ -994,11 +994,12 @@ def assemble_images(
     intr = camera_info_to_intrinsics(info_msg, where(t.camera_info))
     h, w = depth_m.shape
     if rgb.shape[:2] != (h, w) or (intr.width, intr.height) != (w, h):
-        raise InputError(
-            where(t.depth),
-            f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, "
-            f"camera info {intr.width}x{intr.height}",
-        )
+        sizes = f"colour {rgb.shape[1]}x{rgb.shape[0]}, depth {w}x{h}, camera info {intr.width}x{intr.height}"
+        if rgb.shape[:2] == (h, w):  # the images agree: the camera info is the odd one out
+            raise InputError(where(t.camera_info), f"sizes disagree: {sizes}; the camera info is another stream's or "
+                             "resolution's: use the one recorded with these images")  # fmt: skip
+        raise InputError(where(t.depth), f"sizes disagree: {sizes}; is the depth aligned to the colour (RealSense: "
+                         "aligned_depth_to_color)?")  # fmt: skip
     return rgb, depth_m, intr
 
 
