@@ -214,12 +214,14 @@ def test_bag_info_counts_the_frames_the_reader_refuses_with_the_reason(
     info = bags.bag_info(out)
     assert (info["frame_count"], info["frames_refused"], info["incomplete_stamps"]) == (N - 2, 2, 0)
     assert bags.DEPTH_TOPIC in info["refused_reason"] and "mono8" in info["refused_reason"]
+    assert info["refused_reason"].count("1 x ") == 2 and "camera info 128x48" in info["refused_reason"]  # both said
     fast = bags.bag_info(out, decode=False)  # stamps only: the refused frames are counted, and it says so
     assert (fast["frame_count"], fast["frames_refused"], fast["refused_reason"]) == (N, None, None)
     assert cli_main(["bag", "info", str(out)]) == 0
     text = capsys.readouterr().out
     assert f"frames:       {N - 2} complete, 2 refused, 0 incomplete stamps" in text, text
-    assert re.search(r"^refused: +\S+" + re.escape(bags.DEPTH_TOPIC) + ".*mono8", text, re.MULTILINE), text
+    both = r"^refused: +1 x \S+" + re.escape(bags.CAMERA_INFO_TOPIC) + r": sizes disagree.*; 1 x \S+"
+    assert re.search(both + re.escape(bags.DEPTH_TOPIC) + ".*mono8", text, re.MULTILINE), text
     assert cli_main(["bag", "info", str(out), "--no-decode"]) == 0
     assert f"frames:       {N} complete (not decoded), 0 incomplete stamps" in capsys.readouterr().out
     # `roigsf map` skips them as the nodes do, counted with the reason, the others keeping their bag frame ids
@@ -619,3 +621,13 @@ def test_a_size_mismatch_blames_the_odd_one_out() -> None:
     small = bags._image_msg(stamp, np.ones((6, 8), np.float32), "32FC1")
     with pytest.raises(InputError, match=r"image_raw: sizes disagree: colour 16x12, depth 8x6, .*aligned to the col"):
         bags.assemble_images(rgb8, small, wide)
+
+
+def test_refusal_summary_counts_each_reason_most_frequent_first() -> None:
+    """Five kinds of bad depth image in one bag were said as the last one only."""
+    from collections import Counter
+
+    reasons = Counter({"d: png": 3, "d: rvl": 5, "d: jpeg": 1})
+    assert bags.refusal_summary(reasons) == "5 x d: rvl; 3 x d: png; 1 x d: jpeg"
+    assert bags.refusal_summary(reasons, most=1) == "5 x d: rvl; and 2 other reason(s) for 4 frame(s)"
+    assert bags.refusal_summary(Counter()) == ""

@@ -406,7 +406,7 @@ def run_demo(
     with BagReader(bag, camera.topics, skip_refused=True) as reader:
         frames, skipped, no_tf = list(reader.frames()), reader.skipped_frames, reader.no_tf
         no_tf_reason = reader.last_tf_error if no_tf else ""
-        refused, refusal = reader.refused, reader.last_refusal
+        refused, refusal = reader.refused, reader.refusal_reasons
         reparented, reparent_note = reader.tf_reparented, reader.tf_reparent_note
     if not frames:
         why = f" ({refused} refused: {refusal})" if refused else ""

@@ -58,6 +58,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "opened_bag",
             "pose_to_matrix",
             "read_bag_frames",
+            "refusal_summary",
             "realsense_topics",
             "resized_frame",
             "sample_path",

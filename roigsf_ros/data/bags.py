@@ -22,7 +22,7 @@ import logging
 import math
 import shutil
 import struct
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -553,6 +553,17 @@ def header_stamp_ns(rawdata: bytes | memoryview) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
+def refusal_summary(reasons: Counter[str], most: int = 5) -> str:
+    """``"3 x TOPIC: problem; 1 x TOPIC: problem"``, the most frequent first, at most ``most`` (then how many other
+    reasons there were); "" for none.
+    """
+    ranked = reasons.most_common()
+    text = "; ".join(f"{n} x {reason}" for reason, n in ranked[:most])
+    if len(ranked) > most:
+        text += f"; and {len(ranked) - most} other reason(s) for {sum(n for _, n in ranked[most:])} frame(s)"
+    return text
+
+
 def header_frame_id(rawdata: bytes | memoryview) -> str:
     """Header frame id of a CDR-serialized message whose first field is ``std_msgs/Header`` ("" if cut short).
 
@@ -811,6 +822,8 @@ class BagReader:
         self.refused_stamps: list[int] = []
         """Stamps of the complete, posed frames skipped because their messages did not convert (``skip_refused``)."""
         self.last_refusal = ""
+        self._refusals: Counter[str] = Counter()
+        """Refused frames by reason (the error without its stamp)."""
         self.skipped_frames = 0
         self.frames_read = 0
         self.no_tf = 0
@@ -870,6 +883,7 @@ class BagReader:
                     raise
                 self.refused_stamps.append(stamp)
                 self.last_refusal = str(exc)
+                self._refusals[f"{exc.where.split(' @ ', 1)[0]}: {exc.problem}"] += 1
                 continue
             self.frames_read += 1
             yield frame
@@ -878,6 +892,13 @@ class BagReader:
     def refused(self) -> int:
         """How many frames were refused (``skip_refused``): :attr:`refused_stamps`."""
         return len(self.refused_stamps)
+
+    @property
+    def refusal_reasons(self) -> str:
+        """Each distinct reason frames were refused for, with its count, the most frequent first ("" if none): a bag
+        with five kinds of bad depth image said only the last one's.
+        """
+        return refusal_summary(self._refusals)
 
     def stamps(self) -> Iterator[int]:
         """The stamps of the frames :meth:`frames` would read (matched and posed), their images not decoded."""
@@ -1042,11 +1063,11 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
     when it has them): stamps carried by every topic matched into a frame, posed by the bag's TF messages
     when poses come from TF, and (``decode``) whose messages convert. ``frames_without_tf`` counts the
     complete stamps TF does not pose (None with poses from a topic), ``no_tf_reason`` says why (the last
-    error); ``frames_refused`` the complete, posed frames whose messages do not convert (a JPEG depth image,
-    sizes that disagree; None without ``decode``, whose count then includes them), ``refused_reason`` the
-    last one's error; ``incomplete_stamps`` the other stamps. ``frames_repeating_stamp`` counts the frames
-    skipped because a frame before them had their stamp; ``frames_stamped_back`` those stamped before the frame
-    before them, ``first_stamped_back`` where the first is (both as :class:`BagReader` counts them).
+    error); ``frames_refused`` the complete, posed frames whose messages do not convert (a JPEG depth image, sizes that
+    disagree; None without ``decode``, whose count then includes them), ``refused_reason`` each distinct error with its
+    count (:attr:`BagReader.refusal_reasons`); ``incomplete_stamps`` the other stamps. ``frames_repeating_stamp`` counts
+    the frames skipped because a frame before them had their stamp; ``frames_stamped_back`` those stamped before the
+    frame before them, ``first_stamped_back`` where the first is (both as :class:`BagReader` counts them).
     ``tf_reparented`` counts the TF frames that changed parent (None with poses from a topic; ``tf_reparent_note``
     says the first: two publishers of one frame move every pose through it, and nothing else shows it).
     ``frames_other_size`` counts the frames whose images are not the first frame's size, not in ``frame_count``
@@ -1100,7 +1121,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             else:
                 frames = sum(1 for _ in frame_reader.stamps())
             incomplete, no_tf, refused = frame_reader.skipped_frames, frame_reader.no_tf, frame_reader.refused
-            reason, refusal = frame_reader.last_tf_error, frame_reader.last_refusal
+            reason, refusal = frame_reader.last_tf_error, frame_reader.refusal_reasons
             repeated, back = len(frame_reader.repeated_stamps), frame_reader.stamps_back
             reparented, reparent_note = frame_reader.tf_reparented, frame_reader.tf_reparent_note
             if frame_reader.first_back is not None:
@@ -1238,6 +1259,7 @@ __all__ = [
     "pose_to_matrix",
     "read_bag_frames",
     "realsense_topics",
+    "refusal_summary",
     "resized_frame",
     "sample_path",
     "staged_bag",

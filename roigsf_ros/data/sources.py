@@ -144,7 +144,7 @@ class BagFrameSource(FrameSource):
                 break
             resolved = reader.topics
             why = f" (no pose on TF: {reader.last_tf_error})" if reader.no_tf else ""
-            why += f" ({reader.refused} refused: {reader.last_refusal})" if reader.refused else ""
+            why += f" ({reader.refused} refused: {reader.refusal_reasons})" if reader.refused else ""
         if native is None:
             raise InputError(path, f"bag holds no complete RGB-D frame{why}")
         self.native = native
@@ -204,7 +204,7 @@ class BagFrameSource(FrameSource):
                     break  # the rest of the kept frames are incomplete
             refused = {self.index_of(stamp) for stamp in reader.refused_stamps}
             kept = set(self.kept)
-            reasons = [reader.last_refusal] if any(k in kept for k in refused) else []
+            reasons = [reader.refusal_reasons] if any(k in kept for k in refused) else []
             refused |= set(resized)
             self.skipped_repeated = sum(1 for stamp in reader.repeated_stamps if self.index_of(stamp) in kept)
             missing = [k for k in self.kept if k not in given and k not in refused]
