@@ -776,3 +776,29 @@ def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(ros_context
             "frame 'cam' is unknown (frames known: map, other); the images are in frame 'camera_color_optical_frame': "
             "set tf_child_frame / --tf-child-frame to it" in camera.stats()["last_rejection"]
         ), camera.stats()["last_rejection"]
+
+
+def test_each_kind_of_refused_transform_is_said_not_only_the_first(
+    ros_context: Any, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A NaN translation, then a zero quaternion: one throttle for every refused transform said only the NaN one.
+    Each kind is said once per throttle period; the same kind again is not."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.data.bags import realsense_topics
+
+    nan = np.eye(4)
+    nan[0, 3] = np.nan
+    node = Node("tf_faults", context=ros_context)
+    try:
+        camera = CameraInput(node, lambda bf: None, reliable_qos(10), realsense_topics(tf_child_frame="cam"))
+        zero_q = _transform("map", "cam", np.eye(4), T0_NS + 2)
+        zero_q.transform.rotation.w = 0.0
+        for ts in (_transform("map", "cam", nan, T0_NS), zero_q, _transform("map", "b", nan, T0_NS + 3)):
+            camera._on_tf("/tf", False, TFMessage(transforms=[ts]))
+        assert camera.stats()["tf_rejected"] == 3
+    finally:
+        node.destroy_node()
+    said = [line for line in capfd.readouterr().err.splitlines() if "ignored transform" in line]
+    assert len(said) == 2 and "translation" in said[0] and "rotation" in said[1], said

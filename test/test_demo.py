@@ -413,7 +413,7 @@ def test_demo_names_the_bag_frames_tf_does_not_pose(tmp_path: Path, capsys: pyte
             "--set", "mapper.iters_per_keyframe=1"]  # fmt: skip
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert out.startswith(f"bag {tmp_path / 'gap'}: 5 frames (and 1 TF does not pose: "), out
+    assert out.startswith(f"bag {tmp_path / 'gap'}: 5 frames (and 1 more that TF does not pose: "), out
     assert "frames TF never posed      1" in out
     metrics = json.loads((run / "metrics.json").read_text())
     assert (metrics["n_frames"], metrics["bag_frames_without_tf"], metrics["dropped_frames"]) == (5, 1, 0), metrics

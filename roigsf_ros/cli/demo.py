@@ -626,7 +626,7 @@ def _run(args: argparse.Namespace) -> int:
     given = f" (policy {args.policy})" if args.policy is not None else ""
     size = f"{info['width']}x{info['height']}" if info["width"] is not None else "an undecoded size"
     unposed = (
-        f" (and {info['frames_without_tf']} TF does not pose: {info['no_tf_reason']})"
+        f" (and {info['frames_without_tf']} more that TF does not pose: {info['no_tf_reason']})"
         if info.get("frames_without_tf")
         else ""
     )

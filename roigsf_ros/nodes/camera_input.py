@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import re
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -85,6 +86,11 @@ class ThrottleByKind:
             return False
         self._last[kind] = now
         return True
+
+
+def tf_fault_kind(exc: InputError) -> str:
+    """What kind of fault a refused transform has: its problem without the frame names and numbers in it."""
+    return re.sub(r"'[^']*'|\[[^\]]*\]|-?\d[\d.e+-]*|nan|inf", "#", exc.problem)
 
 
 REMEMBERED_REJECTIONS = 256
@@ -261,6 +267,7 @@ class CameraInput:
         self._awaiting: deque[_AwaitingPose] = deque()
         self._last_silent_warning = -float("inf")
         self._reject_warnings = ThrottleByKind()  # by reason category
+        self._tf_warnings = ThrottleByKind()  # by kind of refused transform (tf_fault_kind)
         self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
         self._qos = qos
         self._group = callback_group
@@ -551,8 +558,10 @@ class CameraInput:
             errors = self._tf.add_message(msg, static, topic)
             self.tf_rejected += len(errors)
             reparented = self._tf.reparented
-        if errors:
-            self.node.get_logger().warning(f"ignored transform: {errors[-1]}", throttle_duration_sec=WARN_THROTTLE_S)
+            # one throttle per kind of fault: a NaN translation hid a zero quaternion and a zero stamp behind it
+            said = [e for e in errors if self._tf_warnings.due(tf_fault_kind(e))]
+        for error in said:
+            self.node.get_logger().warning(f"ignored transform: {error}")
         if reparented > before:  # two publishers of one frame: every pose through it moves, and nothing else says so
             self.node.get_logger().warning(
                 f"TF: {self._tf.reparent_note} ({reparented} change(s) of parent so far)",
