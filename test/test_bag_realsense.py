@@ -372,3 +372,15 @@ def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(
         f"; the images are in frame '{OPTICAL}': set tf_child_frame / --tf-child-frame to it"
     ), info["no_tf_reason"]
     assert bags.child_frame_hint(OPTICAL, f"/{OPTICAL}") == ""  # tf2 compares names without a leading "/"
+
+
+def test_to_robot_of_a_robots_bag_says_to_map_it_as_it_is(
+    rs_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf bag to-robot`` of a bag a robot (or this command) recorded failed on a missing depth topic with no
+    word of what to do instead: it needs no rewriting, only ``--realsense`` to be read."""
+    assert cli_main(["bag", "to-robot", str(rs_bag), "--out", str(tmp_path / "again"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "is missing" in err and "this one is already a robot's: map it as it is" in err, err
+    assert "the bag has a RealSense camera's topics under /camera: try --realsense" in err
+    assert not (tmp_path / "again").exists()

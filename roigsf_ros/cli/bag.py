@@ -8,9 +8,17 @@ import math
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import OVERWRITE_HELP, add_camera_options, camera_topics, check_out, image_size
+from roigsf_ros.cli import OVERWRITE_HELP, add_camera_options, camera_topics, check_out, image_size, realsense_hint
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import AUTO, BAG_MARKS, DEFAULT_RATE_HZ, DEPTH_ENCODINGS, bag_info, write_bag
+from roigsf_ros.data.bags import (
+    AUTO,
+    BAG_MARKS,
+    DEFAULT_RATE_HZ,
+    DEPTH_ENCODINGS,
+    bag_info,
+    bag_topic_types,
+    write_bag,
+)
 from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.robot_bag import (
     ROBOT_COLOR_FORMATS,
@@ -195,17 +203,28 @@ def _to_robot(args: argparse.Namespace) -> int:
     check_out(args.out, args.overwrite, BAG_MARKS, "a bag", [args.src])
     src_folder = args.src if args.src.is_dir() else args.src.parent
     mesh = _source_mesh(src_folder, args.no_mesh)
-    n = write_robot_bag(
-        args.src,
-        args.out,
-        namespace=args.namespace,
-        color_format=args.color_format,
-        depth_transport=args.depth_transport,
-        tf_lag_s=args.tf_lag_ms * 1e-3,
-        overwrite=args.overwrite,
-        progress=not args.no_progress,
-        gt_mesh=mesh,
-    )
+    try:
+        n = write_robot_bag(
+            args.src,
+            args.out,
+            namespace=args.namespace,
+            color_format=args.color_format,
+            depth_transport=args.depth_transport,
+            tf_lag_s=args.tf_lag_ms * 1e-3,
+            overwrite=args.overwrite,
+            progress=not args.no_progress,
+            gt_mesh=mesh,
+        )
+    except InputError as exc:  # a robot's bag given: it needs no rewriting, only --realsense to be read
+        try:
+            present = bag_topic_types(args.src)
+        except (InputError, OSError):
+            raise exc from None
+        hint = realsense_hint(args.src, present, None)
+        if not hint:
+            raise
+        why = "to-robot rewrites a bag of this package's layout (`roigsf bag from-replica`), and this one is already"
+        raise InputError(exc.where, f"{exc.problem}; {why} a robot's: map it as it is{hint}") from None
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else "/"
     params = " ".join(f"-p {k}:={v}" for k, v in robot_node_parameters(args.namespace, args.depth_transport).items())
     print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns}`, or give the "
