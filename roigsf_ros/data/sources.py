@@ -71,7 +71,7 @@ class FrameSource:
         self.skipped_refused = 0
         """Frames skipped on the last full pass because their messages did not convert (a bad image, sizes)."""
         self.refused_reason = ""
-        """The last refused frame's error, when ``skipped_refused``."""
+        """Why frames were refused, each distinct reason with its count, when ``skipped_refused``."""
         self.tf_reparented = 0
         """Times a TF frame changed parent on the last full pass (poses through it moved; ``tf_reparent_note``)."""
         self.tf_reparent_note = ""
