@@ -802,3 +802,28 @@ def test_each_kind_of_refused_transform_is_said_not_only_the_first(
         node.destroy_node()
     said = [line for line in capfd.readouterr().err.splitlines() if "ignored transform" in line]
     assert len(said) == 2 and "translation" in said[0] and "rotation" in said[1], said
+
+
+def test_a_topic_is_not_called_silent_while_the_streams_are_starting(ros_context: Any) -> None:
+    """A robot's bag starts its /tf 0.2 s before its images: the check that came between said "1 publisher(s) on it,
+    but no message has arrived" 0.7 s into the replay. A published topic is said silent only FLOW_GRACE_S after the
+    first message on any of the input's topics."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    from roigsf_ros.data.bags import realsense_topics
+    from roigsf_ros.nodes.camera_input import FLOW_GRACE_S
+
+    topics = realsense_topics(tf_child_frame="cam")
+    node, pub = Node("starting", context=ros_context), Node("starting_pub", context=ros_context)
+    try:
+        pub.create_publisher(Image, topics.color, reliable_qos(10))
+        camera = CameraInput(node, lambda bf: None, reliable_qos(10), topics)
+        _wait_for(lambda: node.count_publishers(topics.color) == 1)
+        camera._on_tf("/tf", False, TFMessage(transforms=[_transform("map", "cam", np.eye(4), T0_NS)]))
+        assert topics.color not in camera.silent_topics()  # the images may come any moment
+        camera._first_flow -= FLOW_GRACE_S + 1
+        assert camera.silent_topics()[topics.color].startswith("1 publisher(s) on it, but no message has arrived")
+    finally:
+        node.destroy_node()
+        pub.destroy_node()

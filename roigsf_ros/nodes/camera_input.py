@@ -101,6 +101,9 @@ INPUT_CHECK_PERIOD_S = 5.0
 """How often the input looks for subscribed topics that delivered nothing (:meth:`CameraInput.silent_topics`)."""
 SILENT_WARN_S = 30.0
 """At most one warning about silent topics in this many seconds."""
+FLOW_GRACE_S = 3.0
+"""A topic with a publisher is "silent" only this long after another of the input's topics first delivered: a
+robot's bag starts its /tf 0.2 s before its images, and the check that came between said the images never arrived."""
 CAMERA_RELIABILITIES = ("reliable", "best_effort")
 """``camera_reliability``: what the camera subscriptions ask for. A reliable one never matches a best-effort
 publisher (many camera drivers publish sensor data best effort); a best-effort one matches both, but may lose
@@ -266,6 +269,8 @@ class CameraInput:
         self._tf: TransformBuffer | None = None
         self._awaiting: deque[_AwaitingPose] = deque()
         self._last_silent_warning = -float("inf")
+        self._first_flow: float | None = None
+        """When a message first came on any of the input's topics (:data:`FLOW_GRACE_S`)."""
         self._reject_warnings = ThrottleByKind()  # by reason category
         self._tf_warnings = ThrottleByKind()  # by kind of refused transform (tf_fault_kind)
         self._rejections: OrderedDict[int, str] = OrderedDict()  # stamp -> why, the newest REMEMBERED_REJECTIONS
@@ -394,6 +399,7 @@ class CameraInput:
         with self._lock:
             received = Counter(self.received)
             incompatible = Counter(self.qos_incompatible)
+            flow_started = math.inf if self._first_flow is None else self._first_flow
         silent = [topic for topic in self.subscribed_topics() if received[topic] == 0]
         if not silent:
             return {}
@@ -407,7 +413,7 @@ class CameraInput:
                 why = (f"{incompatible[topic]} publisher(s) with a QoS this subscription cannot match (most often a "
                        "best-effort camera: set camera_reliability: best_effort)")  # fmt: skip
             elif publishers:
-                if not flowing:
+                if not flowing or time.monotonic() - flow_started < FLOW_GRACE_S:
                     continue  # the publisher may not have started sending (a player waiting for subscribers)
                 why = f"{publishers} publisher(s) on it, but no message has arrived"
             else:
@@ -492,6 +498,7 @@ class CameraInput:
         stamp = stamp_to_ns(msg.header.stamp)
         with self._lock:
             self.received[topic] += 1
+            self._first_flow = self._first_flow or time.monotonic()
             self._gaps[topic].add(stamp)
             dropped_before = self._ledger.dropped_incomplete
             stamps_before = (self._ledger.duplicate_stamp, self._ledger.out_of_order)
@@ -554,6 +561,7 @@ class CameraInput:
         assert self._tf is not None
         with self._lock:
             self.received[topic] += 1
+            self._first_flow = self._first_flow or time.monotonic()
             before = self._tf.reparented
             errors = self._tf.add_message(msg, static, topic)
             self.tf_rejected += len(errors)
