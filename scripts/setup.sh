@@ -94,7 +94,7 @@ pip_install() {
     out="$("$VENV/bin/python" -m pip install "$@" 2>&1)" || rc=$?
     printf '%s\n' "$out" | { grep -v -e "$PIP_IGNORED" -e '^$' >&2 || true; }
     n="$(printf '%s\n' "$out" | grep -c -e "$PIP_IGNORED" || true)"
-    [ "$n" = 0 ] || log "pip: $n warnings hidden (index locations in this machine's pip config that do not exist)"
+    [ "$n" = 0 ] || log "pip: $n warning(s) hidden (index locations in this machine's pip config that do not exist)"
     return "$rc"
 }
 
