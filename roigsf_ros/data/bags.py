@@ -973,7 +973,7 @@ class BagReader:
         t = self.topics
         while waiting:
             stamp, parts = waiting[0]
-            if not tf.child_hint:
+            if tf.child_hint is None:  # once: the first frame's header says the frame the images are in
                 tf.child_hint = child_frame_hint(header_frame_id(parts[t.color][1]), t.tf_child_frame)
             try:
                 T_wc = tf.lookup(t.tf_parent_frame, t.tf_child_frame, stamp)

@@ -118,8 +118,9 @@ class TransformBuffer:
         robot_state_publisher's) silently moved every pose through it."""
         self.frames_refused = 0
         """Transforms refused because ``max_frames`` frames were already known."""
-        self.child_hint = ""
-        """Appended to an unknown child frame's error by a caller who knows more (the images' own frame id)."""
+        self.child_hint: str | None = None
+        """Appended to an unknown child frame's error by a caller who knows more (the images' own frame id; None until
+        a caller has looked, "" when it has nothing to add)."""
         self._edges: dict[str, _Edge] = {}
 
     # ------------------------------------------------------------------------------ adding
@@ -228,7 +229,7 @@ class TransformBuffer:
             for name in (child, parent):
                 if name not in self._edges and all(e.parent != name for e in self._edges.values()):
                     if name == child:
-                        hint = self.child_hint
+                        hint = self.child_hint or ""
                     else:  # the frames without a parent: the one the poses are wanted in is likely among them
                         roots = sorted({e.parent for e in self._edges.values()} - set(self._edges))
                         hint = f"; roots of the trees: {', '.join(roots)} (tf_parent_frame / --tf-parent-frame)"

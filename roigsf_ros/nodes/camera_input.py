@@ -553,7 +553,7 @@ class CameraInput:
             return
         with self._lock:
             self._awaiting.append(awaiting)
-            if not self._tf.child_hint:  # an unknown tf_child_frame's error names the images' frame, when another
+            if self._tf.child_hint is None:  # once: an unknown tf_child_frame's error names the images' frame
                 self._tf.child_hint = child_frame_hint(parts[t.color].header.frame_id, t.tf_child_frame)
         self._deliver_posed()
 
