@@ -232,6 +232,9 @@ def test_compressed_converters_round_trip_and_reject_bad_data_naming_the_topic()
     # a plain PNG sent as compressedDepth (no header): said as such, with the transport that reads it
     with pytest.raises(InputError, match=r"^/d: compressedDepth message .* starts with a PNG, not the 12-byte header"):
         bags.image_to_depth_m(_compressed(hdr, fmt, data[12:]), "/d")
+    # ... and compressedDepth's header + PNG under a plain format: it was "truncated or not JPEG/PNG"
+    with pytest.raises(InputError, match=r"^/d: format 'png' names a plain PNG, but the data holds a 12-byte header"):
+        bags.image_to_depth_m(_compressed(hdr, "png", data), "/d")
     with pytest.raises(InputError, match=r"^/d: .*RVL.*not supported"):
         bags.image_to_depth_m(_compressed(hdr, "16UC1; compressedDepth rvl", data), "/d")
     with pytest.raises(InputError, match=r"^/d: .*expected a 16-bit PNG"):

@@ -233,14 +233,25 @@ def test_every_sized_command_derives_the_missing_side_from_the_source(
 def test_map_of_a_partial_download_names_the_allow_partial_flag(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A traj.txt with more poses than frames: the error names `--allow-partial`, the flag the user types."""
+    """A traj.txt with more poses than frames: the error names `--allow-partial`, the flag the user types, and a
+    Python caller reads ``allow_partial=True`` (both read "allow_partial=True, on the command line --allow-partial")."""
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.data.replica import ReplicaSequence
+
     traj = tiny_scene / "traj.txt"
     lines = traj.read_text().splitlines(keepends=True)
     traj.write_text("".join([*lines, lines[0]]))
     _stub_work(monkeypatch)
     assert main(["map", str(tiny_scene), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "traj.txt" in err and "--allow-partial" in err, err
+    assert "traj.txt" in err and "needs --allow-partial)" in err and "allow_partial" not in err, err
+    with pytest.raises(InputError) as caught:
+        ReplicaSequence(tiny_scene)
+    assert str(caught.value).endswith("needs allow_partial=True)"), caught.value
+    for cam in (tiny_scene / "cam_params.json", tiny_scene.parent / "cam_params.json"):
+        cam.unlink(missing_ok=True)
+    assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "bag"), "--allow-partial"]) == 2
+    assert "give the camera file (--cam PATH)" in capsys.readouterr().err
 
 
 def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(

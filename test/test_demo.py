@@ -449,6 +449,46 @@ def test_demo_refuses_camera_settings_with_which_a_node_reads_nothing(
     assert "without a pose on TF" in err and not run.exists(), err
 
 
+def test_demo_takes_roigsf_maps_camera_options_on_both_camera_nodes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The demo had ``--realsense`` alone: a robot whose camera frame is not RealSense's needed two ``--set`` (one per
+    camera node). Now it takes ``roigsf map``'s camera options, each set on the mapper and the selector (the camera
+    info topic on the planner too), over ``--realsense``'s names and under a ``--set``; a bad value names its option.
+    """
+    from roigsf_ros.cli import main
+    from roigsf_ros.cli.demo import with_camera_options
+    from roigsf_ros.data.bags import CAMERA_FRAME_ID
+
+    bag = _robot_bag(tmp_path, 3, seed=10)
+    run = tmp_path / "run"
+    args = ["demo", "--bag", str(bag), "--out", str(run), "--gt-mesh", "", "--no-progress", "--policy", "all",
+            "--final-iters", "0", "--rate", "1", "--set", "mapper.iters_per_keyframe=1"]  # fmt: skip
+    assert main([*args, "--realsense", "--tf-child-frame", "camera_link_optical"]) == 2  # refused before the start
+    err = capsys.readouterr().err
+    assert "'camera_link_optical'" in err and CAMERA_FRAME_ID in err and not run.exists(), err
+    assert main([*args, "--realsense", "--tf-tolerance", "-1"]) == 2
+    assert "roigsf demo: error: --tf-tolerance: " in capsys.readouterr().err
+    names = ["--color-topic", "/camera/color/image_raw", "--depth-topic", "/camera/aligned_depth_to_color/image_raw",
+             "--camera-info-topic", "/camera/color/camera_info", "--pose-source", "tf",
+             "--tf-child-frame", CAMERA_FRAME_ID, "--color-transport", "compressed",
+             "--depth-transport", "auto"]  # fmt: skip
+    assert main([*args, *names]) == 0, capsys.readouterr().err  # what --realsense sets, one option at a time
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["n_frames"], metrics["frames_received"], metrics["keyframes_not_mapped"]) == (3, 3, 0), metrics
+    from roigsf_ros.cli import build_parser
+
+    parsed = build_parser().parse_args(["demo", "--tf-child-frame", "cam", "--camera-info-topic", "/ci",
+                                        "--set", "keyframe_selector.tf_child_frame=other"])  # fmt: skip
+    assert with_camera_options({"mapper": {"iters_per_keyframe": 2}}, parsed) == {
+        "mapper": {"tf_child_frame": "cam", "camera_info_topic": "/ci", "iters_per_keyframe": 2},
+        "keyframe_selector": {"tf_child_frame": "cam", "camera_info_topic": "/ci"},
+        "nbv_planner": {"camera_info_topic": "/ci"},
+    }
+    over = with_camera_options({"keyframe_selector": {"tf_child_frame": "other"}}, parsed)
+    assert over["keyframe_selector"]["tf_child_frame"] == "other"  # a --set wins
+
+
 def test_demo_refuses_a_set_value_of_the_wrong_type_before_anything_starts(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

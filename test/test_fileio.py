@@ -241,3 +241,23 @@ def test_a_killed_writers_temporaries_are_removed_by_the_next_write(tmp_path: Pa
     write_json(tmp_path / "metrics.json", {"a": 1})
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == sorted([f".auto.old-{dead}", ".auto.tmp-abc12", f".auto.tmp-{alive}-k2", "auto", "metrics.json"])
+
+
+def test_a_folder_that_refuses_files_says_the_system_refused_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--out /proc/x`` read "output folder is not writable (No such file or directory)" about a folder that is
+    there (/proc gives ENOENT for a new file): the OS's reason is now said as the system's refusal of a new file."""
+    import errno
+    import tempfile
+
+    def refuse(*args: object, **kwargs: object) -> tuple[int, str]:
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(InputError) as caught:
+        check_writable(tmp_path / "x" / "run")
+    assert str(caught.value) == (
+        f"{tmp_path}: output folder is not writable: the system refused a new file in it (No such file or "
+        f"directory); {tmp_path / 'x' / 'run'} cannot be written there; choose another one"
+    )

@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import re
 import shlex
 import signal
 import sys
@@ -59,20 +60,25 @@ _CAMERA_OPTIONS = {
 """CameraTopics field -> the command-line option that sets it."""
 
 
-def add_camera_options(parser: argparse.ArgumentParser) -> None:
-    """Options that say how a bag's camera is read: topics, transports, pose from a topic or TF, RealSense names."""
+REALSENSE_HELP = (
+    "RealSense names under NS (default /camera): NS/color/image_raw, NS/aligned_depth_to_color/image_raw, "
+    "NS/color/camera_info, pose from TF; the options below override single names"
+)
+"""``--realsense``'s help in :func:`add_camera_options` (a command may say more, as the demo does)."""
+
+
+def add_camera_options(
+    parser: argparse.ArgumentParser, realsense_help: str = REALSENSE_HELP, transport_default: str = "auto: from the bag"
+) -> None:
+    """Options that say how a bag's camera is read: topics, transports, pose from a topic or TF, RealSense names.
+
+    ``transport_default``: what a transport not typed is, in the help (the demo's nodes have their own default).
+    """
     from roigsf_ros.data.bags import AUTO, COLOR_TRANSPORTS, DEPTH_TRANSPORTS, POSE_SOURCES, CameraTopics
 
     d = CameraTopics()
     g = parser.add_argument_group("camera topics (bags)")
-    g.add_argument(
-        "--realsense",
-        nargs="?",
-        const="/camera",
-        metavar="NS",
-        help="RealSense names under NS (default /camera): NS/color/image_raw, NS/aligned_depth_to_color/image_raw, "
-        "NS/color/camera_info, pose from TF; the options below override single names",
-    )
+    g.add_argument("--realsense", nargs="?", const="/camera", metavar="NS", help=realsense_help)
     g.add_argument("--color-topic", metavar="TOPIC", help=f"colour image topic (default {d.color})")
     g.add_argument("--depth-topic", metavar="TOPIC", help=f"depth image topic (default {d.depth})")
     g.add_argument("--camera-info-topic", metavar="TOPIC", help=f"camera info topic (default {d.camera_info})")
@@ -80,12 +86,12 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--color-transport",
         choices=(AUTO, *COLOR_TRANSPORTS),
-        help="raw (Image) or compressed (CompressedImage JPEG/PNG, on TOPIC/compressed); default auto: from the bag",
+        help=f"raw (Image) or compressed (CompressedImage JPEG/PNG, on TOPIC/compressed); default {transport_default}",
     )
     g.add_argument(
         "--depth-transport",
         choices=(AUTO, *DEPTH_TRANSPORTS),
-        help="raw, compressed (16-bit PNG) or compressedDepth (on TOPIC/compressedDepth); default auto: from the bag",
+        help=f"raw, compressed (16-bit PNG) or compressedDepth (on TOPIC/compressedDepth); default {transport_default}",
     )
     g.add_argument(
         "--pose-source",
@@ -106,12 +112,17 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def camera_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The :class:`CameraTopics` fields typed among :func:`add_camera_options`' options (``--realsense`` aside)."""
+    given = {field: getattr(args, opt[2:].replace("-", "_")) for field, opt in _CAMERA_OPTIONS.items()}
+    return {k: v for k, v in given.items() if v is not None}
+
+
 def camera_topics(args: argparse.Namespace) -> CameraTopics:
     """The :class:`CameraTopics` of :func:`add_camera_options`' options; errors name the option typed."""
     from roigsf_ros.data.bags import AUTO, CameraTopics, realsense_topics
 
-    given = {field: getattr(args, opt[2:].replace("-", "_")) for field, opt in _CAMERA_OPTIONS.items()}
-    given = {k: v for k, v in given.items() if v is not None}
+    given = camera_options(args)
     given.setdefault("color_transport", AUTO)
     given.setdefault("depth_transport", AUTO)
     try:
@@ -323,6 +334,20 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(sig, handler)
 
 
+API_OPTIONS = {"overwrite=True": "--overwrite", "allow_partial=True": "--allow-partial", "cam=PATH": "--cam PATH"}
+"""The library's words for an argument in its errors -> the command line's option, for a command that has it."""
+
+
+def cli_words(message: str, args: argparse.Namespace) -> str:
+    """A library error in the command line's words: ``allow_partial=True`` as ``--allow-partial`` where the command
+    has that option (:data:`API_OPTIONS`); the library's own words elsewhere, so that a Python caller reads Python.
+    """
+    for api, option in API_OPTIONS.items():
+        if hasattr(args, api.split("=", 1)[0]):
+            message = re.sub(rf"(?<![\w-]){re.escape(api)}", option, message)
+    return message
+
+
 def _run_command(args: argparse.Namespace) -> int:
     """Run the parsed command: bad input one line and 2, an interrupt one line and 128 + signal, memory one line, a
     closed output pipe nothing and 141 (128 + SIGPIPE, as a shell tool).
@@ -334,7 +359,7 @@ def _run_command(args: argparse.Namespace) -> int:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 128 + signal.SIGPIPE
     except (InputError, FileExistsError, FileNotFoundError) as exc:
-        print(f"roigsf {args.command}: error: {exc}", file=sys.stderr)
+        print(f"roigsf {args.command}: error: {cli_words(str(exc), args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         return _interrupted(args.command, exc)

@@ -18,8 +18,9 @@ The report reads the bag with the camera settings the mapper runs with (its came
 files and ``--set``), and the player plays only the topics the camera nodes read. A robot's bag (RealSense names,
 pose on TF, compressed images) needs ``--realsense [NS]``: it sets those names and pose_source tf on the mapper and
 the keyframe selector (and the planner's camera_info_topic), with the transports read from the bag's topic types,
-over the params files; a ``--set NODE.NAME=VALUE`` still wins. Settings with which the mapper or the selector would
-read no frame of the bag are refused before anything starts, naming the parameter.
+over the params files. ``roigsf map``'s camera options (``--tf-child-frame``, ``--depth-transport``, ...) set one
+name on both camera nodes, over ``--realsense``'s; a ``--set NODE.NAME=VALUE`` still wins. Settings with which the
+mapper or the selector would read no frame of the bag are refused before anything starts, naming the parameter.
 
 ``--rate 0`` plays as fast as the nodes can take the bag without losing anything
 (:class:`~roigsf_ros.nodes.lockstep.Lockstep`): each frame
@@ -41,7 +42,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roigsf_ros.cli import check_writable, chosen_gt_mesh, metric_notes, realsense_hint
+from roigsf_ros.cli import (
+    add_camera_options,
+    camera_options,
+    camera_topics,
+    check_writable,
+    chosen_gt_mesh,
+    metric_notes,
+    realsense_hint,
+)
 from roigsf_ros.core.config import check_field_value
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import check_replaceable
@@ -340,6 +349,23 @@ class _Progress:
             self._last_print, self._last_text = time.monotonic(), text
 
 
+def with_camera_options(sets: dict[str, dict[str, Any]], args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """``sets`` (the ``--set`` values) over the camera options typed (``--tf-child-frame`` and the rest, as ``roigsf
+    map`` has them): each on both camera nodes (``--camera-info-topic`` also on the planner), under a ``--set`` of the
+    same parameter. A value the options refuse is named by its option, before anything starts.
+    """
+    from roigsf_ros.nodes.bag_camera import CAMERA_NODES, CAMERA_PARAMETERS
+
+    camera_topics(args)  # checks the typed values, naming the option
+    typed = {CAMERA_PARAMETERS[field]: value for field, value in camera_options(args).items()}
+    out = {node: dict(values) for node, values in sets.items()}
+    for node in CAMERA_NODES:
+        out[node] = typed | out.get(node, {})
+    if "camera_info_topic" in typed:
+        out.setdefault("nbv_planner", {}).setdefault("camera_info_topic", typed["camera_info_topic"])
+    return {node: values for node, values in out.items() if values}
+
+
 def demo_camera(
     bag: Path,
     params: dict[str, dict[str, Any]] | None = None,
@@ -610,7 +636,7 @@ def _run(args: argparse.Namespace) -> int:
 
     for f in params_files:  # now, naming the file, not as rclpy's parse error after the bag was read
         params_file_sections(f, strict=True)
-    sets = parse_sets(args.set)
+    sets = with_camera_options(parse_sets(args.set), args)
     policy = sets.get("keyframe_selector", {}).get("policy", args.policy)  # a --set wins over --policy
     if policy is not None:  # now, not once the nodes started and warmed up
         from roigsf_ros.nodes.keyframe_selector import PLANNER_POLICIES, alone_policies
@@ -727,15 +753,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ROS params file for the nodes, over their defaults (config/*.yaml; repeatable, later files win), e.g. "
         "config/recommended/planner.yaml",
     )
-    p.add_argument(
-        "--realsense",
-        nargs="?",
-        const="/camera",
-        metavar="NS",
-        help="a robot's bag: RealSense names under NS (default /camera) on the mapper and the keyframe selector "
-        "(NS/color/image_raw, NS/aligned_depth_to_color/image_raw, NS/color/camera_info; also the planner's "
-        "camera_info_topic), pose from TF, transports from the bag's topic types; over the params files, under "
-        "--set NODE.NAME=VALUE",
+    add_camera_options(
+        p,
+        realsense_help="a robot's bag: RealSense names under NS (default /camera) on the mapper and the keyframe "
+        "selector (NS/color/image_raw, NS/aligned_depth_to_color/image_raw, NS/color/camera_info; also the "
+        "planner's camera_info_topic), pose from TF, transports from the bag's topic types; over the params files, "
+        "under the options below (set on both camera nodes) and under --set NODE.NAME=VALUE",
+        transport_default="the nodes' (their params files', else raw; with --realsense auto: from the bag)",
     )
     p.add_argument(
         "--domain-id",

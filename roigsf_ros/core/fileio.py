@@ -118,7 +118,7 @@ def check_run_output(
     """
     out = Path(out_dir)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it; on the command line --overwrite)")
+        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it)")
     keep: dict[str, Any] = {"marks": marks if overwrite else (), "what": what, "inputs": list(inputs)}
     check_replaceable(out, **keep)
     return keep
@@ -231,7 +231,7 @@ def check_writable(out: str | Path, file: bool = False) -> None:
         os.unlink(probe)
     except OSError as exc:
         where = f"{out} cannot be written there" if Path(os.path.abspath(out)).parent != folder else ""
-        why = f"output folder is not writable ({exc.strerror or exc})"
+        why = f"output folder is not writable: the system refused a new file in it ({exc.strerror or exc})"
         raise InputError(folder, f"{why}{'; ' + where if where else ''}; choose another one") from None
 
 

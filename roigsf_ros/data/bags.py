@@ -43,7 +43,7 @@ from roigsf_ros.core.errors import InputError, warn_once
 from roigsf_ros.core.fileio import atomic_dir
 from roigsf_ros.core.frame import Frame, resize_frame
 from roigsf_ros.core.package_files import package_path, package_path_places
-from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
+from roigsf_ros.data.replica import PNG_SIGNATURE, ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.sync import StampMatcher
 from roigsf_ros.data.tf import (
     DEFAULT_TOLERANCE_S,
@@ -443,7 +443,7 @@ def compressed_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
             raise InputError(where, f"compressedDepth format '{fmt}' (RVL) is not supported; use png")
         if buf.size <= COMPRESSED_DEPTH_HEADER_BYTES:
             raise InputError(where, f"compressedDepth data has {buf.size} bytes: no room for the header and a PNG")
-        if bytes(buf[:8]) == b"\x89PNG\r\n\x1a\n":  # a plain PNG where the header should be
+        if bytes(buf[:8]) == PNG_SIGNATURE:  # a plain PNG where the header should be
             raise InputError(where, f"compressedDepth message ('{fmt}') starts with a PNG, not the 12-byte header "
                              "image_transport's compressedDepth puts before it: a plain 16-bit PNG is what "
                              "depth_transport: compressed reads")  # fmt: skip
@@ -466,6 +466,10 @@ def compressed_to_depth_m(msg: Any, where: str = DEPTH_TOPIC) -> np.ndarray:
         return px.astype(np.float32) / np.float32(1000.0)
     if encoding == "32FC1":
         raise InputError(where, f"format '{fmt}': float depth cannot be a plain PNG/JPEG; use compressedDepth")
+    if bytes(buf[COMPRESSED_DEPTH_HEADER_BYTES : COMPRESSED_DEPTH_HEADER_BYTES + 8]) == PNG_SIGNATURE:
+        raise InputError(where, f"format '{fmt}' names a plain PNG, but the data holds a 12-byte header before its "
+                         "PNG, as image_transport's compressedDepth sends it: the publisher's format should read "
+                         "'16UC1; compressedDepth png' (or '32FC1; ...' for quantised float depth)")  # fmt: skip
     px = _decode(buf, cv2.IMREAD_UNCHANGED, where, fmt)
     if px.dtype != np.uint16 or px.ndim != 2:
         raise InputError(

@@ -78,7 +78,8 @@ def save_traj(path: str | Path, poses: np.ndarray) -> None:
 
 
 _JPEG_SOI, _JPEG_EOI = b"\xff\xd8\xff", b"\xff\xd9"
-_PNG_SIGNATURE, _PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+PNG_SIGNATURE, _PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+"""The first 8 bytes of every PNG file (and the last chunk's, whose absence means a truncated file)."""
 
 
 def _read_image(path: str | Path, what: str) -> np.ndarray:
@@ -97,7 +98,7 @@ def _read_image(path: str | Path, what: str) -> np.ndarray:
     tail = data.rstrip(b"\0")  # some writers pad to a block size
     if data.startswith(_JPEG_SOI) and not tail.endswith(_JPEG_EOI):
         raise InputError(path, f"truncated {what}: no JPEG end-of-image marker (FF D9) in its {len(data)} bytes")
-    if data.startswith(_PNG_SIGNATURE) and not tail.endswith(_PNG_IEND):
+    if data.startswith(PNG_SIGNATURE) and not tail.endswith(_PNG_IEND):
         raise InputError(path, f"truncated {what}: no PNG IEND chunk at the end of its {len(data)} bytes")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
@@ -188,7 +189,7 @@ class ReplicaSequence:
                 raise InputError(
                     self.root,
                     "no cam_params.json here or in the parent folder: put Replica's there, or give the camera "
-                    "file (--cam on the command line; cam= in Python)",
+                    "file (cam=PATH)",
                 )
             native = load_cam_params(cam_path)
 
@@ -220,15 +221,13 @@ class ReplicaSequence:
             shown = ", ".join(f"frame{i:0{digits}d}.jpg" for i in gaps[:5]) + (" ..." if len(gaps) > 5 else "")
             why = f"{len(gaps)} frame(s) missing between frame 0 and frame {self.indices[-1]}: {shown}"
             if not allow_partial:
-                raise InputError(self.results, f"{why} (frames left out on purpose need allow_partial=True, on the "
-                                 "command line --allow-partial)")  # fmt: skip
+                raise InputError(self.results, f"{why} (frames left out on purpose need allow_partial=True)")
             _LOG.warning("%s: %s; read without them (allow_partial)", self.results, why)
         if len(all_poses) != len(self.indices) and not allow_partial:
             raise InputError(
                 traj_path,
                 f"has {len(all_poses)} poses but results/ holds {len(self.indices)} frames "
-                "(line count must match the frames; a partial download needs allow_partial=True, "
-                "on the command line --allow-partial)",
+                "(line count must match the frames; a partial download needs allow_partial=True)",
             )
         if len(all_poses) != len(self.indices):  # said, so that a run over 4 of 2000 frames does not pass unnoticed
             _LOG.warning("%s: %d frames on disk of the %d poses in traj.txt; reading those (allow_partial)",

@@ -455,7 +455,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
     cfg.validate()
     out = Path(out_dir)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it; on the command line --overwrite)")
+        raise FileExistsError(f"{out}: already exists (overwrite=True replaces it)")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     source = cfg.source()
