@@ -38,6 +38,7 @@ COUNTERS = (
     "planner_timeouts",
     "planner_waited",
     "fallbacks",
+    "frames_skipped_map_lag",
     "max_answer_s",
 )
 

@@ -248,8 +248,12 @@ def test_clearly_non_rigid_poses_are_refused_naming_the_line(seq_dir: Path) -> N
         traj.write_text("".join(" ".join(f"{v:.12f}" for v in T.reshape(-1)) + "\n" for T in (good, bad, good)))
         with pytest.raises(InputError, match=rf"traj\.txt:2: .*{why}"):
             load_traj(traj)
-    with pytest.raises(InputError, match=r"^poses\[3\]: .*det"):
+    with pytest.raises(InputError, match=r"^poses\[3\]: .*det -1 < 0 \(a reflection"):
         load_pose(mirrored, "poses[3]")
+    zero = good.copy()
+    zero[:3, :3] = 0.0  # an all-zero rotation read as "det 0 <= 0 (a reflection ...)"
+    with pytest.raises(InputError, match=r"^poses\[3\]: pose rotation is singular \(det 0; all zero\?\)"):
+        load_pose(zero, "poses[3]")
 
 
 def test_missing_unreadable_and_mismatched_images(seq_dir: Path) -> None:

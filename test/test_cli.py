@@ -263,7 +263,10 @@ def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
     base = ["map", str(tiny_scene), "--out", str(tmp_path / "out"), "--no-progress"]
     cases = [
         (["--policy", "nosuch"], ["--policy nosuch: unknown keyframe policy; choose one of", "gaus-slam"]),
-        (["--set", "lr_mean=1e-4"], ["--set lr_mean=1e-4", "did you mean lr_means?", "iters_per_keyframe"]),
+        (
+            ["--set", "lr_mean=1e-4"],
+            ["--set lr_mean=1e-4: unknown name 'lr_mean' (did you mean lr_means?)", "iters_per_keyframe"],
+        ),  # it said "expected NAME=VALUE", which it was
         (["--set", "tau_k=abc"], ["--set tau_k=abc", "use --tau-k"]),
         (["--set", "nosuch"], ["--set nosuch: expected NAME=VALUE", "iters_per_keyframe"]),
         (["--policy", "every-n", "--every-n", "0"], ["--every-n: must be at least 1, got 0"]),

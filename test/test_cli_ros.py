@@ -87,6 +87,7 @@ def test_errors_without_nodes_name_what_was_not_found(tmp_path: Path, capsys: py
     assert main(["ros", "status", "mapper", *domain]) == 2
     err = capsys.readouterr().err
     assert "/mapper/status: no publisher within 0.5 s" in err and "ROS_DOMAIN_ID=232" in err
+    assert err.rstrip().endswith("? no node seen"), err
     assert main(["ros", "nbv", "--candidates", str(tmp_path / "c.txt"), *domain]) == 2
     assert "/nbv_planner/get_next_best_view: no such service within 0.5 s" in capsys.readouterr().err
     assert main(["ros", "save-map", str(tmp_path / "m"), "--mapper", "/robot1/mapper", *domain]) == 2
@@ -106,6 +107,23 @@ def test_errors_without_nodes_name_what_was_not_found(tmp_path: Path, capsys: py
     assert "--wait: must be in (0, 1e6) seconds" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
     assert os.environ["ROS_DOMAIN_ID"] == domain_before  # --domain-id is this command's, not the process's
+
+
+def test_a_mistyped_node_name_lists_the_nodes_seen(ros_context: object, capsys: pytest.CaptureFixture[str]) -> None:
+    """``roigsf ros status mappr`` waited its ``--wait`` and said only "is /mappr running?"; it now lists the nodes
+    the graph holds, with the closest name."""
+    from rclpy.node import Node
+
+    node = Node("mapper", context=ros_context)
+    try:
+        assert main(["ros", "status", "mappr", "--wait", "1.5"]) == 2
+        err = capsys.readouterr().err
+        assert "/mappr/status: no publisher within 1.5 s" in err and "nodes seen: " in err, err
+        assert "/mapper" in err.split("nodes seen: ", 1)[1] and "(did you mean /mapper?)" in err, err
+        assert main(["ros", "finish", "--selector", "mappr", "--wait", "1.5"]) == 2
+        assert "(did you mean /mapper?)" in capsys.readouterr().err
+    finally:
+        node.destroy_node()
 
 
 def test_a_bad_domain_from_the_environment_is_named(

@@ -185,3 +185,15 @@ def test_a_policy_built_directly_checks_its_arguments_as_make_policy_does() -> N
     assert Hinted(4, clock=object()).n == 4
     with pytest.raises(InputError, match=r"^n: must be a whole number"):
         Hinted("4")  # the parent's check still runs
+
+
+def test_a_misspelt_field_names_the_closest_one() -> None:
+    """``NBVConfig(unseen_wieght=2)`` was Python's bare "unexpected keyword argument": now the config and the closest
+    field are named (still a TypeError, as Python's own), and a name close to none lists the fields."""
+    from roigsf_ros.core.config import UnknownFieldError
+
+    with pytest.raises(TypeError, match=r"^NBVConfig: no field unseen_wieght \(did you mean unseen_weight\?\)$"):
+        NBVConfig(unseen_wieght=2.0)
+    with pytest.raises(UnknownFieldError, match=r"^MapperConfig: no field zzz; its fields: iters_per_keyframe, "):
+        MapperConfig(zzz=1)
+    assert NBVConfig(unseen_weight=2.0).unseen_weight == 2.0

@@ -298,8 +298,13 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     a = loaded.render(frames[3].T_wc).alpha
     assert float(a.mean()) > 0.9
     assert len(loaded.mesh().triangles) > 100  # meshed at the saved keyframe poses
-    # Its running h_train lacks the loaded keyframes (no images saved): zeros that ranked views wrongly, without a
-    # word; reading it now warns (once), and the stream policies recompute it from the poses instead.
+    # The run's training Fisher is saved beside the map and read back: the resumed map scores views as the saved one
+    assert loaded.h_train_complete and make_policy("roi-gsurfisher")._h_train(loaded) is not None
+    assert all(float(v.sum()) > 0 for v in loaded.h_train.values())
+    # A map saved without it (older folders): its running h_train lacks the loaded keyframes (no images saved), zeros
+    # that ranked views wrongly, without a word; reading it warns (once), and the policies recompute it from the poses.
+    (out / "h_train.npz").unlink()
+    loaded = Mapper.load(out)
     with pytest.warns(RuntimeWarning, match=r"not of the 4 read by load\(\).*h_train=None"):
         h = loaded.h_train
     assert all(float(v.abs().sum()) == 0.0 for v in h.values())
@@ -307,6 +312,37 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
         warnings.simplefilter("error")
         loaded.h_train  # noqa: B018 - once per mapper
     assert make_policy("roi-gsurfisher")._h_train(loaded) is None
+
+
+def test_a_resumed_map_scores_views_as_the_saved_one(frames: list[Frame], tmp_path) -> None:
+    """``save-map`` then ``load-map`` changed the NBV scores (a walk: Fisher 2.287e7 -> 9.883e6 for one candidate):
+    the running training Fisher was not saved, and the loaded map's was recomputed from the poses under another
+    rule. ``h_train.npz`` now travels with the map, so the scores are the same; a damaged one is named."""
+    from roigsf_ros.nbv.state import score_views
+
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=3))
+    for f in frames[:3]:
+        mapper.add_keyframe(f)
+    candidates = [f.T_wc for f in frames[3:6]]
+    before = score_views(mapper, candidates)
+    mapper.save(tmp_path / "map")
+    loaded = Mapper.load(tmp_path / "map")
+    after = score_views(loaded, candidates)
+    np.testing.assert_allclose(after.fisher, before.fisher, rtol=1e-5)
+    np.testing.assert_allclose(after.fused, before.fused, rtol=1e-5, atol=1e-6)
+    loaded.save(tmp_path / "again")  # load then save keeps it
+    for k, v in np.load(tmp_path / "map" / "h_train.npz").items():
+        np.testing.assert_array_equal(np.load(tmp_path / "again" / "h_train.npz")[k], v)
+    h = dict(np.load(tmp_path / "map" / "h_train.npz"))
+    for bad, words in (({**h, "means": h["means"][:-1]}, r"array 'means' has shape"),
+                       ({**h, "means": np.full_like(h["means"], np.nan)}, "not finite and >= 0"),
+                       ({k: v for k, v in h.items() if k != "means"}, r"no array 'means'")):  # fmt: skip
+        np.savez(tmp_path / "map" / "h_train.npz", **bad)
+        with pytest.raises(InputError, match=rf"^{tmp_path / 'map' / 'h_train.npz'}: .*{words}"):
+            Mapper.load(tmp_path / "map")
+    (tmp_path / "map" / "h_train.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a readable training-Fisher file"):
+        Mapper.load(tmp_path / "map")
 
 
 @pytest.mark.parametrize(

@@ -209,6 +209,63 @@ def test_a_params_file_section_close_to_the_nodes_name_is_warned_about(
     ], err
 
 
+def test_a_later_params_file_that_changes_a_values_type_is_refused_not_dropped(tmp_path: Path) -> None:
+    """``--params-file config/nbv.yaml --params-file mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on
+    nbv.yaml's 0.0 without a word: rcl keeps an earlier file's value when a later file gives another type (mine.yaml
+    alone was refused). Now refused at start-up, naming both files; a later value of the same type still wins."""
+    first = _params(tmp_path / "first.yaml", "mapper", iters_per_keyframe=7)
+    for later, words in (("'ten'", "must be an int, got 'ten'"), ("4.5", "must be an int, got 4.5")):
+        second = _params(tmp_path / "second.yaml", "mapper", iters_per_keyframe=later)
+        with _context("--params-file", first, "--params-file", second) as ctx, pytest.raises(InputError) as caught:
+            MapperNode(context=ctx)
+        assert str(caught.value) == (
+            f"parameter 'mapper.iters_per_keyframe': {words} (set in {second}; ROS kept 7 from {first} instead, as a "
+            "later params file cannot change the type of a value an earlier one set)"
+        )
+    second = _params(tmp_path / "second.yaml", "mapper", iters_per_keyframe=9)
+    with _context("--params-file", first, "--params-file", second) as ctx:
+        mapper = MapperNode(context=ctx)
+        try:
+            assert mapper.config.iters_per_keyframe == 9
+        finally:
+            mapper.destroy_node()
+
+
+def test_a_section_for_the_node_that_misses_its_namespace_or_new_name_is_warned_about(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """``mapper:`` is ``/mapper``: under ``-r __ns:=/robot1``, or renamed ``mapper_b``, none of its parameters reached
+    the node and nothing said so. Now a warning names the section, the file and the name that would apply; a section
+    that names the node in full applies and is not warned about. The map and keyframe topics follow the namespace."""
+    params = tmp_path / "p.yaml"
+    params.write_text(
+        "mapper:\n  ros__parameters:\n    iters_per_keyframe: 5\n"
+        "/robot1/mapper:\n  ros__parameters:\n    final_iters: 3\n"
+    )
+    with _context("--params-file", str(params), "-r", "__ns:=/robot1") as ctx:
+        mapper = MapperNode(context=ctx)
+        try:
+            assert mapper.config.iters_per_keyframe == MapperConfig().iters_per_keyframe
+            assert mapper.config.final_iters == 3
+            # the data topics follow the namespace (they were absolute: two robots' pipelines shared one map)
+            published = {pub.topic_name for pub in mapper.publishers}
+            assert {"/robot1/roigsf/map", "/robot1/roigsf/keyframe_poses"} <= published, published
+            assert "/robot1/roigsf/keyframe" in {sub.topic_name for sub in mapper.subscriptions}
+        finally:
+            mapper.destroy_node()
+    with _context("--params-file", str(params)) as ctx:
+        renamed = MapperNode(context=ctx, node_name="mapper_b")
+        renamed.destroy_node()
+    err = capfd.readouterr().err
+    warnings = [line.split("]: ", 1)[1] for line in err.splitlines() if "does not apply to this node" in line]
+    assert warnings == [
+        f"section 'mapper' in {params} does not apply to this node, which runs as '/robot1/mapper': its parameters "
+        "are not applied (name the section '/robot1/mapper', or '/**/mapper' for any namespace)",
+        f"section 'mapper' in {params} does not apply to this node, which runs as '/mapper_b': its parameters are "
+        "not applied (name the section '/mapper_b', or '/**/mapper_b' for any namespace)",
+    ], err
+
+
 # ---------------------------------------------------------------------------------------- 3: checked at start-up
 @pytest.mark.parametrize(
     ("node", "name", "value", "why"),

@@ -693,6 +693,30 @@ def test_selector_falls_back_and_resumes_with_the_planner(ros_context: Any, scen
     assert status["keyframe_ids"] == published
 
 
+def test_a_fallback_says_when_no_planner_serves_the_service_and_counts_them(
+    ros_context: Any, scene: Any, capfd: Any
+) -> None:
+    """A planner killed mid-run: the selector logged "is still busy with two windows before this one" and "did not
+    answer within 10 s", never that the planner was gone, and its throttled log showed 4 fallbacks where ~/status
+    counted 11. Each fallback line now says when no node serves the service, and how many fallbacks so far."""
+    frames, _ = scene
+    selector, cam, _ = _windowed_selector(ros_context, "/test_gone/nbv")
+    try:
+        with selector._lock:
+            selector._fall_back(frames[1:3], INTR, "did not answer within 10 s", [])
+            selector._fall_back(frames[3:5], INTR, "is not available", [])
+        err = capfd.readouterr().err
+        assert (
+            "planner /test_gone/nbv did not answer within 10 s; no node serves it now (the planner stopped?): "
+            "fallback random (1 so far)" in err
+        ), err
+        assert "planner /test_gone/nbv is not available: fallback random (2 so far)" in err, err
+        assert selector.status()["fallbacks"] == 2
+    finally:
+        selector.destroy_node()
+        cam.node.destroy_node()
+
+
 def test_a_window_that_comes_while_the_planner_answers_waits_for_it(ros_context: Any, scene: Any) -> None:
     """A window due while the previous one is in flight waits for its answer (no fallback); of two, the older
     waiting one goes to the fallback, so the selector is never more than one window behind."""
@@ -902,6 +926,32 @@ def test_a_policy_added_to_the_library_runs_in_the_selector_by_name(
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy", value="test-every-kk")])
     with pytest.raises(InputError, match=r"policy_params.*asks the planner"):
         KeyframeSelectorNode(context=ros_context, parameter_overrides=[Parameter("policy_params", value="k=1")])
+
+
+def test_the_planner_says_when_the_maps_publisher_is_gone(ros_context: Any, mapped: Mapper, capfd: Any) -> None:
+    """The mapper killed mid-run: the planner went on answering from its last map and neither its log nor its
+    ~/status said the map no longer came. Now it warns once, ``map_publisher_gone`` is in its status, and it says
+    when a publisher is back."""
+    planner = NBVPlannerNode(context=ros_context, parameter_overrides=[Parameter("warm_up", value=False)])
+    probe = Node("test_map_source", context=ros_context)
+    cloud = surfel_map_to_cloud(mapped.map, 1, "map", mapped.h_train, mapped.config.fisher_outputs)
+    try:
+        with _spinning(ros_context, planner, probe):
+            map_pub = probe.create_publisher(PointCloud2, "/roigsf/map", latched_qos())
+            map_pub.publish(cloud)
+            _wait(lambda: planner._cloud is not None, 10.0, "the map")
+            assert planner.status()["map_publisher_gone"] is False
+            probe.destroy_publisher(map_pub)  # the mapper stopped
+            _wait(lambda: planner.status()["map_publisher_gone"], 10.0, "the publisher's absence noticed")
+            probe.create_publisher(PointCloud2, "/roigsf/map", latched_qos())
+            _wait(lambda: not planner.status()["map_publisher_gone"], 10.0, "a publisher back")
+    finally:
+        planner.destroy_node()
+        probe.destroy_node()
+    err = capfd.readouterr().err
+    assert "no node publishes the map on /roigsf/map now (the mapper stopped?): requests are answered from the " \
+        "last map received, which no longer grows" in err, err  # fmt: skip
+    assert "a node publishes the map on /roigsf/map again" in err, err
 
 
 def test_a_missing_load_map_folder_is_said_as_the_parameter_and_a_folder(ros_context: Any, tmp_path: Path) -> None:
@@ -1209,7 +1259,12 @@ def test_gaus_slam_waits_for_the_map_at_most_map_wait_s_and_map_wait_frames(
         for k in range(3):  # three frames for two places: the oldest skipped
             cam.publish(_frame_msgs(frames[k + 1], 2000 + k * 1000))
         _wait(lambda: selector.status()["frames_skipped_map_lag"] == 1, 10.0, "a frame skipped")
-        assert "1 frame(s) skipped, not judged: the map lags more than map_wait_frames (2)" in capfd.readouterr().err
+        err = capfd.readouterr().err  # no mapper here: said, where it advised a slower --rate
+        assert "1 frame(s) skipped so far, not judged: the map lags more than map_wait_frames (2) frames behind the " \
+            "camera (no node publishes the map on /roigsf/map now: the mapper stopped?)" in err, err  # fmt: skip
+        map_pub = cam.node.create_publisher(PointCloud2, "/roigsf/map", latched_qos())  # a mapper, slow
+        _wait(lambda: "a larger map_wait_frames" in selector._map_lag_hint(), 10.0, "the advice for a slow map")
+        cam.node.destroy_publisher(map_pub)
         # no map ever comes: after 2 s the wait for keyframe 1000 expires, 3000 is judged (an empty map: named),
         # and 4000 waits for it
         _wait(lambda: published == [1000, 3000], 10.0, "the wait expired")
@@ -1219,6 +1274,9 @@ def test_gaus_slam_waits_for_the_map_at_most_map_wait_s_and_map_wait_frames(
         _wait(lambda: published == [1000, 3000, 4000], 10.0, "4000 judged once the map's poses hold 3000")
         status = selector.status()
     assert status["map_waits_expired"] == 1 and status["frames_held_for_map"] == 0
+    answer = selector._on_finish(Trigger.Request(), Trigger.Response())  # it spoke of windows and lookahead
+    assert answer.message == "nothing to decide: gaus-slam judges each frame as it comes (0 still wait for a map " \
+        "holding the keyframes named before them, and are judged then)", answer.message  # fmt: skip
 
 
 def test_parameters_reach_the_method_and_bad_ones_are_named(ros_context: Any) -> None:
@@ -2010,13 +2068,15 @@ def test_mesh_service_decimates_and_never_holds_shutdown(ros_context: Any, mappe
 def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
     ros_context: Any, scene: Any, mapped: Mapper, tmp_path: Path
 ) -> None:
-    """A loaded map (no keyframe images, so no mapper H_train): one catch-up, then only new keyframes cost work.
+    """A loaded map without its saved H_train (an older folder; no keyframe images, so no mapper H_train): one
+    catch-up, then only new keyframes cost work.
 
     Before the fix every request re-extracted the TSDF's surface and rebuilt W_f over all keyframe poses
     (with a loaded room map ~2/3 of the scorer's set-up: 1-4 s a request, past the selector's timeout).
     """
     frames, _ = scene
     mapped.save(tmp_path / "map")
+    (tmp_path / "map" / "h_train.npz").unlink()  # saved before the training Fisher travelled with the map
     shared = SharedMapper(MapperConfig(iters_per_keyframe=1))
     shared.load(tmp_path / "map")
     planner = NBVPlannerNode(

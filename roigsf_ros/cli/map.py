@@ -173,10 +173,12 @@ def parse_overrides(
     for item in items:
         name, sep, text = item.partition("=")
         name = name.strip()
-        if not sep or name not in names:
-            close = difflib.get_close_matches(name, names, n=3) if sep else []
-            hint = f"did you mean {' or '.join(close)}? " if close else ""
-            raise InputError(f"{flag} {item}", f"expected NAME=VALUE; {hint}NAME is one of {', '.join(names)}")
+        if not sep:
+            raise InputError(f"{flag} {item}", f"expected NAME=VALUE; NAME is one of {', '.join(names)}")
+        if name not in names:  # the form was right: the name is what is wrong
+            close = difflib.get_close_matches(name, names, n=3)
+            hint = f" (did you mean {' or '.join(close)}?)" if close else ""
+            raise InputError(f"{flag} {item}", f"unknown name '{name}'{hint}; NAME is one of {', '.join(names)}")
         out[name] = parse_set_value(name, text.strip(), defaults[name], flag)
     return out
 

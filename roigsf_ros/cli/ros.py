@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import json
 import os
 import sys
@@ -65,6 +66,18 @@ def _where(domain_id: int | None) -> str:
     return f"ROS_DOMAIN_ID={domain}, ROS_AUTOMATIC_DISCOVERY_RANGE={os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')}"
 
 
+def nodes_seen(ros: Any, wanted: str) -> str:
+    """`` nodes seen: /a, /b (did you mean /b?)`` (or `` no node seen``): what the graph holds, for an error about a
+    node that did not answer (a mistyped name waited its whole ``--wait`` with no word of what was there).
+    """
+    names = sorted({f"{ns.rstrip('/')}/{n}" for n, ns in ros.get_node_names_and_namespaces() if not n.startswith("_")})
+    if not names:
+        return " no node seen"
+    close = difflib.get_close_matches(wanted, names, n=1, cutoff=0.6)
+    shown = ", ".join(names[:12]) + (f" and {len(names) - 12} more" if len(names) > 12 else "")
+    return f" nodes seen: {shown}" + (f" (did you mean {close[0]}?)" if close and close[0] != wanted else "")
+
+
 @contextlib.contextmanager
 def ros_node(domain_id: int | None) -> Iterator[tuple[Any, Any]]:
     """A hidden node and a single-threaded executor in a fresh context; all shut down on the way out."""
@@ -96,8 +109,8 @@ def call_service(srv_type: Any, service: str, request: Any, args: argparse.Names
     with ros_node(args.domain_id) as (node, executor):
         client = node.create_client(srv_type, service)
         if not client.wait_for_service(timeout_sec=args.wait):
-            where = _where(args.domain_id)
-            raise InputError(service, f"no such service within {args.wait:g} s: is the node running ({where})?")
+            where, seen = _where(args.domain_id), nodes_seen(node, service.rsplit("/", 1)[0])
+            raise InputError(service, f"no such service within {args.wait:g} s: is the node running ({where})?{seen}")
         future = client.call_async(request)
         executor.spin_until_future_complete(future, timeout_sec=args.timeout)
         if not future.done():
@@ -123,8 +136,9 @@ def read_status(node: str, args: argparse.Namespace) -> dict[str, Any]:
         ros.create_subscription(String, topic, lambda msg: got.append(msg.data), qos)
         _spin_until(executor, lambda: ros.count_publishers(topic) > 0, args.wait)
         if ros.count_publishers(topic) == 0:
-            where = _where(args.domain_id)
-            raise InputError(topic, f"no publisher within {args.wait:g} s: is {node_path(node)} running ({where})?")
+            where, seen = _where(args.domain_id), nodes_seen(ros, node_path(node))
+            why = f"no publisher within {args.wait:g} s: is {node_path(node)} running ({where})?{seen}"
+            raise InputError(topic, why)
         _spin_until(executor, lambda: bool(got), args.timeout)
         if not got:
             raise InputError(topic, f"nothing published within {args.timeout:g} s (is its status_rate_hz 0?)")

@@ -22,7 +22,14 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "quat_xyzw_to_matrix",
             "save_cam_params",
         ],
-        "config": ["Config", "annotation_words", "check_annotation", "check_field_value", "fits_annotation"],
+        "config": [
+            "Config",
+            "UnknownFieldError",
+            "annotation_words",
+            "check_annotation",
+            "check_field_value",
+            "fits_annotation",
+        ],
         "errors": ["InputError", "warn_once"],
         "exports": ["lazy_exports"],
         "fileio": [

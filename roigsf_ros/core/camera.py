@@ -198,8 +198,10 @@ def _rigid_pose(T_wc: np.ndarray, where: str, tol: float) -> tuple[np.ndarray, f
     R = T[:3, :3]
     dev = float(np.abs(R.T @ R - np.eye(3)).max())
     det = float(np.linalg.det(R))
-    if det <= 0:
-        raise InputError(where, f"pose rotation has det {det:.3g} <= 0 (a reflection: not a rigid transform)")
+    if abs(det) < 1e-6:  # a zero or collapsed rotation block (an all-zero pose, a missing quaternion) is no reflection
+        raise InputError(where, f"pose rotation is singular (det {det:.3g}; all zero?): not a rigid transform")
+    if det < 0:
+        raise InputError(where, f"pose rotation has det {det:.3g} < 0 (a reflection: not a rigid transform)")
     if dev > tol:
         raise InputError(
             where, f"pose rotation is not orthonormal (|R^T R - I| = {dev:.2g} > {tol:g}: not a rigid transform)"

@@ -6,6 +6,7 @@ and a key of ``config/*.yaml``; ``from_dict`` takes such a mapping, ``to_dict`` 
 
 from __future__ import annotations
 
+import difflib
 import functools
 import numbers
 import types
@@ -75,8 +76,29 @@ def _field_types(cls: type) -> dict[str, Any]:
     return get_type_hints(cls)
 
 
+class UnknownFieldError(InputError, TypeError):
+    """A config built with a keyword that is none of its fields (a TypeError too, as Python's own for a bad keyword)."""
+
+
+class _ConfigType(type):
+    """The config classes' metaclass: a keyword that is no field is named with the closest fields (the dataclass's
+    own TypeError, ``unexpected keyword argument 'unseen_wieght'``, named none).
+    """
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        if kwargs and is_dataclass(cls):
+            names = [f.name for f in fields(cls) if f.init]
+            unknown = [k for k in kwargs if k not in names]
+            if unknown:
+                close = {k: difflib.get_close_matches(k, names, n=1) for k in unknown}
+                hints = ", ".join(f"{k} (did you mean {c[0]}?)" if c else k for k, c in close.items())
+                listed = "" if all(close.values()) else f"; its fields: {', '.join(names)}"
+                raise UnknownFieldError(cls.__name__, f"no field {hints}{listed}")
+        return super().__call__(*args, **kwargs)
+
+
 @dataclass(frozen=True)
-class Config:
+class Config(metaclass=_ConfigType):
     """Base class: subclasses are ``@dataclass(frozen=True)`` and check their fields' ranges in :meth:`validate`; the
     base checks every field's type against its annotation first (:func:`fits_annotation`), so a word where a number
     belongs is an InputError naming the field, not a TypeError inside a comparison.
@@ -136,4 +158,11 @@ class Config:
         return out
 
 
-__all__ = ["Config", "annotation_words", "check_annotation", "check_field_value", "fits_annotation"]
+__all__ = [
+    "Config",
+    "UnknownFieldError",
+    "annotation_words",
+    "check_annotation",
+    "check_field_value",
+    "fits_annotation",
+]

@@ -26,7 +26,7 @@ from torch import Tensor
 from roigsf_ros.core.camera import Intrinsics, check_pose, load_pose
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.core.fileio import write_json
+from roigsf_ros.core.fileio import atomic_path, write_json
 from roigsf_ros.core.frame import Frame, check_float_colour
 from roigsf_ros.mapping import losses
 from roigsf_ros.render.fisher import fisher_diag, frustum_subset
@@ -386,6 +386,9 @@ class Mapper:
         """Keyframe ids of a map read by :meth:`load` (its images are not stored, so not keyframes here)."""
         self.loaded_keyframe_poses = np.zeros((0, 4, 4))
         """Keyframe poses [K, 4, 4] of a map read by :meth:`load`."""
+        self.h_train_loaded = False
+        """Whether :meth:`load` read the saved map's training Fisher (``h_train.npz``): then :attr:`h_train` covers the
+        loaded keyframes too, as it did in the mapper that saved it."""
         self._warned_loaded_h_train = False
         self._rng = np.random.default_rng(self.config.seed)
         self._adam = _SparseAdam(self.config.learning_rates())
@@ -750,10 +753,11 @@ class Mapper:
         """Diagonal Fisher of the training views, ``{param: tensor shaped like map.<param>}``.
 
         Kept aligned with the surfel set through densify/prune (new surfels start at zero). After :meth:`load` it
-        holds only the keyframes inserted since (the loaded ones have no images here): a warning says so, and
-        ``NBVScorer.score(..., h_train=None)`` recomputes the Fisher from every keyframe pose instead.
+        is the saved one (``h_train.npz``) plus the keyframes inserted since; a map saved without it (before it was
+        saved, or with ``track_h_train`` off) holds only the keyframes inserted since (the loaded ones have no images
+        here): a warning says so, and ``NBVScorer.score(..., h_train=None)`` recomputes it from every keyframe pose.
         """
-        if self.loaded_keyframe_ids and not self._warned_loaded_h_train:
+        if not self.h_train_complete and not self._warned_loaded_h_train:
             self._warned_loaded_h_train = True
             warnings.warn(
                 f"Mapper.h_train holds the Fisher of the {len(self.keyframes)} keyframe(s) inserted here, not of the "
@@ -764,6 +768,11 @@ class Mapper:
             )
         self._flush_fisher()
         return self._h_train
+
+    @property
+    def h_train_complete(self) -> bool:
+        """Whether :attr:`h_train` covers every keyframe of the map: built here, or loaded with its saved Fisher."""
+        return not self.loaded_keyframe_ids or self.h_train_loaded
 
     def _reset_h_train(self) -> None:
         self._h_train = {}
@@ -866,8 +875,10 @@ class Mapper:
 
     # ------------------------------------------------------------------------------ save/load
     def save(self, out_dir: str | Path) -> None:
-        """Write ``map.ply`` (2DGS layout) and ``keyframes.json`` (every keyframe of :meth:`map_keyframes`, loaded
-        ones first; intrinsics, config), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d``.
+        """Write ``map.ply`` (2DGS layout), ``keyframes.json`` (every keyframe of :meth:`map_keyframes`, loaded
+        ones first; intrinsics, config) and, when it covers every keyframe, ``h_train.npz`` (the training Fisher the
+        NBV score divides by), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d`` and a resumed map
+        scores views as the one saved.
         """
         out = Path(out_dir)
         try:
@@ -876,6 +887,8 @@ class Mapper:
             raise InputError(out, f"cannot create the map folder: {exc.strerror or exc}") from None
         self.map.save_ply(out / "map.ply")
         write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
+        if self.config.track_h_train and self.h_train_complete:
+            write_h_train(out / H_TRAIN_FILE, self.h_train)
 
     @classmethod
     def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:
@@ -903,6 +916,11 @@ class Mapper:
         mapper._reset_h_train()
         mapper.loaded_keyframe_ids = meta.keyframe_ids
         mapper.loaded_keyframe_poses = meta.keyframe_poses
+        saved = d / H_TRAIN_FILE
+        if mapper.config.track_h_train and saved.is_file():
+            h = read_h_train(saved, len(surfel_map), {k: tuple(v.shape) for k, v in mapper._h_train.items()})
+            mapper._h_train = {k: v.to(device=mapper.device, dtype=mapper.dtype) for k, v in h.items()}
+            mapper.h_train_loaded = True
         return mapper
 
 
@@ -942,6 +960,41 @@ def _json_kind(value: object) -> str:
     """How a JSON value reads in an error: 'a list', 'a string', ..."""
     names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}
     return names.get(type(value), "a number")
+
+
+H_TRAIN_FILE = "h_train.npz"
+"""A saved map's running training Fisher, one array per parameter shaped as the map's (:meth:`Mapper.save`)."""
+
+
+def write_h_train(path: str | Path, h_train: dict[str, Tensor]) -> None:
+    """Write ``h_train`` (``{param: [N, ...] tensor}``) as ``path`` (an ``.npz``, float32), atomically."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **{k: v.detach().cpu().numpy().astype(np.float32) for k, v in h_train.items()})
+
+
+def read_h_train(path: str | Path, n_surfels: int, shapes: dict[str, tuple[int, ...]]) -> dict[str, Tensor]:
+    """A saved map's ``h_train.npz``, checked against the map it belongs to: each of ``shapes``' parameters (the
+    mapper's ``fisher_params``) present with its shape and finite, non-negative values; an InputError names the file.
+    """
+    where = Path(path)
+    try:
+        with np.load(where, allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in data.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(where, f"not a readable training-Fisher file ({exc})") from None
+    out: dict[str, Tensor] = {}
+    for name, shape in shapes.items():
+        if name not in arrays:
+            raise InputError(where, f"no array '{name}' (the map's fisher_params need it); it holds {sorted(arrays)}")
+        a = arrays[name]
+        want = (n_surfels, *shape[1:])
+        if a.shape != want:
+            raise InputError(where, f"array '{name}' has shape {list(a.shape)}, the map's {n_surfels} surfels need "
+                             f"{list(want)}")  # fmt: skip
+        if not (np.isfinite(a).all() and (a >= 0).all()):
+            raise InputError(where, f"array '{name}' holds values that are not finite and >= 0 (a Fisher diagonal)")
+        out[name] = torch.from_numpy(a.astype(np.float32))
+    return out
 
 
 @dataclass
@@ -1041,12 +1094,15 @@ def read_map_meta(path: str | Path, with_config: bool = True) -> MapMeta:
 
 __all__ = [
     "DEPTH_MODES",
+    "H_TRAIN_FILE",
     "Keyframe",
     "MapMeta",
     "Mapper",
     "MapperConfig",
     "MapperStats",
+    "read_h_train",
     "read_map_meta",
     "valid_depth_mask",
+    "write_h_train",
     "write_map_meta",
 ]

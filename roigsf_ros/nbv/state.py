@@ -420,7 +420,7 @@ def score_views(
     voxel = cfg.mesh_voxel_size_m
     state = ScoringState(NBVConfig.given(config), voxel, max(cfg.mesh_sdf_trunc_m, voxel), cfg.max_depth_m)
     _, poses = mapper.map_keyframes()
-    running = None if mapper.loaded_keyframe_ids or not cfg.track_h_train else mapper.h_train
+    running = mapper.h_train if cfg.track_h_train and mapper.h_train_complete else None
     outputs = tuple(cfg.fisher_outputs)  # the map rendered as its mesh is fused: depth, and alpha threshold
     return state.score(mapper.map, running, outputs, poses, candidates, mapper.intr, mapper.rendered_rgbd,
                        mode=mode, top_k=top_k)  # fmt: skip

@@ -359,6 +359,7 @@ class KeyframeSelectorNode(SystemNode):
             self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
+        self._map_topic = map_topic
         if shared is None and self.reads_map:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
         if self.waits_for_map:
@@ -491,6 +492,15 @@ class KeyframeSelectorNode(SystemNode):
             del self._unmapped[k]
         return bool(self._unmapped)
 
+    def _map_lag_hint(self) -> str:
+        """Why the frames wait, and what judges more of them; or that no mapper publishes the map any more."""
+        if self.shared is None and self.count_publishers(self._map_topic) == 0:
+            return f"no node publishes the map on {self._map_topic} now: the mapper stopped?"
+        trip = "its insertion" if self.shared is not None else "its insertion and the map's next publication"
+        return (f"a frame is judged only on a map holding every keyframe named before it, so each keyframe holds the "
+                f"frames after it for {trip}: a slower playback rate, or a larger map_wait_frames (judged later; "
+                "the mapper's frame_buffer_size must still hold them), judges more")  # fmt: skip
+
     def _judge_held(self) -> None:
         """Judge the frames held for the map, oldest first, while the map holds every keyframe named before them."""
         with self._lock:
@@ -536,9 +546,9 @@ class KeyframeSelectorNode(SystemNode):
                     self._held_for_map.popleft()
                     self.counters["frames_skipped_map_lag"] += 1
                     self.get_logger().warning(  # counted only in ~/status, two thirds of a bag went unsaid
-                        f"{self.counters['frames_skipped_map_lag']} frame(s) skipped, not judged: the map lags more "
-                        f"than map_wait_frames ({self.map_wait_frames}) frames behind the camera (a slower --rate, or "
-                        "fewer mapper iters_per_keyframe, lets it keep up)",
+                        f"{self.counters['frames_skipped_map_lag']} frame(s) skipped so far, not judged: the map lags "
+                        f"more than map_wait_frames ({self.map_wait_frames}) frames behind the camera "
+                        f"({self._map_lag_hint()})",
                         throttle_duration_sec=WARN_THROTTLE_S,
                     )
                 self._judge_held()
@@ -609,6 +619,11 @@ class KeyframeSelectorNode(SystemNode):
         res.success = True
         if n:
             res.message = f"decided among {n} held frames"
+        elif self.waits_for_map:  # no window: its own words, not a window's
+            with self._lock:
+                waiting = len(self._held_for_map)
+            res.message = (f"nothing to decide: {self.policy} judges each frame as it comes ({waiting} still wait for "
+                           "a map holding the keyframes named before them, and are judged then)")  # fmt: skip
         elif not self.lookahead:  # the window's frames are no debt: each window was decided at its trigger
             res.message = (f"nothing to decide: with lookahead 0 every window was decided at its trigger (the "
                            f"{len(self._window_ids())} frames in ~/status' window are candidates of later triggers "
@@ -755,7 +770,9 @@ class KeyframeSelectorNode(SystemNode):
     def _fall_back(self, candidates: list[Frame], intr: Intrinsics, why: str, ahead: list[Frame]) -> None:
         """Decide a window with ``fallback_policy`` (call with the lock held); logs the first of a run of them."""
         self.counters["fallbacks"] += 1
-        msg = f"planner {self.service_name} {why}: fallback {self.fallback}"
+        gone = "not available" not in why and not self._client.service_is_ready()
+        why += "; no node serves it now (the planner stopped?)" if gone else ""
+        msg = f"planner {self.service_name} {why}: fallback {self.fallback} ({self.counters['fallbacks']} so far)"
         if not self._planner_down:
             self.get_logger().warning(msg)
         else:

@@ -86,10 +86,10 @@ from roigsf_ros.nodes.shared_map import (
     same_camera,
 )
 
-KEYFRAME_TOPIC = "/roigsf/keyframe"
-MAP_TOPIC = "/roigsf/map"
-KEYFRAME_POSES_TOPIC = "/roigsf/keyframe_poses"
-MAP_CAMERA_INFO_TOPIC = "/roigsf/map_camera_info"
+KEYFRAME_TOPIC = "roigsf/keyframe"
+MAP_TOPIC = "roigsf/map"
+KEYFRAME_POSES_TOPIC = "roigsf/keyframe_poses"
+MAP_CAMERA_INFO_TOPIC = "roigsf/map_camera_info"
 MISSING_AFTER_NEWER_FRAMES = 3
 """A keyframe waiting for its frame is given up once this many newer frames arrived (or after keyframe_wait_s)."""
 

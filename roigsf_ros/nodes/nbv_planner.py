@@ -182,6 +182,8 @@ class NBVPlannerNode(SystemNode):
         self._lock = threading.Lock()  # topic-mode map state and counters
         self._cloud: PointCloud2 | None = None
         self._cloud_version = 0
+        self.map_publisher_gone = False
+        """True once the map's last publisher left after a map came (the mapper stopped): answers use the last map."""
         self._poses = np.zeros((0, 4, 4))
         self._intr: Intrinsics | None = None
         """The camera's intrinsics (``camera_info_topic``), scaled to the input size."""
@@ -237,6 +239,8 @@ class NBVPlannerNode(SystemNode):
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=MutuallyExclusiveCallbackGroup())
         if sync_s > 0:
             self.create_timer(sync_s, self._sync_timer, callback_group=scoring)
+        if shared is None:
+            self.create_timer(1.0, self._watch_map_publisher, callback_group=inputs)
         source = (
             "the shared in-process map"
             if shared is not None
@@ -246,6 +250,22 @@ class NBVPlannerNode(SystemNode):
         self.get_logger().info(f"scoring ({self.nbv.mode}{settings_text(changed)}) against {source}")
 
     # ------------------------------------------------------------------------------ topic inputs
+    def _watch_map_publisher(self) -> None:
+        """Say once when the map's last publisher leaves after a map came (the mapper stopped: the planner goes on
+        answering from the last map it received, which no longer grows), and when one is back.
+        """
+        live = self.count_publishers(self._map_topic) > 0
+        with self._lock:
+            had_map, was_gone = self._cloud is not None, self.map_publisher_gone
+            self.map_publisher_gone = had_map and not live
+        if self.map_publisher_gone and not was_gone:
+            self.get_logger().warning(
+                f"no node publishes the map on {self._map_topic} now (the mapper stopped?): requests are answered from "
+                "the last map received, which no longer grows"
+            )
+        elif was_gone and live:
+            self.get_logger().info(f"a node publishes the map on {self._map_topic} again")
+
     def _on_cloud(self, msg: PointCloud2) -> None:
         with self._lock:
             self._cloud = msg
@@ -522,7 +542,8 @@ class NBVPlannerNode(SystemNode):
         self._status_pub.publish(String(data=json.dumps(self.status())))
 
     def status(self) -> dict[str, Any]:
-        """Counters: requests, answered, failed (of which stale), scoring times, TSDF work, H_train work.
+        """Counters: requests, answered, failed (of which stale), scoring times, TSDF work, H_train work;
+        ``map_publisher_gone``: the map's publisher left after a map came (answers use the last map).
 
         ``max_request_wait_s``: the longest time from a request's stamp to the start of its handling (for the
         selector, which stamps at sending: the transport and the wait behind the planner's other work);
@@ -548,6 +569,7 @@ class NBVPlannerNode(SystemNode):
                 "carved_carves": st.carved.carves if st.carved is not None else 0,
                 "last_phases_s": dict(self._last_phases_s),
                 "slowest_phases_s": dict(self._slowest_phases_s),
+                "map_publisher_gone": self.map_publisher_gone,
             }
 
 

@@ -124,7 +124,8 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
 
     Read-only (:data:`READ_AT_START`): the nodes read their parameters once, at start-up, so a change at run time
     (``ros2 param set``) is refused saying so, where it was accepted and then ignored. A ``*_topic`` or ``*_service``
-    parameter's name is checked as ROS will expand it (:func:`check_ros_name`).
+    parameter's name is checked and returned as ROS expands it (:func:`check_ros_name`): ``roigsf/map`` is
+    ``/robot1/roigsf/map`` under ``-r __ns:=/robot1``, and the logs say so.
     """
     value = list(default) if isinstance(default, tuple) else default
     try:
@@ -132,7 +133,7 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
     except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
         raise _type_error(node, name, default) from None
     if isinstance(got, str) and got and name.endswith(("_topic", "_service")):
-        check_ros_name(node, name, got)
+        return check_ros_name(node, name, got)  # in full: a relative default follows the node's namespace
     return got
 
 
@@ -373,27 +374,68 @@ def parameter_source(node: Node, name: str) -> str | None:
     """Where ``node``'s override of ``name`` came from: the params file's path as given, ``"-p"``, or None when not
     known (no override, arguments not noted by :func:`remember_ros_args`, or a constructor override in its place).
     """
-    import yaml
-
     override = getattr(node, "_parameter_overrides", {}).get(name)
     if override is None:
         return None
+    found = _rule_values(node, name)
+    return found[-1][0] if found and _same_value(found[-1][1], override.value) else None
+
+
+def _rule_values(node: Node, name: str) -> list[tuple[str, Any]]:
+    """Every value ``node``'s ROS arguments give ``name`` (its params files' sections that apply to it, ``-p``), in
+    order, as ``(params file path or "-p", value as YAML reads it)``: the last one is the one meant to win.
+    """
+    import yaml
+
     fqn = node.get_fully_qualified_name()
-    found: tuple[str, Any] | None = None
+    found: list[tuple[str, Any]] = []
     for kind, arg in ros_parameter_rules(node.context):
         if kind == "file":
-            for _, pattern, params in params_file_sections(arg):
-                if name in params and _applies(pattern, fqn):
-                    found = (arg, params[name])
+            found.extend((arg, params[name]) for _, pattern, params in params_file_sections(arg)
+                         if name in params and _applies(pattern, fqn))  # fmt: skip
             continue
         target, _, value = arg.partition(":=")
         who, _, param = target.rpartition(":")
         if param == name and (not who or _applies(who, fqn)):
             try:
-                found = ("-p", yaml.safe_load(value))
+                found.append(("-p", yaml.safe_load(value)))
             except yaml.YAMLError:
-                found = ("-p", value)
-    return found[0] if found is not None and _same_value(found[1], override.value) else None
+                found.append(("-p", value))
+    return found
+
+
+def _reads_as_number(value: Any) -> bool:
+    """Whether a string YAML 1.1 left unparsed is a number to rcl's parser too (``1e3``), so not a type change."""
+    try:
+        float(value)
+    except (TypeError, ValueError):
+        return False
+    return isinstance(value, str)
+
+
+def overlay_type_conflicts(node: Node) -> list[InputError]:
+    """One InputError per declared parameter of ``node`` whose last params file gives a value of another type than an
+    earlier file's: rcl then keeps the earlier value without a word (``--params-file config/nbv.yaml --params-file
+    mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on nbv.yaml's 0.0), where the same file alone is refused.
+    """
+    errors = []
+    for name, override in getattr(node, "_parameter_overrides", {}).items():
+        if not node.has_parameter(name):
+            continue
+        found = _rule_values(node, name)
+        if len(found) < 2 or found[-1][0] == "-p" or _same_value(found[-1][1], override.value):
+            continue
+        source, value = found[-1]
+        kept = [src for src, v in found[:-1] if src != "-p" and _same_value(v, override.value)]
+        if not kept or type(value) is type(override.value) or _reads_as_number(value):
+            continue
+        kind = _KIND_WORDS.get(type(override.value), f"a {type(override.value).__name__}")
+        errors.append(InputError(
+            f"parameter '{node.get_name()}.{name}'",
+            f"must be {kind}, got {value!r} (set in {source}; ROS kept {override.value!r} from {kept[-1]} instead, "
+            "as a later params file cannot change the type of a value an earlier one set)",
+        ))  # fmt: skip
+    return errors
 
 
 def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
@@ -455,6 +497,26 @@ def misspelt_sections(node: Node, others: Iterable[str] = ()) -> list[tuple[str,
     return found
 
 
+def sections_elsewhere(node: Node, others: Iterable[str] = ()) -> list[tuple[str, str]]:
+    """``(params file, section)`` for each section named for ``node`` without a namespace (its name, or its class's
+    default name when it was renamed) that does not apply to it: ``mapper:`` is ``/mapper``, so under ``-r
+    __ns:=/robot1`` (or as ``mapper_b``) none of its parameters reach the node, without a word from rcl. ``others``:
+    the process's other nodes' fully qualified names (a section that applies to one of them is theirs).
+    """
+    fqn = node.get_fully_qualified_name()
+    names = {node.get_name(), getattr(type(node), "default_name", "") or node.get_name()}
+    found: list[tuple[str, str]] = []
+    for kind, path in ros_parameter_rules(node.context):
+        if kind != "file":
+            continue
+        for label, pattern, _ in params_file_sections(path):
+            leaf = pattern.rsplit("/", 1)[-1]
+            bare = pattern.count("/") == 1  # `mapper:`; a section that names a namespace was meant for it
+            if bare and leaf in names and not _applies(pattern, fqn) and not any(_applies(pattern, o) for o in others):
+                found.append((path, label))
+    return found
+
+
 def undeclared_overrides(node: Node, also_declared: Iterable[str] = ()) -> list[str]:
     """The overrides addressed to ``node`` (params files, ``-p``, its constructor) that it does not declare, sorted.
 
@@ -480,15 +542,20 @@ def check_parameter_overrides(
     warn: bool = True,
     siblings: Sequence[Node] = (),
 ) -> list[str]:
-    """Call once ``node`` declared all its parameters: an InputError for an undeclared one in ``explicit``, else
-    ONE warning naming the other undeclared overrides (with the closest declared names) and one per misspelt section
-    of its params files (:func:`misspelt_sections`); returns the undeclared names.
+    """Call once ``node`` declared all its parameters: an InputError for a value a later params file gave another type
+    (:func:`overlay_type_conflicts`) or an undeclared one in ``explicit``, else ONE warning naming the other undeclared
+    overrides (with the closest declared names) and one per misspelt section of its params files
+    (:func:`misspelt_sections`) or section that misses its namespace or new name (:func:`sections_elsewhere`);
+    returns the undeclared names.
 
     ``explicit``: the ``parameter_overrides`` given to the node's constructor, a call naming this node, so an
     unknown name there is an error; a params file or ``-p`` may carry other nodes' parameters (ROS ignores
     those), so they only warn. ``siblings``: the other nodes of the process, whose names are not typos here; a
     node on its own skips the names any node of the package declares (:func:`package_parameter_names`).
     """
+    conflicts = overlay_type_conflicts(node)
+    if conflicts:
+        raise conflicts[0]
     declared = _declared_names(node)
     unknown_explicit = sorted({p.name for p in explicit or ()} - set(node.list_parameters([], 0).names))
     if len(unknown_explicit) == 1:
@@ -510,6 +577,12 @@ def check_parameter_overrides(
             node.get_logger().warning(
                 f"section '{section}' in {path} looks like a misspelling of '{node.get_name()}': "
                 "its parameters are not applied"
+            )
+        fqn = node.get_fully_qualified_name()
+        for path, section in sections_elsewhere(node, [n.get_fully_qualified_name() for n in others]):
+            node.get_logger().warning(
+                f"section '{section}' in {path} does not apply to this node, which runs as '{fqn}': its parameters "
+                f"are not applied (name the section '{fqn}', or '/**/{node.get_name()}' for any namespace)"
             )
     return ignored
 

@@ -25,7 +25,7 @@ from torch import Tensor
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, check_replaceable
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig, write_map_meta
+from roigsf_ros.mapping.mapper import H_TRAIN_FILE, Mapper, MapperConfig, write_h_train, write_map_meta
 from roigsf_ros.render.surfels import SurfelMap
 
 
@@ -178,8 +178,8 @@ class SharedMapper:
     def snapshot(self, with_h_train: bool = True) -> MapSnapshot | None:
         """A consistent copy of the map (None before the first frame or load).
 
-        ``h_train`` is included only when the mapper tracks it and holds every keyframe's images (a
-        loaded map's keyframes have none, so their Fisher is missing: callers recompute it from the poses).
+        ``h_train`` is included only when the mapper tracks it and it covers every keyframe (a map loaded without
+        its saved ``h_train.npz`` lacks the loaded keyframes' Fisher: callers recompute it from the poses).
         """
         with self.reading():
             m = self.mapper
@@ -187,7 +187,7 @@ class SharedMapper:
                 return None
             ids, poses = self._ids_poses(m)
             h = None
-            if with_h_train and m.config.track_h_train and not m.loaded_keyframe_ids and m.keyframes:
+            if with_h_train and m.config.track_h_train and m.h_train_complete and self._n_keyframes(m):
                 h = {k: v.detach().clone() for k, v in m.h_train.items()}
             return MapSnapshot(
                 surfel_map=m.map.detach().clone(),
@@ -215,7 +215,7 @@ class SharedMapper:
         """
         if overwrite:
             check_replaceable_map(directory)
-        snap = self.snapshot(with_h_train=False)
+        snap = self.snapshot(with_h_train=True)  # saved beside the map when complete: a resumed map scores the same
         if snap is None:
             raise InputError(directory, "nothing to save: the mapper has no map yet")
         with atomic_dir(directory, overwrite=overwrite, overwrite_hint=overwrite_hint) as tmp:
@@ -272,9 +272,13 @@ def check_replaceable_map(directory: str | Path) -> None:
 
 
 def save_snapshot(snap: MapSnapshot, directory: Path, with_mesh: bool = False) -> None:
-    """Write a snapshot into an existing folder in :meth:`Mapper.save`'s layout (readable by :meth:`Mapper.load`)."""
+    """Write a snapshot into an existing folder in :meth:`Mapper.save`'s layout (readable by :meth:`Mapper.load`),
+    with ``h_train.npz`` when the snapshot carries it.
+    """
     snap.surfel_map.save_ply(directory / "map.ply")
     write_map_meta(directory / "keyframes.json", snap.keyframe_ids, snap.keyframe_poses, snap.intrinsics, snap.config)
+    if snap.h_train is not None:
+        write_h_train(directory / H_TRAIN_FILE, snap.h_train)
     if with_mesh:
         mesh = snapshot_mesh(snap)
         if not o3d.io.write_triangle_mesh(str(directory / "mesh.ply"), mesh):

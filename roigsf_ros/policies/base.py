@@ -43,6 +43,11 @@ class KeyframeMap(Protocol):
         ...
 
     @property
+    def h_train_complete(self) -> bool:
+        """Whether the running training Fisher covers every keyframe (else it is recomputed from the poses)."""
+        ...
+
+    @property
     def keyframe_poses(self) -> np.ndarray:
         """[K, 4, 4] camera-to-world poses of the keyframes, in insertion order."""
         ...

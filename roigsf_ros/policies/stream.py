@@ -365,8 +365,8 @@ class StreamNBVPolicy(KeyframePolicy):
     def _h_train(self, keyframe_map: KeyframeMap) -> dict[str, torch.Tensor] | None:
         """The map's running h_train when it matches what the scorer needs, else None (recompute)."""
         mcfg = keyframe_map.config
-        if not mcfg.track_h_train or self.mode is None or keyframe_map.loaded_keyframe_ids:
-            return None  # a loaded map's running h_train lacks the loaded keyframes: recomputed from the poses
+        if not mcfg.track_h_train or self.mode is None or not keyframe_map.h_train_complete:
+            return None  # a map loaded without its h_train.npz lacks the loaded keyframes': recomputed from the poses
         h = keyframe_map.h_train
         fits = running_h_train_fits(h, tuple(mcfg.fisher_outputs), self.config, self.mode)
         needed = [p for p in self.config.fisher_params if p != "sh_rest" or keyframe_map.map.sh_rest is not None]
