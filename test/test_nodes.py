@@ -2065,6 +2065,24 @@ def test_mesh_service_decimates_and_never_holds_shutdown(ros_context: Any, mappe
     assert not pending.result().success and "shutting down" in pending.result().message and waited_s < 2.0
 
 
+def test_the_nodes_save_map_keeps_the_training_fisher_when_computed(mapped: Mapper, tmp_path: Path) -> None:
+    """``~/save_map`` wrote no training Fisher, so ``~/load_map`` (or ``load_map:=``) scored views under another
+    H_train than the map that was saved. It is saved now when computed (the planner and the map topic compute it),
+    and a map whose Fisher was never read is saved without paying for it."""
+    fresh = Mapper(mapped.intr, mapped.config)
+    fresh.map, fresh.keyframes = mapped.map.detach().clone(), list(mapped.keyframes)
+    fresh._reset_h_train()
+    fresh._fisher_pending = list(fresh.keyframes)  # inserted, its Fisher not read yet (lazy)
+    _shared(fresh).save(tmp_path / "lazy")
+    assert not (tmp_path / "lazy" / "h_train.npz").exists() and fresh._fisher_pending  # not computed for the save
+    h = {k: v.clone() for k, v in mapped.h_train.items()}  # computed, as a planner reads it
+    _shared(mapped).save(tmp_path / "map")
+    loaded = SharedMapper(MapperConfig()).load(tmp_path / "map")
+    assert loaded.h_train_complete
+    for k, v in h.items():
+        torch.testing.assert_close(loaded.h_train[k], v)
+
+
 def test_loaded_map_catch_up_once_then_requests_reuse_tsdf_work(
     ros_context: Any, scene: Any, mapped: Mapper, tmp_path: Path
 ) -> None:

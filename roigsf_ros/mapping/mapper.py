@@ -770,6 +770,11 @@ class Mapper:
         return self._h_train
 
     @property
+    def h_train_computed(self) -> bool:
+        """Whether :attr:`h_train` is computed for every keyframe inserted (none waits for its lazy Fisher pass)."""
+        return not self._fisher_pending
+
+    @property
     def h_train_complete(self) -> bool:
         """Whether :attr:`h_train` covers every keyframe of the map: built here, or loaded with its saved Fisher."""
         return not self.loaded_keyframe_ids or self.h_train_loaded
@@ -876,9 +881,10 @@ class Mapper:
     # ------------------------------------------------------------------------------ save/load
     def save(self, out_dir: str | Path) -> None:
         """Write ``map.ply`` (2DGS layout), ``keyframes.json`` (every keyframe of :meth:`map_keyframes`, loaded
-        ones first; intrinsics, config) and, when it covers every keyframe, ``h_train.npz`` (the training Fisher the
-        NBV score divides by), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d`` and a resumed map
-        scores views as the one saved.
+        ones first; intrinsics, config) and, when it is computed and covers every keyframe, ``h_train.npz`` (the
+        training Fisher the NBV score divides by), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d`` and
+        a resumed map scores views as the one saved. (A run whose policy never read :attr:`h_train` left it lazy:
+        computing it only to save it would cost every such run one Fisher pass per keyframe.)
         """
         out = Path(out_dir)
         try:
@@ -887,8 +893,8 @@ class Mapper:
             raise InputError(out, f"cannot create the map folder: {exc.strerror or exc}") from None
         self.map.save_ply(out / "map.ply")
         write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
-        if self.config.track_h_train and self.h_train_complete:
-            write_h_train(out / H_TRAIN_FILE, self.h_train)
+        if self.config.track_h_train and self.h_train_complete and self.h_train_computed:
+            write_h_train(out / H_TRAIN_FILE, self.h_train)  # computed already: a run that never read it pays nothing
 
     @classmethod
     def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:
