@@ -17,7 +17,7 @@ import math
 import re
 import textwrap
 import weakref
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -486,15 +486,21 @@ def misspelt_sections(node: Node, others: Iterable[str] = ()) -> list[tuple[str,
     """
     name = node.get_name()
     skip = {name, *ROIGSF_NODE_NAMES, *others}
-    found: list[tuple[str, str]] = []
+    return [
+        (path, label)
+        for path, label, pattern in _file_sections(node)
+        if "*" not in (leaf := pattern.rsplit("/", 1)[-1])
+        and leaf not in skip
+        and difflib.get_close_matches(name, [leaf], n=1, cutoff=0.75)
+    ]
+
+
+def _file_sections(node: Node) -> Iterator[tuple[str, str, str]]:
+    """``(params file, section label, node pattern)`` for every section of ``node``'s params files, in order."""
     for kind, path in ros_parameter_rules(node.context):
-        if kind != "file":
-            continue
-        for label, pattern, _ in params_file_sections(path):
-            leaf = pattern.rsplit("/", 1)[-1]
-            if "*" not in leaf and leaf not in skip and difflib.get_close_matches(name, [leaf], n=1, cutoff=0.75):
-                found.append((path, label))
-    return found
+        if kind == "file":
+            for label, pattern, _ in params_file_sections(path):
+                yield path, label, pattern
 
 
 def sections_elsewhere(node: Node, others: Iterable[str] = ()) -> list[tuple[str, str]]:
@@ -505,16 +511,14 @@ def sections_elsewhere(node: Node, others: Iterable[str] = ()) -> list[tuple[str
     """
     fqn = node.get_fully_qualified_name()
     names = {node.get_name(), getattr(type(node), "default_name", "") or node.get_name()}
-    found: list[tuple[str, str]] = []
-    for kind, path in ros_parameter_rules(node.context):
-        if kind != "file":
-            continue
-        for label, pattern, _ in params_file_sections(path):
-            leaf = pattern.rsplit("/", 1)[-1]
-            bare = pattern.count("/") == 1  # `mapper:`; a section that names a namespace was meant for it
-            if bare and leaf in names and not _applies(pattern, fqn) and not any(_applies(pattern, o) for o in others):
-                found.append((path, label))
-    return found
+    return [
+        (path, label)
+        for path, label, pattern in _file_sections(node)
+        if pattern.count("/") == 1  # `mapper:`; a section that names a namespace was meant for it
+        and pattern[1:] in names
+        and not _applies(pattern, fqn)
+        and not any(_applies(pattern, o) for o in others)
+    ]
 
 
 def undeclared_overrides(node: Node, also_declared: Iterable[str] = ()) -> list[str]:
