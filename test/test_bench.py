@@ -62,6 +62,9 @@ def test_parse_policies() -> None:
         parse_policies("roi-gsurfisher:fisher_params=means+colour", "pool")
     with pytest.raises(InputError, match="unknown policy 'nope'"):
         parse_policies("random,nope", "pool")
+    for slip in ("random,", "random,,fisherrf"):  # ran `random` alone, or without a policy, without a word
+        with pytest.raises(InputError, match=r"has an empty entry \(a comma too many, or a policy left out\)"):
+            parse_policies(slip, "pool")
     with pytest.raises(InputError, match="stream-only"):
         parse_policies("random,gaus-slam", "pool")
     with pytest.raises(InputError, match="stream-only"):

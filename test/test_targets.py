@@ -262,7 +262,8 @@ def test_cli_prints_the_table_writes_json_and_fails_only_when_asked(
     assert "none/results.json: not found" in capsys.readouterr().err
     ref = bench(tmp_path / "ref", "stream", {"gaus-slam": {"n_keyframes": (160.0, 0.0)}})
     cand = bench(tmp_path / "cand", "stream", {"n": {"n_keyframes": (31.0, 0.0)}})
-    assert main(["targets", str(cand), "--against", str(ref), "--against", str(ref)]) == 2
+    ref2 = bench(tmp_path / "ref2", "stream", {"gaus-slam": {"n_keyframes": (150.0, 0.0)}})
+    assert main(["targets", str(cand), "--against", str(ref), "--against", str(ref2)]) == 2
     assert "--against: the stream target compares with one reference, got 2" in capsys.readouterr().err
 
 
@@ -416,6 +417,19 @@ def test_a_policy_against_itself_is_refused(tmp_path: Path, capsys: pytest.Captu
     assert main(["targets", str(ref), "--against", str(ref)]) == 2
     assert "is the candidate itself ('gaus-slam' of" in capsys.readouterr().err
     assert main(["targets", f"{folder}#variant", "--against", f"{folder}#random"]) == 0  # another label: compared
+    capsys.readouterr()
+    # A walk: a copied bench passed as another folder (a "not met" with every margin 0), a baseline given twice
+    # printed every row twice, and a misspelt label named no close one.
+    import shutil
+
+    shutil.copytree(folder, tmp_path / "copy")
+    assert main(["targets", f"{folder}#variant", "--against", f"{tmp_path / 'copy'}#variant"]) == 2
+    assert "holds the results of the candidate ('variant' of " in capsys.readouterr().err
+    twice = ["--against", f"{folder}#random", "--against", f"{folder}/results.json#random"]
+    assert main(["targets", f"{folder}#variant", *twice]) == 2
+    assert f"given twice (also as --against {folder}#random)" in capsys.readouterr().err
+    assert main(["targets", f"{folder}#variant", "--against", f"{folder}#fisherf"]) == 2
+    assert "no policy 'fisherf' in 'summary' (did you mean 'fisherrf'?)" in capsys.readouterr().err
 
 
 def test_the_scene_is_compared_by_its_resolved_path_where_both_benches_have_it(tmp_path: Path) -> None:

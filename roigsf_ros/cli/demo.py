@@ -681,7 +681,9 @@ def _run(args: argparse.Namespace) -> int:
     for hint in (fallback_hint(metrics), mapping_hint(metrics)):
         if hint:
             print(hint)
-    print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, keyframes.json, plot.png, strip.png, replay.json")
+    saved_h = ", h_train.npz" if (out / "h_train.npz").is_file() else ""
+    print(f"  results in {out}/: metrics.json, mesh.ply, map.ply, keyframes.json{saved_h}, plot.png, strip.png, "
+          "replay.json")  # fmt: skip
     missed = info["frame_count"] - metrics["frames_received"]
     if missed:  # the map and its figures are of the frames that came: say so, and fail
         back = info.get("frames_stamped_back") or 0

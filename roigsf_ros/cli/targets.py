@@ -96,12 +96,18 @@ def run(args: argparse.Namespace) -> int:
         check_replaceable_file(args.out, VERDICT_MARK, "an earlier `roigsf targets` verdict")
     candidate = load_policy(args.candidate)
     others = [load_policy(spec) for spec in args.against]
-    for spec, other in zip(args.against, others, strict=True):
+    for i, (spec, other) in enumerate(zip(args.against, others, strict=True)):
         if _same_policy(candidate, other):
             raise InputError(
                 f"--against {spec}",
                 f"is the candidate itself ({candidate.label!r} of {candidate.source}): compare it with another policy",
             )
+        if other.summary == candidate.summary:  # a copied bench: another folder, the same runs
+            why = f"holds the results of the candidate ({candidate.label!r} of {candidate.source}) to the last digit"
+            raise InputError(f"--against {spec}", f"{why}: a copy of the same runs? Compare it with another policy")
+        twice = [s for s, o in zip(args.against[:i], others[:i], strict=True) if _same_policy(o, other)]
+        if twice:
+            raise InputError(f"--against {spec}", f"given twice (also as --against {twice[0]}): each baseline once")
     setting = candidate.bench["setting"]
     if setting == "pool":
         margin = POOL_PSNR_MARGIN_DB if args.psnr_margin_db is None else args.psnr_margin_db

@@ -121,9 +121,11 @@ def parse_policies(text: str, setting: str) -> list[PolicySpec]:
         raise InputError("--setting", f"unknown setting {setting!r} (choose from {', '.join(SETTINGS)})")
     specs: list[PolicySpec] = []
     identities: list[tuple[str, str]] = []  # each spec's policy and the parameters it runs with
-    items = [s.strip() for s in str(text).split(",") if s.strip()]
-    if not items:
+    items = [s.strip() for s in str(text).split(",")]
+    if not any(items):
         raise InputError("--policies", "no policy given")
+    if not all(items):  # `random,` or `a,,b`: a policy left out by a slip, run without it
+        raise InputError("--policies", f"{text!r} has an empty entry (a comma too many, or a policy left out)")
     for item in items:
         name, *pairs = [p.strip() for p in item.split(":")]
         params = parse_params(pairs, "--policies", f"{item!r}: expected name:key=value")

@@ -20,6 +20,7 @@ verdict, so a comparison across mappers is never mistaken for a like-for-like on
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -274,7 +275,9 @@ def load_policy(spec: str | Path) -> PolicyResults:
         if not same:  # an alias (every-n's n) or a default spelt out: the policies' own parameters decide
             same = _same_policy(label, list(summary))
         if len(same) != 1:
-            raise InputError(path, f"no policy {label!r} in 'summary'; it holds {list(summary)}")
+            close = difflib.get_close_matches(label, list(summary), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise InputError(path, f"no policy {label!r} in 'summary'{hint}; it holds {list(summary)}")
         label = same[0]  # the same policy and parameters, spelt otherwise (order, a key given twice, 2 vs 2.0)
     if not isinstance(summary[label], dict):
         raise InputError(path, f"field 'summary.{label}' is not an object of metrics")
