@@ -337,6 +337,8 @@ def test_a_resumed_map_scores_views_as_the_saved_one(frames: list[Frame], tmp_pa
         np.savez(tmp_path / "map" / "h_train.npz", **bad)
         with pytest.raises(InputError, match=rf"^{tmp_path / 'map' / 'h_train.npz'}: .*{words}"):
             Mapper.load(tmp_path / "map")
+    np.savez(tmp_path / "map" / "h_train.npz", **{k: v for k, v in h.items() if k != "means"})  # a config of its own
+    assert not Mapper.load(tmp_path / "map", config=small_config(iters_per_keyframe=3)).h_train_complete  # recomputed
     (tmp_path / "map" / "h_train.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="not a readable training-Fisher file"):
         Mapper.load(tmp_path / "map")

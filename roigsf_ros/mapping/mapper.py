@@ -924,9 +924,11 @@ class Mapper:
         mapper.loaded_keyframe_poses = meta.keyframe_poses
         saved = d / H_TRAIN_FILE
         if mapper.config.track_h_train and saved.is_file():
-            h = read_h_train(saved, len(surfel_map), {k: tuple(v.shape) for k, v in mapper._h_train.items()})
-            mapper._h_train = {k: v.to(device=mapper.device, dtype=mapper.dtype) for k, v in h.items()}
-            mapper.h_train_loaded = True
+            shapes = {k: tuple(v.shape) for k, v in mapper._h_train.items()}
+            h = read_h_train(saved, len(surfel_map), shapes, covers_only=config is not None)
+            if h is not None:
+                mapper._h_train = {k: v.to(device=mapper.device, dtype=mapper.dtype) for k, v in h.items()}
+                mapper.h_train_loaded = True
         return mapper
 
 
@@ -978,9 +980,13 @@ def write_h_train(path: str | Path, h_train: dict[str, Tensor]) -> None:
         np.savez(f, **{k: v.detach().cpu().numpy().astype(np.float32) for k, v in h_train.items()})
 
 
-def read_h_train(path: str | Path, n_surfels: int, shapes: dict[str, tuple[int, ...]]) -> dict[str, Tensor]:
+def read_h_train(
+    path: str | Path, n_surfels: int, shapes: dict[str, tuple[int, ...]], covers_only: bool = False
+) -> dict[str, Tensor] | None:
     """A saved map's ``h_train.npz``, checked against the map it belongs to: each of ``shapes``' parameters (the
     mapper's ``fisher_params``) present with its shape and finite, non-negative values; an InputError names the file.
+    ``covers_only``: None instead of an error when a parameter is missing (a caller's own config that asks for
+    other parameters than the saved map's; the Fisher is then recomputed from the poses).
     """
     where = Path(path)
     try:
@@ -988,6 +994,8 @@ def read_h_train(path: str | Path, n_surfels: int, shapes: dict[str, tuple[int, 
             arrays = {k: np.asarray(data[k]) for k in data.files}
     except (OSError, ValueError, EOFError) as exc:
         raise InputError(where, f"not a readable training-Fisher file ({exc})") from None
+    if covers_only and not set(shapes) <= set(arrays):
+        return None
     out: dict[str, Tensor] = {}
     for name, shape in shapes.items():
         if name not in arrays:
