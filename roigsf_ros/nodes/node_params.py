@@ -377,30 +377,33 @@ def parameter_source(node: Node, name: str) -> str | None:
     override = getattr(node, "_parameter_overrides", {}).get(name)
     if override is None:
         return None
-    found = _rule_values(node, name)
+    found = _rule_values(node).get(name, [])
     return found[-1][0] if found and _same_value(found[-1][1], override.value) else None
 
 
-def _rule_values(node: Node, name: str) -> list[tuple[str, Any]]:
-    """Every value ``node``'s ROS arguments give ``name`` (its params files' sections that apply to it, ``-p``), in
-    order, as ``(params file path or "-p", value as YAML reads it)``: the last one is the one meant to win.
+def _rule_values(node: Node) -> dict[str, list[tuple[str, Any]]]:
+    """Every value ``node``'s ROS arguments give each parameter (its params files' sections that apply to it, ``-p``),
+    in order, as ``{name: [(params file path or "-p", value as YAML reads it), ...]}``: the last one is meant to win.
+    Each params file is read once.
     """
     import yaml
 
     fqn = node.get_fully_qualified_name()
-    found: list[tuple[str, Any]] = []
+    found: dict[str, list[tuple[str, Any]]] = {}
     for kind, arg in ros_parameter_rules(node.context):
         if kind == "file":
-            found.extend((arg, params[name]) for _, pattern, params in params_file_sections(arg)
-                         if name in params and _applies(pattern, fqn))  # fmt: skip
+            for _, pattern, params in params_file_sections(arg):
+                if _applies(pattern, fqn):
+                    for name, value in params.items():
+                        found.setdefault(name, []).append((arg, value))
             continue
         target, _, value = arg.partition(":=")
-        who, _, param = target.rpartition(":")
-        if param == name and (not who or _applies(who, fqn)):
+        who, _, name = target.rpartition(":")
+        if not who or _applies(who, fqn):
             try:
-                found.append(("-p", yaml.safe_load(value)))
+                found.setdefault(name, []).append(("-p", yaml.safe_load(value)))
             except yaml.YAMLError:
-                found.append(("-p", value))
+                found.setdefault(name, []).append(("-p", value))
     return found
 
 
@@ -419,10 +422,11 @@ def overlay_type_conflicts(node: Node) -> list[InputError]:
     mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on nbv.yaml's 0.0), where the same file alone is refused.
     """
     errors = []
+    rules = _rule_values(node)
     for name, override in getattr(node, "_parameter_overrides", {}).items():
         if not node.has_parameter(name):
             continue
-        found = _rule_values(node, name)
+        found = rules.get(name, [])
         if len(found) < 2 or found[-1][0] == "-p" or _same_value(found[-1][1], override.value):
             continue
         source, value = found[-1]
