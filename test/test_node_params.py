@@ -209,11 +209,16 @@ def test_a_params_file_section_close_to_the_nodes_name_is_warned_about(
     ], err
 
 
-def test_a_later_params_file_that_changes_a_values_type_is_refused_not_dropped(tmp_path: Path) -> None:
+def test_a_later_params_file_that_changes_a_values_type_is_refused_not_dropped(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
     """``--params-file config/nbv.yaml --params-file mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on
     nbv.yaml's 0.0 without a word: rcl keeps an earlier file's value when a later file gives another type (mine.yaml
-    alone was refused). Now refused at start-up, naming both files; a later value of the same type still wins."""
+    alone was refused). Now refused at start-up, naming both files, before the node's start-up work and log line
+    (they ran first: the log said "mapping keyframes named on ..." and then the node refused); a later value of the
+    same type still wins."""
     first = _params(tmp_path / "first.yaml", "mapper", iters_per_keyframe=7)
+    capfd.readouterr()
     for later, words in (("'ten'", "must be an int, got 'ten'"), ("4.5", "must be an int, got 4.5")):
         second = _params(tmp_path / "second.yaml", "mapper", iters_per_keyframe=later)
         with _context("--params-file", first, "--params-file", second) as ctx, pytest.raises(InputError) as caught:
@@ -222,6 +227,8 @@ def test_a_later_params_file_that_changes_a_values_type_is_refused_not_dropped(t
             f"parameter 'mapper.iters_per_keyframe': {words} (set in {second}; ROS kept 7 from {first} instead, as a "
             "later params file cannot change the type of a value an earlier one set)"
         )
+    err = capfd.readouterr().err
+    assert "mapping keyframes named" not in err and "mapping kernels ready" not in err, err
     second = _params(tmp_path / "second.yaml", "mapper", iters_per_keyframe=9)
     with _context("--params-file", first, "--params-file", second) as ctx:
         mapper = MapperNode(context=ctx)

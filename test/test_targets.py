@@ -124,6 +124,41 @@ def test_stream_target_counts_keyframes_recall_and_psnr_against_the_reference(tm
     ).met
 
 
+def test_a_stream_verdict_gives_the_keyframes_to_spare_seed_by_seed_and_names_its_units(tmp_path: Path) -> None:
+    """The stream table's keyframe row had an empty seed column and did not say its margin counts keyframes, and its
+    PSNR row was "psnr" where the pool's is "psnr (dB)"."""
+    metrics = {"n_keyframes": (31.0, 1.0), "recall@5cm": (0.98, 0.0), "psnr": (30.0, 0.0)}
+    ref_metrics = {"n_keyframes": (160.0, 5.0), "recall@5cm": (0.99, 0.0), "psnr": (30.2, 0.0)}
+    folders = {}
+    for name, label, summary, counts in (
+        ("cand", "n", metrics, (30, 32)),
+        ("ref", "gaus-slam", ref_metrics, (155, 165)),
+    ):
+        folder = bench(tmp_path / name, "stream", {label: summary}, seeds=[0, 1])
+        res = json.loads((folder / "results.json").read_text())
+        res["runs"] = [{"label": label, "seed": s, "metrics": {"n_keyframes": n}} for s, n in enumerate(counts)]
+        (folder / "results.json").write_text(json.dumps(res))
+        folders[name] = f"{folder}#{label}"
+    verdict = stream_target(load_policy(folders["cand"]), load_policy(folders["ref"]))
+    assert verdict.checks[0].seed_margins == pytest.approx((0.2 * 155 - 30, 0.2 * 165 - 32))  # 1.0 and 1.0 to spare
+    assert [c.what for c in verdict.checks][1:] == ["recall@5cm", "psnr (dB)"]
+    text = verdict.markdown()
+    assert "| +1.0000 / +1.0000 |" in text and "margin, required and slack are keyframes" in text, text
+
+
+def test_the_summary_names_a_baselines_folder_when_two_share_its_label(tmp_path: Path) -> None:
+    """``--against a#random --against b#random`` printed "recall@5cm against `random`" twice in the summary line and
+    the views table: which bench missed was not said. One label per bench stays short."""
+    one = bench(tmp_path / "one", "pool", FOURTH_ROOM)
+    two = bench(tmp_path / "two", "pool", {"random": {**FOURTH_ROOM["random"], "fscore@5cm": (0.9905, 0.0)}})
+    cand = load_policy(f"{one}#variant")
+    both = pool_target(cand, [load_policy(f"{one}#random"), load_policy(f"{two}#random")]).markdown()
+    head = both.splitlines()[0]
+    assert f"fscore@5cm against `random@{two}`" in head and f"against `random@{one}`" not in head, head
+    alone = pool_target(cand, [load_policy(f"{one}#fisherrf"), load_policy(f"{one}#random")]).markdown()
+    assert "fscore@5cm against `fisherrf`, margin" in alone.splitlines()[0], alone
+
+
 def test_benches_that_are_not_comparable_are_refused_naming_the_file_and_field(tmp_path: Path) -> None:
     one = {"v": FOURTH_ROOM["variant"]}
     cand = load_policy(bench(tmp_path / "cand", "pool", one))
@@ -358,7 +393,7 @@ def test_views_to_match_reads_the_curves_where_they_were_measured(
     text = capsys.readouterr().out
     assert "| recall@5cm | `fisherrf` | 0.9450 at 20 | 12 of 20 | 16 / 12 | 4, 8, 12, 16, 20 |" in text, text
     assert "| recall@5cm | `random` | 0.9900 at 20 | not within 20 | - / - | 4, 8, 12, 16, 20 |" in text, text
-    assert "| psnr | `fisherrf` | 29.00 at 20 | 18 of 20 | 18 / 18 | 4-20 |" in text, text
+    assert "| psnr (dB) | `fisherrf` | 29.00 at 20 | 18 of 20 | 18 / 18 | 4-20 |" in text, text
     assert json.loads(out.read_text())["views_to_match"][0] == {
         "metric": "recall@5cm",
         "against": fis.name,

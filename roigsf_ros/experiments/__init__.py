@@ -46,6 +46,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "report": ["AUSE_CAVEAT", "TABLE_COLUMNS", "markdown", "parse_markdown_table", "table_columns", "write_report"],
         "targets": [
             "BENCH_SETTINGS",
+            "METRIC_LABELS",
             "MUST_MATCH",
             "POOL_METRICS",
             "POOL_PSNR_MARGIN_DB",

@@ -57,6 +57,9 @@ _UNCOMPARED_KEYS = frozenset({"policy", "policy_params", "seed", "mesh_checkpoin
 ``mesh_checkpoints``, the view counts at which a pool run measures its mesh along the way, which changes neither the
 views chosen nor the final figures (`test_mesh_checkpoints_change_no_choice_and_no_final_figure`)."""
 
+METRIC_LABELS = {"psnr": "psnr (dB)"}
+"""How a verdict's tables and checks name a metric whose key does not say its unit."""
+
 VIEW_METRICS = ("recall@5cm", "fscore@5cm", "psnr")
 """What :func:`views_to_match` reads from a pool run's curve: the mesh metrics where the run measured its mesh
 (``mesh_checkpoints``), and ``psnr``, the test PSNR measured after every view."""
@@ -432,9 +435,10 @@ class Verdict:
 
     def markdown(self) -> str:
         """A readable table: one row per check, with the margin, what was required and the slack."""
+        labels = [c.against for c in self.checks] + [v.against for v in self.views]
 
         def brief(c: Check) -> str:
-            return f"{c.what} against `{c.against.split('@')[0]}`, margin {c.margin:+.5f} for {c.required:+.5f}"
+            return f"{c.what} against `{_short(c.against, labels)}`, margin {c.margin:+.5f} for {c.required:+.5f}"
 
         if self.met:
             head = f"**met** (narrowest for what it requires: {brief(self.tightest)})"
@@ -452,6 +456,11 @@ class Verdict:
                 f"| {c.what} | `{c.against}` | {_pm(c.candidate)} | {_pm(c.other)} | {c.margin:+.5f} | "
                 f"{c.required:+.5f} | {c.slack:+.5f} | {'yes' if c.met else 'no'} | {seeds} |"
             )
+        if any(c.what.startswith("keyframes") for c in self.checks):
+            lines.append(
+                "\nThe keyframe row's margin, required and slack are keyframes: the allowed share of the reference's "
+                "mean count less the candidate's, so the margin is the keyframes to spare."
+            )
         for other, diffs in self.differences.items():
             lines.append(f"\nConfigured differently from `{other}`: {'; '.join(diffs)}")
         if self.views:
@@ -468,10 +477,18 @@ class Verdict:
                 seeds = " / ".join(str(n) if n is not None else "-" for n in v.seed_views)
                 target = _pm((v.target, 0.0)).split(" ")[0]
                 lines.append(
-                    f"| {v.metric} | `{v.against.split('@')[0]}` | {target} at {v.other_views} | {reach} | {seeds} | "
-                    f"{_count_ranges(v.checkpoints)} |"
+                    f"| {METRIC_LABELS.get(v.metric, v.metric)} | `{_short(v.against, labels)}` | {target} at "
+                    f"{v.other_views} | {reach} | {seeds} | {_count_ranges(v.checkpoints)} |"
                 )
         return "\n".join(lines) + "\n"
+
+
+def _short(name: str, names: list[str]) -> str:
+    """``name`` (``label@folder``) without its folder when no other of ``names`` has that label from another folder:
+    the summary line and the views table stay short, yet two baselines of one label from two benches stay apart.
+    """
+    label = name.split("@")[0]
+    return label if all(n == name or n.split("@")[0] != label for n in names) else name
 
 
 def _count_ranges(counts: tuple[int, ...]) -> str:
@@ -528,7 +545,7 @@ def pool_target(
     best = max(baselines, key=lambda b: b.stat("psnr")[0])
     b_psnr = best.stat("psnr")
     margins = seed_margins(candidate, best, "psnr")
-    checks.append(Check("psnr (dB)", best.name, psnr, b_psnr, psnr[0] - b_psnr[0], -psnr_margin_db, margins))
+    checks.append(Check(METRIC_LABELS["psnr"], best.name, psnr, b_psnr, psnr[0] - b_psnr[0], -psnr_margin_db, margins))
     views = [
         views_to_match(candidate, b, key, allow_config_difference=True)  # comparability checked above
         for key in VIEW_METRICS
@@ -560,18 +577,22 @@ def stream_target(
     if ref_kf[0] <= 0:
         raise InputError(reference.source / "results.json", "the reference's mean n_keyframes is not positive")
     spare = max_keyframe_ratio * ref_kf[0] - kf[0]
-    checks = [
-        Check(f"keyframes, at most {max_keyframe_ratio:.0%} of the reference's", reference.name, kf, ref_kf, spare, 0.0)
-    ]
+    mine_kf, ref_seed_kf = candidate.per_seed("n_keyframes"), reference.per_seed("n_keyframes")
+    spare_by_seed = tuple(
+        max_keyframe_ratio * ref_seed_kf[s] - mine_kf[s] for s in sorted(set(mine_kf) & set(ref_seed_kf))
+    )
+    what = f"keyframes, at most {max_keyframe_ratio:.0%} of the reference's"
+    checks = [Check(what, reference.name, kf, ref_kf, spare, 0.0, spare_by_seed)]
     for key, margin in (("recall@5cm", recall_margin), ("psnr", psnr_margin_db)):
         mine, ref = candidate.stat(key), reference.stat(key)
         margins = seed_margins(candidate, reference, key)
-        checks.append(Check(key, reference.name, mine, ref, mine[0] - ref[0], -margin, margins))
+        checks.append(Check(METRIC_LABELS.get(key, key), reference.name, mine, ref, mine[0] - ref[0], -margin, margins))
     return Verdict("stream", candidate.name, checks, {reference.name: diffs} if diffs else {})
 
 
 __all__ = [
     "BENCH_SETTINGS",
+    "METRIC_LABELS",
     "MUST_MATCH",
     "POOL_METRICS",
     "POOL_PSNR_MARGIN_DB",

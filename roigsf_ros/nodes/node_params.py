@@ -132,6 +132,8 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
         got = node.declare_parameter(name, value, read_at_start(description)).value
     except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
         raise _type_error(node, name, default) from None
+    if (conflict := overlay_type_conflict(node, name)) is not None:
+        raise conflict
     if isinstance(got, str) and got and name.endswith(("_topic", "_service")):
         return check_ros_name(node, name, got)  # in full: a relative default follows the node's namespace
     return got
@@ -384,10 +386,13 @@ def parameter_source(node: Node, name: str) -> str | None:
 def _rule_values(node: Node) -> dict[str, list[tuple[str, Any]]]:
     """Every value ``node``'s ROS arguments give each parameter (its params files' sections that apply to it, ``-p``),
     in order, as ``{name: [(params file path or "-p", value as YAML reads it), ...]}``: the last one is meant to win.
-    Each params file is read once.
+    Each params file is read once per node: the result is kept on the node (its arguments do not change).
     """
     import yaml
 
+    cached = getattr(node, "_roigsf_rule_values", None)
+    if cached is not None:
+        return cached
     fqn = node.get_fully_qualified_name()
     found: dict[str, list[tuple[str, Any]]] = {}
     for kind, arg in ros_parameter_rules(node.context):
@@ -404,6 +409,7 @@ def _rule_values(node: Node) -> dict[str, list[tuple[str, Any]]]:
                 found.setdefault(name, []).append(("-p", yaml.safe_load(value)))
             except yaml.YAMLError:
                 found.setdefault(name, []).append(("-p", value))
+    node._roigsf_rule_values = found  # type: ignore[attr-defined]
     return found
 
 
@@ -416,30 +422,37 @@ def _reads_as_number(value: Any) -> bool:
     return isinstance(value, str)
 
 
-def overlay_type_conflicts(node: Node) -> list[InputError]:
-    """One InputError per declared parameter of ``node`` whose last params file gives a value of another type than an
-    earlier file's: rcl then keeps the earlier value without a word (``--params-file config/nbv.yaml --params-file
-    mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on nbv.yaml's 0.0), where the same file alone is refused.
+def overlay_type_conflict(node: Node, name: str) -> InputError | None:
+    """The InputError for parameter ``name`` of ``node`` when its last params file gives a value of another type than
+    an earlier file's, else None: rcl then keeps the earlier value without a word (``--params-file config/nbv.yaml
+    --params-file mine.yaml`` with ``unseen_weight: "2.0"`` in mine.yaml ran on nbv.yaml's 0.0), where the same file
+    alone is refused. :func:`declare` asks as it declares, so the node refuses before its start-up work and log line.
     """
-    errors = []
-    rules = _rule_values(node)
-    for name, override in getattr(node, "_parameter_overrides", {}).items():
-        if not node.has_parameter(name):
-            continue
-        found = rules.get(name, [])
-        if len(found) < 2 or found[-1][0] == "-p" or _same_value(found[-1][1], override.value):
-            continue
-        source, value = found[-1]
-        kept = [src for src, v in found[:-1] if src != "-p" and _same_value(v, override.value)]
-        if not kept or type(value) is type(override.value) or _reads_as_number(value):
-            continue
-        kind = _KIND_WORDS.get(type(override.value), f"a {type(override.value).__name__}")
-        errors.append(InputError(
-            f"parameter '{node.get_name()}.{name}'",
-            f"must be {kind}, got {value!r} (set in {source}; ROS kept {override.value!r} from {kept[-1]} instead, "
-            "as a later params file cannot change the type of a value an earlier one set)",
-        ))  # fmt: skip
-    return errors
+    override = getattr(node, "_parameter_overrides", {}).get(name)
+    if override is None:
+        return None
+    found = _rule_values(node).get(name, [])
+    if len(found) < 2 or found[-1][0] == "-p" or _same_value(found[-1][1], override.value):
+        return None
+    source, value = found[-1]
+    kept = [src for src, v in found[:-1] if src != "-p" and _same_value(v, override.value)]
+    if not kept or type(value) is type(override.value) or _reads_as_number(value):
+        return None
+    kind = _KIND_WORDS.get(type(override.value), f"a {type(override.value).__name__}")
+    return InputError(
+        f"parameter '{node.get_name()}.{name}'",
+        f"must be {kind}, got {value!r} (set in {source}; ROS kept {override.value!r} from {kept[-1]} instead, "
+        "as a later params file cannot change the type of a value an earlier one set)",
+    )
+
+
+def overlay_type_conflicts(node: Node) -> list[InputError]:
+    """:func:`overlay_type_conflict` for every declared parameter of ``node`` that has an override (a node that
+    declares some parameters without :func:`declare`).
+    """
+    overrides = getattr(node, "_parameter_overrides", {})
+    found = (overlay_type_conflict(node, name) for name in overrides if node.has_parameter(name))
+    return [error for error in found if error is not None]
 
 
 def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
