@@ -579,3 +579,14 @@ def test_pool_report_says_image_metrics() -> None:
                                "initial_iters": 4, "iters_per_view": 2, "final_iters": 0}}  # fmt: skip
     md = report_module.markdown(results)
     assert "- image metrics over the held-out test views; #views = training views" in md and "images" not in md
+
+
+def test_the_quality_plot_ticks_whole_view_counts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Four views measured at 1-4 were ticked at 1.0, 1.5, 2.0, ...: half a view. The x axis ticks counts only."""
+    saved = []
+    monkeypatch.setattr(report_module, "_save", lambda fig, path: saved.append(fig))
+    curve = [{"n_views": n, "test_psnr": {"mean": 20.0 + n, "std": 0.1}} for n in (1, 2, 3, 4)]
+    results = {"setting": "pool", "gt_mesh": None, "policies": [{"label": "random"}], "curves": {"random": curve}}
+    report_module.plot_quality(results, tmp_path / "q.png")
+    ticks = [t for ax in saved[0].axes for t in ax.get_xticks() if 1 <= t <= 4]
+    assert ticks and all(float(t).is_integer() for t in ticks), ticks

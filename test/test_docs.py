@@ -123,7 +123,8 @@ def documented_roigsf_commands(path: Path) -> list[str]:
     becomes 1, so a usage line parses as the command it describes with every option given.
     """
     commands = []
-    for block in re.findall(r"^```(?:bash)?\n(.*?)^```", path.read_text(), flags=re.MULTILINE | re.DOTALL):
+    blocks = re.findall(r"^```(\w*)\n(.*?)^```", path.read_text(), flags=re.MULTILINE | re.DOTALL)
+    for block in (text for language, text in blocks if language in ("", "bash")):  # a ```python block pairs too
         for line in block.replace("\\\n", " ").splitlines():
             line = line.split(" #")[0].strip()
             if not line.startswith("roigsf "):
@@ -142,6 +143,8 @@ def test_usage_syntax_is_made_concrete(tmp_path: Path) -> None:
         "```bash\nroigsf bench --setting stream|pool --seeds N \\\n    [--set NAME=VALUE ...]   # comment\nls\n```\n"
     )
     assert documented_roigsf_commands(doc) == ["roigsf bench --setting stream --seeds 1 --set NAME=VALUE"]
+    doc.write_text("```python\nx = 1\n```\n\nText.\n\n```bash\nroigsf map SRC --out RUN\n```\n")
+    assert documented_roigsf_commands(doc) == ["roigsf map SRC --out RUN"]  # was []: the fences paired off by one
 
 
 @pytest.mark.parametrize("path", [ROOT / "README.md", ROOT / "docs" / "measured-figures.md"], ids=lambda p: p.name)
@@ -162,6 +165,21 @@ def test_every_documented_roigsf_command_parses(path: Path) -> None:
         except SystemExit:
             refused.append(command)
     assert refused == []
+
+
+@pytest.mark.parametrize("command", ["bench", "targets"])
+def test_the_readmes_synopsis_names_every_option_of_the_benchmark_commands(command: str) -> None:
+    """The README's ``roigsf bench`` / ``roigsf targets`` lines are what a user copies from: an option missing there
+    (``--max-frames``, ``--eval-every``, the targets' margins were) is an option nobody finds."""
+    import argparse
+
+    from roigsf_ros.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    options = {s for a in sub._actions for s in a.option_strings if s.startswith("--") and s != "--help"}
+    lines = [c for c in documented_roigsf_commands(ROOT / "README.md") if c.startswith(f"roigsf {command} ")]
+    named = {token.split("=")[0] for line in lines for token in line.split() if token.startswith("--")}
+    assert sorted(options - named) == []
 
 
 def test_the_readme_module_table_lists_each_layers_modules() -> None:

@@ -190,6 +190,7 @@ def plot_quality(results: dict[str, Any], path: Path) -> None:
                 if skey in row and "n_keyframes" in row:
                     ax.errorbar(row["n_keyframes"]["mean"], row[skey]["mean"], xerr=row["n_keyframes"]["std"],
                                 yerr=row[skey]["std"], marker="o", capsize=3, label=p["label"])  # fmt: skip
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # views and keyframes are counts: no 2.5 views
         ax.set_xlabel("training views" if results["setting"] == "pool" else "keyframes")
         ax.set_ylabel(label if results["setting"] == "pool" or key != "test_psnr" else "PSNR (dB)")
         ax.grid(alpha=0.3)
