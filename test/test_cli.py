@@ -254,6 +254,42 @@ def test_map_of_a_partial_download_names_the_allow_partial_flag(
     assert "give the camera file (--cam PATH)" in capsys.readouterr().err
 
 
+def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Replica folder without cam_params.json: `roigsf map` said "give the camera file (cam=PATH)", an option it did
+    not have. It has `--cam` now; `roigsf bench`, which has none, says how to make a bag with it; a bag given `--cam`
+    is refused (its camera_info is its camera)."""
+    import roigsf_ros.cli.map
+    from roigsf_ros.core.errors import InputError
+
+    cam = tmp_path / "elsewhere.json"
+    (tiny_scene / "cam_params.json").rename(cam)
+    seen = []
+
+    def record(source: object, *_args: object, **_kw: object) -> None:
+        seen.append(source.intrinsics)  # type: ignore[attr-defined]
+        raise InputError("stub", "the mapping itself is not under test")
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    out = str(tmp_path / "out")
+    assert main(["map", str(tiny_scene), "--out", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "give the camera file (--cam PATH)" in err and "cam=PATH" not in err, err
+    assert main(["map", str(tiny_scene), "--cam", str(cam), "--out", out, "--no-progress"]) == 2
+    assert len(seen) == 1 and (seen[0].width, seen[0].height) == (16, 12), seen
+    bench = ["bench", "--scene", str(tiny_scene), "--setting", "pool", "--policies", "random", "--out", out]
+    capsys.readouterr()
+    assert main(bench) == 2
+    assert "make a bag of the folder with `roigsf bag from-replica DIR --cam PATH`" in capsys.readouterr().err
+    assert main(["bag", "from-replica", str(tiny_scene), "--cam", str(cam), "--out", str(tmp_path / "bag")]) == 0
+    capsys.readouterr()
+    assert main(["map", str(tmp_path / "bag"), "--cam", str(cam), "--out", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "bag: is a bag: its camera_info gives the camera (--cam PATH is for a Replica folder)" in err, err
+    assert len(seen) == 1
+
+
 def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

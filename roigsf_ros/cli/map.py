@@ -78,6 +78,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame")
     p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
     p.add_argument("--allow-partial", action="store_true", help="accept a traj.txt with more poses than frames")
+    p.add_argument(
+        "--cam",
+        type=Path,
+        metavar="CAM_JSON",
+        help="a Replica folder's camera parameters JSON (default: its cam_params.json, else the parent folder's), for "
+        "--eval-against and --test-scene too; a bag's camera is its camera_info",
+    )
     p.add_argument("--iters-per-keyframe", type=int, help="optimiser steps per keyframe")
     p.add_argument("--final-iters", type=int, help="global refinement steps at the end")
     p.add_argument("--every-n", type=int, help="N of the every-n policy")
@@ -289,9 +296,11 @@ def _open(args: argparse.Namespace, path: str | Path, topics: CameraTopics, **kw
     """:func:`open_frames` of ``path``; a bag it reads no frame of gets ``roigsf demo``'s and ``roigsf bag info``'s
     hint when it holds a RealSense camera's topics: ``try --realsense`` (without the options that would override it).
     """
-    try:
-        return open_frames(path, topics=topics, **kwargs)
+    try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
+        return open_frames(path, topics=topics, cam=args.cam, **kwargs)
     except InputError as exc:
+        if args.cam is not None:  # a bag given --cam: the refusal says what to do, no RealSense hint
+            raise
         try:
             present = bag_topic_types(path)
         except (InputError, OSError):  # no bag (a scene folder, a path that does not exist): no hint

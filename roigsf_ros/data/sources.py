@@ -99,8 +99,9 @@ class ReplicaFrameSource(FrameSource):
         stride: int,
         max_frames: int | None,
         allow_partial: bool,
+        cam: str | Path | None = None,
     ) -> None:
-        self.seq = ReplicaSequence(path, size=size, allow_partial=allow_partial)
+        self.seq = ReplicaSequence(path, cam=cam, size=size, allow_partial=allow_partial)
         self.ks = list(range(0, len(self.seq), stride))[: max_frames if max_frames is not None else None]
         super().__init__(Path(path), self.seq.intrinsics, len(self.ks), scene_gt_mesh(self.seq.root))
 
@@ -271,6 +272,7 @@ def open_frames(
     max_frames: int | None = None,
     allow_partial: bool = False,
     topics: CameraTopics | None = None,
+    cam: str | Path | None = None,
 ) -> FrameSource:
     """A :class:`FrameSource` over a bag or Replica folder; ``size`` = (width, height) resizes on load.
 
@@ -279,7 +281,8 @@ def open_frames(
 
     ``stride`` keeps every stride-th frame, ``max_frames`` caps the count after the stride;
     ``allow_partial`` lets a Replica ``traj.txt`` hold more poses than frames on disk; ``topics`` says
-    how a bag is read (topic names, transports, pose from a topic or TF; ignored for a folder).
+    how a bag is read (topic names, transports, pose from a topic or TF; ignored for a folder); ``cam`` is a Replica
+    folder's camera file when it has no ``cam_params.json`` (a bag carries its camera_info: refused for a bag).
     """
     path = Path(path)
     if not path.exists():
@@ -291,8 +294,10 @@ def open_frames(
     if size is not None and any(v is not None and int(v) <= 0 for v in size):
         raise InputError("size (--width/--height)", f"image size must be positive, got {size[0]}x{size[1]}")
     if _is_bag(path):
+        if cam is not None:
+            raise InputError(path, "is a bag: its camera_info gives the camera (cam=PATH is for a Replica folder)")
         return BagFrameSource(path, size, int(stride), max_frames, topics)
-    return ReplicaFrameSource(path, size, int(stride), max_frames, allow_partial)
+    return ReplicaFrameSource(path, size, int(stride), max_frames, allow_partial, cam)
 
 
 __all__ = [
