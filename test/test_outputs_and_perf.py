@@ -137,6 +137,28 @@ def test_perf_io_says_where_it_ran_and_replaces_its_earlier_result(
     assert env["versions"]["torch"] is not None and env["finished_utc"].endswith("+00:00")
 
 
+def test_perf_render_prints_its_footer_and_writes_its_json(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roigsf perf render`` printed its table, then died on ``KeyError: 'load_average_1min'`` (the load moved into
+    the environment block): no units line, no JSON, on every run, and in ``scripts/device_check.sh`` too. The cases'
+    timings are faked here; the table, the footer and the file are what is checked."""
+
+    def case(width: int, height: int, n: int, *_a: Any) -> dict[str, Any]:
+        return {"width": width, "height": height, "surfels": n, "visible_surfels": n // 4,
+                "mean_contributors_per_pixel": 3.0, "forward_ms": 1.0, "forward_nograd_ms": 0.5,
+                "forward_backward_ms": 2.0}  # fmt: skip
+
+    monkeypatch.setattr("roigsf_ros.perf.render.bench_case", case)
+    out = tmp_path / "render.json"
+    assert main(["perf", "render", "--repeats", "1", "--threads", "1", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "wall-clock milliseconds, medians" in text and "1-min load average" in text and f"wrote {out}" in text
+    result = json.loads(out.read_text())
+    assert result["benchmark"] == "render" and len(result["cases"]) == 4
+    assert len(result["environment"]["load_average_1min"]) == 2
+
+
 def _fake_player(seen: list[int]) -> Any:
     """A ``_play_and_listen`` that records the domain id and returns two pose arrivals 0.1 s apart."""
 

@@ -266,8 +266,8 @@ def run(args: argparse.Namespace) -> int:
         f"(backend {backend} on {result['device_name'] or 'the CPU'}; wall-clock milliseconds, medians; targets at "
         f"160x120 with 20k surfels: fwd <= "
         f"{TARGET_FWD_MS:g}, fwd+bwd <= {TARGET_FWD_BWD_MS:g}, Fisher <= fwd+bwd; 1-min load average "
-        f"{result['load_average_1min'][0]:.1f} -> "
-        f"{result['load_average_1min'][1]:.1f}: other processes inflate these times)"
+        f"{result['environment']['load_average_1min'][0]:.1f} -> "
+        f"{result['environment']['load_average_1min'][1]:.1f}: other processes inflate these times)"
     )
     write_results(args.out, result)
     return 0
