@@ -125,8 +125,8 @@ def test_stream_target_counts_keyframes_recall_and_psnr_against_the_reference(tm
 
 
 def test_a_stream_verdict_gives_the_keyframes_to_spare_seed_by_seed_and_names_its_units(tmp_path: Path) -> None:
-    """The stream table's keyframe row had an empty seed column and did not say its margin counts keyframes, and its
-    PSNR row was "psnr" where the pool's is "psnr (dB)"."""
+    """The stream table's keyframe row had an empty seed column and did not say its margin counts keyframes (1 keyframe
+    read "1.0000" beside the reference's "2.00"), and its PSNR row was "psnr" where the pool's is "psnr (dB)"."""
     metrics = {"n_keyframes": (31.0, 1.0), "recall@5cm": (0.98, 0.0), "psnr": (30.0, 0.0)}
     ref_metrics = {"n_keyframes": (160.0, 5.0), "recall@5cm": (0.99, 0.0), "psnr": (30.2, 0.0)}
     folders = {}
@@ -144,6 +144,9 @@ def test_a_stream_verdict_gives_the_keyframes_to_spare_seed_by_seed_and_names_it
     assert [c.what for c in verdict.checks][1:] == ["recall@5cm", "psnr (dB)"]
     text = verdict.markdown()
     assert "| +1.0000 / +1.0000 |" in text and "margin, required and slack are keyframes" in text, text
+    assert "| 31.00 ± 1.00 | 160.00 ± 5.00 |" in text, text
+    few = bench(tmp_path / "few", "stream", {"n": {**metrics, "n_keyframes": (1.0, 0.0)}}, seeds=[0, 1])
+    assert "| 1.00 ± 0.00 | 160.00 ± 5.00 |" in stream_target(load_policy(few), load_policy(folders["ref"])).markdown()
 
 
 def test_the_summary_names_a_baselines_folder_when_two_share_its_label(tmp_path: Path) -> None:

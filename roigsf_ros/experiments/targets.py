@@ -451,9 +451,10 @@ class Verdict:
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for c in self.checks:
+            counts = c.what.startswith("keyframes")
             seeds = " / ".join(f"{m:+.4f}" for m in c.seed_margins)
             lines.append(
-                f"| {c.what} | `{c.against}` | {_pm(c.candidate)} | {_pm(c.other)} | {c.margin:+.5f} | "
+                f"| {c.what} | `{c.against}` | {_pm(c.candidate, counts)} | {_pm(c.other, counts)} | {c.margin:+.5f} | "
                 f"{c.required:+.5f} | {c.slack:+.5f} | {'yes' if c.met else 'no'} | {seeds} |"
             )
         if any(c.what.startswith("keyframes") for c in self.checks):
@@ -502,9 +503,9 @@ def _count_ranges(counts: tuple[int, ...]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def _pm(stat: tuple[float, float]) -> str:
-    """``mean ± std``: 4 decimals for scores, 2 for dB and counts."""
-    digits = 2 if abs(stat[0]) >= 2.0 else 4
+def _pm(stat: tuple[float, float], count: bool = False) -> str:
+    """``mean ± std``: 4 decimals for scores, 2 for dB and ``count``s (keyframes: 1 is 1.00 as 2 is, not 1.0000)."""
+    digits = 2 if count or abs(stat[0]) >= 2.0 else 4
     return f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}"
 
 
