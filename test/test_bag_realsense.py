@@ -387,3 +387,57 @@ def test_to_robot_of_a_robots_bag_says_to_map_it_as_it_is(
     assert "is missing" in err and "this one is already a robot's: map it as it is" in err, err
     assert "the bag has a RealSense camera's topics under /camera: try --realsense" in err
     assert not (tmp_path / "again").exists()
+
+
+def test_a_tf_child_frame_that_is_not_the_images_frame_is_said_by_bag_info_and_map(
+    rs_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--tf-child-frame camera_link`` on a robot's bag whose images are in ``camera_color_optical_frame``: every image
+    was placed at the link's pose (axes turned), F@5cm 0.000, and neither `bag info` ("150 complete and posed by TF")
+    nor `roigsf map` said a word. Both now name the two frames and what to set; the right frame says nothing, and the
+    run records how it read the bag (``camera_topics``)."""
+    argv = ["bag", "info", str(rs_bag), "--realsense", "--json"]
+    assert cli_main([*argv, "--tf-child-frame", "camera_link"]) == 0
+    note = json.loads(capsys.readouterr().out)["tf_child_frame_note"]
+    assert note is not None and note.startswith(
+        f"the poses are TF frame 'camera_link', but the images are in '{OPTICAL}'"
+    )
+    assert note.endswith(f"--tf-child-frame to '{OPTICAL}')"), note
+    assert cli_main(argv) == 0 and json.loads(capsys.readouterr().out)["tf_child_frame_note"] is None
+    common = ["--policy", "every-n", "--every-n", "3", "--iters-per-keyframe", "1", "--final-iters", "0",
+              "--no-progress", "--no-h-train", "--realsense"]  # fmt: skip
+    assert (
+        cli_main(["map", str(rs_bag), "--out", str(tmp_path / "wrong"), *common, "--tf-child-frame", "camera_link"])
+        == 0
+    )
+    assert f"TF: {note}; every figure is wrong" in capsys.readouterr().out
+    assert json.loads((tmp_path / "wrong" / "metrics.json").read_text())["tf_child_frame_note"] == note
+    assert cli_main(["map", str(rs_bag), "--out", str(tmp_path / "right"), *common]) == 0
+    assert "every figure is wrong" not in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "right" / "metrics.json").read_text())
+    assert metrics["tf_child_frame_note"] is None
+    assert metrics["camera_topics"]["pose_source"] == "tf" and metrics["camera_topics"]["tf_child_frame"] == OPTICAL
+
+
+def test_bench_reads_a_robots_bag_with_the_camera_options_and_rescores_it(
+    rs_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`roigsf bench` had none of `roigsf map`'s camera options: a robot's bag was refused ("topic
+    /camera/color/image_raw is missing") with no way round it, so neither `--rescore-ause` nor `roigsf targets` could
+    be tried on one. It takes them now, says "try --realsense" as map does, and a rescore reads the bag as the bench
+    did (``camera_topics`` in results.json)."""
+    out = tmp_path / "bench"
+    argv = ["bench", "--scene", str(rs_bag), "--setting", "stream", "--policies", "every-n:every_n=3", "--out",
+            str(out), "--set", "iters_per_keyframe=1", "--set", "final_iters=0", "--uncertainty-views", "2",
+            "--uncertainty-maps", "1", "--no-progress"]  # fmt: skip
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "is missing" in err and "try --realsense" in err and not out.exists(), err
+    assert cli_main([*argv, "--realsense"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["n_frames"] == N and results["camera_topics"]["pose_source"] == "tf"
+    capsys.readouterr()
+    assert cli_main(["bench", "--rescore-ause", "--out", str(out), "--realsense"]) == 2
+    assert "not used with --rescore-ause" in capsys.readouterr().err
+    assert cli_main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 0
+    assert json.loads((out / "results.json").read_text())["ause_rescore"]

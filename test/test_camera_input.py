@@ -778,6 +778,35 @@ def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(ros_context
         ), camera.stats()["last_rejection"]
 
 
+def test_a_tf_child_frame_apart_from_the_images_frame_is_warned_once_and_kept_in_the_stats(
+    ros_context: Any, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """``tf_child_frame`` a body frame (``cam``) while the images are in ``camera_color_optical_frame``, turned 90
+    degrees under it: every frame was delivered at the body's pose and mapped wrong without a word. The nodes now warn
+    once naming both frames and keep it in the camera's stats (``tf_child_frame_note``)."""
+    pytest.importorskip("tf2_msgs")
+    from tf2_msgs.msg import TFMessage
+
+    rig = _TfRig(ros_context, "apart", ({}, {}))
+    stamps = [T0_NS + k * 100_000_000 for k in range(3)]
+    turned = _rigid((0.0, 0.0, np.pi / 2), (0.0, 0.0, 0.0))
+
+    def optical_under_cam() -> None:
+        static = TFMessage(transforms=[_transform("cam", "camera_color_optical_frame", turned, T0_NS)])
+        for stamp in stamps:
+            rig.tf_pub.publish(TFMessage(transforms=[_transform("map", "cam", np.eye(4), stamp)]))
+        rig.tf_pub.publish(static)
+
+    rig.run([optical_under_cam, lambda: time.sleep(0.2), lambda: rig.images(stamps)], 3)
+    for camera, got in zip(rig.inputs, rig.got, strict=True):
+        assert len(got) == 3, camera.stats()
+        note = camera.stats()["tf_child_frame_note"]
+        assert note.startswith("the poses are TF frame 'cam', but the images are in 'camera_color_optical_frame', "
+                               "0.000 m and 90.0 deg from it"), note  # fmt: skip
+    warnings = [line for line in capfd.readouterr().err.splitlines() if "but the images are in" in line]
+    assert len(warnings) == 2, warnings  # once per input
+
+
 def test_each_kind_of_refused_transform_is_said_not_only_the_first(
     ros_context: Any, capfd: pytest.CaptureFixture[str]
 ) -> None:

@@ -534,10 +534,10 @@ def test_image_sizes_beyond_8192_px_a_side_are_refused_up_front(
 
 
 def test_options_are_taken_only_as_spelt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """argparse took any unique prefix of an option: ``roigsf map --cam FILE`` (``--cam`` is an option of ``bag`` and
-    ``scene render``, not of ``map``) was read as ``--camera-info-topic`` and silently ignored for a scene folder."""
+    """argparse took any unique prefix of an option: ``roigsf map --cam FILE`` (before ``map`` had ``--cam``) was read
+    as ``--camera-info-topic`` and silently ignored for a scene folder."""
     scene, o, b = str(tmp_path), str(tmp_path / "o"), str(tmp_path / "b")
-    for bad, args in (("--cam", ["map", scene, "--cam", "cam.json", "--out", o]),
+    for bad, args in (("--camera", ["map", scene, "--camera", "cam.json", "--out", o]),
                       ("--polic", ["bench", "--scene", scene, "--polic", "random", "--out", b])):  # fmt: skip
         with pytest.raises(SystemExit) as exc:
             main(args)

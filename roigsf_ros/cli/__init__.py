@@ -157,6 +157,26 @@ def realsense_hint(bag: Path, present: dict[str, str], given: str | None, named:
     return ""
 
 
+OVERRIDING_OPTIONS = ("color_topic", "depth_topic", "camera_info_topic", "color_transport", "depth_transport")
+"""The camera options that would override the names or transports ``--realsense`` sets."""
+
+
+def with_bag_hint(exc: InputError, args: argparse.Namespace, path: str | Path) -> InputError:
+    """``exc``, raised opening ``path`` with :func:`add_camera_options`' options, with ``roigsf demo``'s and ``roigsf
+    bag info``'s hint when ``path`` is a bag that holds a RealSense camera's topics: ``try --realsense`` (without the
+    options that would override it); ``exc`` itself for a folder or a bag without them.
+    """
+    from roigsf_ros.data.bags import AUTO, bag_topic_types
+
+    try:
+        present = bag_topic_types(path)
+    except (InputError, OSError):  # no bag (a scene folder, a path that does not exist): no hint
+        return exc
+    named = tuple(f"--{o.replace('_', '-')}" for o in OVERRIDING_OPTIONS if getattr(args, o) not in (None, AUTO))
+    hint = realsense_hint(Path(path), present, args.realsense, named)
+    return InputError(exc.where, exc.problem + hint) if hint else exc
+
+
 NO_OWN_MESH = "no --gt-mesh, and no mesh.ply in the source's folder nor NAME_mesh.ply beside it"
 """Why a run without ``--gt-mesh`` has no mesh metrics (:func:`roigsf_ros.data.replica.scene_gt_mesh` found none)."""
 
@@ -215,13 +235,15 @@ def command_line(command: str) -> str | None:
 
 def metric_notes(metrics: dict[str, Any]) -> list[str]:
     """Lines under a run's table that say what its figures count: a TF frame that changed parent (its poses may be
-    wrong), recall and completion against the GT in view of the run's poses (a 4-frame run's recall 0.998 read as a
-    whole room's), and why PSNR/SSIM are missing.
+    wrong), poses of another frame than the images', recall and completion against the GT in view of the run's poses
+    (a 4-frame run's recall 0.998 read as a whole room's), and why PSNR/SSIM are missing.
     """
     notes = []
     if metrics.get("tf_reparented"):
         notes.append(f"TF: {metrics.get('tf_reparent_note')} ({metrics['tf_reparented']} change(s) of parent): the "
                      "poses, and every figure, may be wrong")  # fmt: skip
+    if metrics.get("tf_child_frame_note"):
+        notes.append(f"TF: {metrics['tf_child_frame_note']}; every figure is wrong")
     seen = metrics.get("gt_observed_fraction")
     if seen is not None and not str(metrics.get("gt_culling", "none")).startswith("none"):
         notes.append(f"recall and completion count the GT in view of the run's poses: {seen:.0%} of the GT mesh "

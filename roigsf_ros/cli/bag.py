@@ -258,6 +258,8 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"no TF pose:   {info['no_tf_reason']}")
     if info.get("tf_reparented"):
         lines.append(f"TF warning:   {info['tf_reparent_note']} ({info['tf_reparented']} change(s) of parent)")
+    if info.get("tf_child_frame_note"):
+        lines.append(f"TF warning:   {info['tf_child_frame_note']}")
     if refused:
         lines.append(f"refused:      {info['refused_reason']}")
     if info.get("frames_repeating_stamp"):

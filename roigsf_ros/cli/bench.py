@@ -17,7 +17,15 @@ import logging
 from dataclasses import fields, replace
 from pathlib import Path
 
-from roigsf_ros.cli import check_out, command_line, image_size
+from roigsf_ros.cli import (
+    add_camera_options,
+    camera_options,
+    camera_topics,
+    check_out,
+    command_line,
+    image_size,
+    with_bag_hint,
+)
 from roigsf_ros.cli.map import parse_overrides
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.experiments.bench import BENCH_OUTPUT, BenchConfig, parse_policies, rescore_ause, run_bench
@@ -86,6 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="override a PoolConfig field, e.g. --pool-set n_views=20 --pool-set pool_stride=2 (repeatable; a list "
         "value comma-separated, e.g. --pool-set mesh_checkpoints=4,8)",
     )
+    add_camera_options(p)
     p.set_defaults(func=run)
 
 
@@ -114,6 +123,7 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
         test_scene=args.test_scene,
         uncertainty_views=6 if args.uncertainty_views is None else args.uncertainty_views,
         uncertainty_maps=3 if args.uncertainty_maps is None else args.uncertainty_maps,
+        topics=camera_topics(args),
     ).validate()
 
 
@@ -122,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.rescore_ause:
         given = [f for f, v in (("--setting", args.setting), ("--policies", args.policies)) if v is not None]
+        given += [f"--{o.replace('_', '-')}" for o in camera_options(args)]
+        given += ["--realsense"] if args.realsense is not None else []
         if given:
             raise InputError(" ".join(given), "not used with --rescore-ause (the bench's own are rescored)")
         rescore_ause(args.out, scene=args.scene, uncertainty_views=args.uncertainty_views,
@@ -137,6 +149,10 @@ def run(args: argparse.Namespace) -> int:
     check_out(
         args.out, args.overwrite, out["marks"], out["what"], [args.scene, args.gt_mesh, args.test_scene], out["own"]
     )
-    run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command_line("bench"))
+    try:
+        run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command_line("bench"))
+    except InputError as exc:  # a bag read with the wrong camera options: the RealSense hint, as roigsf map gives
+        scene = next((p for p in (args.scene, args.test_scene) if p is not None and str(exc.where) == str(p)), None)
+        raise (with_bag_hint(exc, args, scene) if scene is not None else exc) from None
     print((args.out / "results.md").read_text())
     return 0

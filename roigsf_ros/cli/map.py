@@ -18,10 +18,10 @@ from roigsf_ros.cli import (
     command_line,
     image_size,
     metric_notes,
-    realsense_hint,
+    with_bag_hint,
 )
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
+from roigsf_ros.data.bags import CameraTopics
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
@@ -288,28 +288,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-_OVERRIDING_OPTIONS = ("color_topic", "depth_topic", "camera_info_topic", "color_transport", "depth_transport")
-"""The camera options that would override the names or transports ``--realsense`` sets."""
-
-
 def _open(args: argparse.Namespace, path: str | Path, topics: CameraTopics, **kwargs: Any) -> FrameSource:
-    """:func:`open_frames` of ``path``; a bag it reads no frame of gets ``roigsf demo``'s and ``roigsf bag info``'s
-    hint when it holds a RealSense camera's topics: ``try --realsense`` (without the options that would override it).
-    """
+    """:func:`open_frames` of ``path``; a bag it reads no frame of gets the RealSense hint (:func:`with_bag_hint`)."""
     try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
         return open_frames(path, topics=topics, cam=args.cam, **kwargs)
     except InputError as exc:
         if args.cam is not None:  # a bag given --cam: the refusal says what to do, no RealSense hint
             raise
-        try:
-            present = bag_topic_types(path)
-        except (InputError, OSError):  # no bag (a scene folder, a path that does not exist): no hint
-            raise exc from None
-        named = tuple(f"--{o.replace('_', '-')}" for o in _OVERRIDING_OPTIONS if getattr(args, o) not in (None, AUTO))
-        hint = realsense_hint(Path(path), present, args.realsense, named)
-        if not hint:
-            raise
-        raise InputError(exc.where, exc.problem + hint) from None
+        raise with_bag_hint(exc, args, path) from None
 
 
 _SKIPPED_KEYS = (

@@ -580,6 +580,40 @@ def header_frame_id(rawdata: bytes | memoryview) -> str:
         return ""
 
 
+CHILD_FRAME_TOLERANCE = (1e-3, 0.1)
+"""(metres, degrees): how far TF's ``tf_child_frame`` may sit from the images' own frame before
+:func:`child_frame_mismatch` says so (a frame published twice under two names is no mistake)."""
+
+
+def child_frame_mismatch(
+    tf: TransformBuffer, parent: str, child: str, image_frame_id: str, stamp_ns: int, T_child: np.ndarray
+) -> str:
+    """What is wrong when the images' frame is another TF frame than ``child`` and sits apart from it, else "".
+
+    ``T_child``: ``child``'s pose in ``parent`` at ``stamp_ns``. With ``--tf-child-frame camera_link`` on a RealSense
+    bag whose images are in ``camera_color_optical_frame``, every image was placed at the link's pose (axes turned
+    90 degrees): F@5cm 0.000 and no word. An images' frame TF does not know is no mistake: ``tf_child_frame`` then
+    stands in for it, which is what it is for.
+    """
+    image = image_frame_id.lstrip("/")
+    if not image or image == child.lstrip("/"):
+        return ""
+    try:
+        T_image = tf.lookup(parent, image, stamp_ns)
+    except (TransformUnavailableError, InputError):
+        return ""
+    rel = np.linalg.inv(T_child) @ T_image
+    dist = float(np.linalg.norm(rel[:3, 3]))
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(rel[:3, :3])) - 1.0) / 2.0))))
+    if dist <= CHILD_FRAME_TOLERANCE[0] and angle <= CHILD_FRAME_TOLERANCE[1]:
+        return ""
+    return (
+        f"the poses are TF frame '{child.lstrip('/')}', but the images are in '{image}', {dist:.3f} m and "
+        f"{angle:.1f} deg from it: every image is placed at the wrong pose (set tf_child_frame / --tf-child-frame to "
+        f"'{image}')"
+    )
+
+
 def child_frame_hint(image_frame_id: str, tf_child_frame: str) -> str:
     """The hint after an unknown child frame's TF error: the frame the images are in, when it is another one."""
     image_frame_id = image_frame_id.lstrip("/")
@@ -838,6 +872,10 @@ class BagReader:
         self.tf_reparented = 0
         """Times a frame of the TF tree changed parent (:attr:`roigsf_ros.data.tf.TransformBuffer.reparent_note`)."""
         self.tf_reparent_note = ""
+        self.child_frame_note = ""
+        """Set at the first posed frame when the images' frame is another TF frame than ``tf_child_frame``, apart from
+        it (:func:`child_frame_mismatch`): the poses are then not the images'."""
+        self._child_checked = False
         self.repeated_stamps: list[int] = []
         """Stamps of the complete, posed frames skipped because a frame read before had the same stamp."""
         self.stamps_back = 0
@@ -989,6 +1027,12 @@ class BagReader:
                 self.last_tf_error = str(exc)
                 continue
             waiting.popleft()
+            if not self._child_checked:  # once: the first posed frame's images against the frame TF gave
+                self._child_checked = True
+                image_frame = header_frame_id(parts[t.color][1])
+                self.child_frame_note = child_frame_mismatch(
+                    tf, t.tf_parent_frame, t.tf_child_frame, image_frame, stamp, T_wc
+                )
             yield stamp, parts, T_wc
 
     def _convert(self, stamp: int, parts: dict[str, tuple[Any, bytes]], T_wc: np.ndarray | None) -> BagFrame:
@@ -1109,7 +1153,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             stamps = reader.messages(connections=camera) if camera else ()
             incomplete = len({header_stamp_ns(raw) for _, _, raw in stamps})
     frames = refused = no_tf = repeated = back = reparented = 0
-    reason = refusal = first_back = first_other = reparent_note = ""
+    reason = refusal = first_back = first_other = reparent_note = child_note = ""
     other: list[int] = []  # places (in the bag's order) of frames not at the first frame's size
     if not missing:
         with BagReader(path, requested, skip_refused=True) as frame_reader:
@@ -1128,6 +1172,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
             reason, refusal = frame_reader.last_tf_error, frame_reader.refusal_reasons
             repeated, back = len(frame_reader.repeated_stamps), frame_reader.stamps_back
             reparented, reparent_note = frame_reader.tf_reparented, frame_reader.tf_reparent_note
+            child_note = frame_reader.child_frame_note
             if frame_reader.first_back is not None:
                 place, stamp, before = frame_reader.first_back
                 first_back = f"frame {place} (in the bag's order) at {stamp / 1e9:.3f} s, after {before / 1e9:.3f} s"
@@ -1161,6 +1206,7 @@ def bag_info(path: str | Path, topics: CameraTopics | None = None, decode: bool 
         "no_tf_reason": reason if t.uses_tf and no_tf else None,
         "tf_reparented": reparented if t.uses_tf else None,
         "tf_reparent_note": reparent_note or None,
+        "tf_child_frame_note": child_note or None,
         "frames_refused": refused if decode else None,
         "refused_reason": refusal if decode and refused else None,
         "incomplete_stamps": incomplete,
@@ -1215,6 +1261,7 @@ __all__ = [
     "CAMERA_FRAME_ID",
     "CAMERA_INFO_TOPIC",
     "CAMERA_INFO_TYPE",
+    "CHILD_FRAME_TOLERANCE",
     "COLOR_ENCODINGS",
     "COLOR_TOPIC",
     "COLOR_TRANSPORTS",
@@ -1246,6 +1293,7 @@ __all__ = [
     "camera_info_msg",
     "camera_info_to_intrinsics",
     "child_frame_hint",
+    "child_frame_mismatch",
     "compressed_to_depth_m",
     "compressed_to_rgb",
     "depth_to_image_data",

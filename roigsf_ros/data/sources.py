@@ -75,6 +75,11 @@ class FrameSource:
         self.tf_reparented = 0
         """Times a TF frame changed parent on the last full pass (poses through it moved; ``tf_reparent_note``)."""
         self.tf_reparent_note = ""
+        self.tf_child_frame_note = ""
+        """Why the poses are not the images' (``tf_child_frame`` is another frame than theirs), else ""."""
+        self.camera_topics: CameraTopics | None = None
+        """How a bag's camera was read, resolved against the bag (transports found, pose source, TF frames); None for a
+        folder. Outputs record it: a wrong choice (a TF frame that is not the camera's) shows there."""
 
     def __len__(self) -> int:
         return self.n_frames
@@ -155,6 +160,7 @@ class BagFrameSource(FrameSource):
         """Indices of the bag frames given (those skipped too): every stride-th, at most ``max_frames``."""
         intr = native.resized(*size) if size is not None else native
         super().__init__(path, intr, len(self.kept), scene_gt_mesh(path))
+        self.camera_topics = resolved
 
     def index_of(self, stamp_ns: int) -> int:
         """The bag frame index of a frame's stamp (its position in the sorted colour stamps)."""
@@ -217,6 +223,7 @@ class BagFrameSource(FrameSource):
                 self.skipped_incomplete = len(missing)
             self.no_tf_reason = reader.last_tf_error if self.skipped_no_tf else ""
             self.tf_reparented, self.tf_reparent_note = reader.tf_reparented, reader.tf_reparent_note
+            self.tf_child_frame_note = reader.child_frame_note
             self.skipped_refused = sum(1 for k in self.kept if k in refused)
             self.refused_reason = "; ".join([*reasons, *([resized_reason] if resized else [])])
 

@@ -14,6 +14,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "STREAM_ONLY",
             "SUMMARY_KEYS",
             "UncertaintyStudy",
+            "bench_topics",
             "fisherrf_uncertainty_maps",
             "parse_policies",
             "policy_identity",

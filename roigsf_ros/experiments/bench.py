@@ -27,7 +27,7 @@ import platform
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, check_writable, read_json, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
+from roigsf_ros.data.bags import CameraTopics
 from roigsf_ros.data.sources import FrameSource, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool, selectable_positions
@@ -293,6 +294,9 @@ class BenchConfig(Config):
     test_scene: Path | None = None
     """Stream: frames no policy sees (same camera; resized like the scene), evaluated for every run: one test set
     for all policies, where the non-keyframes differ from one policy to the next."""
+    topics: CameraTopics | None = None
+    """How a bag scene (and a bag test scene) is read: topics, transports, pose from a topic or TF, as ``roigsf map``'s
+    camera options say (a robot's bag: ``--realsense``); None: the default names, raw images."""
 
     def validate(self) -> BenchConfig:
         """Self, or InputError naming the bad field."""
@@ -325,11 +329,14 @@ class BenchConfig(Config):
 
     def source(self) -> FrameSource:
         """The frame source every run reads (the same frames, sizes and stride for all)."""
-        return open_frames(self.scene, size=self.size, stride=self.stride, max_frames=self.max_frames)
+        return open_frames(self.scene, size=self.size, stride=self.stride, max_frames=self.max_frames,
+                           topics=self.topics)  # fmt: skip
 
     def test_source(self) -> FrameSource | None:
         """The test scene's frames at the scene's size (all of them), or None."""
-        return open_frames(self.test_scene, size=self.size) if self.test_scene is not None else None
+        if self.test_scene is None:
+            return None
+        return open_frames(self.test_scene, size=self.size, topics=self.topics)
 
 
 def versions() -> dict[str, str]:
@@ -506,6 +513,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
             "pool_config": cfg.pool.to_dict() if cfg.setting == "pool" else None,
             "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
             "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
+            "camera_topics": asdict(source.camera_topics) if source.camera_topics is not None else None,  # a bag's
             "uncertainty_views": cfg.uncertainty_views,
             "uncertainty_maps": cfg.uncertainty_maps,
             "versions": versions(),
@@ -575,13 +583,27 @@ def _bench_scene(results: dict[str, Any]) -> Path:
     return given
 
 
+def bench_topics(results: dict[str, Any]) -> CameraTopics | None:
+    """How the bench read its bag (``camera_topics`` of its results.json; None: the defaults, as before it was kept);
+    InputError naming the field when it is not what :class:`CameraTopics` takes.
+    """
+    given = results.get("camera_topics")
+    if given is None:
+        return None
+    try:
+        return CameraTopics(**given)
+    except (TypeError, InputError) as exc:
+        raise InputError("results.json", f"field 'camera_topics': {exc}") from None
+
+
 def _open_bench_frames(results: dict[str, Any], scene: Path) -> list[Frame]:
     """The frames the bench ran on: its scene, stride and frame cap, resized only if it was."""
     stride, max_frames = int(results["stride"]), results["max_frames"]
-    source = open_frames(scene, stride=stride, max_frames=max_frames)
+    topics = bench_topics(results)
+    source = open_frames(scene, stride=stride, max_frames=max_frames, topics=topics)
     want = (int(results["size"][0]), int(results["size"][1]))
     if (source.intrinsics.width, source.intrinsics.height) != want:
-        source = open_frames(scene, size=want, stride=stride, max_frames=max_frames)
+        source = open_frames(scene, size=want, stride=stride, max_frames=max_frames, topics=topics)
     frames = list(source)
     if len(frames) != int(results["n_frames"]):
         raise InputError(scene, f"{len(frames)} frames (stride {stride}) but the bench ran on {results['n_frames']}")
@@ -705,6 +727,7 @@ __all__ = [
     "BenchConfig",
     "PolicySpec",
     "UncertaintyStudy",
+    "bench_topics",
     "fisherrf_uncertainty_maps",
     "parse_policies",
     "policy_identity",

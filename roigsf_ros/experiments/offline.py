@@ -253,6 +253,9 @@ def run_offline(
     reparent_note = str(getattr(source, "tf_reparent_note", "")) if reparented else ""
     if reparented:  # every pose through that frame may be wrong, and nothing else would show it
         log.warning("%s: TF %s (%d change(s) of parent)", getattr(source, "path", "source"), reparent_note, reparented)
+    child_note = str(getattr(source, "tf_child_frame_note", ""))
+    if child_note:  # the poses are another frame's than the images': every figure is wrong
+        log.warning("%s: %s", getattr(source, "path", "source"), child_note)
     skipped = skipped_no_tf + skipped_incomplete + skipped_refused + skipped_repeated
     if skipped:
         log.warning(
@@ -318,6 +321,7 @@ def run_offline(
         "source": str(getattr(source, "path", "in memory")),
         "image_size": [source.intrinsics.width, source.intrinsics.height],
         "command": command,
+        "camera_topics": asdict(topics) if (topics := getattr(source, "camera_topics", None)) is not None else None,
         "policy": policy.name,
         "policy_params": policy.params(),
         "n_frames": len(is_keyframe),
@@ -336,6 +340,7 @@ def run_offline(
         "frames_skipped_no_tf_reason": no_tf_reason or None,
         "tf_reparented": reparented,
         "tf_reparent_note": reparent_note or None,
+        "tf_child_frame_note": child_note or None,
         "frames_skipped_refused": skipped_refused,
         "frames_skipped_refused_reason": refused_reason or None,
         "frames_skipped_incomplete": skipped_incomplete,

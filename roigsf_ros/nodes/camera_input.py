@@ -58,6 +58,7 @@ from roigsf_ros.data.bags import (
     assemble_frame,
     assemble_images,
     child_frame_hint,
+    child_frame_mismatch,
     resized_frame,
     stamp_to_ns,
     transport_topic,
@@ -223,6 +224,7 @@ class _AwaitingPose:
     depth_m: np.ndarray  # [H, W] float32 metres
     intrinsics: Intrinsics
     since: float  # time.monotonic() when it completed
+    image_frame: str = ""  # the colour image's header frame_id (child_frame_mismatch)
 
 
 class CameraInput:
@@ -258,6 +260,11 @@ class CameraInput:
         """Messages received per topic (every subscribed topic listed, 0 until its first message)."""
         self._in_callback = 0  # messages received whose callback (and the frame it completed) is still running
         self.tf_rejected = 0
+        self.child_frame_note = ""
+        """Why the poses are not the images' (``tf_child_frame`` another frame than theirs), from the first posed frame;
+        warned once and kept in :meth:`counts`."""
+        self._child_checked = False
+        self._child_warned = False
         """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.last_rejection = ""
         """The full text of the last frame's conversion error (the counters hold only its category)."""
@@ -358,7 +365,8 @@ class CameraInput:
         ``duplicate_stamp``, ``out_of_order`` and ``frames_missed_estimate`` (none of its messages
         arrived: stamp gaps) -- see :class:`roigsf_ros.data.sync.FrameLedger`. Messages: ``received``
         and ``missed_estimate`` (estimated lost before they arrived) per topic; ``tf_rejected``; ``tf_reparented``
-        (TF frames that changed parent: the poses through them moved); ``in_callback``,
+        (TF frames that changed parent: the poses through them moved); ``tf_child_frame_note`` (the poses are another
+        frame's than the images', :func:`~roigsf_ros.data.bags.child_frame_mismatch`); ``in_callback``,
         callbacks still running that may deliver a frame (a message's, counted in ``received`` first, or the TF
         expiry timer's), with the ``on_frame`` calls they make.
         """
@@ -379,6 +387,7 @@ class CameraInput:
                 "missed_estimate": {topic: g.missed for topic, g in self._gaps.items()},
                 "tf_rejected": self.tf_rejected,
                 "tf_reparented": 0 if self._tf is None else self._tf.reparented,
+                "tf_child_frame_note": self.child_frame_note,
                 "last_rejection": self.last_rejection,
                 "qos_incompatible": dict(self.qos_incompatible),
             }
@@ -544,7 +553,8 @@ class CameraInput:
             else:
                 rgb, depth_m, intr = assemble_images(parts[t.color], parts[t.depth], parts[t.camera_info], t, where)
                 small = self._downscale(BagFrame(stamp, rgb, depth_m, np.eye(4), intr))
-                awaiting = _AwaitingPose(stamp, small.rgb, small.depth_m, small.intrinsics, time.monotonic())
+                awaiting = _AwaitingPose(stamp, small.rgb, small.depth_m, small.intrinsics, time.monotonic(),
+                                         str(parts[t.color].header.frame_id))  # fmt: skip
         except InputError as exc:
             self._reject(exc, stamp)
             return
@@ -610,7 +620,15 @@ class CameraInput:
                     dropped.append(exc)
                     continue
                 self._awaiting.popleft()
+                if not self._child_checked:  # once: the first posed frame's images against the frame TF gave
+                    self._child_checked = True
+                    note = child_frame_mismatch(self._tf, t.tf_parent_frame, t.tf_child_frame, a.image_frame,
+                                                a.stamp_ns, T_wc)  # fmt: skip
+                    self.child_frame_note = note
                 ready.append(BagFrame(a.stamp_ns, a.rgb, a.depth_m, T_wc, a.intrinsics))
+        if ready and self.child_frame_note and not self._child_warned:
+            self._child_warned = True
+            self.node.get_logger().warning(f"TF: {self.child_frame_note}")
         if dropped:
             with self._lock:
                 total = sum(self._ledger.counts()["rejected"].values())  # type: ignore[union-attr]
