@@ -398,6 +398,7 @@ def test_demo_maps_a_robot_bag_with_realsense(tmp_path: Path, capsys: pytest.Cap
     assert (metrics["n_frames"], metrics["frames_received"], metrics["dropped_frames"]) == (6, 6, 0), metrics
     assert (metrics["keyframes_published"], metrics["n_keyframes"], metrics["keyframes_in_bag"]) == (6, 6, 6)
     assert metrics["keyframes_not_mapped"] == 0
+    assert metrics["tf_child_frame_note"] is None and metrics["camera_topics"]["pose_source"] == "tf", metrics
 
 
 def test_demo_names_the_bag_frames_tf_does_not_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -37,6 +37,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -434,6 +435,7 @@ def run_demo(
         no_tf_reason = reader.last_tf_error if no_tf else ""
         refused, refusal = reader.refused, reader.refusal_reasons
         reparented, reparent_note = reader.tf_reparented, reader.tf_reparent_note
+        child_note = reader.child_frame_note
     if not frames:
         why = f" ({refused} refused: {refusal})" if refused else ""
         raise InputError(bag, f"no complete frame on {', '.join(camera.topics.types())}{why}")
@@ -551,6 +553,8 @@ def run_demo(
         "bag_frames_refused_reason": refusal,
         "tf_reparented": reparented,  # a TF frame changed parent: the poses through it moved (metric_notes says it)
         "tf_reparent_note": reparent_note or None,
+        "tf_child_frame_note": child_note or None,  # the poses are another frame's than the images' (metric_notes)
+        "camera_topics": asdict(reader.topics),  # how the bag was read, resolved against it
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],
