@@ -441,3 +441,16 @@ def test_bench_reads_a_robots_bag_with_the_camera_options_and_rescores_it(
     assert "not used with --rescore-ause" in capsys.readouterr().err
     assert cli_main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 0
     assert json.loads((out / "results.json").read_text())["ause_rescore"]
+
+
+def test_a_test_scene_is_read_with_the_sources_camera_options_and_its_error_says_so(
+    raw_bag: Path, rs_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`roigsf map ROBOT_BAG --realsense --test-scene CAMERA_BAG` failed on "depth topic ... is missing" naming neither
+    --test-scene nor why: the camera options apply to it too. The error says so, and the way round."""
+    out = tmp_path / "run"
+    argv = ["map", str(rs_bag), "--realsense", "--test-scene", str(raw_bag), "--out", str(out), "--no-progress"]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "is missing" in err and "(--test-scene is read with the source's camera options" in err, err
+    assert "`roigsf bag to-robot`" in err and not out.exists()

@@ -290,6 +290,45 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     assert len(seen) == 1
 
 
+def test_allow_partial_reaches_the_test_scene_and_bench_says_the_way_round(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`roigsf map SRC --test-scene PARTIAL --allow-partial` refused the test scene with "needs --allow-partial", the
+    option given (it reached the source only); `roigsf bench` on a partial download said "needs allow_partial=True",
+    a Python argument, with no option to pass."""
+    import roigsf_ros.cli.map
+    from roigsf_ros.core.errors import InputError
+
+    traj = tiny_scene / "traj.txt"
+    lines = traj.read_text().splitlines(keepends=True)
+    traj.write_text("".join([*lines, lines[0]]))
+    seen = []
+
+    def record(source: object, *_args: object, test_source: object = None, **_kw: object) -> None:
+        seen.append(test_source)
+        raise InputError("stub", "the mapping itself is not under test")
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    argv = ["map", str(tiny_scene), "--test-scene", str(tiny_scene), "--out", str(tmp_path / "o"), "--no-progress"]
+    assert main([*argv, "--allow-partial"]) == 2
+    assert len(seen) == 1 and seen[0] is not None and len(seen[0]) == 2, seen  # type: ignore[arg-type]
+    capsys.readouterr()
+    bench = [
+        "bench",
+        "--scene",
+        str(tiny_scene),
+        "--setting",
+        "stream",
+        "--policies",
+        "all",
+        "--out",
+        str(tmp_path / "b"),
+    ]
+    assert main(bench) == 2
+    err = capsys.readouterr().err
+    assert "make a bag of the frames there with `roigsf bag from-replica DIR --allow-partial`" in err, err
+
+
 def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

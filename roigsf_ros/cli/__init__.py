@@ -360,7 +360,10 @@ API_OPTIONS = {"overwrite=True": "--overwrite", "allow_partial=True": "--allow-p
 """The library's words for an argument in its errors -> the command line's option, for a command that has it."""
 
 
-API_ELSEWHERE = {"cam=PATH": "make a bag of the folder with `roigsf bag from-replica DIR --cam PATH`"}
+API_ELSEWHERE = {
+    "cam=PATH": "make a bag of the folder with `roigsf bag from-replica DIR --cam PATH`",
+    "allow_partial=True": "make a bag of the frames there with `roigsf bag from-replica DIR --allow-partial`",
+}
 """The command line's way round an API argument a command does not have (``roigsf bench`` has no ``--cam``)."""
 
 

@@ -262,9 +262,12 @@ def run(args: argparse.Namespace) -> int:
                    allow_partial=args.allow_partial)  # fmt: skip
     eval_source = None
     if args.eval_against is not None:
-        eval_source = _open(args, args.eval_against, topics, size=size, stride=args.stride,
-                            max_frames=args.max_frames, allow_partial=args.allow_partial)  # fmt: skip
-    test_source = _open(args, args.test_scene, topics, size=size) if args.test_scene is not None else None
+        eval_source = _open(args, args.eval_against, topics, size=size, stride=args.stride, max_frames=args.max_frames,
+                            allow_partial=args.allow_partial, option="--eval-against")  # fmt: skip
+    test_source = None
+    if args.test_scene is not None:
+        test_source = _open(args, args.test_scene, topics, size=size, allow_partial=args.allow_partial,
+                            option="--test-scene")  # fmt: skip
     gt_mesh, no_mesh = chosen_gt_mesh(args.gt_mesh, source.gt_mesh_path)
     metrics = run_offline(
         source,
@@ -288,14 +291,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open(args: argparse.Namespace, path: str | Path, topics: CameraTopics, **kwargs: Any) -> FrameSource:
-    """:func:`open_frames` of ``path``; a bag it reads no frame of gets the RealSense hint (:func:`with_bag_hint`)."""
+def _open(
+    args: argparse.Namespace, path: str | Path, topics: CameraTopics, option: str = "", **kwargs: Any
+) -> FrameSource:
+    """:func:`open_frames` of ``path``; a bag it reads no frame of gets the RealSense hint (:func:`with_bag_hint`).
+
+    ``option``: the option that named ``path`` when it is not the source (``--test-scene``): its error says that the
+    camera options and ``--allow-partial`` apply to it too, so a camera bag beside a robot's is read with the robot's.
+    """
     try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
         return open_frames(path, topics=topics, cam=args.cam, **kwargs)
     except InputError as exc:
-        if args.cam is not None:  # a bag given --cam: the refusal says what to do, no RealSense hint
-            raise
-        raise with_bag_hint(exc, args, path) from None
+        error = exc if args.cam is not None else with_bag_hint(exc, args, path)  # a bag given --cam: no hint
+        if option:
+            error = InputError(error.where, f"{error.problem} ({option} is read with the source's camera options: "
+                               "a camera bag beside a robot's can be made one with `roigsf bag to-robot`)")  # fmt: skip
+        raise error from None
 
 
 _SKIPPED_KEYS = (

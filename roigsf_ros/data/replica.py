@@ -222,7 +222,7 @@ class ReplicaSequence:
             why = f"{len(gaps)} frame(s) missing between frame 0 and frame {self.indices[-1]}: {shown}"
             if not allow_partial:
                 raise InputError(self.results, f"{why} (frames left out on purpose need allow_partial=True)")
-            _LOG.warning("%s: %s; read without them (allow_partial)", self.results, why)
+            _LOG.warning("%s: %s; read without them (a partial download, accepted)", self.results, why)
         if len(all_poses) != len(self.indices) and not allow_partial:
             raise InputError(
                 traj_path,
@@ -230,8 +230,8 @@ class ReplicaSequence:
                 "(line count must match the frames; a partial download needs allow_partial=True)",
             )
         if len(all_poses) != len(self.indices):  # said, so that a run over 4 of 2000 frames does not pass unnoticed
-            _LOG.warning("%s: %d frames on disk of the %d poses in traj.txt; reading those (allow_partial)",
-                         self.results, len(self.indices), len(all_poses))  # fmt: skip
+            _LOG.warning("%s: %d frames on disk of the %d poses in traj.txt; reading those (a partial download, "
+                         "accepted)", self.results, len(self.indices), len(all_poses))  # fmt: skip
         self.poses = all_poses[self.indices]
         self.native = native
         self.intrinsics = native.resized(*size) if size is not None else native
