@@ -590,3 +590,16 @@ def test_the_quality_plot_ticks_whole_view_counts(tmp_path: Path, monkeypatch: p
     report_module.plot_quality(results, tmp_path / "q.png")
     ticks = [t for ax in saved[0].axes for t in ax.get_xticks() if 1 <= t <= 4]
     assert ticks and all(float(t).is_integer() for t in ticks), ticks
+
+
+def test_the_report_says_how_many_views_the_ause_study_held_out_where_fewer_than_asked() -> None:
+    """A 4-frame stream bench's results.md said "AUSE ... on 6 held-out views per run" for runs scored on 2 and 3
+    (all their non-keyframes): the number asked, not the number used."""
+    runs = [
+        {"label": "gaus-slam", "uncertainty_per_view": [{}] * 2},
+        {"label": "random", "uncertainty_per_view": [{}] * 3},
+    ]
+    said = report_module._ause_views({"uncertainty_views": 6, "runs": runs})
+    assert said == "6 held-out views per run (fewer where a run had fewer to hold out: gaus-slam 2, random 3)"
+    full = [{"label": "a", "uncertainty_per_view": [{}] * 6}]
+    assert report_module._ause_views({"uncertainty_views": 6, "runs": full}) == "6 held-out views per run"

@@ -118,8 +118,7 @@ def markdown(results: dict[str, Any]) -> str:
                 " a matter of which frames were keyframes; the rest the map saw and does not render)"
             )
     lines.append(
-        f"- AUSE: pixel uncertainty vs |depth error| on {results.get('uncertainty_views', '?')} held-out views per run"
-        " (lower is better), mean over views"
+        f"- AUSE: pixel uncertainty vs |depth error| on {_ause_views(results)} (lower is better), mean over views"
     )
     rescore = results.get("ause_rescore")
     if rescore:
@@ -146,6 +145,19 @@ def markdown(results: dict[str, Any]) -> str:
                     lines.append(f"| {p['label']} | {label} | " + " | ".join(cells) + " |")
     lines.append("")
     return "\n".join(lines)
+
+
+def _ause_views(results: dict[str, Any]) -> str:
+    """``6 held-out views per run``, with what the runs had where it is fewer: a 4-frame stream has 2 or 3
+    non-keyframes to hold out, and the report said 6 (the number asked) for runs scored on 2 and on 3.
+    """
+    asked = results.get("uncertainty_views", "?")
+    runs = [r for r in results.get("runs") or [] if isinstance(r, dict) and "uncertainty_per_view" in r]
+    had = {(r.get("label"), len(r["uncertainty_per_view"] or [])) for r in runs}
+    if not runs or {n for _, n in had} == {asked}:
+        return f"{asked} held-out views per run"
+    fewer = ", ".join(f"{label} {n}" for label, n in sorted(had, key=lambda x: (str(x[0]), x[1])) if n != asked)
+    return f"{asked} held-out views per run (fewer where a run had fewer to hold out: {fewer})"
 
 
 def parse_markdown_table(text: str, header_start: str = "| Policy | #views") -> dict[str, dict[str, str]]:
