@@ -384,8 +384,14 @@ def test_to_robot_of_a_robots_bag_says_to_map_it_as_it_is(
     word of what to do instead: it needs no rewriting, only ``--realsense`` to be read."""
     assert cli_main(["bag", "to-robot", str(rs_bag), "--out", str(tmp_path / "again"), "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "is missing" in err and "this one is already a robot's: map it as it is" in err, err
-    assert "the bag has a RealSense camera's topics under /camera: try --realsense" in err
+    assert "is missing" in err and "this one is already a robot's, to be read as it is" in err, err
+    # to-robot has no --realsense: the hint names the command that has it (it said "try --realsense")
+    assert (
+        f"the bag has a RealSense camera's topics under /camera: map it with `roigsf map {rs_bag} --realsense`" in err
+    )
+    assert cli_main(["map", str(rs_bag), "--realsense", "/camera/camera", "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err  # --realsense typed with another namespace: the one to give is written out
+    assert err.rstrip().endswith("under /camera: try --realsense /camera"), err
     assert not (tmp_path / "again").exists()
 
 

@@ -133,11 +133,15 @@ def camera_topics(args: argparse.Namespace) -> CameraTopics:
         raise InputError(_CAMERA_OPTIONS.get(exc.where, exc.where), exc.problem) from None
 
 
-def realsense_hint(bag: Path, present: dict[str, str], given: str | None, named: tuple[str, ...] = ()) -> str:
+def realsense_hint(
+    bag: Path, present: dict[str, str], given: str | None, named: tuple[str, ...] = (), command: str = ""
+) -> str:
     """``; the bag has a RealSense camera's topics under NS: try --realsense NS`` when the bag (its ``{topic: type}``
     ``present``) holds a RealSense camera's topics not under ``given`` (the ``--realsense`` typed), else "": the hint of
     ``roigsf demo`` and ``roigsf map`` when they read no frame. ``named``: options typed that would override the
-    RealSense names or transports (``--color-transport``), which the hint says to leave out.
+    RealSense names or transports (``--color-transport``), which the hint says to leave out. ``command``: the command
+    that takes the option, for a command that has none (``roigsf bag to-robot``): ``map it with `COMMAND --realsense```.
+    The namespace is written out where ``--realsense`` was typed with another (``--realsense /camera``).
     """
     from roigsf_ros.data.bags import AUTO, realsense_topics
 
@@ -151,9 +155,10 @@ def realsense_hint(bag: Path, present: dict[str, str], given: str | None, named:
                 realsense_topics(ns, color_transport=AUTO, depth_transport=AUTO).in_bag(present, bag)
             except InputError:
                 continue
-            option = "--realsense" if ns == "/camera" else f"--realsense {ns}"
+            option = "--realsense" if ns == "/camera" and given is None else f"--realsense {ns}"
             drop = f" without {', '.join(named)}" if named else ""
-            return f"; the bag has a RealSense camera's topics under {ns}: try {option}{drop}"
+            advice = f"map it with `{command} {option}`" if command else f"try {option}{drop}"
+            return f"; the bag has a RealSense camera's topics under {ns}: {advice}"
     return ""
 
 

@@ -220,11 +220,11 @@ def _to_robot(args: argparse.Namespace) -> int:
             present = bag_topic_types(args.src)
         except (InputError, OSError):
             raise exc from None
-        hint = realsense_hint(args.src, present, None)
+        hint = realsense_hint(args.src, present, None, command=f"roigsf map {args.src}")
         if not hint:
             raise
         why = "to-robot rewrites a bag of this package's layout (`roigsf bag from-replica`), and this one is already"
-        raise InputError(exc.where, f"{exc.problem}; {why} a robot's: map it as it is{hint}") from None
+        raise InputError(exc.where, f"{exc.problem}; {why} a robot's, to be read as it is{hint}") from None
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else "/"
     params = " ".join(f"-p {k}:={v}" for k, v in robot_node_parameters(args.namespace, args.depth_transport).items())
     print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns}`, or give the "
