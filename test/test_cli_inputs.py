@@ -300,7 +300,9 @@ def test_map_on_a_robot_bag_without_realsense_says_try_realsense(
     assert err.endswith("; the bag has a RealSense camera's topics under /camera: try --realsense\n"), err
     assert main(["map", str(bag), "--out", str(out), "--realsense", "/cam", "--depth-transport", "raw"]) == 2
     err = capsys.readouterr().err
-    assert err.endswith("under /camera: try --realsense /camera without --depth-transport\n") and err.count("\n") == 1, err
+    assert (
+        err.endswith("under /camera: try --realsense /camera without --depth-transport\n") and err.count("\n") == 1
+    ), err
     assert not out.exists()
     scene = tmp_path / "scene"  # a scene folder's error: no hint, as before
     (scene / "results").mkdir(parents=True, exist_ok=True)
