@@ -25,7 +25,7 @@ from roigsf_ros.cli import main as cli_main
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data import bags
 from roigsf_ros.data.replica import ReplicaSequence
-from roigsf_ros.data.robot_bag import write_robot_bag
+from roigsf_ros.data.robot_bag import check_namespace, write_robot_bag
 from roigsf_ros.data.sources import open_frames
 from roigsf_ros.perf.io import make_synthetic_replica
 
@@ -136,6 +136,20 @@ def test_robot_bag_refuses_bad_settings_and_leaves_nothing(raw_bag: Path, tmp_pa
     assert sorted((p.name, p.stat().st_size) for p in raw_bag.iterdir()) == before
     with pytest.raises(InputError, match="is the bag being rewritten"):
         write_robot_bag(raw_bag, raw_bag, overwrite=True)
+    # a namespace no ROS node can use was written ("/a b/color/image_raw/compressed") and read back without a word
+    assert cli_main(["bag", "to-robot", str(raw_bag), "--out", str(tmp_path / "ns"), "--namespace", "/a b"]) == 2
+    err = capsys.readouterr().err
+    assert "--namespace: '/a b' is no ROS namespace: 'a b' is not letters, digits and '_'" in err, err
+    assert not (tmp_path / "ns").exists()
+    for bad in ("/1cam", "cam-era", "/cam/ok/x.y"):
+        with pytest.raises(InputError, match="is no ROS namespace"):
+            write_robot_bag(raw_bag, tmp_path / "ns", namespace=bad)
+    assert [check_namespace(ns) for ns in ("/camera/camera", "camera/", "/", "")] == [
+        "/camera/camera",
+        "/camera",
+        "/",
+        "/",
+    ]
 
 
 def test_jpeg_colour_and_png_depth_transport(raw_bag: Path, tmp_path: Path) -> None:

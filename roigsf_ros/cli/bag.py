@@ -23,6 +23,7 @@ from roigsf_ros.data.replica import ReplicaSequence, scene_gt_mesh
 from roigsf_ros.data.robot_bag import (
     ROBOT_COLOR_FORMATS,
     ROBOT_DEPTH_TRANSPORTS,
+    check_namespace,
     robot_node_parameters,
     write_robot_bag,
 )
@@ -158,12 +159,14 @@ def _source_mesh(folder: Path, no_mesh: bool) -> Path | None:
     return mesh
 
 
-def _print_mesh(mesh: Path | None, folder: Path, out: Path) -> None:
-    """Say which mesh went into the bag, or that none was there to copy."""
+def _print_mesh(mesh: Path | None, folder: Path, out: Path, no_mesh: bool) -> None:
+    """Say which mesh went into the bag, or why none did: ``--no-mesh``, or none there to copy."""
     if mesh is not None:
         print(f"  with the ground-truth mesh {mesh} as {out / 'mesh.ply'} (--no-mesh: without)")
+    elif no_mesh:
+        print("  no ground-truth mesh: --no-mesh")
     else:
-        print(f"  no ground-truth mesh: none in {folder} nor {folder.name}_mesh.ply beside it, or --no-mesh")
+        print(f"  no ground-truth mesh: none in {folder} nor {folder.name}_mesh.ply beside it")
 
 
 def _from_replica(args: argparse.Namespace) -> int:
@@ -191,7 +194,7 @@ def _from_replica(args: argparse.Namespace) -> int:
     )
     intr = seq.intrinsics
     print(f"wrote {n} frames ({intr.width}x{intr.height}, depth {args.depth_encoding}, {args.rate:g} Hz) to {args.out}")
-    _print_mesh(mesh, seq.root, args.out)
+    _print_mesh(mesh, seq.root, args.out, args.no_mesh)
     return 0
 
 
@@ -200,6 +203,10 @@ def _to_robot(args: argparse.Namespace) -> int:
         raise InputError("--tf-lag-ms", f"must be a number of milliseconds >= 0, got {args.tf_lag_ms:g}")
     if args.out.resolve() == args.src.resolve():  # before check_out: --overwrite would let it replace the source
         raise InputError("--out", f"{args.out} is the bag being rewritten: write the robot's bag elsewhere")
+    try:
+        check_namespace(args.namespace)
+    except InputError as exc:
+        raise InputError("--namespace", exc.problem) from None
     check_out(args.out, args.overwrite, BAG_MARKS, "a bag", [args.src])
     src_folder = args.src if args.src.is_dir() else args.src.parent
     mesh = _source_mesh(src_folder, args.no_mesh)
@@ -229,7 +236,7 @@ def _to_robot(args: argparse.Namespace) -> int:
     params = " ".join(f"-p {k}:={v}" for k, v in robot_node_parameters(args.namespace, args.depth_transport).items())
     print(f"wrote {n} frames to {args.out}; read it with `roigsf map {args.out} --realsense {ns}`, or give the "
           f"nodes: {params}")  # fmt: skip
-    _print_mesh(mesh, src_folder, args.out)
+    _print_mesh(mesh, src_folder, args.out, args.no_mesh)
     return 0
 
 

@@ -91,6 +91,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "T_CAMERA_LINK_OPTICAL",
             "T_MAP_ODOM",
             "base_link_in_odom",
+            "check_namespace",
             "robot_node_parameters",
             "write_robot_bag",
         ],

@@ -17,6 +17,7 @@ names.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,25 @@ def robot_node_parameters(namespace: str = "/camera", depth_transport: str = "co
     }
 
 
+_ROS_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def check_namespace(namespace: str) -> str:
+    """``namespace`` as ``/a/b`` (``/`` for none) when every part of it is a ROS name token (letters, digits and
+    ``_``, not starting with a digit), else an InputError naming ``namespace``: a bag written under ``/a b`` reads
+    back here but cannot be published (rcl refuses the name). The rule is written out here, not taken from rclpy's
+    validator, so that this module stays importable without ROS.
+    """
+    parts = namespace.strip("/").split("/") if namespace.strip("/") else []
+    bad = [part for part in parts if not _ROS_TOKEN.fullmatch(part)]
+    if bad:
+        raise InputError(
+            "namespace", f"{namespace!r} is no ROS namespace: {bad[0]!r} is not letters, digits and '_' (not "
+            "starting with a digit), so no ROS node could publish or subscribe to its topics"
+        )  # fmt: skip
+    return "/" + "/".join(parts)
+
+
 def write_robot_bag(
     src: str | Path,
     out: str | Path,
@@ -132,6 +152,7 @@ def write_robot_bag(
         raise InputError("tf_lag_s", f"must be a number of seconds >= 0, got {tf_lag_s}")
     if Path(out).resolve() == Path(src).resolve():
         raise InputError(out, "is the bag being rewritten: write the robot's bag elsewhere")
+    check_namespace(namespace)
     topics = bags.realsense_topics(namespace, color_transport="compressed", depth_transport=depth_transport)
     resolved = topics.resolved()
     types = resolved.types() | {TF_TOPIC: TF_MESSAGE_TYPE, TF_STATIC_TOPIC: TF_MESSAGE_TYPE}
@@ -193,6 +214,7 @@ __all__ = [
     "T_CAMERA_LINK_OPTICAL",
     "T_MAP_ODOM",
     "base_link_in_odom",
+    "check_namespace",
     "robot_node_parameters",
     "write_robot_bag",
 ]
