@@ -445,6 +445,7 @@ def test_perf_nbv_runs_on_a_tiny_room_and_writes_json(tmp_path, capsys: pytest.C
     data = json.loads(out.read_text())
     assert data["benchmark"] == "nbv" and data["surfels"] == 1500 and data["surface_voxels"] > 100
     assert data["environment"]["threads"] == 1 and data["environment"]["versions"]["torch"] == torch.__version__
+    assert data["environment"]["numba_threads"] == (1 if numba_available() else None)  # what numba took
     rows = {(r["mode"], r["fisher_downsample"]) for r in data["rows"]}
     assert rows == {(m, d) for m in ("roi-gsurfisher", "fisherrf") for d in (1, 2)}
     for r in data["rows"]:

@@ -159,6 +159,16 @@ def test_perf_render_prints_its_footer_and_writes_its_json(
     assert len(result["environment"]["load_average_1min"]) == 2
 
 
+def test_the_perf_tables_say_the_threads_numba_took_where_fewer_than_asked() -> None:
+    """``perf nbv --threads 64`` on 2 cores printed "backend numba, 64 threads" (JSON "threads": 64) while numba,
+    which has at most one thread per CPU, ran its kernels on 2."""
+    from roigsf_ros.perf import threads_text
+
+    assert threads_text(2, 2) == "2 threads" and threads_text(2, None) == "2 threads"
+    assert threads_text(64, 2) == "torch 64, numba 2 threads (64 asked: numba's most here)"
+    assert threads_text(2, 2, 1) == "torch 1, numba 2 threads"  # perf render --torch-threads 1
+
+
 def _fake_player(seen: list[int]) -> Any:
     """A ``_play_and_listen`` that records the domain id and returns two pose arrivals 0.1 s apart."""
 

@@ -86,6 +86,19 @@ def environment(load_before: float) -> dict[str, Any]:
     }
 
 
+def threads_text(asked: int, numba_threads: int | None, torch_threads: int | None = None) -> str:
+    """``2 threads`` for a table's footer, or each library's where they differ: numba has at most ``NUMBA_NUM_THREADS``
+    (the CPUs), so ``--threads 64`` on 2 cores ran its kernels on 2 while the table said 64.
+    """
+    torch_threads = asked if torch_threads is None else torch_threads
+    if numba_threads is None:
+        return f"{torch_threads} threads"
+    if numba_threads == asked == torch_threads:
+        return f"{asked} threads"
+    fewer = f" ({asked} asked: numba's most here)" if numba_threads < asked else ""
+    return f"torch {torch_threads}, numba {numba_threads} threads{fewer}"
+
+
 def write_results(out: str | Path | None, result: dict[str, Any]) -> None:
     """Write a benchmark's ``result`` to ``--out`` (atomically) and say where; nothing without ``--out``."""
     if out is not None:
@@ -114,4 +127,12 @@ def _commit() -> str | None:
     return head + ("+changes" if dirty else "")
 
 
-__all__ = ["MAX_THREADS", "check_options", "check_out_file", "cpu_model", "environment", "write_results"]
+__all__ = [
+    "MAX_THREADS",
+    "check_options",
+    "check_out_file",
+    "cpu_model",
+    "environment",
+    "threads_text",
+    "write_results",
+]

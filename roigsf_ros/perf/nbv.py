@@ -55,7 +55,7 @@ from roigsf_ros.mapping.tsdf import TSDFVolume
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
-from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, write_results
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, threads_text, write_results
 from roigsf_ros.perf.render import BOXES, ROOM, room_camera, room_scene
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -373,8 +373,9 @@ def run(args: argparse.Namespace) -> int:
     check_out_file(args.out, "nbv")
     torch.set_num_threads(args.threads)
     backend = "torch"
+    numba_threads = None
     if numba_available():
-        set_numba_threads(args.threads)
+        numba_threads = set_numba_threads(args.threads)
         pin_workers()  # one worker per CPU where they use every CPU: no scheduler modes in the timings
         backend = "numba"
     load_before = os.getloadavg()[0]
@@ -407,6 +408,7 @@ def run(args: argparse.Namespace) -> int:
         "environment": environment(load_before)
         | {
             "threads": args.threads,
+            "numba_threads": numba_threads,  # fewer than asked where numba has fewer (its most: the CPUs)
             "env": {
                 k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
             },
@@ -434,7 +436,8 @@ def run(args: argparse.Namespace) -> int:
         )
     print(
         f"({args.width}x{args.height}, {args.surfels} surfels, {result['surface_voxels']} surface voxels; backend "
-        f"{backend}, {args.threads} threads; milliseconds, medians of {args.repeats}; F ratio = Fisher / fwd+bwd "
+        f"{backend}, {threads_text(args.threads, numba_threads)}; milliseconds, medians of {args.repeats}; "
+        "F ratio = Fisher / fwd+bwd "
         f"per repeat (target <= {TARGET_FISHER_RATIO}); ratio = candidate / fwd+bwd "
         f"per repeat (target <= {TARGET_RATIO}), cpu ratio the same in process CPU time; score = one score() "
         f"call (target <= {TARGET_SCORE_S} s for roi-gsurfisher at ds 1), cpu its process CPU time; planner = the "

@@ -34,7 +34,7 @@ import torch
 
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
-from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, write_results
+from roigsf_ros.perf import MAX_THREADS, check_options, check_out_file, environment, threads_text, write_results
 from roigsf_ros.render.fisher import GEOMETRIC_PARAMS, fisher_diag
 from roigsf_ros.render.numba_setup import (
     PIN_ENV,
@@ -218,12 +218,13 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.torch_threads or args.threads)
     device = check_device(args.device, "--device")
     backend = args.backend
+    numba_threads = None
     if device.type != "cpu":
         if backend == "numba":
             raise InputError("--backend", f"numba runs on the CPU only, not on --device {args.device}")
         backend = "torch"
     elif backend != "torch" and numba_available():
-        set_numba_threads(args.threads)
+        numba_threads = set_numba_threads(args.threads)
         pin_workers()  # one worker per CPU where they use every CPU: no scheduler modes in the timings
         backend = "numba"
     elif backend == "numba":
@@ -240,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "environment": environment(load_before),
-        "numba_threads": args.threads if backend == "numba" else None,
+        "numba_threads": numba_threads,  # fewer than asked where numba has fewer (its most: the CPUs)
         "env": {
             k: os.environ.get(k) for k in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "OMP_WAIT_POLICY", PIN_ENV)
         },
@@ -262,8 +263,10 @@ def run(args: argparse.Namespace) -> int:
             f"{r['mean_contributors_per_pixel']:10.1f} {r['forward_ms']:8.1f} {r['forward_nograd_ms']:11.1f} "
             f"{r['forward_backward_ms']:8.1f}{fisher}"
         )
+    threads = threads_text(args.threads, numba_threads, result["threads"])
     print(
-        f"(backend {backend} on {result['device_name'] or 'the CPU'}; wall-clock milliseconds, medians; targets at "
+        f"(backend {backend} on {result['device_name'] or 'the CPU'}, {threads}; wall-clock milliseconds, medians; "
+        "targets at "
         f"160x120 with 20k surfels: fwd <= "
         f"{TARGET_FWD_MS:g}, fwd+bwd <= {TARGET_FWD_BWD_MS:g}, Fisher <= fwd+bwd; 1-min load average "
         f"{result['environment']['load_average_1min'][0]:.1f} -> "
