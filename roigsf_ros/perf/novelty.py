@@ -131,7 +131,10 @@ def run_windows(
         if value < least:
             raise InputError(name, f"must be at least {least}, got {value}")
     if len(frames) < 1 + window + lookahead:
-        raise InputError("--bag", f"{len(frames)} frames: fewer than 1 + window + lookahead = {1 + window + lookahead}")
+        need = 1 + window + lookahead  # the first keyframe, one window and its lookahead
+        raise InputError("--window/--lookahead", f"need {need} frames (1 + window {window} + lookahead "
+                         f"{lookahead}), the bag has {len(frames)}: a smaller --window or --lookahead, or a longer "
+                         "--bag")  # fmt: skip
     config = MapperConfig()
     surface = surface or ObservedSurface()
     surface.add_frame(frames[0], intr, config)  # the first frame is always a keyframe
