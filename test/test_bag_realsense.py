@@ -144,6 +144,11 @@ def test_robot_bag_refuses_bad_settings_and_leaves_nothing(raw_bag: Path, tmp_pa
     for bad in ("/1cam", "cam-era", "/cam/ok/x.y"):
         with pytest.raises(InputError, match="is no ROS namespace"):
             write_robot_bag(raw_bag, tmp_path / "ns", namespace=bad)
+    scene = raw_bag.parent / "scene"  # a Replica folder said only "not a rosbag2 folder"
+    assert cli_main(["bag", "to-robot", str(scene), "--out", str(tmp_path / "fromscene")]) == 2
+    assert "is a Replica scene folder, not a bag: make a camera bag of it with `roigsf bag from-replica`" in (
+        capsys.readouterr().err
+    )
     assert [check_namespace(ns) for ns in ("/camera/camera", "camera/", "/", "")] == [
         "/camera/camera",
         "/camera",

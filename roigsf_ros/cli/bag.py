@@ -199,6 +199,14 @@ def _from_replica(args: argparse.Namespace) -> int:
 
 
 def _to_robot(args: argparse.Namespace) -> int:
+    src = args.src
+    if (
+        src.is_dir()
+        and not (src / "metadata.yaml").is_file()
+        and ((src / "results").is_dir() or (src / "traj.txt").is_file())
+    ):
+        raise InputError(src, "is a Replica scene folder, not a bag: make a camera bag of it with `roigsf bag "
+                         "from-replica`, then rewrite that bag (to-robot reads a camera bag)")  # fmt: skip
     if not (math.isfinite(args.tf_lag_ms) and args.tf_lag_ms >= 0):
         raise InputError("--tf-lag-ms", f"must be a number of milliseconds >= 0, got {args.tf_lag_ms:g}")
     if args.out.resolve() == args.src.resolve():  # before check_out: --overwrite would let it replace the source
