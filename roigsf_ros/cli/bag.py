@@ -27,6 +27,7 @@ from roigsf_ros.data.robot_bag import (
     robot_node_parameters,
     write_robot_bag,
 )
+from roigsf_ros.data.sources import is_bag
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -200,11 +201,7 @@ def _from_replica(args: argparse.Namespace) -> int:
 
 def _to_robot(args: argparse.Namespace) -> int:
     src = args.src
-    if (
-        src.is_dir()
-        and not (src / "metadata.yaml").is_file()
-        and ((src / "results").is_dir() or (src / "traj.txt").is_file())
-    ):
+    if src.is_dir() and not is_bag(src) and ((src / "results").is_dir() or (src / "traj.txt").is_file()):
         raise InputError(src, "is a Replica scene folder, not a bag: make a camera bag of it with `roigsf bag "
                          "from-replica`, then rewrite that bag (to-robot reads a camera bag)")  # fmt: skip
     if not (math.isfinite(args.tf_lag_ms) and args.tf_lag_ms >= 0):

@@ -22,7 +22,7 @@ from roigsf_ros.cli import (
 )
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import CameraTopics
-from roigsf_ros.data.sources import FrameSource, open_frames
+from roigsf_ros.data.sources import FrameSource, is_bag, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.policies.base import KeyframePolicy, make_policy, parse_params, policy_names, policy_parameters
@@ -296,14 +296,14 @@ def _open(
 ) -> FrameSource:
     """:func:`open_frames` of ``path``; a bag it reads no frame of gets the RealSense hint (:func:`with_bag_hint`).
 
-    ``option``: the option that named ``path`` when it is not the source (``--test-scene``): its error says that the
-    camera options and ``--allow-partial`` apply to it too, so a camera bag beside a robot's is read with the robot's.
+    ``option``: the option that named ``path`` when it is not the source (``--test-scene``): a bag's error there says
+    that the source's camera options apply to it too, so a camera bag beside a robot's is read with the robot's.
     """
     try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
         return open_frames(path, topics=topics, cam=args.cam, **kwargs)
     except InputError as exc:
         error = exc if args.cam is not None else with_bag_hint(exc, args, path)  # a bag given --cam: no hint
-        if option:
+        if option and is_bag(path):
             error = InputError(error.where, f"{error.problem} ({option} is read with the source's camera options: "
                                "a camera bag beside a robot's can be made one with `roigsf bag to-robot`)")  # fmt: skip
         raise error from None

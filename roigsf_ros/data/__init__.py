@@ -146,6 +146,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "MemoryFrameSource",
             "ReplicaFrameSource",
             "check_frame_source",
+            "is_bag",
             "open_frames",
         ],
         "sync": ["FrameLedger", "REJECT_REASONS", "StampGapCounter", "StampMatcher", "T"],

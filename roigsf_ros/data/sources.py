@@ -264,7 +264,11 @@ class MemoryFrameSource(FrameSource):
         return iter(self.frames)
 
 
-def _is_bag(path: Path) -> bool:
+def is_bag(path: str | Path) -> bool:
+    """Whether :func:`open_frames` reads ``path`` as a bag: a ``.mcap`` file, a rosbag2 folder, or a folder holding one
+    ``.mcap`` and no Replica ``results/``; anything else is read as a Replica folder.
+    """
+    path = Path(path)
     if path.is_file():
         return path.suffix == ".mcap"
     return (path / "metadata.yaml").is_file() or (
@@ -300,7 +304,7 @@ def open_frames(
         raise InputError("max_frames (--max-frames)", f"must be at least 1, got {max_frames}")
     if size is not None and any(v is not None and int(v) <= 0 for v in size):
         raise InputError("size (--width/--height)", f"image size must be positive, got {size[0]}x{size[1]}")
-    if _is_bag(path):
+    if is_bag(path):
         if cam is not None:
             raise InputError(path, "is a bag: its camera_info gives the camera (cam=PATH is for a Replica folder)")
         return BagFrameSource(path, size, int(stride), max_frames, topics)
@@ -314,5 +318,6 @@ __all__ = [
     "MemoryFrameSource",
     "ReplicaFrameSource",
     "check_frame_source",
+    "is_bag",
     "open_frames",
 ]
