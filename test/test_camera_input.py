@@ -807,6 +807,32 @@ def test_a_tf_child_frame_apart_from_the_images_frame_is_warned_once_and_kept_in
     assert len(warnings) == 2, warnings  # once per input
 
 
+def test_the_camera_nodes_status_carries_the_tf_fields_their_logs_give(ros_context: Any) -> None:
+    """With ``tf_child_frame:=camera_link`` on a robot's camera the mapper and the selector logged one warning, while
+    their ``~/status`` (``roigsf ros status``) read healthy: the child-frame note, the frames that changed parent, the
+    refused transforms and the last refusal were in the camera's stats only. Both nodes' status now carries them."""
+    from rclpy.parameter import Parameter
+
+    from roigsf_ros.nodes.camera_input import camera_status
+    from roigsf_ros.nodes.keyframe_selector import KeyframeSelectorNode
+    from roigsf_ros.nodes.mapper import MapperNode
+
+    quiet = [Parameter("map_publish_rate_hz", value=0.0), Parameter("status_rate_hz", value=0.0)]
+    mapper = MapperNode(context=ros_context, parameter_overrides=quiet, node_name="status_mapper")
+    selector = KeyframeSelectorNode(context=ros_context, node_name="status_selector")
+    try:
+        for node in (mapper, selector):
+            node.camera.child_frame_note = "the poses are TF frame 'camera_link', but the images are in 'x'"
+            status = node.status()
+            fields = camera_status(node.camera.stats())
+            assert {k: status[k] for k in fields} == fields, status
+            assert status["tf_child_frame_note"].startswith("the poses are TF frame 'camera_link'")
+            assert {"tf_reparented", "tf_rejected", "last_rejection"} <= set(status)
+    finally:
+        selector.destroy_node()
+        mapper.destroy_node()
+
+
 def test_each_kind_of_refused_transform_is_said_not_only_the_first(
     ros_context: Any, capfd: pytest.CaptureFixture[str]
 ) -> None:

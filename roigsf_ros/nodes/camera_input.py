@@ -227,6 +227,28 @@ class _AwaitingPose:
     image_frame: str = ""  # the colour image's header frame_id (child_frame_mismatch)
 
 
+def camera_status(stats: dict[str, Any]) -> dict[str, Any]:
+    """The fields of a camera node's ``~/status`` from :meth:`CameraInput.stats`: refusals, queues, stamps and TF (a TF
+    child frame apart from the images', frames that changed parent, refused transforms, the last refusal), which the
+    nodes logged but their status left out: a wrong ``tf_child_frame`` looked healthy there.
+    """
+    return {
+        "frames_rejected": stats["rejected"],
+        "frames_pending": stats["pending"],
+        "messages_received": stats["received"],
+        "qos_incompatible": stats["qos_incompatible"],
+        "frames_awaiting_tf": stats["awaiting_tf"],
+        "frames_dropped_incomplete": stats["dropped_incomplete"],
+        "frames_duplicate_stamp": stats["duplicate_stamp"],
+        "frames_out_of_order": stats["out_of_order"],
+        "frames_missed_estimate": stats["frames_missed_estimate"],
+        "tf_child_frame_note": stats["tf_child_frame_note"],
+        "tf_reparented": stats["tf_reparented"],
+        "tf_rejected": stats["tf_rejected"],
+        "last_rejection": stats["last_rejection"],
+    }
+
+
 class CameraInput:
     """Subscribes ``node`` to an RGB-D camera's topics and calls ``on_frame`` with each complete frame."""
 

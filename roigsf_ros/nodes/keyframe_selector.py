@@ -104,7 +104,7 @@ from roigsf_ros.nbv.novelty import (
     fuse_novelty,
 )
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, describe_topics
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, camera_status, describe_topics
 from roigsf_ros.nodes.map_msgs import cloud_to_surfel_map, pose_stamped, poses_to_array
 from roigsf_ros.nodes.mapper import (
     KEYFRAME_POSES_TOPIC,
@@ -904,15 +904,7 @@ class KeyframeSelectorNode(SystemNode):
                 "policy_params": {} if self._alone is None else dict(self._alone.params()),
                 "reading_camera": self.camera.subscribed,
                 "frames": cam["frames"],
-                "frames_rejected": cam["rejected"],
-                "frames_pending": cam["pending"],
-                "messages_received": cam["received"],
-                "qos_incompatible": cam["qos_incompatible"],
-                "frames_awaiting_tf": cam["awaiting_tf"],
-                "frames_dropped_incomplete": cam["dropped_incomplete"],
-                "frames_duplicate_stamp": cam["duplicate_stamp"],
-                "frames_out_of_order": cam["out_of_order"],
-                "frames_missed_estimate": cam["frames_missed_estimate"],
+                **camera_status(cam),
                 "keyframes_published": len(self.keyframe_ids),
                 "keyframes_unsent": len(self._unsent),
                 "keyframe_ids": list(self.keyframe_ids),

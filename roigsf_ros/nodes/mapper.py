@@ -67,7 +67,14 @@ from roigsf_ros.data.tf import DEFAULT_CACHE_S
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, CameraInput, CameraSettings, camera_qos, describe_topics
+from roigsf_ros.nodes.camera_input import (
+    WARN_THROTTLE_S,
+    CameraInput,
+    CameraSettings,
+    camera_qos,
+    camera_status,
+    describe_topics,
+)
 from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import (
     SystemNode,
@@ -624,15 +631,7 @@ class MapperNode(SystemNode):
             stats = {} if m is None else dict(vars(m.stats))
             return {
                 "frames_received": cam["frames"],
-                "frames_rejected": cam["rejected"],
-                "frames_pending": cam["pending"],
-                "messages_received": cam["received"],
-                "qos_incompatible": cam["qos_incompatible"],
-                "frames_awaiting_tf": cam["awaiting_tf"],
-                "frames_dropped_incomplete": cam["dropped_incomplete"],
-                "frames_duplicate_stamp": cam["duplicate_stamp"],
-                "frames_out_of_order": cam["out_of_order"],
-                "frames_missed_estimate": cam["frames_missed_estimate"],
+                **camera_status(cam),
                 "keyframes": len(snap_ids),
                 "keyframe_ids": snap_ids,
                 "surfels": surfels,
