@@ -466,6 +466,13 @@ def test_bench_reads_a_robots_bag_with_the_camera_options_and_rescores_it(
     assert "not used with --rescore-ause" in capsys.readouterr().err
     assert cli_main(["bench", "--rescore-ause", "--out", str(out), "--no-progress"]) == 0
     assert json.loads((out / "results.json").read_text())["ause_rescore"]
+    assert results["tf_child_frame_note"] is None and "every figure is wrong" not in (out / "results.md").read_text()
+    wrong = tmp_path / "wrong"  # the child frame a link, not the images' frame: said on the report, not only logged
+    argv[argv.index(str(out))] = str(wrong)
+    capsys.readouterr()
+    assert cli_main([*argv, "--realsense", "--tf-child-frame", "camera_link"]) == 0
+    assert "**TF: the poses are TF frame 'camera_link'" in capsys.readouterr().out
+    assert "every figure is wrong" in (wrong / "results.md").read_text()
 
 
 def test_a_test_scene_is_read_with_the_sources_camera_options_and_its_error_says_so(

@@ -149,6 +149,7 @@ class BagFrameSource(FrameSource):
                 native = bf.intrinsics
                 break
             resolved = reader.topics
+            first_note = reader.child_frame_note  # set by the first posed frame: known before any pass
             why = f" (no pose on TF: {reader.last_tf_error})" if reader.no_tf else ""
             why += f" ({reader.refused} refused: {reader.refusal_reasons})" if reader.refused else ""
         if native is None:
@@ -161,6 +162,7 @@ class BagFrameSource(FrameSource):
         intr = native.resized(*size) if size is not None else native
         super().__init__(path, intr, len(self.kept), scene_gt_mesh(path))
         self.camera_topics = resolved
+        self.tf_child_frame_note = first_note
 
     def index_of(self, stamp_ns: int) -> int:
         """The bag frame index of a frame's stamp (its position in the sorted colour stamps)."""

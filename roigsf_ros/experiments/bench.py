@@ -514,6 +514,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
             "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
             "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
             "camera_topics": asdict(source.camera_topics) if source.camera_topics is not None else None,  # a bag's
+            "tf_child_frame_note": source.tf_child_frame_note or None,  # the poses are not the images': say so
             "uncertainty_views": cfg.uncertainty_views,
             "uncertainty_maps": cfg.uncertainty_maps,
             "versions": versions(),

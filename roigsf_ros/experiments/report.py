@@ -97,6 +97,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"- seeds: {', '.join(str(s) for s in seeds)} (mean ± population std over {len(seeds)} seed(s))",
         f"- total wall time: {results['wall_s']:.0f} s",
     ]
+    if results.get("tf_child_frame_note"):
+        lines.append(f"- **TF: {results['tf_child_frame_note']}; every figure is wrong**")
     if results.get("command"):
         lines.append(f"- command: `{results['command']}`")
     if setting == "pool":
