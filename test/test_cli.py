@@ -329,6 +329,20 @@ def test_allow_partial_reaches_the_test_scene_and_bench_says_the_way_round(
     assert "make a bag of the frames there with `roigsf bag from-replica DIR --allow-partial`" in err, err
 
 
+def test_bag_camera_options_given_to_a_replica_folder_are_refused(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`roigsf map FOLDER --realsense --tf-child-frame camera_link` (and `roigsf bench --scene FOLDER --realsense`)
+    ran as if nothing were typed: the options read a bag's topics and were ignored for a folder, without a word."""
+    out = str(tmp_path / "o")
+    assert main(["map", str(tiny_scene), "--realsense", "--tf-child-frame", "camera_link", "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert f"--realsense --tf-child-frame: {tiny_scene} is a Replica folder, not a bag" in err, err
+    bench = ["bench", "--scene", str(tiny_scene), "--setting", "stream", "--policies", "all", "--out", out]
+    assert main([*bench, "--pose-source", "tf"]) == 2
+    assert "--pose-source: " in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_map_policy_and_set_errors_name_the_option_and_the_valid_names(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -182,6 +182,20 @@ def with_bag_hint(exc: InputError, args: argparse.Namespace, path: str | Path) -
     return InputError(exc.where, exc.problem + hint) if hint else exc
 
 
+def check_camera_options_for(args: argparse.Namespace, source: str | Path | None) -> None:
+    """InputError naming the camera options typed (:func:`add_camera_options`) when ``source`` is a Replica folder:
+    they say how a bag's topics are read, and a folder has none (its poses are traj.txt's), so they were ignored
+    without a word, as ``--cam`` given to a bag is refused.
+    """
+    from roigsf_ros.data.sources import is_bag
+
+    typed = [f"--{o.replace('_', '-')}" for o in camera_options(args)]
+    typed = (["--realsense"] if args.realsense is not None else []) + typed
+    if typed and source is not None and Path(source).exists() and not is_bag(source):
+        raise InputError(" ".join(typed), f"{source} is a Replica folder, not a bag: camera options say how a bag's "
+                         "topics are read (a folder's images and poses are its files)")  # fmt: skip
+
+
 NO_OWN_MESH = "no --gt-mesh, and no mesh.ply in the source's folder nor NAME_mesh.ply beside it"
 """Why a run without ``--gt-mesh`` has no mesh metrics (:func:`roigsf_ros.data.replica.scene_gt_mesh` found none)."""
 

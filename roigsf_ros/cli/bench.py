@@ -21,6 +21,7 @@ from roigsf_ros.cli import (
     add_camera_options,
     camera_options,
     camera_topics,
+    check_camera_options_for,
     check_out,
     command_line,
     image_size,
@@ -145,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise InputError(" ".join(missing), "required (unless --rescore-ause)")
     cfg = config_from_args(args)  # first: a missing scene is said as such, not as an --out already there
+    check_camera_options_for(args, args.scene)
     out = BENCH_OUTPUT
     check_out(
         args.out, args.overwrite, out["marks"], out["what"], [args.scene, args.gt_mesh, args.test_scene], out["own"]

@@ -13,6 +13,7 @@ from roigsf_ros.cli import (
     OVERWRITE_HELP,
     add_camera_options,
     camera_topics,
+    check_camera_options_for,
     check_out,
     chosen_gt_mesh,
     command_line,
@@ -256,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
     ):
         if path is not None and not Path(path).exists():  # said as such, not as an --out already there
             raise InputError(path, f"no such bag or scene folder{option}")
+    check_camera_options_for(args, args.source)
     check_out(args.out, args.overwrite, ("metrics.json",), "a map's output",
               [args.source, args.gt_mesh, args.test_scene])  # fmt: skip
     source = _open(args, args.source, topics, size=size, stride=args.stride, max_frames=args.max_frames,
