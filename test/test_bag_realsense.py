@@ -461,6 +461,7 @@ def test_bench_reads_a_robots_bag_with_the_camera_options_and_rescores_it(
     assert cli_main([*argv, "--realsense"]) == 0
     results = json.loads((out / "results.json").read_text())
     assert results["n_frames"] == N and results["camera_topics"]["pose_source"] == "tf"
+    assert results["cam"] is None and results["allow_partial"] is False  # what a rescore reads a folder with
     capsys.readouterr()
     assert cli_main(["bench", "--rescore-ause", "--out", str(out), "--realsense"]) == 2
     assert "not used with --rescore-ause" in capsys.readouterr().err

@@ -257,9 +257,10 @@ def test_map_of_a_partial_download_names_the_allow_partial_flag(
 def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A Replica folder without cam_params.json: `roigsf map` said "give the camera file (cam=PATH)", an option it did
-    not have. It has `--cam` now; `roigsf bench`, which has none, says how to make a bag with it; a bag given `--cam`
-    is refused (its camera_info is its camera)."""
+    """A Replica folder without cam_params.json: `roigsf map` and `roigsf bench` said "give the camera file
+    (cam=PATH)", an option neither had. Both have `--cam` now (the bench keeps it for --rescore-ause); a bag given
+    `--cam` is refused (its camera_info is its camera)."""
+    import roigsf_ros.cli.bench
     import roigsf_ros.cli.map
     from roigsf_ros.core.errors import InputError
 
@@ -280,8 +281,11 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     assert len(seen) == 1 and (seen[0].width, seen[0].height) == (16, 12), seen
     bench = ["bench", "--scene", str(tiny_scene), "--setting", "pool", "--policies", "random", "--out", out]
     capsys.readouterr()
+    monkeypatch.setattr(roigsf_ros.cli.bench, "run_bench", lambda cfg, *_a, **_k: record(cfg.source()))
     assert main(bench) == 2
-    assert "make a bag of the folder with `roigsf bag from-replica DIR --cam PATH`" in capsys.readouterr().err
+    assert "give the camera file (--cam PATH)" in capsys.readouterr().err
+    assert main([*bench, "--cam", str(cam)]) == 2 and len(seen) == 2 and seen[1].width == 16, seen
+    seen.pop()
     assert main(["bag", "from-replica", str(tiny_scene), "--cam", str(cam), "--out", str(tmp_path / "bag")]) == 0
     capsys.readouterr()
     assert main(["map", str(tmp_path / "bag"), "--cam", str(cam), "--out", out, "--no-progress"]) == 2
@@ -290,12 +294,13 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     assert len(seen) == 1
 
 
-def test_allow_partial_reaches_the_test_scene_and_bench_says_the_way_round(
+def test_allow_partial_reaches_the_test_scene_and_the_bench_takes_it(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """`roigsf map SRC --test-scene PARTIAL --allow-partial` refused the test scene with "needs --allow-partial", the
     option given (it reached the source only); `roigsf bench` on a partial download said "needs allow_partial=True",
-    a Python argument, with no option to pass."""
+    a Python argument, with no option to pass: it has `--allow-partial` now."""
+    import roigsf_ros.cli.bench
     import roigsf_ros.cli.map
     from roigsf_ros.core.errors import InputError
 
@@ -326,7 +331,11 @@ def test_allow_partial_reaches_the_test_scene_and_bench_says_the_way_round(
     ]
     assert main(bench) == 2
     err = capsys.readouterr().err
-    assert "make a bag of the frames there with `roigsf bag from-replica DIR --allow-partial`" in err, err
+    assert "a partial download needs --allow-partial)" in err, err
+    monkeypatch.setattr(
+        roigsf_ros.cli.bench, "run_bench", lambda cfg, *_a, **_k: record(cfg.source(), test_source=cfg.source())
+    )
+    assert main([*bench, "--allow-partial"]) == 2 and len(seen) == 2 and len(seen[1]) == 2, seen  # type: ignore[arg-type]
 
 
 def test_bag_camera_options_given_to_a_replica_folder_are_refused(

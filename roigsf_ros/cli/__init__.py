@@ -379,23 +379,13 @@ API_OPTIONS = {"overwrite=True": "--overwrite", "allow_partial=True": "--allow-p
 """The library's words for an argument in its errors -> the command line's option, for a command that has it."""
 
 
-API_ELSEWHERE = {
-    "cam=PATH": "make a bag of the folder with `roigsf bag from-replica DIR --cam PATH`",
-    "allow_partial=True": "make a bag of the frames there with `roigsf bag from-replica DIR --allow-partial`",
-}
-"""The command line's way round an API argument a command does not have (``roigsf bench`` has no ``--cam``)."""
-
-
 def cli_words(message: str, args: argparse.Namespace) -> str:
     """A library error in the command line's words: ``allow_partial=True`` as ``--allow-partial`` where the command
-    has that option (:data:`API_OPTIONS`), else the way round it where there is one (:data:`API_ELSEWHERE`); the
-    library's own words elsewhere, so that a Python caller reads Python.
+    has that option (:data:`API_OPTIONS`); the library's own words elsewhere, so that a Python caller reads Python.
     """
     for api, option in API_OPTIONS.items():
         if hasattr(args, api.split("=", 1)[0]):
             message = re.sub(rf"(?<![\w-]){re.escape(api)}", option, message)
-        elif api in API_ELSEWHERE:
-            message = re.sub(rf"(?<![\w-]){re.escape(api)}", API_ELSEWHERE[api], message)
     return message
 
 

@@ -63,6 +63,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=int, help="resize frames to this height (alone: the width keeps the aspect ratio)")
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")
     p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
+    p.add_argument("--allow-partial", action="store_true", help="accept a traj.txt with more poses than frames")
+    p.add_argument("--cam", type=Path, metavar="CAM_JSON", help="a Replica folder's camera parameters JSON (default: "
+                   "its cam_params.json, else the parent folder's), for --test-scene too")  # fmt: skip
     p.add_argument("--eval-every", type=int, default=1, help="stream: evaluate every K-th non-keyframe")
     p.add_argument("--test-scene", type=Path, metavar="DIR_OR_BAG",
                    help="stream: also evaluate every run on these frames, which no policy sees (the same camera; e.g. "
@@ -125,6 +128,8 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
         uncertainty_views=6 if args.uncertainty_views is None else args.uncertainty_views,
         uncertainty_maps=3 if args.uncertainty_maps is None else args.uncertainty_maps,
         topics=camera_topics(args),
+        cam=args.cam,
+        allow_partial=args.allow_partial,
     ).validate()
 
 
@@ -135,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         given = [f for f, v in (("--setting", args.setting), ("--policies", args.policies)) if v is not None]
         given += [f"--{o.replace('_', '-')}" for o in camera_options(args)]
         given += ["--realsense"] if args.realsense is not None else []
+        given += [f for f, v in (("--cam", args.cam), ("--allow-partial", args.allow_partial)) if v]
         if given:
             raise InputError(" ".join(given), "not used with --rescore-ause (the bench's own are rescored)")
         rescore_ause(args.out, scene=args.scene, uncertainty_views=args.uncertainty_views,

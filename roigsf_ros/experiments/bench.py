@@ -42,7 +42,7 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import atomic_dir, check_writable, read_json, write_json
 from roigsf_ros.core.frame import Frame, spread_indices
 from roigsf_ros.data.bags import CameraTopics
-from roigsf_ros.data.sources import FrameSource, open_frames
+from roigsf_ros.data.sources import FrameSource, is_bag, open_frames
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.experiments.pool import POOL_POLICIES, PoolConfig, check_pool_params, run_pool, selectable_positions
 from roigsf_ros.mapping.mapper import Mapper, MapperConfig
@@ -297,6 +297,10 @@ class BenchConfig(Config):
     topics: CameraTopics | None = None
     """How a bag scene (and a bag test scene) is read: topics, transports, pose from a topic or TF, as ``roigsf map``'s
     camera options say (a robot's bag: ``--realsense``); None: the default names, raw images."""
+    cam: Path | None = None
+    """A Replica folder's camera file when it has no ``cam_params.json`` (the test scene's too; a bag: refused)."""
+    allow_partial: bool = False
+    """Read a Replica folder whose ``traj.txt`` holds more poses than its frames (a partial download)."""
 
     def validate(self) -> BenchConfig:
         """Self, or InputError naming the bad field."""
@@ -330,13 +334,15 @@ class BenchConfig(Config):
     def source(self) -> FrameSource:
         """The frame source every run reads (the same frames, sizes and stride for all)."""
         return open_frames(self.scene, size=self.size, stride=self.stride, max_frames=self.max_frames,
-                           topics=self.topics)  # fmt: skip
+                           topics=self.topics, cam=self.cam, allow_partial=self.allow_partial)  # fmt: skip
 
     def test_source(self) -> FrameSource | None:
         """The test scene's frames at the scene's size (all of them), or None."""
         if self.test_scene is None:
             return None
-        return open_frames(self.test_scene, size=self.size, topics=self.topics)
+        cam = self.cam if not is_bag(self.test_scene) else None  # a bag test scene beside a folder: its camera_info
+        return open_frames(self.test_scene, size=self.size, topics=self.topics, cam=cam,
+                           allow_partial=self.allow_partial)  # fmt: skip
 
 
 def versions() -> dict[str, str]:
@@ -515,6 +521,8 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
             "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
             "camera_topics": asdict(source.camera_topics) if source.camera_topics is not None else None,  # a bag's
             "tf_child_frame_note": source.tf_child_frame_note or None,  # the poses are not the images': say so
+            "cam": str(cfg.cam) if cfg.cam is not None else None,  # a rescore reads the folder with these two
+            "allow_partial": cfg.allow_partial,
             "uncertainty_views": cfg.uncertainty_views,
             "uncertainty_maps": cfg.uncertainty_maps,
             "versions": versions(),
@@ -600,11 +608,12 @@ def bench_topics(results: dict[str, Any]) -> CameraTopics | None:
 def _open_bench_frames(results: dict[str, Any], scene: Path) -> list[Frame]:
     """The frames the bench ran on: its scene, stride and frame cap, resized only if it was."""
     stride, max_frames = int(results["stride"]), results["max_frames"]
-    topics = bench_topics(results)
-    source = open_frames(scene, stride=stride, max_frames=max_frames, topics=topics)
+    reading: dict[str, Any] = {"topics": bench_topics(results), "allow_partial": bool(results.get("allow_partial"))}
+    reading["cam"] = results.get("cam") if not is_bag(scene) else None
+    source = open_frames(scene, stride=stride, max_frames=max_frames, **reading)
     want = (int(results["size"][0]), int(results["size"][1]))
     if (source.intrinsics.width, source.intrinsics.height) != want:
-        source = open_frames(scene, size=want, stride=stride, max_frames=max_frames, topics=topics)
+        source = open_frames(scene, size=want, stride=stride, max_frames=max_frames, **reading)
     frames = list(source)
     if len(frames) != int(results["n_frames"]):
         raise InputError(scene, f"{len(frames)} frames (stride {stride}) but the bench ran on {results['n_frames']}")
