@@ -5,6 +5,7 @@ where its default bag is, and ``perf nbv`` refuses images too small to fuse a TS
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -164,9 +165,14 @@ def test_the_perf_tables_say_the_threads_numba_took_where_fewer_than_asked() -> 
     which has at most one thread per CPU, ran its kernels on 2."""
     from roigsf_ros.perf import threads_text
 
-    assert threads_text(2, 2) == "2 threads" and threads_text(2, None) == "2 threads"
-    assert threads_text(64, 2) == "torch 64, numba 2 threads (64 asked: numba's most here)"
-    assert threads_text(2, 2, 1) == "torch 1, numba 2 threads"  # perf render --torch-threads 1
+    cpus = os.cpu_count() or 1
+    assert threads_text(1, 1) == "1 thread" and threads_text(1, None) == "1 thread"
+    over = f", more than the {cpus} CPUs: slower"
+    assert (
+        threads_text(cpus + 62, cpus)
+        == f"torch {cpus + 62}, numba {cpus} threads ({cpus + 62} asked: numba's most here){over}"
+    )
+    assert threads_text(1, 1, cpus + 1) == f"torch {cpus + 1}, numba 1 threads{over}"  # perf render --torch-threads
 
 
 def _fake_player(seen: list[int]) -> Any:

@@ -88,15 +88,16 @@ def environment(load_before: float) -> dict[str, Any]:
 
 def threads_text(asked: int, numba_threads: int | None, torch_threads: int | None = None) -> str:
     """``2 threads`` for a table's footer, or each library's where they differ: numba has at most ``NUMBA_NUM_THREADS``
-    (the CPUs), so ``--threads 64`` on 2 cores ran its kernels on 2 while the table said 64.
+    (the CPUs), so ``--threads 64`` on 2 cores ran its kernels on 2 while the table said 64; torch takes them all, and
+    more threads than CPUs slow it down (the forward at 160x120 went from 6.4 to 11.8 ms): said too.
     """
     torch_threads = asked if torch_threads is None else torch_threads
-    if numba_threads is None:
-        return f"{torch_threads} threads"
-    if numba_threads == asked == torch_threads:
-        return f"{asked} threads"
+    cpus = os.cpu_count() or 1
+    over = f", more than the {cpus} CPUs: slower" if max(asked, torch_threads) > cpus else ""
+    if numba_threads is None or numba_threads == asked == torch_threads:
+        return f"{torch_threads} thread{'s' * (torch_threads != 1)}{over}"
     fewer = f" ({asked} asked: numba's most here)" if numba_threads < asked else ""
-    return f"torch {torch_threads}, numba {numba_threads} threads{fewer}"
+    return f"torch {torch_threads}, numba {numba_threads} threads{fewer}{over}"
 
 
 def write_results(out: str | Path | None, result: dict[str, Any]) -> None:
