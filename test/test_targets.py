@@ -143,8 +143,8 @@ def test_a_stream_verdict_gives_the_keyframes_to_spare_seed_by_seed_and_names_it
     assert verdict.checks[0].seed_margins == pytest.approx((0.2 * 155 - 30, 0.2 * 165 - 32))  # 1.0 and 1.0 to spare
     assert [c.what for c in verdict.checks][1:] == ["recall@5cm", "psnr (dB)"]
     text = verdict.markdown()
-    assert "| +1.0000 / +1.0000 |" in text and "margin, required and slack are keyframes" in text, text
-    assert "| 31.00 ± 1.00 | 160.00 ± 5.00 |" in text, text
+    assert "| +1.00 / +1.00 |" in text and "margin, required and slack are keyframes" in text, text
+    assert "| 31.00 ± 1.00 | 160.00 ± 5.00 | +1.00 | +0.00 | +1.00 | yes |" in text, text
     few = bench(tmp_path / "few", "stream", {"n": {**metrics, "n_keyframes": (1.0, 0.0)}}, seeds=[0, 1])
     assert "| 1.00 ± 0.00 | 160.00 ± 5.00 |" in stream_target(load_policy(few), load_policy(folders["ref"])).markdown()
 

@@ -438,7 +438,8 @@ class Verdict:
         labels = [c.against for c in self.checks] + [v.against for v in self.views]
 
         def brief(c: Check) -> str:
-            return f"{c.what} against `{_short(c.against, labels)}`, margin {c.margin:+.5f} for {c.required:+.5f}"
+            d = 2 if c.what.startswith("keyframes") else 5
+            return f"{c.what} against `{_short(c.against, labels)}`, margin {c.margin:+.{d}f} for {c.required:+.{d}f}"
 
         if self.met:
             head = f"**met** (narrowest for what it requires: {brief(self.tightest)})"
@@ -452,10 +453,11 @@ class Verdict:
         ]
         for c in self.checks:
             counts = c.what.startswith("keyframes")
-            seeds = " / ".join(f"{m:+.4f}" for m in c.seed_margins)
+            d, ds = (2, 2) if counts else (5, 4)  # keyframes: counts to spare, as the means are written
+            seeds = " / ".join(f"{m:+.{ds}f}" for m in c.seed_margins)
             lines.append(
-                f"| {c.what} | `{c.against}` | {_pm(c.candidate, counts)} | {_pm(c.other, counts)} | {c.margin:+.5f} | "
-                f"{c.required:+.5f} | {c.slack:+.5f} | {'yes' if c.met else 'no'} | {seeds} |"
+                f"| {c.what} | `{c.against}` | {_pm(c.candidate, counts)} | {_pm(c.other, counts)} | "
+                f"{c.margin:+.{d}f} | {c.required:+.{d}f} | {c.slack:+.{d}f} | {'yes' if c.met else 'no'} | {seeds} |"
             )
         if any(c.what.startswith("keyframes") for c in self.checks):
             lines.append(
