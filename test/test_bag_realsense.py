@@ -411,6 +411,8 @@ def test_to_robot_of_a_robots_bag_says_to_map_it_as_it_is(
     assert cli_main(["map", str(rs_bag), "--realsense", "/camera/camera", "--out", str(tmp_path / "m")]) == 2
     err = capsys.readouterr().err  # --realsense typed with another namespace: the one to give is written out
     assert err.rstrip().endswith("under /camera: try --realsense /camera"), err
+    assert cli_main(["bag", "info", str(rs_bag), "--realsense", "/camera/camera", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["hint"].endswith("under /camera: try --realsense /camera")
     assert not (tmp_path / "again").exists()
 
 
