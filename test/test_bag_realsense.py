@@ -444,6 +444,7 @@ def test_a_tf_child_frame_that_is_not_the_images_frame_is_said_by_bag_info_and_m
     metrics = json.loads((tmp_path / "right" / "metrics.json").read_text())
     assert metrics["tf_child_frame_note"] is None
     assert metrics["camera_topics"]["pose_source"] == "tf" and metrics["camera_topics"]["tf_child_frame"] == OPTICAL
+    assert "pose" not in metrics["camera_topics"] and metrics["intrinsics"]["width"] == W  # no unused /camera/pose
 
 
 def test_bench_reads_a_robots_bag_with_the_camera_options_and_rescores_it(

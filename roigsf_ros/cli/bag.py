@@ -319,7 +319,8 @@ def _hint(args: argparse.Namespace, info: dict[str, Any]) -> str | None:
     ns = info.get("realsense_namespace")
     if ns is None:
         return None
-    option = "--realsense" if ns == "/camera" and args.realsense is None else f"--realsense {ns}"  # another typed
+    typed_other = args.realsense is not None and args.realsense.strip("/") != ns.strip("/")  # another namespace typed
+    option = "--realsense" if ns == "/camera" and not typed_other else f"--realsense {ns}"
     named = [o for o in ("color_transport", "depth_transport") if getattr(args, o) not in (None, AUTO)]
     named += [o for o in ("color_topic", "depth_topic", "camera_info_topic") if getattr(args, o) is not None]
     drop = f" without {', '.join('--' + o.replace('_', '-') for o in named)}" if named else ""

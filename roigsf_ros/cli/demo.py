@@ -37,7 +37,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -554,7 +553,7 @@ def run_demo(
         "tf_reparented": reparented,  # a TF frame changed parent: the poses through it moved (metric_notes says it)
         "tf_reparent_note": reparent_note or None,
         "tf_child_frame_note": child_note or None,  # the poses are another frame's than the images' (metric_notes)
-        "camera_topics": asdict(reader.topics),  # how the bag was read, resolved against it
+        "camera_topics": reader.topics.record(),  # how the bag was read, resolved against it
         "planner": f"{sel['planner_answers']}/{sel['planner_calls']}",
         "planner_calls": sel["planner_calls"],
         "planner_answers": sel["planner_answers"],

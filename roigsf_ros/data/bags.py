@@ -24,7 +24,7 @@ import shutil
 import struct
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
@@ -175,6 +175,14 @@ class CameraTopics:
                 raise InputError(name, "must not be empty")
         if not (math.isfinite(self.tf_tolerance_s) and self.tf_tolerance_s >= 0):
             raise InputError("tf_tolerance_s", f"must be a number of seconds >= 0, got {self.tf_tolerance_s}")
+
+    def record(self) -> dict[str, Any]:
+        """The fields that say how the bag was read, for a run's JSON: the pose topic only when the pose comes from it,
+        the TF frames, topics and tolerance only when it comes from TF (a record of a TF read named ``/camera/pose``).
+        """
+        unused = ("tf_parent_frame", "tf_child_frame", "tf_topic", "tf_static_topic", "tf_tolerance_s")
+        unused = unused if not self.uses_tf else ("pose",)
+        return {k: v for k, v in asdict(self).items() if k not in unused}
 
     @property
     def uses_tf(self) -> bool:

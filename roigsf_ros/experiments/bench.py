@@ -27,7 +27,7 @@ import platform
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -519,7 +519,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, overwrite: bool = False, pr
             "pool_config": cfg.pool.to_dict() if cfg.setting == "pool" else None,
             "eval_every": cfg.eval_every if cfg.setting == "stream" else None,
             "test_scene": str(cfg.test_scene) if cfg.test_scene is not None else None,
-            "camera_topics": asdict(source.camera_topics) if source.camera_topics is not None else None,  # a bag's
+            "camera_topics": source.camera_topics.record() if source.camera_topics is not None else None,  # a bag's
             "tf_child_frame_note": source.tf_child_frame_note or None,  # the poses are not the images': say so
             "cam": str(cfg.cam) if cfg.cam is not None else None,  # a rescore reads the folder with these two
             "allow_partial": cfg.allow_partial,

@@ -321,7 +321,8 @@ def run_offline(
         "source": str(getattr(source, "path", "in memory")),
         "image_size": [source.intrinsics.width, source.intrinsics.height],
         "command": command,
-        "camera_topics": asdict(topics) if (topics := getattr(source, "camera_topics", None)) is not None else None,
+        "camera_topics": topics.record() if (topics := getattr(source, "camera_topics", None)) is not None else None,
+        "intrinsics": asdict(source.intrinsics),  # as read (a --cam file over the folder's own shows here)
         "policy": policy.name,
         "policy_params": policy.params(),
         "n_frames": len(is_keyframe),
