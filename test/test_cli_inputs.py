@@ -277,7 +277,7 @@ def test_bag_info_counts_no_tf_message_as_an_incomplete_frame(
     assert main(["bag", "info", str(bag), "--realsense", "/cam", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert (info["frame_count"], info["incomplete_stamps"]) == (0, 0), info
-    assert info["realsense_namespace"] == "/camera" and info["hint"].endswith("try --realsense"), info
+    assert info["realsense_namespace"] == "/camera" and info["hint"].endswith("try --realsense /camera"), info
     assert main(["bag", "info", str(bag), "--realsense", "/cam"]) == 0
     assert ", 0 refused, 0 incomplete stamps\n" in capsys.readouterr().out
     # the default topics: the one camera topic present (colour, compressed) counts its 6 stamps, TF still not
