@@ -169,9 +169,10 @@ OVERRIDING_OPTIONS = ("color_topic", "depth_topic", "camera_info_topic", "color_
 def with_bag_hint(exc: InputError, args: argparse.Namespace, path: str | Path) -> InputError:
     """``exc``, raised opening ``path`` with :func:`add_camera_options`' options, with ``roigsf demo``'s and ``roigsf
     bag info``'s hint when ``path`` is a bag that holds a RealSense camera's topics: ``try --realsense`` (without the
-    options that would override it); ``exc`` itself for a folder or a bag without them.
+    options that would override it), or, ``--realsense`` given, this package's own: leave it out; ``exc`` itself for a
+    folder or a bag without either.
     """
-    from roigsf_ros.data.bags import AUTO, bag_topic_types
+    from roigsf_ros.data.bags import AUTO, CameraTopics, bag_topic_types
 
     try:
         present = bag_topic_types(path)
@@ -179,6 +180,13 @@ def with_bag_hint(exc: InputError, args: argparse.Namespace, path: str | Path) -
         return exc
     named = tuple(f"--{o.replace('_', '-')}" for o in OVERRIDING_OPTIONS if getattr(args, o) not in (None, AUTO))
     hint = realsense_hint(Path(path), present, args.realsense, named)
+    if not hint and args.realsense is not None:  # --realsense on a bag of this package's own names
+        try:
+            CameraTopics(color_transport=AUTO, depth_transport=AUTO).in_bag(present, path)
+        except InputError:
+            pass
+        else:
+            hint = "; the bag has this package's camera topics (`roigsf bag from-replica`'s): leave out --realsense"
     return InputError(exc.where, exc.problem + hint) if hint else exc
 
 
