@@ -489,4 +489,8 @@ def test_a_test_scene_is_read_with_the_sources_camera_options_and_its_error_says
     assert cli_main(argv) == 2
     err = capsys.readouterr().err
     assert "is missing" in err and "(--test-scene is read with the source's camera options" in err, err
-    assert "`roigsf bag to-robot`" in err and not out.exists()
+    assert "`roigsf bag to-robot`" in err and "leave out --realsense" not in err and not out.exists(), err
+    assert cli_main(["map", str(raw_bag), "--realsense", "--out", str(out)]) == 2  # the source itself: leave it out
+    err = capsys.readouterr().err
+    assert err.rstrip().endswith("the bag has this package's camera topics (`roigsf bag from-replica`'s): leave out "
+                                 "--realsense"), err  # fmt: skip

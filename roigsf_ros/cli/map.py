@@ -304,11 +304,11 @@ def _open(
     try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
         return open_frames(path, topics=topics, cam=args.cam, **kwargs)
     except InputError as exc:
-        error = exc if args.cam is not None else with_bag_hint(exc, args, path)  # a bag given --cam: no hint
-        if option and is_bag(path):
-            error = InputError(error.where, f"{error.problem} ({option} is read with the source's camera options: "
-                               "a camera bag beside a robot's can be made one with `roigsf bag to-robot`)")  # fmt: skip
-        raise error from None
+        if option and is_bag(path):  # not the source's hint: dropping or adding --realsense would break the source
+            raise InputError(exc.where, f"{exc.problem} ({option} is read with the source's camera options, so both "
+                             "bags must be of one layout: `roigsf bag to-robot` rewrites a camera bag as a robot's)"
+                             ) from None  # fmt: skip
+        raise (exc if args.cam is not None else with_bag_hint(exc, args, path)) from None  # --cam on a bag: no hint
 
 
 _SKIPPED_KEYS = (
