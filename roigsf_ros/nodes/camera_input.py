@@ -282,12 +282,12 @@ class CameraInput:
         """Messages received per topic (every subscribed topic listed, 0 until its first message)."""
         self._in_callback = 0  # messages received whose callback (and the frame it completed) is still running
         self.tf_rejected = 0
+        """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.child_frame_note = ""
         """Why the poses are not the images' (``tf_child_frame`` another frame than theirs), from the first posed frame;
-        warned once and kept in :meth:`counts`."""
+        warned once and kept in :meth:`stats`."""
         self._child_checked = False
         self._child_warned = False
-        """Transforms refused on the TF topics (bad values); the rest of their messages is kept."""
         self.last_rejection = ""
         """The full text of the last frame's conversion error (the counters hold only its category)."""
         self._ledger: FrameLedger[Any] = FrameLedger(self.topics.types(), max_pending)
