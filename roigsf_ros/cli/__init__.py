@@ -190,6 +190,12 @@ def with_bag_hint(exc: InputError, args: argparse.Namespace, path: str | Path) -
     return InputError(exc.where, exc.problem + hint) if hint else exc
 
 
+def typed_camera_options(args: argparse.Namespace) -> list[str]:
+    """The :func:`add_camera_options` options typed, as typed (``--realsense`` first), for errors that name them."""
+    typed = [f"--{o.replace('_', '-')}" for o in camera_options(args)]
+    return (["--realsense"] if args.realsense is not None else []) + typed
+
+
 def check_camera_options_for(args: argparse.Namespace, source: str | Path | None) -> None:
     """InputError naming the camera options typed (:func:`add_camera_options`) when ``source`` is a Replica folder:
     they say how a bag's topics are read, and a folder has none (its poses are traj.txt's), so they were ignored
@@ -197,8 +203,7 @@ def check_camera_options_for(args: argparse.Namespace, source: str | Path | None
     """
     from roigsf_ros.data.sources import is_bag
 
-    typed = [f"--{o.replace('_', '-')}" for o in camera_options(args)]
-    typed = (["--realsense"] if args.realsense is not None else []) + typed
+    typed = typed_camera_options(args)
     if typed and source is not None and Path(source).exists() and not is_bag(source):
         raise InputError(" ".join(typed), f"{source} is a Replica folder, not a bag: camera options say how a bag's "
                          "topics are read (a folder's images and poses are its files)")  # fmt: skip

@@ -19,12 +19,12 @@ from pathlib import Path
 
 from roigsf_ros.cli import (
     add_camera_options,
-    camera_options,
     camera_topics,
     check_camera_options_for,
     check_out,
     command_line,
     image_size,
+    typed_camera_options,
     with_bag_hint,
 )
 from roigsf_ros.cli.map import parse_overrides
@@ -138,8 +138,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.rescore_ause:
         given = [f for f, v in (("--setting", args.setting), ("--policies", args.policies)) if v is not None]
-        given += [f"--{o.replace('_', '-')}" for o in camera_options(args)]
-        given += ["--realsense"] if args.realsense is not None else []
+        given += typed_camera_options(args)
         given += [f for f, v in (("--cam", args.cam), ("--allow-partial", args.allow_partial)) if v]
         if given:
             raise InputError(" ".join(given), "not used with --rescore-ause (the bench's own are rescored)")

@@ -89,7 +89,7 @@ def environment(load_before: float) -> dict[str, Any]:
 def threads_text(asked: int, numba_threads: int | None, torch_threads: int | None = None) -> str:
     """``2 threads`` for a table's footer, or each library's where they differ: numba has at most ``NUMBA_NUM_THREADS``
     (the CPUs), so ``--threads 64`` on 2 cores ran its kernels on 2 while the table said 64; torch takes them all, and
-    more threads than CPUs slow it down (the forward at 160x120 went from 6.4 to 11.8 ms): said too.
+    more threads than CPUs slow it down: said too.
     """
     torch_threads = asked if torch_threads is None else torch_threads
     cpus = os.cpu_count() or 1
