@@ -292,6 +292,21 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     err = capsys.readouterr().err
     assert "bag: is a bag: its camera_info gives the camera (--cam PATH is for a Replica folder)" in err, err
     assert len(seen) == 1
+    # A folder source with --cam and a bag test scene: the bag reads its own camera_info, as the bench does (it was
+    # given --cam, refused it, and the error added a misleading "both bags must be of one layout").
+    beside = []
+
+    def record_beside(source: object, *_args: object, eval_source: object, test_source: object, **_kw: object) -> None:
+        beside.append(eval_source or test_source)
+        record(source)
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record_beside)
+    for option in ("--test-scene", "--eval-against"):
+        assert main(["map", str(tiny_scene), "--cam", str(cam), option, str(tmp_path / "bag"), "--out", out,
+                     "--no-progress"]) == 2, option  # fmt: skip
+        err = capsys.readouterr().err
+        assert "the mapping itself is not under test" in err and "camera_info gives the camera" not in err, err
+    assert [s.intrinsics.width for s in beside] == [16, 16], beside  # type: ignore[attr-defined]
 
 
 def test_allow_partial_reaches_the_test_scene_and_the_bench_takes_it(

@@ -301,8 +301,11 @@ def _open(
     ``option``: the option that named ``path`` when it is not the source (``--test-scene``): a bag's error there says
     that the source's camera options apply to it too, so a camera bag beside a robot's is read with the robot's.
     """
-    try:  # --cam: every folder's camera (open_frames refuses it for a bag, which carries its camera_info)
-        return open_frames(path, topics=topics, cam=args.cam, **kwargs)
+    # --cam: every folder's camera. A bag carries its camera_info: open_frames refuses --cam for the source bag, and
+    # a bag beside a folder source (--test-scene, --eval-against) reads its own, as the bench does.
+    cam = None if option and is_bag(path) else args.cam
+    try:
+        return open_frames(path, topics=topics, cam=cam, **kwargs)
     except InputError as exc:
         if option and is_bag(path):  # not the source's hint: dropping or adding --realsense would break the source
             raise InputError(exc.where, f"{exc.problem} ({option} is read with the source's camera options, so both "
