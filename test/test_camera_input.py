@@ -774,7 +774,7 @@ def test_an_unknown_tf_child_frame_is_said_with_the_images_own_frame(ros_context
         assert camera.stats()["rejected"] == {"no_tf": 3}, camera.stats()
         assert (
             "frame 'cam' is unknown (frames known: map, other); the images are in frame 'camera_color_optical_frame': "
-            "set tf_child_frame / --tf-child-frame to it" in camera.stats()["last_rejection"]
+            "set tf_child_frame to it" in camera.stats()["last_rejection"]  # a node's parameter, not the CLI's option
         ), camera.stats()["last_rejection"]
 
 
@@ -803,8 +803,9 @@ def test_a_tf_child_frame_apart_from_the_images_frame_is_warned_once_and_kept_in
         note = camera.stats()["tf_child_frame_note"]
         assert note.startswith("the poses are TF frame 'cam', but the images are in 'camera_color_optical_frame', "
                                "0.000 m and 90.0 deg from it"), note  # fmt: skip
+        assert note.endswith("(set tf_child_frame to 'camera_color_optical_frame')"), note  # no "--tf-child-frame"
     warnings = [line for line in capfd.readouterr().err.splitlines() if "but the images are in" in line]
-    assert len(warnings) == 2, warnings  # once per input
+    assert len(warnings) == 2 and "--tf-child-frame" not in warnings[0], warnings  # once per input
 
 
 def test_the_camera_nodes_status_carries_the_tf_fields_their_logs_give(ros_context: Any) -> None:

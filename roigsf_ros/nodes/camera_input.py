@@ -89,6 +89,13 @@ class ThrottleByKind:
         return True
 
 
+def parameter_words(text: object) -> str:
+    """A data-layer message in a node's words: "set tf_child_frame / --tf-child-frame to ..." names the parameter
+    only, as a node has parameters, not the command line's options (the library's TF messages name both).
+    """
+    return re.sub(r" / --[a-z][a-z-]*", "", str(text))
+
+
 def tf_fault_kind(exc: InputError) -> str:
     """What kind of fault a refused transform has: its problem without the frame names and numbers in it."""
     return re.sub(r"'[^']*'|\[[^\]]*\]|-?\d[\d.e+-]*|nan|inf", "#", exc.problem)
@@ -601,7 +608,7 @@ class CameraInput:
             # one throttle per kind of fault: a NaN translation hid a zero quaternion and a zero stamp behind it
             said = [e for e in errors if self._tf_warnings.due(tf_fault_kind(e))]
         for error in said:
-            self.node.get_logger().warning(f"ignored transform: {error}")
+            self.node.get_logger().warning(f"ignored transform: {parameter_words(error)}")
         if reparented > before:  # two publishers of one frame: every pose through it moves, and nothing else says so
             self.node.get_logger().warning(
                 f"TF: {self._tf.reparent_note} ({reparented} change(s) of parent so far)",
@@ -646,7 +653,7 @@ class CameraInput:
                     self._child_checked = True
                     note = child_frame_mismatch(self._tf, t.tf_parent_frame, t.tf_child_frame, a.image_frame,
                                                 a.stamp_ns, T_wc)  # fmt: skip
-                    self.child_frame_note = note
+                    self.child_frame_note = parameter_words(note)
                 ready.append(BagFrame(a.stamp_ns, a.rgb, a.depth_m, T_wc, a.intrinsics))
         if ready and self.child_frame_note and not self._child_warned:
             self._child_warned = True
@@ -655,7 +662,7 @@ class CameraInput:
             with self._lock:
                 total = sum(self._ledger.counts()["rejected"].values())  # type: ignore[union-attr]
             self.node.get_logger().warning(
-                f"dropped {len(dropped)} frame(s) ({total} refused so far): {dropped[-1]}",
+                f"dropped {len(dropped)} frame(s) ({total} refused so far): {parameter_words(dropped[-1])}",
                 throttle_duration_sec=WARN_THROTTLE_S,
             )
         for frame in ready:
@@ -669,8 +676,8 @@ class CameraInput:
     def _remember_rejection(self, stamp_ns: int, reason: str, exc: InputError) -> None:
         """Count a refused frame and keep why (the caller holds the lock)."""
         self._ledger.reject(reason)
-        self.last_rejection = str(exc)
-        self._rejections[int(stamp_ns)] = f"{reason}: {exc}"
+        self.last_rejection = parameter_words(exc)
+        self._rejections[int(stamp_ns)] = f"{reason}: {self.last_rejection}"
         while len(self._rejections) > REMEMBERED_REJECTIONS:
             self._rejections.popitem(last=False)
 
@@ -683,7 +690,7 @@ class CameraInput:
             self._remember_rejection(stamp_ns, reason, exc)
             due = self._reject_warnings.due(reason)
         if due:
-            self.node.get_logger().warning(f"dropped frame: {exc}")
+            self.node.get_logger().warning(f"dropped frame: {parameter_words(exc)}")
 
     def _downscale(self, bf: BagFrame) -> BagFrame:
         """The frame at ``input_size`` (colour by area, depth nearest with centres aligned, intrinsics scaled)."""
