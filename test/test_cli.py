@@ -309,6 +309,41 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     assert [s.intrinsics.width for s in beside] == [16, 16], beside  # type: ignore[attr-defined]
 
 
+def test_a_named_camera_is_read_by_every_cam_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`roigsf scene render --cam kinect-v1` took a named camera while `roigsf map --cam kinect-v1` said "camera
+    parameters file not found". Every --cam (and the library's cam=) now takes the name (data.sensor.load_camera); a
+    name that is neither a file nor a camera lists the names."""
+    import roigsf_ros.cli.map
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.data.sensor import KINECT_V1_INTRINSICS
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    scene = tmp_path / "kinect"
+    make_synthetic_replica(scene, 640, 480, 1, seed=1)
+    (scene / "cam_params.json").unlink()
+    assert ReplicaSequence(scene, cam="kinect-v1").intrinsics == KINECT_V1_INTRINSICS
+    seen = []
+
+    def record(source: object, *_args: object, **_kw: object) -> None:
+        seen.append(source.intrinsics)  # type: ignore[attr-defined]
+        raise InputError("stub", "the mapping itself is not under test")
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    out = str(tmp_path / "out")
+    assert main(["map", str(scene), "--cam", "kinect-v1", "--out", out, "--no-progress"]) == 2
+    assert seen == [KINECT_V1_INTRINSICS], seen
+    capsys.readouterr()
+    assert main(["map", str(scene), "--cam", "kinect-v2", "--out", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "kinect-v2: camera parameters file not found, nor a named camera (kinect-v1)" in err, err
+    assert main(["map", str(scene), "--cam", str(tmp_path / "gone.json"), "--out", out, "--no-progress"]) == 2
+    err = capsys.readouterr().err  # a path is a path: no talk of names
+    assert err.rstrip().endswith("gone.json: camera parameters file not found"), err
+
+
 def test_allow_partial_reaches_the_test_scene_and_the_bench_takes_it(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--cam",
         type=Path,
         metavar="CAM_JSON",
-        help="camera parameters JSON (default: DIR/cam_params.json, else the parent folder's)",
+        help="camera parameters JSON, or a named camera (kinect-v1) (default: DIR/cam_params.json, else the parent "
+        "folder's)",
     )
     conv.add_argument("--width", type=int, metavar="W", help="resize images to this width (alone: keeps the aspect)")
     conv.add_argument("--height", type=int, metavar="H", help="resize images to this height (alone: keeps the aspect)")

@@ -64,8 +64,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stride", type=int, default=1, help="use every S-th frame of the scene")
     p.add_argument("--max-frames", type=int, help="stop after N frames (after the stride)")
     p.add_argument("--allow-partial", action="store_true", help="accept a traj.txt with more poses than frames")
-    p.add_argument("--cam", type=Path, metavar="CAM_JSON", help="a Replica folder's camera parameters JSON (default: "
-                   "its cam_params.json, else the parent folder's), for --test-scene too")  # fmt: skip
+    p.add_argument("--cam", type=Path, metavar="CAM_JSON", help="a Replica folder's camera parameters JSON, or a named "
+                   "camera (kinect-v1) (default: its cam_params.json, else the parent folder's), for a folder given to "
+                   "--test-scene too")  # fmt: skip
     p.add_argument("--eval-every", type=int, default=1, help="stream: evaluate every K-th non-keyframe")
     p.add_argument("--test-scene", type=Path, metavar="DIR_OR_BAG",
                    help="stream: also evaluate every run on these frames, which no policy sees (the same camera; e.g. "

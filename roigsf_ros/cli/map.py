@@ -83,8 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--cam",
         type=Path,
         metavar="CAM_JSON",
-        help="a Replica folder's camera parameters JSON (default: its cam_params.json, else the parent folder's), for "
-        "--eval-against and --test-scene too; a bag's camera is its camera_info",
+        help="a Replica folder's camera parameters JSON, or a named camera (kinect-v1) (default: its cam_params.json, "
+        "else the parent folder's), for a folder given to --eval-against and --test-scene too; a bag's camera is its "
+        "camera_info",
     )
     p.add_argument("--iters-per-keyframe", type=int, help="optimiser steps per keyframe")
     p.add_argument("--final-iters", type=int, help="global refinement steps at the end")

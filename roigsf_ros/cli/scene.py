@@ -15,10 +15,10 @@ from pathlib import Path
 
 from roigsf_ros.cli import OVERWRITE_HELP, check_out, image_size
 from roigsf_ros.cli.map import parse_set_value
-from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size, load_cam_params
+from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.replica import SCENE_MARKS, load_traj
-from roigsf_ros.data.sensor import CAMERAS, SENSORS, SensorConfig, SensorModel
+from roigsf_ros.data.sensor import CAMERAS, SENSORS, SensorConfig, SensorModel, load_camera
 
 SYNTH_WIDTH, SYNTH_HEIGHT = 320, 240
 SYNTH_FOCAL_PER_WIDTH = 0.8
@@ -57,13 +57,6 @@ def _sensor(args: argparse.Namespace) -> SensorModel | None:
     return SensorModel.named(args.sensor, seed=args.sensor_seed, **overrides)
 
 
-def _camera(cam: str) -> Intrinsics:
-    """``--cam``: a cam_params.json, or the name of a camera in :data:`roigsf_ros.data.sensor.CAMERAS`."""
-    if not Path(cam).exists() and cam in CAMERAS:
-        return CAMERAS[cam]
-    return load_cam_params(cam)
-
-
 def _sensor_note(sensor: SensorModel | None) -> str:
     """The summary line's mention of the sensor and its holes."""
     if sensor is None:
@@ -87,7 +80,7 @@ def _render(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}")
     size = image_size(args)
-    intr = _camera(args.cam)
+    intr = load_camera(args.cam)
     if size is not None:
         intr = intr.resized(*size)
     poses = load_traj(args.traj)[args.offset :: args.stride]

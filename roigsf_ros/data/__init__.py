@@ -131,6 +131,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "axial_sigma_m",
             "depth_edges",
             "lateral_sigma_px",
+            "load_camera",
             "measured_poses",
             "non_orthonormal",
             "orthonormality_error",

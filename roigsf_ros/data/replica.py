@@ -22,9 +22,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roigsf_ros.core.camera import Intrinsics, load_cam_params, load_pose, save_cam_params
+from roigsf_ros.core.camera import Intrinsics, load_pose, save_cam_params
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame, resize_frame
+from roigsf_ros.data.sensor import load_camera
 
 _LOG = logging.getLogger(__name__)
 
@@ -191,7 +192,7 @@ class ReplicaSequence:
                     "no cam_params.json here or in the parent folder: put Replica's there, or give the camera "
                     "file (cam=PATH)",
                 )
-            native = load_cam_params(cam_path)
+            native = load_camera(cam_path)  # a file, or a named camera (cam="kinect-v1")
 
         self.colour_paths: dict[int, Path] = {}
         for p in sorted(self.results.iterdir()):

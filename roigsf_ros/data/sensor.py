@@ -55,11 +55,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from roigsf_ros.core.camera import Intrinsics, check_pose
+from roigsf_ros.core.camera import Intrinsics, check_pose, load_cam_params
 from roigsf_ros.core.config import Config
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
@@ -69,7 +70,24 @@ KINECT_V1_INTRINSICS = Intrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=
 default calibration of the ROS openni driver, which TUM RGB-D's docs give as its ROS default)."""
 
 CAMERAS = {"kinect-v1": KINECT_V1_INTRINSICS}
-"""Named cameras, for ``roigsf scene render --cam NAME``."""
+"""Named cameras, for ``--cam NAME`` (:func:`load_camera`)."""
+
+
+def load_camera(cam: str | Path) -> Intrinsics:
+    """A camera given as a ``cam_params.json`` path or as a name in :data:`CAMERAS` (a file of that name wins).
+
+    One rule for every ``--cam`` / ``cam=``: ``roigsf scene render`` took ``kinect-v1`` while ``roigsf map`` read it
+    as a file name and said "camera parameters file not found".
+    """
+    if not Path(cam).exists() and str(cam) in CAMERAS:
+        return CAMERAS[str(cam)]
+    try:
+        return load_cam_params(cam)
+    except InputError as exc:
+        if Path(cam).exists() or "/" in str(cam) or str(cam).endswith(".json"):
+            raise
+        raise InputError(exc.where, f"{exc.problem}, nor a named camera ({', '.join(sorted(CAMERAS))})") from None
+
 
 _STREAM_DEPTH, _STREAM_COLOUR, _STREAM_POSE, _STREAM_DRIFT = 1, 2, 3, 4
 
@@ -486,6 +504,7 @@ __all__ = [
     "axial_sigma_m",
     "depth_edges",
     "lateral_sigma_px",
+    "load_camera",
     "measured_poses",
     "non_orthonormal",
     "orthonormality_error",
