@@ -494,3 +494,20 @@ def test_a_test_scene_is_read_with_the_sources_camera_options_and_its_error_says
     err = capsys.readouterr().err
     assert err.rstrip().endswith("the bag has this package's camera topics (`roigsf bag from-replica`'s): leave out "
                                  "--realsense"), err  # fmt: skip
+
+
+def test_perf_novelty_reads_a_robots_bag_with_the_camera_options(
+    rs_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`roigsf perf novelty --bag` read only this package's layout: a robot's bag was refused ("is missing") with no
+    option to read it. It takes `roigsf map`'s camera options (the perf layer gets the topics from the CLI), gives
+    the --realsense hint, and the JSON says how the bag was read."""
+    out = tmp_path / "novelty.json"
+    argv = ["perf", "novelty", "--bag", str(rs_bag), "--window", "2", "--lookahead", "1", "--repeats", "1"]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "is missing" in err and "try --realsense" in err, err
+    assert cli_main([*argv, "--realsense", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["camera_topics"]["pose_source"] == "tf" and data["summary"]["all_equal"], data
+    assert [w["first_frame"] for w in data["windows"]] == [1, 3], data["windows"]  # 6 frames: two windows of 2

@@ -39,7 +39,7 @@ import numpy as np
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
-from roigsf_ros.data.bags import SAMPLE_BAG, read_bag_frames, sample_path
+from roigsf_ros.data.bags import SAMPLE_BAG, CameraTopics, read_bag_frames, sample_path
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.nbv.novelty import (
     HASH_CAPACITY,
@@ -158,13 +158,20 @@ def run_windows(
     return rows
 
 
-def run(args: argparse.Namespace) -> int:
-    """``roigsf perf novelty``: time the windows, print the table, write the JSON."""
+READS_CAMERA_BAG = True
+"""``roigsf perf novelty`` takes ``roigsf map``'s camera options (``--realsense``, ``--pose-source tf``, ...): the CLI
+adds them and passes :func:`run` the topics, as this layer may not import the CLI's option code."""
+
+
+def run(args: argparse.Namespace, topics: CameraTopics | None = None) -> int:
+    """``roigsf perf novelty``: time the windows, print the table, write the JSON. ``topics``: how the bag is read
+    (default this package's own names).
+    """
     check_options(args, {"repeats": 1, "window": 1, "lookahead": 0, "hash_capacity": 1, "hash_chunk_rows": 1})
     check_out_file(args.out, "novelty")
     load_before = os.getloadavg()[0]
     bag = args.bag if args.bag is not None else sample_path(SAMPLE_BAG)
-    bag_frames, _ = read_bag_frames(bag)
+    bag_frames, _ = read_bag_frames(bag, topics)
     if not bag_frames:
         raise InputError(bag, "no complete frame in the bag")
     frames = [Frame(i, f.rgb, f.depth_m, f.T_wc) for i, f in enumerate(bag_frames)]
@@ -183,7 +190,8 @@ def run(args: argparse.Namespace) -> int:
         "max_stall_s": max(r["stall_s"] for r in rows),
         "all_equal": all(r["equal"] for r in rows),
     }
-    result = {"benchmark": "novelty", "bag": str(bag), "window": args.window, "lookahead": args.lookahead,
+    result = {"benchmark": "novelty", "bag": str(bag), "camera_topics": (topics or CameraTopics()).record(),
+              "window": args.window, "lookahead": args.lookahead,
               "repeats": args.repeats, "hash_capacity": args.hash_capacity, "hash_chunk_rows": args.hash_chunk_rows,
               "environment": environment(load_before), "windows": rows, "summary": summary}  # fmt: skip
     print(f"lookahead novelty of {len(rows)} windows of {args.window} frames, {args.lookahead} ahead ({bag})")
