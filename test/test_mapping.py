@@ -311,6 +311,35 @@ def test_run_offline_writes_everything_and_save_load(frames: list[Frame], tmp_pa
     assert make_policy("roi-gsurfisher")._h_train(loaded) is None
 
 
+def test_a_map_whose_fisher_was_read_saves_it_and_a_save_never_leaves_another_maps(
+    frames: list[Frame], tmp_path
+) -> None:
+    """Two walks' findings: (1) `roigsf map --policy roi-gsurfisher` never wrote ``h_train.npz``: the newest keyframe's
+    lazy Fisher pass was still pending at the save, so the README's "saved when the run computed it" never held for a
+    Fisher run; (2) saving a map into a folder holding another map's ``h_train.npz`` left it there, and ``Mapper.load``
+    then refused the folder ("array 'means' has shape ...")."""
+    out = tmp_path / "run"
+    run_offline(FrameList(frames[:4]), make_policy("roi-gsurfisher", window=2), small_config(iters_per_keyframe=2),
+                out, progress=False)  # fmt: skip
+    assert (out / "h_train.npz").is_file()
+    assert Mapper.load(out).h_train_complete  # a resumed Fisher run scores views as the saved one
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=2))
+    for f in frames[:2]:
+        mapper.add_keyframe(f)
+    mapper.save(tmp_path / "map")  # never read: not computed only to be saved
+    assert not (tmp_path / "map" / "h_train.npz").exists()
+    mapper.h_train  # noqa: B018 - read once, as a Fisher policy does
+    mapper.add_keyframe(frames[2])  # its Fisher pass pending
+    assert not mapper.h_train_computed and mapper.h_train_to_save
+    mapper.save(tmp_path / "map")
+    assert Mapper.load(tmp_path / "map").h_train_complete
+    other = Mapper(INTR, small_config(iters_per_keyframe=2))
+    other.add_keyframe(frames[4])
+    other.save(tmp_path / "map")  # over the first map: its h_train.npz is not this map's
+    assert not (tmp_path / "map" / "h_train.npz").exists()
+    assert Mapper.load(tmp_path / "map").n_surfels == other.n_surfels
+
+
 def test_a_resumed_map_scores_views_as_the_saved_one(frames: list[Frame], tmp_path) -> None:
     """``save-map`` then ``load-map`` changed the NBV scores (a walk: Fisher 2.287e7 -> 9.883e6 for one candidate):
     the running training Fisher was not saved, and the loaded map's was recomputed from the poses under another

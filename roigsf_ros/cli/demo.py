@@ -585,7 +585,7 @@ def run_demo(
 
     reads = [p for p in (bag, gt_mesh, *params_files) if p is not None]
     with atomic_dir(out, overwrite=True, marks=DEMO_MARKS, what=DEMO_OUTPUT, inputs=reads) as tmp:
-        snap = system.shared.snapshot(with_h_train=system.shared.h_train_computed())
+        snap = system.shared.snapshot(with_h_train=system.shared.h_train_to_save())
         save_snapshot(snap, tmp)  # map.ply + keyframes.json (+ h_train.npz)
         if not o3d.io.write_triangle_mesh(str(tmp / "mesh.ply"), mesh):
             raise OSError(f"{out / 'mesh.ply'}: open3d could not write the mesh")

@@ -390,6 +390,7 @@ class Mapper:
         """Whether :meth:`load` read the saved map's training Fisher (``h_train.npz``): then :attr:`h_train` covers the
         loaded keyframes too, as it did in the mapper that saved it."""
         self._warned_loaded_h_train = False
+        self._h_train_read = False  # something read h_train (a Fisher policy, the map cloud): a save then writes it
         self._rng = np.random.default_rng(self.config.seed)
         self._adam = _SparseAdam(self.config.learning_rates())
         self._version = 0  # bumped whenever the map changes (invalidates the render cache)
@@ -766,6 +767,7 @@ class Mapper:
                 RuntimeWarning,
                 stacklevel=2,
             )
+        self._h_train_read = True
         self._flush_fisher()
         return self._h_train
 
@@ -773,6 +775,16 @@ class Mapper:
     def h_train_computed(self) -> bool:
         """Whether :attr:`h_train` is computed for every keyframe inserted (none waits for its lazy Fisher pass)."""
         return not self._fisher_pending
+
+    @property
+    def h_train_to_save(self) -> bool:
+        """Whether :meth:`save` writes ``h_train.npz``: tracked, covering every keyframe, and computed or read before.
+
+        A run that read it (every Fisher policy does) gets it saved with the last keyframes' passes done then: the lazy
+        pass of the newest keyframe was still pending when ``roigsf map`` saved, so no Fisher run wrote the file. A run
+        that never read it is not made to pay one Fisher pass per keyframe only to save it.
+        """
+        return self.config.track_h_train and self.h_train_complete and (self.h_train_computed or self._h_train_read)
 
     @property
     def h_train_complete(self) -> bool:
@@ -883,18 +895,23 @@ class Mapper:
         """Write ``map.ply`` (2DGS layout), ``keyframes.json`` (every keyframe of :meth:`map_keyframes`, loaded
         ones first; intrinsics, config) and, when it is computed and covers every keyframe, ``h_train.npz`` (the
         training Fisher the NBV score divides by), so that ``Mapper.load(d).save(d2)`` keeps the keyframes of ``d`` and
-        a resumed map scores views as the one saved. (A run whose policy never read :attr:`h_train` left it lazy:
-        computing it only to save it would cost every such run one Fisher pass per keyframe.)
+        a resumed map scores views as the one saved. (A run that never read :attr:`h_train` left it lazy: computing it
+        only to save it would cost every such run one Fisher pass per keyframe; :attr:`h_train_to_save`.) Each file is
+        written atomically; an ``h_train.npz`` already in ``out_dir`` that this save does not replace is removed (it
+        was another map's).
         """
         out = Path(out_dir)
         try:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:  # a regular file on the way: said as the package's error, naming the folder
             raise InputError(out, f"cannot create the map folder: {exc.strerror or exc}") from None
+        saved_h_train = out / H_TRAIN_FILE
+        if not self.h_train_to_save:  # another map's Fisher saved here before would not match this map: load refused it
+            saved_h_train.unlink(missing_ok=True)
         self.map.save_ply(out / "map.ply")
         write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
-        if self.config.track_h_train and self.h_train_complete and self.h_train_computed:
-            write_h_train(out / H_TRAIN_FILE, self.h_train)  # computed already: a run that never read it pays nothing
+        if self.h_train_to_save:
+            write_h_train(saved_h_train, self.h_train)
 
     @classmethod
     def load(cls, in_dir: str | Path, config: MapperConfig | None = None) -> Mapper:

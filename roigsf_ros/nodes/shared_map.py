@@ -170,12 +170,12 @@ class SharedMapper:
         """Every keyframe of the map, loaded first: :meth:`Mapper.map_keyframes`, which the library's save writes."""
         return m.map_keyframes()
 
-    def h_train_computed(self) -> bool:
-        """Whether the map's training Fisher is computed for every keyframe (:attr:`Mapper.h_train_computed`): a save
-        writes it only then, so that a run that never read it does not pay one Fisher pass per keyframe to save it.
+    def h_train_to_save(self) -> bool:
+        """Whether a save writes the map's training Fisher (:attr:`Mapper.h_train_to_save`: computed or read before), so
+        that a run that never read it does not pay one Fisher pass per keyframe to save it.
         """
         with self.reading():
-            return self.mapper is not None and self.mapper.h_train_computed
+            return self.mapper is not None and self.mapper.h_train_to_save
 
     def keyframe_ids(self) -> list[int]:
         """All keyframe ids (loaded first)."""
@@ -222,7 +222,7 @@ class SharedMapper:
         """
         if overwrite:
             check_replaceable_map(directory)
-        snap = self.snapshot(with_h_train=self.h_train_computed())  # a resumed map then scores as this one
+        snap = self.snapshot(with_h_train=self.h_train_to_save())  # a resumed map then scores as this one
         if snap is None:
             raise InputError(directory, "nothing to save: the mapper has no map yet")
         with atomic_dir(directory, overwrite=overwrite, overwrite_hint=overwrite_hint) as tmp:
