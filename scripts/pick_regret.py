@@ -93,7 +93,7 @@ def rank_fused(s: dict[str, Any], ok: np.ndarray) -> np.ndarray:
     that the screen changes the normalisation alone.
     """
     z = scorer_module.zscore
-    rebuilt = s["epsilon"] * z(s["fisher"][ok]) + s["delta"] * z(s["close_front"][ok])
+    rebuilt = s["epsilon"] * z(s["fisher"][ok]) + s["delta"] * z(s["close_front"][ok], s["cf_min_std"])
     rebuilt = rebuilt + s["w"] * z(s["u"][ok], s["min_std"])
     if not np.allclose(rebuilt, s["fused"][ok], rtol=0, atol=1e-9):
         raise RuntimeError("the fused score is not epsilon z(F) + delta z(C) + w z(U)")
@@ -208,7 +208,8 @@ def replay(
         cfg = policy.config
         scored[-1] |= {"u": res.unseen.copy(), "fused": res.fused.copy(), "flagged": res.flagged.copy(), "pick": pick,
                        "fisher": res.fisher.copy(), "close_front": res.close_front.copy(), "w": cfg.unseen_weight,
-                       "min_std": cfg.unseen_min_std, "epsilon": cfg.epsilon, "delta": cfg.delta,
+                       "min_std": cfg.unseen_min_std, "cf_min_std": cfg.close_front_min_std, "epsilon": cfg.epsilon,
+                       "delta": cfg.delta,
                        "plain_fusion": res.mode == "roi-gsurfisher" and cfg.fisherrf_weight == 0}  # fmt: skip
         if pixels:
             if "space" not in carved:

@@ -228,6 +228,23 @@ def test_scorer_prefers_the_weakly_observed_panel_in_every_mode(world: World) ->
     assert fused.fused[2] == 0.0
 
 
+def test_candidates_rounded_to_float32_are_scored_as_the_exact_ones(world: World) -> None:
+    """A walk: the keyframes' own poses rounded to float32 changed the chosen view. Their I_vis, exactly 0 at the exact
+    poses, became rounding noise (1e-7 1/m here), which the plain z-score of Eq. 15 blew up to full strength.
+    ``close_front_min_std`` (0.01 1/m) floors z(I_vis)'s divisor: the rounded poses score as the exact ones; 0 (the
+    plain z-score) still shows the noise at full strength."""
+    exact = np.stack(world.train[:3])
+    rounded = exact.astype(np.float32).astype(np.float64)
+    for floor, same in ((NBVConfig().close_front_min_std, True), (0.0, False)):
+        scorer = NBVScorer(NBVConfig(close_front_min_std=floor))
+        a = scorer.score(world.map, world.h_train, world.tsdf, world.train, exact, INTR)
+        b = scorer.score(world.map, world.h_train, world.tsdf, world.train, rounded, INTR)
+        assert np.all(a.close_front == 0.0) and 0.0 < b.close_front.max() < 1e-5, b.close_front
+        assert np.allclose(a.fused, b.fused, atol=1e-4) == same, (floor, a.fused, b.fused)
+    with pytest.raises(InputError, match="close_front_min_std"):
+        NBVConfig(close_front_min_std=-1.0)
+
+
 def test_a_candidate_that_sees_nothing_does_not_change_the_others_fused_scores(world: World) -> None:
     """Eq. 15's z-scores are over scored candidates: adding a flagged one (looking at the sky, F = I_vis = 0 as
     placeholders) must leave the other candidates' fused scores, and so their order, unchanged."""

@@ -39,6 +39,13 @@ class NBVConfig(Config):
     """Eq. 15 weight of z(F) (paper: 0.4); 0 drops the Fisher term (and skips its renders): an ablation."""
     delta: float = 0.6
     """Eq. 15 weight of z(I_vis) (paper: 0.6); 0 drops the close-front term: an ablation."""
+    close_front_min_std: float = 0.01
+    """Floor of the divisor of z(I_vis), in I_vis's units (1/m): ``(I - mean I) / max(std I, this)``. A numerical
+    guard, not a change of method: candidates at the keyframes' own poses have I_vis exactly 0, but the same poses
+    rounded to float32 gave gains of 1e-7 to 4e-5 1/m (rounding noise), which a plain z-score blew up to full strength
+    and which then outweighed the Fisher term (a walk: another view chosen). A voxel seen frontally at 2 m weighs
+    0.5 1/m and views that see new surface differ by hundreds, so 0.01 leaves every real spread as the paper z-scores
+    it. 0: the plain z-score."""
     top_k: int = 5
     """Length of the ``top_k`` list of the result (the full ranking is always returned)."""
 
@@ -242,6 +249,7 @@ class NBVConfig(Config):
         for name in (
             "epsilon",
             "delta",
+            "close_front_min_std",
             "mu",
             "texture_std_threshold",
             "roi_min_weight",

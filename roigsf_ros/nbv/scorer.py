@@ -73,9 +73,17 @@ def zscore(x: np.ndarray, min_std: float = 0.0) -> np.ndarray:
     return centred / max(float(np.sqrt(np.mean(centred**2))), float(min_std))
 
 
-def fuse_scores(fisher: np.ndarray, close_front: np.ndarray, epsilon: float = 0.4, delta: float = 0.6) -> np.ndarray:
-    """Eq. 15: ``epsilon z(F) + delta z(I_vis)`` [M]."""
-    return epsilon * zscore(fisher) + delta * zscore(close_front)
+def fuse_scores(
+    fisher: np.ndarray,
+    close_front: np.ndarray,
+    epsilon: float = 0.4,
+    delta: float = 0.6,
+    close_front_min_std: float = 0.0,
+) -> np.ndarray:
+    """Eq. 15: ``epsilon z(F) + delta z(I_vis)`` [M]; ``close_front_min_std`` floors z(I_vis)'s divisor
+    (``NBVConfig.close_front_min_std``).
+    """
+    return epsilon * zscore(fisher) + delta * zscore(close_front, close_front_min_std)
 
 
 def rank_candidates(scores: np.ndarray, flagged: np.ndarray | None = None) -> np.ndarray:
@@ -559,9 +567,9 @@ class NBVScorer:
         fused = np.zeros(m)
         ok = ~flagged if (~flagged).any() else np.ones(m, dtype=bool)
         if mode == "roi-gsurfisher":
-            fused[ok] = fuse_scores(fisher[ok], cf[ok], cfg.epsilon, cfg.delta)
+            fused[ok] = fuse_scores(fisher[ok], cf[ok], cfg.epsilon, cfg.delta, cfg.close_front_min_std)
         elif mode == "close-front":
-            fused[ok] = zscore(cf[ok])
+            fused[ok] = zscore(cf[ok], cfg.close_front_min_std)
         else:
             fused[ok] = zscore(fisher[ok])
         if unseen is not None:
