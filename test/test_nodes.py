@@ -954,6 +954,35 @@ def test_the_planner_says_when_the_maps_publisher_is_gone(ros_context: Any, mapp
     assert "a node publishes the map on /roigsf/map again" in err, err
 
 
+def test_remapped_topics_are_watched_and_named_as_subscribed(mapped: Mapper, capfd: Any) -> None:
+    """A walk: with ``-r /roigsf/map:=/x/map`` the planner mapped and scored, yet said "no node publishes the map on
+    /roigsf/map now (the mapper stopped?)" and set ``map_publisher_gone``: it counted publishers on the parameter's
+    name, not on the topic it subscribed to. Its graph checks and the camera input's start-up line now use the names
+    as subscribed (namespace and remapping applied)."""
+    import rclpy
+
+    from roigsf_ros.nodes.camera_input import CameraInput, describe_topics
+
+    ctx = rclpy.Context()
+    remaps = ["--ros-args", "-r", "/roigsf/map:=/x/map", "-r", "/camera/color/image_raw:=/my/cam/image"]
+    rclpy.init(args=remaps, context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    try:
+        planner = NBVPlannerNode(context=ctx, parameter_overrides=[Parameter("warm_up", value=False)])
+        probe = Node("test_remapped_source", context=ctx)
+        camera = CameraInput(probe, lambda bf: None, reliable_qos(10), subscribe=False)
+        assert camera.topics.color == "/my/cam/image" and "colour /my/cam/image (raw)" in describe_topics(camera.topics)
+        cloud = surfel_map_to_cloud(mapped.map, 1, "map", mapped.h_train, mapped.config.fisher_outputs)
+        with _spinning(ctx, planner, probe):  # destroys both on exit
+            probe.create_publisher(PointCloud2, "/x/map", latched_qos()).publish(cloud)
+            _wait(lambda: planner._cloud is not None, 10.0, "the map on the remapped topic")
+            planner._watch_map_publisher()
+            assert planner.status()["map_publisher_gone"] is False
+    finally:
+        ctx.try_shutdown()
+    err = capfd.readouterr().err
+    assert "no node publishes the map" not in err and "/x/map" in err, err  # the start-up line names it
+
+
 def test_a_missing_load_map_folder_is_said_as_the_parameter_and_a_folder(ros_context: Any, tmp_path: Path) -> None:
     """``mapper -p load_map:=/nope`` said "/nope/keyframes.json: not found (not a saved map folder)": neither the
     parameter nor that the folder itself is missing."""

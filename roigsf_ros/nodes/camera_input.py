@@ -32,7 +32,7 @@ import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -185,6 +185,18 @@ def camera_qos(depth: int, reliability: str = "reliable") -> QoSProfile:
     )
 
 
+_TOPIC_FIELDS = ("color", "depth", "camera_info", "pose", "tf_topic", "tf_static_topic")
+
+
+def remapped_topics(node: Node, topics: CameraTopics) -> CameraTopics:
+    """``topics`` as ``node`` reads them: expanded in its namespace and remapped (``-r /camera/color/image_raw:=...``),
+    so that its logs, status and graph checks name the topics it subscribes to (they named the parameters' values).
+    """
+    return replace(
+        topics, **{f: node.resolve_topic_name(getattr(topics, f)) for f in _TOPIC_FIELDS if getattr(topics, f)}
+    )
+
+
 def describe_topics(topics: CameraTopics) -> str:
     """One line naming what a camera input reads: topics with their transports, and where the pose comes from."""
     t = topics.resolved()
@@ -279,7 +291,7 @@ class CameraInput:
         for name in ("color_transport", "depth_transport"):
             if getattr(requested, name) == AUTO:
                 raise InputError(f"parameter '{name}'", "'auto' is for bags; name the transport of a live topic")
-        self.topics = requested.resolved()
+        self.topics = remapped_topics(node, requested.resolved())
         self.input_size = input_size
         self.tf_wait_s = float(tf_wait_s)
         self.max_pending = int(max_pending)

@@ -359,7 +359,7 @@ class KeyframeSelectorNode(SystemNode):
             self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
-        self._map_topic = map_topic
+        self._map_topic = map_topic = self.resolve_topic_name(map_topic)  # as subscribed (namespace, remapping)
         if shared is None and self.reads_map:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
         if self.waits_for_map:

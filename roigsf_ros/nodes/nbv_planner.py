@@ -218,6 +218,11 @@ class NBVPlannerNode(SystemNode):
 
         scoring = MutuallyExclusiveCallbackGroup()
         inputs = MutuallyExclusiveCallbackGroup()
+        # as subscribed (namespace, remapping): the graph checks and logs named the parameters' values, so a remapped
+        # map read "no node publishes the map (the mapper stopped?)" while it came
+        map_topic, info_topic, map_info_topic, poses_topic = (
+            self.resolve_topic_name(name) for name in (map_topic, info_topic, map_info_topic, poses_topic)
+        )
         self._map_topic, self._info_topic, self._map_info_topic = map_topic, info_topic, map_info_topic
         if shared is None:
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
