@@ -983,6 +983,31 @@ def test_remapped_topics_are_watched_and_named_as_subscribed(mapped: Mapper, cap
     assert "no node publishes the map" not in err and "/x/map" in err, err  # the start-up line names it
 
 
+def test_use_sim_time_is_read_only_and_a_silent_clock_is_said(
+    ros_context: Any, scene: Any, mapped: Mapper, capfd: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A walk: ``use_sim_time`` was the one parameter a running node let change; switched on with nothing on /clock,
+    every timer stopped (``~/status`` too, and ``roigsf ros status`` asked whether status_rate_hz was 0) and every
+    request stamped on wall time was refused as "from the future" without naming the clock. It is refused at run time
+    now; a node started with it says when no time comes on /clock, and the planner's refusal names /clock."""
+    import roigsf_ros.nodes.node_params
+
+    frames, _ = scene
+    monkeypatch.setattr(roigsf_ros.nodes.node_params, "SIM_CLOCK_GRACE_S", 0.2)
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped),
+                             parameter_overrides=[Parameter("use_sim_time", value=True)])  # fmt: skip
+    awake = NBVPlannerNode(context=ros_context, shared=_shared(mapped), node_name="awake")
+    with _spinning(ros_context, planner, awake):  # destroys both on exit
+        refused = awake.set_parameters([Parameter("use_sim_time", value=True)])[0]
+        assert not refused.successful and "use_sim_time is read at start-up" in refused.reason, refused
+        assert awake.get_parameter("use_sim_time").value is False
+        _wait(lambda: "no time came on /clock" in capfd.readouterr().err, 5.0, "the /clock warning")
+        req = _request([frames[1].T_wc, frames[2].T_wc])
+        req.candidates.header = header(time.time_ns(), "map")  # a client on wall time
+        res = planner._on_request(req, GetNextBestView.Response())
+    assert not res.success and "the planner runs on /clock, use_sim_time, which reads 0.0 s" in res.message, res.message
+
+
 def test_a_missing_load_map_folder_is_said_as_the_parameter_and_a_folder(ros_context: Any, tmp_path: Path) -> None:
     """``mapper -p load_map:=/nope`` said "/nope/keyframes.json: not found (not a saved map folder)": neither the
     parameter nor that the folder itself is missing."""

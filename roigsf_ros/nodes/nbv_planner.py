@@ -491,17 +491,22 @@ class NBVPlannerNode(SystemNode):
         stamp_ns = stamp_to_ns(req.candidates.header.stamp)
         if stamp_ns <= 0 or self.max_request_age_s <= 0:
             return
-        age_s = (self.get_clock().now().nanoseconds - stamp_ns) * 1e-9
+        now_ns = self.get_clock().now().nanoseconds
+        age_s = (now_ns - stamp_ns) * 1e-9
+        sim = ""
+        if self.get_parameter("use_sim_time").value:  # the usual cause of a clock apart: a sender on wall time
+            sim = f" (the planner runs on /clock, use_sim_time, which reads {now_ns * 1e-9:.1f} s)"
         if age_s > self.max_request_age_s:
             raise InputError(
                 "candidates.header.stamp",
-                f"stale request: sent {age_s:.1f} s ago (max_request_age_s {self.max_request_age_s:g}); not scored",
+                f"stale request: sent {age_s:.1f} s ago (max_request_age_s {self.max_request_age_s:g}){sim}; not "
+                "scored",
             )
         if -age_s > self.max_request_age_s:
             raise InputError(
                 "candidates.header.stamp",
                 f"request stamped {-age_s:.1f} s in the future: the sender's clock and the planner's differ by more "
-                f"than max_request_age_s ({self.max_request_age_s:g}, which bounds both ways); not scored",
+                f"than max_request_age_s ({self.max_request_age_s:g}, which bounds both ways){sim}; not scored",
             )
 
     def score_markers(self, cands: np.ndarray, result: NBVResult, stamp_ns: int) -> MarkerArray:

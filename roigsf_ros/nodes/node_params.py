@@ -21,7 +21,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
@@ -644,9 +645,37 @@ class SystemNode(Node):
         except BaseException:
             self.destroy_node()
             raise
+        self.add_on_set_parameters_callback(_refuse_sim_time_change)
+        if self.get_parameter("use_sim_time").value:  # said once if no /clock comes: every timer of the node waits
+            steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self._sim_clock_check = self.create_timer(SIM_CLOCK_GRACE_S, self._check_sim_clock, clock=steady)
+
+    def _check_sim_clock(self) -> None:
+        """With ``use_sim_time`` on and the clock still at 0, say why the node's status and timers are silent."""
+        self.destroy_timer(self._sim_clock_check)
+        if self.get_clock().now().nanoseconds == 0:
+            self.get_logger().warning(
+                f"use_sim_time is true but no time came on /clock within {SIM_CLOCK_GRACE_S:g} s: this node's timers "
+                "(~/status among them) wait for it; play the bag with a player that publishes /clock (`ros2 bag play "
+                "--clock`; this package's bag_player does not), or leave use_sim_time off"
+            )
 
     def _setup(self, shared: SharedMapper | None) -> None:
         raise NotImplementedError
+
+
+SIM_CLOCK_GRACE_S = 5.0
+"""How long a node with ``use_sim_time`` waits for a time on /clock before it says its timers are stopped."""
+
+
+def _refuse_sim_time_change(params: list[Parameter]) -> SetParametersResult:
+    """Refuse ``use_sim_time`` changed on a running node, as every other parameter of the package's nodes (read-only):
+    switched on with nothing on /clock, every timer stopped (~/status too) and every wall-time request read as from
+    the future, without a word.
+    """
+    if any(p.name == "use_sim_time" for p in params):
+        return SetParametersResult(successful=False, reason=f"use_sim_time is {READ_AT_START}")
+    return SetParametersResult(successful=True)
 
 
 def settings_text(changed: dict[str, Any]) -> str:
