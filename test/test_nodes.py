@@ -1008,6 +1008,29 @@ def test_use_sim_time_is_read_only_and_a_silent_clock_is_said(
     assert not res.success and "the planner runs on /clock, use_sim_time, which reads 0.0 s" in res.message, res.message
 
 
+def test_an_empty_frame_id_is_refused_and_a_leading_slash_is_the_same_frame(
+    ros_context: Any, scene: Any, mapped: Mapper
+) -> None:
+    """A walk: ``-p frame_id:=''`` was taken, so every request in the map frame would be refused as "'map' is not the
+    map frame ''" and every output stamped in no frame; and a request in ``/map`` was refused against ``map``, which
+    TF reads as one frame. Now the empty one is refused at start-up by each node, and ``/map`` is ``map``."""
+    for cls in (NBVPlannerNode, KeyframeSelectorNode, MapperNode):
+        with pytest.raises(InputError, match=r"parameter '\w+\.frame_id': must name a TF frame \(e.g. map\), got an"):
+            cls(context=ros_context, parameter_overrides=[Parameter("frame_id", value=""), *(
+                [Parameter("warm_up", value=False)] if cls is NBVPlannerNode else [])])  # fmt: skip
+    frames, _ = scene
+    planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
+    try:
+        req = _request([frames[1].T_wc, frames[2].T_wc])
+        req.candidates.header.frame_id = "/map"
+        assert planner._on_request(req, GetNextBestView.Response()).success
+        req.candidates.header.frame_id = "odom"
+        res = planner._on_request(req, GetNextBestView.Response())
+        assert not res.success and "'odom' is not the map frame 'map'" in res.message, res.message
+    finally:
+        planner.destroy_node()
+
+
 def test_a_missing_load_map_folder_is_said_as_the_parameter_and_a_folder(ros_context: Any, tmp_path: Path) -> None:
     """``mapper -p load_map:=/nope`` said "/nope/keyframes.json: not found (not a saved map folder)": neither the
     parameter nor that the folder itself is missing."""

@@ -115,7 +115,7 @@ from roigsf_ros.nodes.mapper import (
     latched_qos,
 )
 from roigsf_ros.nodes.nbv_planner import MAP_NOT_READY
-from roigsf_ros.nodes.node_params import SystemNode, check_positive, declare
+from roigsf_ros.nodes.node_params import SystemNode, check_frame_id, check_positive, declare
 from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import (
@@ -225,7 +225,9 @@ class KeyframeSelectorNode(SystemNode):
         camera = camera_params(self)
         keyframe_topic = declare(self, "keyframe_topic", KEYFRAME_TOPIC, "keyframes output (PoseStamped)")
         map_topic = declare(self, "map_topic", MAP_TOPIC, "map cloud (gaus-slam without a shared map)")
-        self.frame_id = str(declare(self, "frame_id", "map", "frame of the published poses"))
+        self.frame_id = check_frame_id(
+            "frame_id", str(declare(self, "frame_id", "map", "frame of the published poses"))
+        )
         qos_depth = int(declare(self, "qos_depth", 100, "keep-last depth of the camera subscriptions"))
         status_hz = float(declare(self, "status_rate_hz", 1.0, "~/status publications per second (0 = none)"))
         self.startup_wait_s = float(declare(self, "startup_wait_s", 10.0, "seconds the camera subscriptions wait at "

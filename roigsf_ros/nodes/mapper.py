@@ -78,6 +78,7 @@ from roigsf_ros.nodes.camera_input import (
 from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import (
     SystemNode,
+    check_frame_id,
     check_input_size,
     check_positive,
     declare,
@@ -208,7 +209,9 @@ class MapperNode(SystemNode):
         poses_topic = declare(self, "keyframe_poses_topic", KEYFRAME_POSES_TOPIC, "keyframe poses (PoseArray)")
         map_info_topic = declare(self, "map_camera_info_topic", MAP_CAMERA_INFO_TOPIC, "the map's intrinsics "
                                  "(CameraInfo, transient local)")  # fmt: skip
-        self.frame_id = declare(self, "frame_id", "map", "frame of the map, its cloud and the keyframe poses")
+        self.frame_id = check_frame_id(
+            "frame_id", declare(self, "frame_id", "map", "frame of the map, its cloud and the keyframe poses")
+        )
         self.buffer_size = int(declare(self, "frame_buffer_size", 64, "recent frames kept to match keyframes"))
         self.max_pending = int(declare(self, "max_pending_keyframes", 16, "bound of the queue of keyframes"))
         self.wait_s = float(

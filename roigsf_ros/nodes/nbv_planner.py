@@ -98,6 +98,7 @@ from roigsf_ros.nodes.map_msgs import (
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_CAMERA_INFO_TOPIC, MAP_TOPIC, latched_qos
 from roigsf_ros.nodes.node_params import (
     SystemNode,
+    check_frame_id,
     check_input_size,
     check_positive,
     declare,
@@ -150,7 +151,9 @@ class NBVPlannerNode(SystemNode):
         in_w = int(declare(self, "input_width", 0, "camera info scaled to the mapper's input_width (0 = as sent)"))
         in_h = int(declare(self, "input_height", 0, "camera info scaled to the mapper's input_height (0 = as sent)"))
         self.input_size = check_input_size(in_w, in_h)
-        self.frame_id = str(declare(self, "frame_id", "map", "frame of candidate poses and outputs"))
+        self.frame_id = check_frame_id(
+            "frame_id", str(declare(self, "frame_id", "map", "frame of candidate poses and outputs"))
+        )
         sync_s = float(declare(self, "tsdf_sync_period_s", 1.0, "seconds between TSDF updates (0 = at requests only)"))
         self.publish_uncertainty = bool(declare(self, "publish_uncertainty", True, "publish Eq. 17 of the best view"))
         self.max_request_age_s = float(
@@ -454,7 +457,7 @@ class NBVPlannerNode(SystemNode):
                 "send at most that many per request (or raise the parameter)",
             )
         frame = req.candidates.header.frame_id
-        if frame and frame != self.frame_id:
+        if frame and frame.lstrip("/") != self.frame_id.lstrip("/"):  # "/map" is "map", as TF reads it
             raise InputError("candidates.header.frame_id", f"'{frame}' is not the map frame '{self.frame_id}'")
         cands = array_to_poses(req.candidates, "candidates")
         self._check_age(req)

@@ -693,6 +693,15 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     return value
 
 
+def check_frame_id(name: str, value: str) -> str:
+    """A frame parameter's value if it names a frame; an empty one is refused at start-up (it was taken, and every
+    request in the map frame was then refused as "not the map frame ''", every output stamped in no frame).
+    """
+    if not value.strip():
+        raise InputError(f"parameter '{name}'", "must name a TF frame (e.g. map), got an empty string")
+    return value
+
+
 def check_input_size(width: int, height: int) -> tuple[int | None, int | None] | None:
     """The ``input_width`` / ``input_height`` parameters as a size (0 = the camera's side; None: both 0), each side
     checked now (>= 0, at most :data:`MAX_IMAGE_SIDE`), not as a drop of every frame once the camera publishes.
@@ -709,6 +718,7 @@ __all__ = [
     "RCLPY_PARAMETERS",
     "RCLPY_PARAMETER_PREFIXES",
     "SystemNode",
+    "check_frame_id",
     "check_input_size",
     "check_parameter_overrides",
     "check_positive",
