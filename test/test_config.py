@@ -19,7 +19,7 @@ CONFIG = Path(__file__).resolve().parents[1] / "config"
     ("file", "node", "cls"), [("mapper.yaml", "mapper", MapperConfig), ("nbv.yaml", "nbv_planner", NBVConfig)]
 )
 def test_yaml_defaults_equal_dataclass_defaults(file: str, node: str, cls: type) -> None:
-    params = yaml.safe_load((CONFIG / file).read_text())[node]["ros__parameters"]
+    params = yaml.safe_load((CONFIG / file).read_text())[f"/**/{node}"]["ros__parameters"]
     defaults = {f.name: getattr(cls(), f.name) for f in dataclasses.fields(cls)}
     assert set(defaults) <= set(params)  # the rest are the node's own parameters (next test)
     for name, value in defaults.items():
@@ -42,7 +42,7 @@ def test_yaml_equals_node_parameter_defaults(file: str, module: str, cls_name: s
     node_cls = getattr(importlib.import_module(module), cls_name)
     node = node_cls(context=ros_context)
     try:
-        params = yaml.safe_load((CONFIG / file).read_text())[node.get_name()]["ros__parameters"]
+        params = yaml.safe_load((CONFIG / file).read_text())[f"/**/{node.get_name()}"]["ros__parameters"]
         declared = {
             name: node.get_parameter(name).value
             for name in node._parameters
@@ -60,9 +60,9 @@ DEFAULT_FILES = {"mapper": "mapper.yaml", "nbv_planner": "nbv.yaml", "keyframe_s
 
 
 def _overlay(name: str) -> dict[str, dict[str, object]]:
-    """config/recommended/``name``: {node: {parameter: value}}."""
+    """config/recommended/``name``: {node: {parameter: value}} (its sections ``/**/node``: in any namespace)."""
     text = (CONFIG / "recommended" / name).read_text()
-    return {node: body["ros__parameters"] for node, body in yaml.safe_load(text).items()}
+    return {node.removeprefix("/**/"): body["ros__parameters"] for node, body in yaml.safe_load(text).items()}
 
 
 def test_recommended_overlays_change_declared_parameters_with_values_of_their_type() -> None:
@@ -73,7 +73,7 @@ def test_recommended_overlays_change_declared_parameters_with_values_of_their_ty
     assert [f.name for f in files] == ["planner.yaml", "stream.yaml"]
     for file in files:
         for node, params in _overlay(file.name).items():
-            defaults = yaml.safe_load((CONFIG / DEFAULT_FILES[node]).read_text())[node]["ros__parameters"]
+            defaults = yaml.safe_load((CONFIG / DEFAULT_FILES[node]).read_text())[f"/**/{node}"]["ros__parameters"]
             for name, value in params.items():
                 assert name in defaults, f"{file.name}: {node} has no parameter {name}"
                 assert type(value) is type(defaults[name]), f"{file.name}: {node}.{name}: {value!r}"

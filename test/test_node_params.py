@@ -273,6 +273,24 @@ def test_a_section_for_the_node_that_misses_its_namespace_or_new_name_is_warned_
     ], err
 
 
+def test_the_shipped_config_files_reach_namespaced_nodes(capfd: pytest.CaptureFixture[str]) -> None:
+    """A walk: the README recommends a namespace per robot, but config/*.yaml and the recommended overlays keyed their
+    sections ``mapper:`` (``/mapper``), so under ``-r __ns:=/robot1`` the overlay did nothing but warn. They are keyed
+    ``/**/mapper:`` now: any namespace, the plain one too."""
+    from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+
+    config = Path(__file__).resolve().parents[1] / "config"
+    files = ("--params-file", str(config / "nbv.yaml"), "--params-file", str(config / "recommended" / "planner.yaml"))
+    for ns in ("/robot1", "/"):
+        with _context(*files, "-r", f"__ns:={ns}") as ctx:
+            planner = NBVPlannerNode(context=ctx, parameter_overrides=[Parameter("warm_up", value=False)])
+            try:
+                assert planner.nbv.unseen_weight == 2.0 and planner.nbv.unseen_measure == "rays", ns
+            finally:
+                planner.destroy_node()
+    assert "does not apply to this node" not in capfd.readouterr().err
+
+
 # ---------------------------------------------------------------------------------------- 3: checked at start-up
 @pytest.mark.parametrize(
     ("node", "name", "value", "why"),

@@ -512,7 +512,7 @@ def test_three_processes_match_in_process(
     watch.clear()
     with processes(tmp_path) as ps:
         ps.start("mapper", as_params("mapper"))
-        planner = ps.start("nbv_planner", as_params("nbv_planner", **recommended["nbv_planner"]["ros__parameters"]))
+        planner = ps.start("nbv_planner", as_params("nbv_planner", **recommended["/**/nbv_planner"]["ros__parameters"]))
         ps.start("keyframe_selector", as_params("keyframe_selector"))
         out = replay_once(ps, watch, bag, RATE)
         m, s = out["mapper"], out["selector"]
