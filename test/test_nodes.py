@@ -218,6 +218,8 @@ def test_service_refuses_with_a_reason(ros_context: Any, scene: Any, capfd: Any)
         assert not res.fused_scores
     assert ok.success and all(np.isfinite(ok.fused_scores)) and len(ok.close_front_scores) == 2
     assert planner.status()["failed"] == 6 and planner.status()["answered"] == 1
+    # a walk: the status counted refusals without a word of why, and "map: not ready" among them
+    assert planner.status()["not_ready"] == 2 and "unknown score mode 'best'" in planner.status()["last_refusal"]
     err = capfd.readouterr().err
     for said in ("empty candidate list", "candidates[1]", "'odom' is not the map frame", "unknown score mode 'best'"):
         assert "get_next_best_view: " in err and said in err, (said, err)
@@ -1009,7 +1011,7 @@ def test_use_sim_time_is_read_only_and_a_silent_clock_is_said(
 
 
 def test_an_empty_frame_id_is_refused_and_a_leading_slash_is_the_same_frame(
-    ros_context: Any, scene: Any, mapped: Mapper
+    ros_context: Any, scene: Any, mapped: Mapper, capfd: Any
 ) -> None:
     """A walk: ``-p frame_id:=''`` was taken, so every request in the map frame would be refused as "'map' is not the
     map frame ''" and every output stamped in no frame; and a request in ``/map`` was refused against ``map``, which
@@ -1027,6 +1029,13 @@ def test_an_empty_frame_id_is_refused_and_a_leading_slash_is_the_same_frame(
         req.candidates.header.frame_id = "odom"
         res = planner._on_request(req, GetNextBestView.Response())
         assert not res.success and "'odom' is not the map frame 'map'" in res.message, res.message
+        capfd.readouterr()
+        req.candidates.header.frame_id = "map"
+        for position in ((float("nan"), 0.0, 0.0), (1e6, 0.0, 0.0)):  # two faults of one field: each logged
+            req.candidates.poses[0].position.x, req.candidates.poses[0].position.y = position[:2]
+            assert not planner._on_request(req, GetNextBestView.Response()).success
+        logged = [line for line in capfd.readouterr().err.splitlines() if "get_next_best_view: candidates[0]" in line]
+        assert len(logged) == 2, logged
     finally:
         planner.destroy_node()
 

@@ -86,7 +86,7 @@ from roigsf_ros.nbv.state import ScoringState
 from roigsf_ros.nbv.stop import ScoringStoppedError
 from roigsf_ros.nbv.warmup import warm_up_once
 from roigsf_ros.nodes.bag_player import reliable_qos
-from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, ThrottleByKind, camera_qos
+from roigsf_ros.nodes.camera_input import WARN_THROTTLE_S, ThrottleByKind, camera_qos, tf_fault_kind
 from roigsf_ros.nodes.map_msgs import (
     array_to_poses,
     cloud_h_train,
@@ -200,7 +200,10 @@ class NBVPlannerNode(SystemNode):
         """TSDF, its products and the H_train cache, kept between requests (ROS-free, one callback group)."""
         self.last_result: NBVResult | None = None
         self._refusal_warnings = ThrottleByKind()  # by the request field at fault
-        self.counters: dict[str, Any] = dict.fromkeys(("requests", "answered", "failed", "stale", "bad_map_msgs"), 0)
+        self.counters: dict[str, Any] = dict.fromkeys(
+            ("requests", "answered", "failed", "stale", "not_ready", "bad_map_msgs"), 0
+        )
+        self.counters["last_refusal"] = ""  # why the last request was not scored (the count alone said nothing)
         self.counters["last_scoring_s"] = 0.0
         self.counters["max_scoring_s"] = 0.0
         self.counters["max_request_wait_s"] = 0.0
@@ -414,10 +417,15 @@ class NBVPlannerNode(SystemNode):
             return res
         except InputError as exc:
             res.success, res.message, res.best_index = False, str(exc), -1
-            kind = re.sub(r"\[\d+\]", "[i]", str(exc.where))  # candidates[3] and candidates[7]: one kind of fault
+            # candidates[3] and candidates[7]: one kind of fault; a NaN position and one 1e6 m away: two (one kind per
+            # field hid the second behind the first's throttle)
+            field = re.sub(r"\[\d+\]", "[i]", str(exc.where))
+            kind = f"{field}: {tf_fault_kind(exc)}"
             with self._lock:
                 self.counters["failed"] += 1
                 self.counters["stale"] += int(exc.where == "candidates.header.stamp")
+                self.counters["not_ready"] += int(str(exc).startswith(MAP_NOT_READY))
+                self.counters["last_refusal"] = str(exc)
                 due = self._refusal_warnings.due(kind)  # each caller has its message; the log, each kind
             if due:
                 self.get_logger().warning(f"get_next_best_view: {exc}")
@@ -425,7 +433,7 @@ class NBVPlannerNode(SystemNode):
         stamp = self.get_clock().now().nanoseconds
         best = int(result.best_index)
         res.success = True
-        res.message = result.reason or f"scored {len(cands)} candidates ({result.mode})"
+        res.message = result.reason or f"scored {len(cands)} candidate{'s' if len(cands) != 1 else ''} ({result.mode})"
         res.best_index = best
         res.best_pose = pose_stamped(cands[best], stamp, self.frame_id)
         res.top_k_indices = [int(i) for i in result.top_k]
@@ -555,7 +563,8 @@ class NBVPlannerNode(SystemNode):
         self._status_pub.publish(String(data=json.dumps(self.status())))
 
     def status(self) -> dict[str, Any]:
-        """Counters: requests, answered, failed (of which stale), scoring times, TSDF work, H_train work;
+        """Counters: requests, answered, failed (of which ``stale`` and ``not_ready``: before the map came), the last
+        refusal's message (``last_refusal``), scoring times, TSDF work, H_train work;
         ``map_publisher_gone``: the map's publisher left after a map came (answers use the last map).
 
         ``max_request_wait_s``: the longest time from a request's stamp to the start of its handling (for the
