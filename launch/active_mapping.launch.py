@@ -14,7 +14,7 @@ from pathlib import Path
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import LaunchConfiguration, NotEqualsSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
@@ -46,7 +46,7 @@ def generate_launch_description() -> LaunchDescription:
                     str(config / "bag_player.yaml"),
                     {"bag": bag, "rate": ParameterValue(rate, value_type=float)},
                 ],
-                condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
+                condition=IfCondition(NotEqualsSubstitution(bag, "")),  # a path with a quote in it too
             ),
         ]
     )

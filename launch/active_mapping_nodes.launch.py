@@ -14,7 +14,7 @@ from pathlib import Path
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import LaunchConfiguration, NotEqualsSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
@@ -62,9 +62,15 @@ def generate_launch_description() -> LaunchDescription:
                 # rate:=1 (a float parameter refuses an integer).
                 parameters=[
                     str(config / "bag_player.yaml"),
-                    {"bag": bag, "rate": ParameterValue(rate, value_type=float), "wait_for_subscribers": 2},
+                    # 30 s: three processes importing torch and open3d at once can outlast the default 10 s
+                    {
+                        "bag": bag,
+                        "rate": ParameterValue(rate, value_type=float),
+                        "wait_for_subscribers": 2,
+                        "wait_timeout_s": 30.0,
+                    },
                 ],
-                condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
+                condition=IfCondition(NotEqualsSubstitution(bag, "")),  # a path with a quote in it too
             ),
         ]
     )

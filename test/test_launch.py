@@ -39,6 +39,10 @@ class LaunchConfiguration(_Recorded):
     pass
 
 
+class NotEqualsSubstitution(_Recorded):
+    pass
+
+
 def _stub_modules(monkeypatch: pytest.MonkeyPatch) -> None:
     """``launch``, ``launch_ros`` and the ament index as modules of stand-ins."""
     config = REPO / "config"
@@ -46,7 +50,10 @@ def _stub_modules(monkeypatch: pytest.MonkeyPatch) -> None:
         "launch": {"LaunchDescription": lambda entities: list(entities)},
         "launch.actions": {"DeclareLaunchArgument": _Recorded},
         "launch.conditions": {"IfCondition": _Recorded},
-        "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration, "PythonExpression": _Recorded},
+        "launch.substitutions": {
+            "LaunchConfiguration": LaunchConfiguration,
+            "NotEqualsSubstitution": NotEqualsSubstitution,
+        },
         "launch_ros": {},
         "launch_ros.actions": {"Node": Node},
         "launch_ros.parameter_descriptions": {"ParameterValue": ParameterValue},
@@ -115,5 +122,9 @@ def test_launch_file_player_takes_rate_as_float_and_waits_for_both_camera_nodes(
     rate = given["rate"]
     assert isinstance(rate, ParameterValue) and rate.kwargs.get("value_type") is float
     camera_nodes = [n for n in nodes if n.kwargs["executable"] in ("mapper", "keyframe_selector")]
-    if camera_nodes:  # three processes
-        assert given.get("wait_for_subscribers") == len(camera_nodes) == 2
+    if camera_nodes:  # three processes: and the README's 30 s for three processes importing torch and open3d at once
+        assert given.get("wait_for_subscribers") == len(camera_nodes) == 2 and given.get("wait_timeout_s") == 30.0
+    # played only when a bag is given, compared as a value: a PythonExpression pasting the path between quotes broke
+    # on a path with a quote in it
+    (condition,) = player.kwargs["condition"].args
+    assert isinstance(condition, NotEqualsSubstitution) and condition.args[1] == "", condition
