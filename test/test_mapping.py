@@ -340,6 +340,36 @@ def test_a_map_whose_fisher_was_read_saves_it_and_a_save_never_leaves_another_ma
     assert Mapper.load(tmp_path / "map").n_surfels == other.n_surfels
 
 
+def test_depth_mostly_out_of_range_is_warned_once_and_noted_under_the_run(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk: ``scale: 1000`` in a Replica cam_params.json (depth 6.55x too far) masked 93 % of every frame beyond
+    ``max_depth_m`` and `roigsf map` gave F@5cm 0.000 without a word. The mapper counts the out-of-range values,
+    warns once, and the run's table says so; holes (zero depth) are not counted as out of range."""
+    from dataclasses import asdict
+
+    from roigsf_ros.cli import metric_notes
+
+    mapper = Mapper(INTR, small_config(iters_per_keyframe=1))
+    with caplog.at_level(logging.WARNING, logger="roigsf_ros.mapping.mapper"):
+        for f in frames[:2]:
+            far = f.depth_m * 20.0  # 1-3 m read as 20-60 m
+            far[:4] = 0.0  # and a few holes
+            mapper.add_keyframe(Frame(f.index, f.rgb, far, f.T_wc))
+    said = [r.getMessage() for r in caplog.records if "depth values are outside" in r.getMessage()]
+    assert len(said) == 1 and "a depth scale off" in said[0], said
+    stats = {f"mapper_{k}": v for k, v in asdict(mapper.stats).items()}
+    assert stats["mapper_depth_pixels"] == 2 * INTR.width * INTR.height
+    assert stats["mapper_depth_out_of_range_pixels"] == stats["mapper_invalid_depth_pixels"] - 2 * 4 * INTR.width
+    assert any("depth values were outside min_depth_m..max_depth_m" in n for n in metric_notes(stats))
+    holes = Mapper(INTR, small_config(iters_per_keyframe=1))
+    hollow = frames[0].depth_m.copy()
+    hollow[: INTR.height * 3 // 4] = 0.0  # most of the frame without depth: a sensor's holes, no scale error
+    holes.add_keyframe(Frame(0, frames[0].rgb, hollow, frames[0].T_wc))
+    stats = {f"mapper_{k}": v for k, v in asdict(holes.stats).items()}
+    assert stats["mapper_depth_out_of_range_pixels"] == 0 and not metric_notes(stats)
+
+
 def test_a_resumed_map_scores_views_as_the_saved_one(frames: list[Frame], tmp_path) -> None:
     """``save-map`` then ``load-map`` changed the NBV scores (a walk: Fisher 2.287e7 -> 9.883e6 for one candidate):
     the running training Fisher was not saved, and the loaded map's was recomputed from the poses under another

@@ -268,7 +268,8 @@ def command_line(command: str) -> str | None:
 def metric_notes(metrics: dict[str, Any]) -> list[str]:
     """Lines under a run's table that say what its figures count: a TF frame that changed parent (its poses may be
     wrong), poses of another frame than the images', recall and completion against the GT in view of the run's poses
-    (a 4-frame run's recall 0.998 read as a whole room's), and why PSNR/SSIM are missing.
+    (a 4-frame run's recall 0.998 read as a whole room's), most of the depth out of range (a wrong depth scale), and
+    why PSNR/SSIM are missing.
     """
     notes = []
     if metrics.get("tf_reparented"):
@@ -280,6 +281,10 @@ def metric_notes(metrics: dict[str, Any]) -> list[str]:
     if seen is not None and not str(metrics.get("gt_culling", "none")).startswith("none"):
         notes.append(f"recall and completion count the GT in view of the run's poses: {seen:.0%} of the GT mesh "
                      "(gt_culling in metrics.json)")  # fmt: skip
+    out, total = metrics.get("mapper_depth_out_of_range_pixels"), metrics.get("mapper_depth_pixels")
+    if out and total and out > 0.5 * total:
+        notes.append(f"{out / total:.0%} of the keyframes' depth values were outside min_depth_m..max_depth_m and "
+                     "masked: a depth scale off (a cam_params.json 'scale', millimetres read as metres)?")  # fmt: skip
     if metrics.get("n_eval_frames") == 0:
         notes.append("no PSNR/SSIM: every frame was a keyframe, and they are measured on the frames that were not")
     return notes

@@ -206,6 +206,12 @@ class MapperStats:
     keyframes_added: int = 0
     frames_skipped_no_depth: int = 0
     invalid_depth_pixels: int = 0
+    depth_pixels: int = 0
+    """Depth pixels of the frames inserted (and of those skipped for no valid depth): the whole of which
+    ``invalid_depth_pixels`` and ``depth_out_of_range_pixels`` are parts."""
+    depth_out_of_range_pixels: int = 0
+    """Invalid depth pixels with a finite, positive value outside ``min_depth_m``..``max_depth_m``: a wrong depth scale
+    shows here (a sensor's holes, zero or NaN, do not)."""
     invalid_colour_pixels: int = 0
     steps: int = 0
     steps_skipped_nonfinite: int = 0
@@ -390,6 +396,7 @@ class Mapper:
         """Whether :meth:`load` read the saved map's training Fisher (``h_train.npz``): then :attr:`h_train` covers the
         loaded keyframes too, as it did in the mapper that saved it."""
         self._warned_loaded_h_train = False
+        self._warned_out_of_range = False  # said once: most of a frame's depth out of range (_count_out_of_range)
         self._h_train_read = False  # something read h_train (a Fisher policy, the map cloud): a save then writes it
         self._rng = np.random.default_rng(self.config.seed)
         self._adam = _SparseAdam(self.config.learning_rates())
@@ -512,6 +519,24 @@ class Mapper:
             except StopIteration as done:
                 return bool(done.value)
 
+    def _count_out_of_range(self, frame: Frame) -> None:
+        """Count the frame's finite depth values outside the valid range; the first time they are most of a frame's
+        depth, warn once: a depth scale 6.55x off (``scale: 1000`` in a Replica cam_params.json) masked 93 % of every
+        frame beyond ``max_depth_m`` and the run gave F@5cm 0.000 without a word.
+        """
+        d = np.asarray(frame.depth_m, dtype=np.float64)
+        out = np.isfinite(d) & (d > 0) & ((d < self.config.min_depth_m) | (d > self.config.max_depth_m))
+        n = int(out.sum())
+        self.stats.depth_out_of_range_pixels += n
+        if n > d.size // 2 and not self._warned_out_of_range:
+            self._warned_out_of_range = True
+            log.warning(
+                "frame %d: %.0f %% of its depth values are outside min_depth_m %g to max_depth_m %g (%.3g-%.3g m) and "
+                "masked: a depth scale off (a cam_params.json 'scale', millimetres read as metres)?",
+                frame.index, 100.0 * n / d.size, self.config.min_depth_m, self.config.max_depth_m,
+                float(d[out].min()), float(d[out].max()),
+            )  # fmt: skip
+
     def no_depth_reason(self, depth_m: np.ndarray) -> str:
         """Why a frame has no valid depth, with the values it does have: a sensor's millimetres given as metres (a
         16UC1 image published as 32FC1) read as "values 450-4000, above max_depth_m 10", not only "out of range".
@@ -538,9 +563,11 @@ class Mapper:
         between them or abandon the rest; returns whether the frame was inserted.
         """
         T, rgb_u8, depth, valid, n_bad = self._prepare(frame)
+        self.stats.depth_pixels += int(valid.numel())
         if n_bad:
             self.stats.invalid_depth_pixels += n_bad
             log.debug("frame %d: %d of %d depth pixels invalid (masked)", frame.index, n_bad, valid.numel())
+            self._count_out_of_range(frame)
         if not bool(valid.any()):
             self.stats.frames_skipped_no_depth += 1
             log.warning("frame %d: %s; keyframe skipped", frame.index, self.no_depth_reason(frame.depth_m))
