@@ -405,6 +405,29 @@ def test_cli_render_bad_inputs(
     # Synth with bad counts.
     assert main(["scene", "synth", "--out", str(tmp_path / "s"), "--frames", "0"]) == 2
     assert "--frames" in capsys.readouterr().err
+    # a walk: the suite's minimum was said as "n_frames", the sensor's unknown field without the fields, a pool
+    # field's range without --pool-set
+    assert main(["scene", "synth", "--kind", "suite", "--out", str(tmp_path / "s"), "--frames", "8"]) == 2
+    assert "error: --frames: the suite's walk needs >= 10 frames, got 8" in capsys.readouterr().err
+    assert (
+        main(["scene", "synth", "--sensor", "kinect", "--sensor-set", "jpeg_qualty=50", "--out", str(tmp_path / "s")])
+        == 2
+    )
+    err = capsys.readouterr().err
+    assert "SensorConfig field (did you mean jpeg_quality?): native_width_px, " in err, err
+    bench = [
+        "bench",
+        "--scene",
+        str(tmp_path),
+        "--setting",
+        "pool",
+        "--policies",
+        "random",
+        "--out",
+        str(tmp_path / "b"),
+    ]
+    assert main([*bench, "--pool-set", "n_views=0"]) == 2
+    assert "error: --pool-set n_views: must be" in capsys.readouterr().err
     assert main(["scene", "synth", "--out", str(tmp_path / "s"), "--width", "-4"]) == 2
     assert not (tmp_path / "s").exists() and _leftovers(tmp_path) == []
 

@@ -111,8 +111,11 @@ def config_from_args(args: argparse.Namespace) -> BenchConfig:
     mdefaults = {f.name: getattr(MapperConfig(), f.name) for f in fields(MapperConfig)}
     mapper = replace(MapperConfig(), **parse_overrides(args.set, mdefaults, "--set", skip=("seed",)))
     pdefaults = {f.name: getattr(PoolConfig(), f.name) for f in fields(PoolConfig)}
-    pool = replace(PoolConfig(), **parse_overrides(args.pool_set, pdefaults, "--pool-set",
-                                              skip=("seed", "policy", "policy_params")))  # fmt: skip
+    overrides = parse_overrides(args.pool_set, pdefaults, "--pool-set", skip=("seed", "policy", "policy_params"))
+    try:
+        pool = replace(PoolConfig(), **overrides)
+    except InputError as exc:  # said as the option that set it ("n_views: must be ..." named no option)
+        raise InputError(f"--pool-set {exc.where}" if str(exc.where) in pdefaults else exc.where, exc.problem) from None
     return BenchConfig(
         scene=args.scene,
         setting=args.setting,

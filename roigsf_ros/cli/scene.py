@@ -10,6 +10,7 @@ simulated Kinect v1 (:mod:`roigsf_ros.data.sensor`).
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
 from pathlib import Path
 
@@ -52,7 +53,10 @@ def _sensor(args: argparse.Namespace) -> SensorModel | None:
         name, sep, text = item.partition("=")
         name = name.strip()
         if not sep or name not in defaults:
-            raise InputError(f"--sensor-set {item}", "expected NAME=VALUE with NAME a SensorConfig field")
+            close = difflib.get_close_matches(name, list(defaults), n=1)
+            hint = f" (did you mean {close[0]}?)" if close and sep else ""
+            raise InputError(f"--sensor-set {item}", f"expected NAME=VALUE with NAME a SensorConfig field{hint}: "
+                             f"{', '.join(defaults)}")  # fmt: skip
         overrides[name] = parse_set_value(name, text.strip(), defaults[name], "--sensor-set")
     return SensorModel.named(args.sensor, seed=args.sensor_seed, **overrides)
 
@@ -142,7 +146,11 @@ def _synth(args: argparse.Namespace) -> int:
     elif args.kind == "dining-dome":
         mesh, poses = synth_dining(args.seed), dome_trajectory(args.frames)
     elif args.kind == "suite":
-        mesh, poses = synth_suite(args.seed), suite_trajectory(args.seed, args.frames)
+        try:
+            poses = suite_trajectory(args.seed, args.frames)
+        except InputError as exc:  # "n_frames: ..." named no option of this command
+            raise InputError("--frames" if exc.where == "n_frames" else exc.where, exc.problem) from None
+        mesh = synth_suite(args.seed)
     else:
         mesh, poses = synth_room(args.seed), synth_trajectory(args.seed, args.frames)
     render_sequence(
