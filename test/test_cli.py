@@ -744,3 +744,32 @@ def test_bag_info_says_no_message_rather_than_none() -> None:
 def test_every_command_that_shows_progress_takes_no_progress(argv: list[str]) -> None:
     """``roigsf scene synth --no-progress`` was "unrecognized arguments" while every other writer took it."""
     assert build_parser().parse_args([*argv, "--no-progress"]).no_progress is True
+
+
+def test_progress_bars_are_drawn_on_a_terminal_only(
+    tiny_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A walk: `roigsf bag from-replica`, `bag to-robot` and `roigsf map` wrote their tqdm bars into a log file or a
+    pipe (carriage-return lines), while `roigsf scene --help` says bars are shown on a terminal only. Every command
+    now asks the same question (``show_progress``): not --no-progress, and stderr a terminal."""
+    import sys
+
+    import roigsf_ros.cli.bag
+    import roigsf_ros.cli.map
+    from roigsf_ros.core.errors import InputError
+
+    asked = []
+
+    def record(*_args: object, progress: bool, **_kw: object) -> None:
+        asked.append(progress)
+        raise InputError("stub", "the work itself is not under test")
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    monkeypatch.setattr(roigsf_ros.cli.bag, "write_bag", record)
+    commands = (["map", str(tiny_scene), "--out", str(tmp_path / "m")],
+                ["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "b")])  # fmt: skip
+    for tty in (False, True):
+        monkeypatch.setattr(sys.stderr, "isatty", lambda tty=tty: tty)
+        for argv in commands:
+            assert main(argv) == 2 and main([*argv, "--no-progress"]) == 2
+    assert asked == [False, False, False, False, True, False, True, False], asked

@@ -43,6 +43,13 @@ def image_size(args: argparse.Namespace) -> tuple[int | None, int | None] | None
     return None if args.width is None and args.height is None else (args.width, args.height)
 
 
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether a command draws progress bars: not ``--no-progress``, and stderr a terminal (bars written into a log
+    file or a pipe came out as carriage-return lines; ``roigsf scene`` already drew them on a terminal only).
+    """
+    return not args.no_progress and sys.stderr.isatty()
+
+
 _CAMERA_OPTIONS = {
     "color": "--color-topic",
     "depth": "--depth-topic",

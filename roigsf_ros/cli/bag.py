@@ -8,7 +8,15 @@ import math
 from pathlib import Path
 from typing import Any
 
-from roigsf_ros.cli import OVERWRITE_HELP, add_camera_options, camera_topics, check_out, image_size, realsense_hint
+from roigsf_ros.cli import (
+    OVERWRITE_HELP,
+    add_camera_options,
+    camera_topics,
+    check_out,
+    image_size,
+    realsense_hint,
+    show_progress,
+)
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.data.bags import (
     AUTO,
@@ -191,7 +199,7 @@ def _from_replica(args: argparse.Namespace) -> int:
         stride=args.stride,
         max_frames=args.max_frames,
         overwrite=args.overwrite,
-        progress=not args.no_progress,
+        progress=show_progress(args),
         gt_mesh=mesh,
     )
     intr = seq.intrinsics
@@ -225,7 +233,7 @@ def _to_robot(args: argparse.Namespace) -> int:
             depth_transport=args.depth_transport,
             tf_lag_s=args.tf_lag_ms * 1e-3,
             overwrite=args.overwrite,
-            progress=not args.no_progress,
+            progress=show_progress(args),
             gt_mesh=mesh,
         )
     except InputError as exc:  # a robot's bag given: it needs no rewriting, only --realsense to be read

@@ -674,7 +674,7 @@ def _run(args: argparse.Namespace) -> int:
         gt_mesh=gt_mesh,
         domain_id=domain_id,
         params_files=params_files,
-        progress=not args.no_progress,
+        progress=not args.no_progress,  # the demo prints a plain status line every 10 s when stderr is no terminal
         camera=camera,
         no_gt_mesh_reason=no_mesh,
     )

@@ -19,6 +19,7 @@ from roigsf_ros.cli import (
     command_line,
     image_size,
     metric_notes,
+    show_progress,
     with_bag_hint,
 )
 from roigsf_ros.core.errors import InputError
@@ -279,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         gt_mesh=gt_mesh,
         eval_config=EvalConfig(eval_every=args.eval_every),
-        progress=not args.no_progress,
+        progress=show_progress(args),
         overwrite=args.overwrite,
         eval_source=eval_source,
         test_source=test_source,

@@ -14,7 +14,7 @@ import difflib
 import math
 from pathlib import Path
 
-from roigsf_ros.cli import OVERWRITE_HELP, check_out, image_size
+from roigsf_ros.cli import OVERWRITE_HELP, check_out, image_size, show_progress
 from roigsf_ros.cli.map import parse_set_value
 from roigsf_ros.core.camera import MAX_IMAGE_SIDE, Intrinsics, derive_size
 from roigsf_ros.core.errors import InputError
@@ -102,7 +102,7 @@ def _render(args: argparse.Namespace) -> int:
         metadata={"source_mesh": str(args.mesh), "source_traj": str(args.traj), "source_cam": str(args.cam),
                   "stride": args.stride, "offset": args.offset},
         sensor=sensor,
-        progress=not args.no_progress,
+        progress=show_progress(args),
     )  # fmt: skip
     print(f"wrote {len(poses)} frames of {intr.width}x{intr.height} to {out}{_sensor_note(sensor)}")
     return 0
@@ -163,7 +163,7 @@ def _synth(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         metadata={"synth_seed": args.seed, "synth_kind": args.kind},
         sensor=sensor,
-        progress=not args.no_progress,
+        progress=show_progress(args),
     )
     print(
         f"wrote {len(poses)} frames of {intr.width}x{intr.height} ({args.kind}, seed {args.seed}) to {out}"
