@@ -87,7 +87,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     conv.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the scene's", src="DIR"))
     conv.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="bag", out="--out"))
-    conv.add_argument("--no-progress", action="store_true", help="no progress bar")
+    conv.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
     conv.set_defaults(func=_from_replica)
 
     robot = bag_sub.add_parser(
@@ -125,7 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     robot.add_argument("--no-mesh", action="store_true", help=_NO_MESH_HELP.format(what="the bag's", src="SRC"))
     robot.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="bag", out="--out"))
-    robot.add_argument("--no-progress", action="store_true", help="no progress bar")
+    robot.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
     robot.set_defaults(func=_to_robot)
 
     info = bag_sub.add_parser(

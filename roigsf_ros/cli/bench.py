@@ -24,7 +24,6 @@ from roigsf_ros.cli import (
     check_out,
     command_line,
     image_size,
-    show_progress,
     typed_camera_options,
     with_bag_hint,
 )
@@ -148,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         if given:
             raise InputError(" ".join(given), "not used with --rescore-ause (the bench's own are rescored)")
         rescore_ause(args.out, scene=args.scene, uncertainty_views=args.uncertainty_views,
-                     uncertainty_maps=args.uncertainty_maps, progress=show_progress(args))  # fmt: skip
+                     uncertainty_maps=args.uncertainty_maps, progress=not args.no_progress)  # fmt: skip
         print((args.out / "results.md").read_text())
         return 0
     missing = [f for f, v in (("--scene", args.scene), ("--setting", args.setting), ("--policies", args.policies))
@@ -162,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
         args.out, args.overwrite, out["marks"], out["what"], [args.scene, args.gt_mesh, args.test_scene], out["own"]
     )
     try:
-        run_bench(cfg, args.out, overwrite=args.overwrite, progress=show_progress(args), command=command_line("bench"))
+        run_bench(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress, command=command_line("bench"))
     except InputError as exc:  # a bag read with the wrong camera options: the RealSense hint, as roigsf map gives
         scene = next((p for p in (args.scene, args.test_scene) if p is not None and str(exc.where) == str(p)), None)
         raise (with_bag_hint(exc, args, scene) if scene is not None else exc) from None

@@ -109,7 +109,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-h-train", action="store_true", help="do not track the training Fisher (faster)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mapper")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP.format(what="map run", out="--out"))
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (shown only on a terminal)")
     p.add_argument(
         "--set",
         action="append",
