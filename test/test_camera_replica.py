@@ -338,6 +338,9 @@ def test_a_frame_missing_between_others_is_named_and_a_flat_folder_is_read(
     for name in ("traj.txt", "cam_params.json"):
         shutil.copy(seq_dir / name, flat / name)
     assert len(ReplicaSequence(flat)) == 3 and ReplicaSequence(flat).root == flat
+    (flat / "traj.txt").write_text("".join((seq_dir / "traj.txt").read_text().splitlines(keepends=True)[:2]))
+    with pytest.raises(InputError, match=r"too few: the folder holds frame number 2"):  # it said "results/ holds"
+        ReplicaSequence(flat)
     (seq_dir / "results" / "frame000001.jpg").unlink()
     (seq_dir / "results" / "depth000001.png").unlink()
     with pytest.raises(InputError, match=r"results: 1 frame\(s\) missing between frame 0 and frame 2: frame000001"):

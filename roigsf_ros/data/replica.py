@@ -211,10 +211,11 @@ class ReplicaSequence:
 
         traj_path = self.root / "traj.txt"
         all_poses = load_traj(traj_path)
+        frames_dir = "results/" if self.results.name == "results" else "the folder"  # a flat folder has no results/
         if self.indices[-1] >= len(all_poses):
             raise InputError(
                 traj_path,
-                f"has {len(all_poses)} poses, too few: results/ holds frame number {self.indices[-1]} (line k "
+                f"has {len(all_poses)} poses, too few: {frames_dir} holds frame number {self.indices[-1]} (line k "
                 f"is frame k's pose: at least {self.indices[-1] + 1} lines needed)",
             )
         gaps = sorted(set(range(self.indices[-1])) - set(self.indices))  # frames missing between those on disk
@@ -227,7 +228,7 @@ class ReplicaSequence:
         if len(all_poses) != len(self.indices) and not allow_partial:
             raise InputError(
                 traj_path,
-                f"has {len(all_poses)} poses but results/ holds {len(self.indices)} frames "
+                f"has {len(all_poses)} poses but {frames_dir} holds {len(self.indices)} frames "
                 "(line count must match the frames; a partial download needs allow_partial=True)",
             )
         if len(all_poses) != len(self.indices):  # said, so that a run over 4 of 2000 frames does not pass unnoticed
