@@ -224,6 +224,13 @@ def test_bad_arguments() -> None:
         fisher_diag(m, np.eye(4), INTR, params=("nope",))
     with pytest.raises(InputError, match="pixel_weights"):
         fisher_diag(m, np.eye(4), INTR, pixel_weights=np.ones((3, 3)))
+    # a walk: a scaled pose gave an 8x larger Fisher without a word, a 2x2 one numpy's broadcast error
+    with pytest.raises(InputError, match="T_wc"):
+        fisher_diag(m, 2.0 * np.eye(4), INTR)
+    with pytest.raises(InputError, match="T_wc"):
+        fisher_diag(m, np.eye(2), INTR)
+    with pytest.raises(InputError, match=r"T_wc: expected shape \[4, 4\], got \[2, 2\]"):
+        fisher_diag(m, torch.eye(2, dtype=torch.float64), INTR)
 
 
 def test_packed_jacobian_matches_autograd() -> None:

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from roigsf_ros.core.camera import Intrinsics
+from roigsf_ros.core.camera import Intrinsics, check_pose
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.render.numba_setup import KERNEL_LOCK, Kernels, prange, use_numba
 from roigsf_ros.render.rasterize import (
@@ -218,6 +218,10 @@ def _view(
     if bad or not outs:
         raise InputError("outputs", f"unknown or no outputs {bad} (choose from {', '.join(OUTPUTS)})")
     names = _params_of(params, m)
+    if not isinstance(T_wc, Tensor):  # a scaled pose gave an 8x larger Fisher, a 2x2 one numpy's broadcast error
+        check_pose(T_wc, "T_wc")  # checked, not replaced: the Fisher is of the pose as given
+    elif tuple(T_wc.shape) != (4, 4):
+        raise InputError("T_wc", f"expected shape [4, 4], got {list(T_wc.shape)}")
     dt, dev = m.dtype, m.device
     W, H = intr.width, intr.height
     weights = None

@@ -2184,6 +2184,9 @@ def _check_inputs(
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
     if features.dim() != 2 or features.shape[0] != n:
         raise ValueError(f"features must have shape [{n}, C], got {list(features.shape)}")
+    for name, side in (("width", width), ("height", height)):  # a float failed deep in a reshape
+        if isinstance(side, bool) or not isinstance(side, int | np.integer):
+            raise ValueError(f"{name} must be an int (pixels), got {type(side).__name__} {side!r}")
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
     if not (0 < near < far) or not math.isfinite(far):
