@@ -330,7 +330,7 @@ def test_input_validation() -> None:
         render.rasterize_surfels(*tensors, viewmat, K, w, h, near=0.0)
     with pytest.raises(ValueError, match="backend"):
         render.rasterize_surfels(*tensors, viewmat, K, w, h, backend="cuda")
-    with pytest.raises(ValueError, match=r"width must be an int \(pixels\), got float 64.0"):  # failed in a reshape
+    with pytest.raises(ValueError, match=r"width must be an int \(pixels\), got float "):  # failed in a reshape
         render.rasterize_surfels(*tensors, viewmat, K, float(w), h)
 
 
