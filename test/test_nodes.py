@@ -1040,6 +1040,21 @@ def test_an_empty_frame_id_is_refused_and_a_leading_slash_is_the_same_frame(
         planner.destroy_node()
 
 
+def test_start_up_lines_name_the_nodes_own_settings_off_their_defaults(ros_context: Any, capfd: Any) -> None:
+    """A walk: the planner's start-up line named only the method's settings, so ``max_candidates:=16`` and
+    ``input_width:=80`` (the README: it "names the settings it runs with that differ from the defaults") went
+    unsaid. The three nodes' lines now name their own settings off the defaults too."""
+    overrides = [Parameter("warm_up", value=False), Parameter("max_candidates", value=16),
+                 Parameter("input_width", value=80), Parameter("unseen_weight", value=2.0)]  # fmt: skip
+    NBVPlannerNode(context=ros_context, parameter_overrides=overrides).destroy_node()
+    MapperNode(context=ros_context, parameter_overrides=[Parameter("frame_buffer_size", value=7)]).destroy_node()
+    default = MapperNode(context=ros_context, node_name="plain_mapper")
+    default.destroy_node()
+    err = capfd.readouterr().err
+    assert "scoring (roi-gsurfisher; unseen_weight=2.0, input_width=80, max_candidates=16) against" in err, err
+    assert "(own map; frame_buffer_size=7)" in err and "(own map)" in err, err  # and nothing on the defaults
+
+
 def test_a_missing_load_map_folder_is_said_as_the_parameter_and_a_folder(ros_context: Any, tmp_path: Path) -> None:
     """``mapper -p load_map:=/nope`` said "/nope/keyframes.json: not found (not a saved map folder)": neither the
     parameter nor that the folder itself is missing."""
@@ -1420,7 +1435,7 @@ def test_console_script_takes_params_file_and_overrides(tmp_path: Path) -> None:
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout or []), daemon=True)
     reader.start()
     try:
-        started = "policy gaus-slam (window 3): deciding alone"
+        started = "policy gaus-slam (window 3; every_n=4): deciding alone"  # every setting off its default
         _wait(lambda: any(started in x for x in lines), 60.0, "the node's start-up line")
     finally:
         proc.send_signal(signal.SIGINT)

@@ -115,7 +115,14 @@ from roigsf_ros.nodes.mapper import (
     latched_qos,
 )
 from roigsf_ros.nodes.nbv_planner import MAP_NOT_READY
-from roigsf_ros.nodes.node_params import SystemNode, check_frame_id, check_positive, declare
+from roigsf_ros.nodes.node_params import (
+    SystemNode,
+    changed_parameters,
+    check_frame_id,
+    check_positive,
+    declare,
+    settings_text,
+)
 from roigsf_ros.nodes.node_process import run_nodes
 from roigsf_ros.nodes.shared_map import SharedMapper, view_mapper
 from roigsf_ros.policies.base import (
@@ -375,8 +382,11 @@ class KeyframeSelectorNode(SystemNode):
         window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
         if self.policy not in (*PLANNER_POLICIES, *FALLBACK_POLICIES) and self._alone is not None:  # added: its own
             window = ", ".join(f"{k} {v}" for k, v in self._alone.params().items()) or "no parameters"
+        shown = ("policy", "policy_params", "window", "lookahead", "novelty_weight", "fallback")
+        shown += tuple(self._alone.params()) if self._alone is not None else ()
+        own = changed_parameters(self, exclude=shown)  # its other settings off their defaults (qos_depth=10, ...)
         self.get_logger().info(
-            f"policy {self.policy} ({window}): {how}; keyframes on {keyframe_topic}; camera: "
+            f"policy {self.policy} ({window}{settings_text(own)}): {how}; keyframes on {keyframe_topic}; camera: "
             f"{describe_topics(self.camera.topics)}, {camera.reliability}"
         )
 

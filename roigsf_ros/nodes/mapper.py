@@ -78,6 +78,7 @@ from roigsf_ros.nodes.camera_input import (
 from roigsf_ros.nodes.map_msgs import intrinsics_to_camera_info, mesh_marker_cdr, poses_to_array, surfel_map_to_cloud
 from roigsf_ros.nodes.node_params import (
     SystemNode,
+    changed_parameters,
     check_frame_id,
     check_input_size,
     check_positive,
@@ -351,9 +352,10 @@ class MapperNode(SystemNode):
         self.create_service(Trigger, "~/publish_mesh", self._on_mesh, callback_group=services)
         self._thread = threading.Thread(target=self._work, name=f"{self.get_name()}_worker", daemon=True)
         self._thread.start()
+        settings = self.config.changed() | changed_parameters(self, exclude=self.config.to_dict())  # the node's own too
         self.get_logger().info(
             f"mapping keyframes named on {keyframe_topic}; map on {map_topic} "
-            f"({'shared in-process' if self.in_process else 'own'} map{settings_text(self.config.changed())}); "
+            f"({'shared in-process' if self.in_process else 'own'} map{settings_text(settings)}); "
             f"camera: {describe_topics(self.camera.topics)}, {camera.reliability}"
         )
 

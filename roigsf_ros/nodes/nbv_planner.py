@@ -98,6 +98,7 @@ from roigsf_ros.nodes.map_msgs import (
 from roigsf_ros.nodes.mapper import KEYFRAME_POSES_TOPIC, MAP_CAMERA_INFO_TOPIC, MAP_TOPIC, latched_qos
 from roigsf_ros.nodes.node_params import (
     SystemNode,
+    changed_parameters,
     check_frame_id,
     check_input_size,
     check_positive,
@@ -258,6 +259,7 @@ class NBVPlannerNode(SystemNode):
             else f"{map_topic} + {poses_topic} + {map_info_topic} (else {info_topic})"
         )
         changed = {k: v for k, v in self.nbv.changed().items() if k != "mode"}
+        changed |= changed_parameters(self, exclude=(*self.nbv.to_dict(), "warm_up"))  # the node's own too
         self.get_logger().info(f"scoring ({self.nbv.mode}{settings_text(changed)}) against {source}")
 
     # ------------------------------------------------------------------------------ topic inputs

@@ -129,6 +129,7 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
     ``/robot1/roigsf/map`` under ``-r __ns:=/robot1``, and the logs say so.
     """
     value = list(default) if isinstance(default, tuple) else default
+    node.__dict__.setdefault("_roigsf_defaults", {})[name] = value  # changed_parameters
     try:
         got = node.declare_parameter(name, value, read_at_start(description)).value
     except InvalidParameterTypeException:  # e.g. `-p near_m:=0`: an int where the default is a float
@@ -678,6 +679,22 @@ def _refuse_sim_time_change(params: list[Parameter]) -> SetParametersResult:
     return SetParametersResult(successful=True)
 
 
+def changed_parameters(node: Node, exclude: Iterable[str] = ()) -> dict[str, Any]:
+    """The parameters ``node`` declared (:func:`declare`) whose values differ from their defaults, topic and service
+    names left out (a start-up line names those in full), and ``exclude``: for a start-up line, which named only the
+    method's settings (``max_candidates=16`` or ``input_width=80`` went unsaid).
+    """
+    skip = set(exclude)
+    out = {}
+    for name, default in getattr(node, "_roigsf_defaults", {}).items():
+        if name in skip or name.endswith(("_topic", "_service")):
+            continue
+        value = node.get_parameter(name).value
+        if not _same_value(list(value) if isinstance(value, tuple) else value, default):
+            out[name] = value
+    return out
+
+
 def settings_text(changed: dict[str, Any]) -> str:
     """``"; a=1, b=x"`` for a start-up line, from the settings off their defaults (``Config.changed``); "" for none:
     a node's log then says which settings beyond the defaults (a params file, an overlay) it runs with.
@@ -718,6 +735,7 @@ __all__ = [
     "RCLPY_PARAMETERS",
     "RCLPY_PARAMETER_PREFIXES",
     "SystemNode",
+    "changed_parameters",
     "check_frame_id",
     "check_input_size",
     "check_parameter_overrides",
