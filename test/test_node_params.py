@@ -291,6 +291,17 @@ def test_the_shipped_config_files_reach_namespaced_nodes(capfd: pytest.CaptureFi
     assert "does not apply to this node" not in capfd.readouterr().err
 
 
+def test_a_namespaced_nodes_parameter_error_names_it_in_full() -> None:
+    """A walk: two robots' planners in one launch both said "parameter 'nbv_planner.max_candidates'"; a node under a
+    namespace is named in full now, a node without one as before."""
+    from roigsf_ros.nodes.nbv_planner import NBVPlannerNode
+
+    for ns, label in (("/robot2", "/robot2/nbv_planner"), ("/", "nbv_planner")):
+        with _context("-r", f"__ns:={ns}", "-p", "max_candidates:=0", "-p", "warm_up:=false") as ctx:
+            said = _error(lambda ctx=ctx: NBVPlannerNode(context=ctx))
+        assert said.startswith(f"parameter '{label}.max_candidates': must be > 0"), said
+
+
 # ---------------------------------------------------------------------------------------- 3: checked at start-up
 @pytest.mark.parametrize(
     ("node", "name", "value", "why"),

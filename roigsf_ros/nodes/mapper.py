@@ -84,6 +84,7 @@ from roigsf_ros.nodes.node_params import (
     check_positive,
     declare,
     declare_config,
+    node_label,
     settings_text,
 )
 from roigsf_ros.nodes.node_process import run_nodes
@@ -277,7 +278,7 @@ class MapperNode(SystemNode):
             try:
                 loaded = shared.load(load_dir)
             except InputError as exc:  # named as the parameter that asked for it, as the other start-up errors are
-                raise InputError(f"parameter '{self.get_name()}.load_map'", str(exc)) from None
+                raise InputError(f"parameter '{node_label(self)}.load_map'", str(exc)) from None
             self.get_logger().info(
                 f"resumed map {load_dir}: {len(loaded.loaded_keyframe_ids)} keyframes, {loaded.n_surfels} surfels"
             )

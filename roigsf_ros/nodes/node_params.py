@@ -105,6 +105,13 @@ def _float_hint(name: str, given: Any, source: str | None) -> str:
     return f"write a float with a point, e.g. {f'-p {name}:={example}' if source == '-p' else example}"
 
 
+def node_label(node: Node) -> str:
+    """How a parameter error names its node: ``nbv_planner``, or ``/robot2/nbv_planner`` under a namespace (two
+    robots' planners read alike in one launch's log).
+    """
+    return node.get_name() if node.get_namespace() == "/" else node.get_fully_qualified_name()
+
+
 def _type_error(node: Node, name: str, default: Any) -> InputError:
     """The InputError for an override of ``name`` whose type is not that of its ``default``: the value given, the
     params file it came from, and the float hint only for an int given to a float parameter.
@@ -117,7 +124,7 @@ def _type_error(node: Node, name: str, default: Any) -> InputError:
     problem = f"must be {kind} like its default {default!r}" + ("" if override is None else f", got {given!r}")
     file_note = f"set in {source}" if source not in (None, "-p") else ""
     problem += _notes(file_note, _float_hint(name, given, source) if int_for_float else "")
-    return InputError(f"parameter '{node.get_name()}.{name}'", problem)
+    return InputError(f"parameter '{node_label(node)}.{name}'", problem)
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
@@ -162,7 +169,7 @@ def check_ros_name(node: Node, name: str, value: str) -> str:
         why = str(exc).split(", at /")[0].split("\n")[0].rstrip(":")  # rcl's source location; the caret lines
         why = re.sub(r"^(Invalid (topic|service) name: |topic name '.*' is invalid: )", "", why)
         why += _notes(_set_in(node, name))
-        raise InputError(f"parameter '{node.get_name()}.{name}'", f"{value!r} is no valid ROS name: {why}") from None
+        raise InputError(f"parameter '{node_label(node)}.{name}'", f"{value!r} is no valid ROS name: {why}") from None
     return full
 
 
@@ -174,7 +181,7 @@ def _config_error(node: Node, values: dict[str, Any], exc: InputError) -> InputE
     if field not in values:
         return exc
     problem = exc.problem + _notes(_set_in(node, field))
-    return InputError(f"parameter '{node.get_name()}.{field}'", problem)
+    return InputError(f"parameter '{node_label(node)}.{field}'", problem)
 
 
 def declare_config(node: Node, cls: type, skip: Iterable[str] = ()) -> dict[str, Any]:
@@ -442,7 +449,7 @@ def overlay_type_conflict(node: Node, name: str) -> InputError | None:
         return None
     kind = _KIND_WORDS.get(type(override.value), f"a {type(override.value).__name__}")
     return InputError(
-        f"parameter '{node.get_name()}.{name}'",
+        f"parameter '{node_label(node)}.{name}'",
         f"must be {kind}, got {value!r} (set in {source}; ROS kept {override.value!r} from {kept[-1]} instead, "
         "as a later params file cannot change the type of a value an earlier one set)",
     )
@@ -462,7 +469,7 @@ def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
     :func:`declare`'s words (the range said), and a ``parameter 'NAME'`` InputError of ``node`` as ``'node.NAME'``
     with the params file that set the value; anything else as it is. Call it while ``node`` still exists.
     """
-    name_of = "" if node is None else f"{node.get_name()}."
+    name_of = "" if node is None else f"{node_label(node)}."
     text = str(exc)
     if isinstance(exc, InvalidParameterTypeException) and (m := _RCLPY_TYPE_ERROR.search(text)):
         given = repr(m["value"]) if m["given"] == "STRING" else m["value"]
@@ -475,11 +482,11 @@ def parameter_error(node: Node | None, exc: BaseException) -> BaseException:
         )
     if not isinstance(exc, InputError) or node is None:
         return exc
-    m = re.fullmatch(rf"parameter '(?:{re.escape(node.get_name())}\.)?(?P<name>[^']+)'", exc.where)
+    m = re.fullmatch(rf"parameter '(?:{re.escape(node_label(node))}\.)?(?P<name>[^']+)'", exc.where)
     if m is None:
         return exc
     # the node's name in front (in active_mapping three nodes share parameter names), the params file behind
-    where = f"parameter '{node.get_name()}.{m['name']}'" if node.has_parameter(m["name"]) else exc.where
+    where = f"parameter '{node_label(node)}.{m['name']}'" if node.has_parameter(m["name"]) else exc.where
     note = _set_in(node, m["name"])
     problem = exc.problem if note in exc.problem else exc.problem + _notes(note)
     return exc if (where, problem) == (exc.where, exc.problem) else InputError(where, problem)
@@ -583,9 +590,9 @@ def check_parameter_overrides(
     unknown_explicit = sorted({p.name for p in explicit or ()} - set(node.list_parameters([], 0).names))
     if len(unknown_explicit) == 1:
         name = unknown_explicit[0]
-        raise InputError(f"parameter '{node.get_name()}.{name}'", f"not declared by this node{_hint(name, declared)}")
+        raise InputError(f"parameter '{node_label(node)}.{name}'", f"not declared by this node{_hint(name, declared)}")
     if unknown_explicit:
-        where = "parameters " + ", ".join(f"'{node.get_name()}.{name}'" for name in unknown_explicit)
+        where = "parameters " + ", ".join(f"'{node_label(node)}.{name}'" for name in unknown_explicit)
         hints = "; ".join(f"{name}: {', '.join(c)}" for name in unknown_explicit if (c := _closest(name, declared)))
         raise InputError(where, "not declared by this node" + (f" (closest declared {hints})" if hints else ""))
     others = [n for n in siblings if n is not node]
@@ -745,6 +752,7 @@ __all__ = [
     "declare_config",
     "field_docs",
     "misspelt_sections",
+    "node_label",
     "package_config_folder",
     "parameter_error",
     "parameter_source",
