@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from types import SimpleNamespace
 
 import cv2
@@ -125,6 +126,20 @@ def test_mesh_metrics_self_is_perfect() -> None:
     assert m["accuracy_cm"] < 1e-3 and m["completion_cm"] < 1e-3
     assert m["completion_ratio_5cm"] == 1.0
     assert m["n_pred_samples"] == m["n_gt_samples"] == 20_000 and m["gt_observed_fraction"] == 1.0
+
+
+def test_mesh_metrics_warns_of_unit_mistakes() -> None:
+    """A walk: thresholds in cm given as metres were reported as ``@100cm``/``@500cm``, and a ground truth in
+    millimetres against a map in metres gave recall 0, both without a word. Each is warned about; metres are not."""
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 0.5)
+    with pytest.warns(RuntimeWarning, match=r"taus_m \[5.0\] are metres \(500 cm\)"):
+        mesh_metrics(box, box, taus_m=(0.01, 5.0), n_samples=2_000)
+    mm = o3d.geometry.TriangleMesh.create_box(1000.0, 2000.0, 500.0)
+    with pytest.warns(RuntimeWarning, match=r"1000x apart: meshes in different units"):
+        mesh_metrics(box, mm, n_samples=2_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mesh_metrics(box, o3d.geometry.TriangleMesh.create_box(0.2, 0.2, 0.2), n_samples=2_000)  # 10x: a part
 
 
 def test_mesh_metrics_shifted_by_3cm() -> None:

@@ -14,6 +14,7 @@ range, and not occluded by the GT mesh itself.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -290,6 +291,30 @@ def _tau_name(tau_m: float) -> str:
     return f"{round(tau_m * 100.0, 6):g}cm"
 
 
+UNIT_MISMATCH_RATIO = 300.0
+"""How many times larger one mesh's extent may be than the other's before :func:`mesh_metrics` warns of a unit mistake
+(a ground truth in millimetres against a map in metres gave recall 0 without a word)."""
+
+
+def _warn_unit_mistakes(taus: list[float], gt_pts: np.ndarray, pred_pts: np.ndarray) -> None:
+    """Warn of the two unit mistakes a caller of :func:`mesh_metrics` makes silently: thresholds in cm given as
+    metres (``taus_m=(1, 5)`` reported as ``@100cm``/``@500cm``), and meshes in different units.
+    """
+    big = [t for t in taus if t > 1.0]
+    if big:
+        warnings.warn(f"mesh_metrics: taus_m {big} are metres ({', '.join(f'{100 * t:g} cm' for t in big)}); "
+                      "thresholds in cm are taus_m=(0.01, 0.05)", RuntimeWarning, stacklevel=3)  # fmt: skip
+    if len(pred_pts) == 0:
+        return
+    gt_size = float(np.linalg.norm(np.ptp(gt_pts, axis=0)))
+    pred_size = float(np.linalg.norm(np.ptp(pred_pts, axis=0)))
+    ratio = max(gt_size, pred_size) / max(min(gt_size, pred_size), 1e-12)
+    if ratio > UNIT_MISMATCH_RATIO:
+        warnings.warn(f"mesh_metrics: the ground truth spans {gt_size:.4g} and the reconstruction {pred_size:.4g} "
+                      f"(units of each mesh), {ratio:.0f}x apart: meshes in different units (mm and m)?",
+                      RuntimeWarning, stacklevel=3)  # fmt: skip
+
+
 def mesh_metrics(
     pred_mesh: MeshLike,
     gt_mesh: MeshLike,
@@ -328,6 +353,7 @@ def mesh_metrics(
     if len(gt_pts) == 0:
         raise InputError("gt_mesh", "ground-truth mesh has no surface")
     pred_pts = sample_surface(pred_legacy, int(n_samples), seed + 1)
+    _warn_unit_mistakes(taus, gt_pts, pred_pts)
     gt_scene = raycasting_scene(gt_legacy)
 
     keep = np.ones(len(gt_pts), dtype=bool)
