@@ -236,7 +236,7 @@ def test_perf_novelty_reads_the_installed_sample_bag_from_another_folder(
     neither has it the error says where it looked."""
     read: list[Path] = []
 
-    def record(bag: Path) -> Any:
+    def record(bag: Path, _topics: Any = None) -> Any:
         read.append(bag)
         raise InputError(bag, "read")
 

@@ -324,7 +324,17 @@ def test_rank_fusion_lets_no_one_term_outvote_the_others_and_checks_the_fusion_i
     ok = np.arange(9) < 8  # the last one flagged
     fused = np.zeros(9)
     fused[ok] = 0.4 * z(f[ok]) + 0.6 * z(c[ok]) + z(u[ok])
-    s = {"fisher": f, "close_front": c, "u": u, "fused": fused, "epsilon": 0.4, "delta": 0.6, "w": 1.0, "min_std": 0.0}
+    s = {
+        "fisher": f,
+        "close_front": c,
+        "u": u,
+        "fused": fused,
+        "epsilon": 0.4,
+        "delta": 0.6,
+        "w": 1.0,
+        "min_std": 0.0,
+        "cf_min_std": 0.0,
+    }
     assert int(np.argmax(fused)) == 0
     ranked = pr.rank_fused(s, ok)
     assert int(np.argmax(ranked)) == 1 and ranked[8] == -np.inf and np.isfinite(ranked[ok]).all()
