@@ -9,6 +9,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -254,6 +255,21 @@ def test_map_of_a_partial_download_names_the_allow_partial_flag(
     assert "give the camera file (--cam PATH)" in capsys.readouterr().err
 
 
+def _record_intrinsics(monkeypatch: pytest.MonkeyPatch) -> tuple[list[Any], Callable[..., None]]:
+    """``roigsf map``'s mapping stubbed: each run records its source's intrinsics and stops there (exit 2)."""
+    import roigsf_ros.cli.map
+    from roigsf_ros.core.errors import InputError
+
+    seen: list[Any] = []
+
+    def record(source: object, *_args: object, **_kw: object) -> None:
+        seen.append(source.intrinsics)  # type: ignore[attr-defined]
+        raise InputError("stub", "the mapping itself is not under test")
+
+    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    return seen, record
+
+
 def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -262,17 +278,10 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     `--cam` is refused (its camera_info is its camera)."""
     import roigsf_ros.cli.bench
     import roigsf_ros.cli.map
-    from roigsf_ros.core.errors import InputError
 
     cam = tmp_path / "elsewhere.json"
     (tiny_scene / "cam_params.json").rename(cam)
-    seen = []
-
-    def record(source: object, *_args: object, **_kw: object) -> None:
-        seen.append(source.intrinsics)  # type: ignore[attr-defined]
-        raise InputError("stub", "the mapping itself is not under test")
-
-    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    seen, record = _record_intrinsics(monkeypatch)
     out = str(tmp_path / "out")
     assert main(["map", str(tiny_scene), "--out", out, "--no-progress"]) == 2
     err = capsys.readouterr().err
@@ -315,8 +324,6 @@ def test_a_named_camera_is_read_by_every_cam_option(
     """`roigsf scene render --cam kinect-v1` took a named camera while `roigsf map --cam kinect-v1` said "camera
     parameters file not found". Every --cam (and the library's cam=) now takes the name (data.sensor.load_camera); a
     name that is neither a file nor a camera lists the names."""
-    import roigsf_ros.cli.map
-    from roigsf_ros.core.errors import InputError
     from roigsf_ros.data.replica import ReplicaSequence
     from roigsf_ros.data.sensor import KINECT_V1_INTRINSICS
     from roigsf_ros.perf.io import make_synthetic_replica
@@ -325,13 +332,7 @@ def test_a_named_camera_is_read_by_every_cam_option(
     make_synthetic_replica(scene, 640, 480, 1, seed=1)
     (scene / "cam_params.json").unlink()
     assert ReplicaSequence(scene, cam="kinect-v1").intrinsics == KINECT_V1_INTRINSICS
-    seen = []
-
-    def record(source: object, *_args: object, **_kw: object) -> None:
-        seen.append(source.intrinsics)  # type: ignore[attr-defined]
-        raise InputError("stub", "the mapping itself is not under test")
-
-    monkeypatch.setattr(roigsf_ros.cli.map, "run_offline", record)
+    seen, _ = _record_intrinsics(monkeypatch)
     out = str(tmp_path / "out")
     assert main(["map", str(scene), "--cam", "kinect-v1", "--out", out, "--no-progress"]) == 2
     assert seen == [KINECT_V1_INTRINSICS], seen
