@@ -339,7 +339,7 @@ def test_a_frame_missing_between_others_is_named_and_a_flat_folder_is_read(
         shutil.copy(seq_dir / name, flat / name)
     assert len(ReplicaSequence(flat)) == 3 and ReplicaSequence(flat).root == flat
     (flat / "traj.txt").write_text("".join((seq_dir / "traj.txt").read_text().splitlines(keepends=True)[:2]))
-    with pytest.raises(InputError, match=r"too few: the folder holds frame number 2"):  # it said "results/ holds"
+    with pytest.raises(InputError, match=r"too few: flat/ holds frame number 2"):  # it said "results/ holds"
         ReplicaSequence(flat)
     (seq_dir / "results" / "frame000001.jpg").unlink()
     (seq_dir / "results" / "depth000001.png").unlink()

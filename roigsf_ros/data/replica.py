@@ -211,7 +211,7 @@ class ReplicaSequence:
 
         traj_path = self.root / "traj.txt"
         all_poses = load_traj(traj_path)
-        frames_dir = "results/" if self.results.name == "results" else "the folder"  # a flat folder has no results/
+        frames_dir = f"{self.results.name}/"  # results/, or a flat folder (which has no results/)
         if self.indices[-1] >= len(all_poses):
             raise InputError(
                 traj_path,
