@@ -382,11 +382,12 @@ class KeyframeSelectorNode(SystemNode):
         window += f", novelty_weight {self.novelty_weight:g}" if self.novelty_weight else ""
         if self.policy not in (*PLANNER_POLICIES, *FALLBACK_POLICIES) and self._alone is not None:  # added: its own
             window = ", ".join(f"{k} {v}" for k, v in self._alone.params().items()) or "no parameters"
-        shown = ("policy", "policy_params", "window", "lookahead", "novelty_weight", "fallback")
+        shown = ("policy", "policy_params", "window", "lookahead", "novelty_weight", "fallback_policy")
         shown += tuple(self._alone.params()) if self._alone is not None else ()
         own = changed_parameters(self, exclude=shown)  # its other settings off their defaults (qos_depth=10, ...)
         self.get_logger().info(
-            f"policy {self.policy} ({window}{settings_text(own)}): {how}; keyframes on {keyframe_topic}; camera: "
+            f"policy {self.policy} ({window}{settings_text(own)}): {how}; keyframes on "
+            f"{self.resolve_topic_name(keyframe_topic)}; camera: "
             f"{describe_topics(self.camera.topics)}, {camera.reliability}"
         )
 

@@ -355,7 +355,8 @@ class MapperNode(SystemNode):
         self._thread.start()
         settings = self.config.changed() | changed_parameters(self, exclude=self.config.to_dict())  # the node's own too
         self.get_logger().info(
-            f"mapping keyframes named on {keyframe_topic}; map on {map_topic} "
+            f"mapping keyframes named on {self.resolve_topic_name(keyframe_topic)}; map on "
+            f"{self.resolve_topic_name(map_topic)} "
             f"({'shared in-process' if self.in_process else 'own'} map{settings_text(settings)}); "
             f"camera: {describe_topics(self.camera.topics)}, {camera.reliability}"
         )
