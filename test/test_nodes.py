@@ -1020,6 +1020,8 @@ def test_an_empty_frame_id_is_refused_and_a_leading_slash_is_the_same_frame(
         with pytest.raises(InputError, match=r"parameter '\w+\.frame_id': must name a TF frame \(e.g. map\), got an"):
             cls(context=ros_context, parameter_overrides=[Parameter("frame_id", value=""), *(
                 [Parameter("warm_up", value=False)] if cls is NBVPlannerNode else [])])  # fmt: skip
+    with pytest.raises(InputError, match=r"TF frame ids do not start with '/' \(tf2 refuses them\): write 'map'"):
+        MapperNode(context=ros_context, parameter_overrides=[Parameter("frame_id", value="/map")])
     frames, _ = scene
     planner = NBVPlannerNode(context=ros_context, shared=_shared(mapped))
     try:

@@ -719,10 +719,14 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
 
 def check_frame_id(name: str, value: str) -> str:
     """A frame parameter's value if it names a frame; an empty one is refused at start-up (it was taken, and every
-    request in the map frame was then refused as "not the map frame ''", every output stamped in no frame).
+    request in the map frame was then refused as "not the map frame ''", every output stamped in no frame), and so is
+    one with a leading '/' (ROS 1's habit: every output header carried it, and tf2 refuses it).
     """
     if not value.strip():
         raise InputError(f"parameter '{name}'", "must name a TF frame (e.g. map), got an empty string")
+    if value.startswith("/"):  # kept as given, it went into every header, and tf2 refuses such a frame id
+        raise InputError(f"parameter '{name}'", f"TF frame ids do not start with '/' (tf2 refuses them): write "
+                         f"{value.lstrip('/')!r}, not {value!r}")  # fmt: skip
     return value
 
 
