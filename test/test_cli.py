@@ -285,7 +285,7 @@ def test_map_takes_a_replica_folders_camera_file_and_bench_says_the_way_round(
     out = str(tmp_path / "out")
     assert main(["map", str(tiny_scene), "--out", out, "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "give the camera file (--cam PATH)" in err and "cam=PATH" not in err, err
+    assert "give the camera file (--cam PATH), or a named camera (--cam kinect-v1)" in err and "cam=" not in err, err
     assert main(["map", str(tiny_scene), "--cam", str(cam), "--out", out, "--no-progress"]) == 2
     assert len(seen) == 1 and (seen[0].width, seen[0].height) == (16, 12), seen
     bench = ["bench", "--scene", str(tiny_scene), "--setting", "pool", "--policies", "random", "--out", out]

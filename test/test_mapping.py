@@ -22,7 +22,7 @@ from roigsf_ros.data.sources import open_frames
 from roigsf_ros.evaluation.metrics import psnr
 from roigsf_ros.experiments.offline import EvalConfig, run_offline
 from roigsf_ros.mapping import losses
-from roigsf_ros.mapping.mapper import Mapper, MapperConfig
+from roigsf_ros.mapping.mapper import Mapper, MapperConfig, write_h_train
 from roigsf_ros.policies.base import make_policy
 
 INTR = Intrinsics(width=64, height=48, fx=52.0, fy=52.0, cx=31.5, cy=23.5)
@@ -337,6 +337,10 @@ def test_a_map_whose_fisher_was_read_saves_it_and_a_save_never_leaves_another_ma
     other.add_keyframe(frames[4])
     other.save(tmp_path / "map")  # over the first map: its h_train.npz is not this map's
     assert not (tmp_path / "map" / "h_train.npz").exists()
+    write_h_train(tmp_path / "map" / "h_train.npz", mapper.h_train)  # put there by hand: said, with the way out
+    with pytest.raises(InputError, match=r"another map's\? without the file the map loads"):
+        Mapper.load(tmp_path / "map")
+    (tmp_path / "map" / "h_train.npz").unlink()
     assert Mapper.load(tmp_path / "map").n_surfels == other.n_surfels
 
 

@@ -400,7 +400,12 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(sig, handler)
 
 
-API_OPTIONS = {"overwrite=True": "--overwrite", "allow_partial=True": "--allow-partial", "cam=PATH": "--cam PATH"}
+API_OPTIONS = {
+    "overwrite=True": "--overwrite",
+    "allow_partial=True": "--allow-partial",
+    "cam=PATH": "--cam PATH",
+    "cam=kinect-v1": "--cam kinect-v1",
+}
 """The library's words for an argument in its errors -> the command line's option, for a command that has it."""
 
 

@@ -190,7 +190,7 @@ class ReplicaSequence:
                 raise InputError(
                     self.root,
                     "no cam_params.json here or in the parent folder: put Replica's there, or give the camera "
-                    "file (cam=PATH)",
+                    "file (cam=PATH), or a named camera (cam=kinect-v1)",
                 )
             native = load_camera(cam_path)  # a file, or a named camera (cam="kinect-v1")
 

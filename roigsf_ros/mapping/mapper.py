@@ -1048,7 +1048,8 @@ def read_h_train(
         want = (n_surfels, *shape[1:])
         if a.shape != want:
             raise InputError(where, f"array '{name}' has shape {list(a.shape)}, the map's {n_surfels} surfels need "
-                             f"{list(want)}")  # fmt: skip
+                             f"{list(want)} (another map's? without the file the map loads and its training Fisher is "
+                             "recomputed from the keyframe poses)")  # fmt: skip
         if not (np.isfinite(a).all() and (a >= 0).all()):
             raise InputError(where, f"array '{name}' holds values that are not finite and >= 0 (a Fisher diagonal)")
         out[name] = torch.from_numpy(a.astype(np.float32))
