@@ -211,6 +211,7 @@ def test_pool_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     res = check_md_matches_json(out)
     assert res["setting"] == "pool" and res["seeds"] == [0, 1] and res["pool_config"]["n_views"] == 6
+    assert all(r["metrics"]["mapper_depth_pixels"] > 0 for r in res["runs"])  # the mapper's counters, as a stream's
     runs = res["runs"]
     assert len(runs) == 4 and {(r["label"], r["seed"]) for r in runs} == {(p, s) for p in ("close-front", "random")
                                                                          for s in (0, 1)}  # fmt: skip
@@ -287,6 +288,11 @@ def test_stream_bench_end_to_end(scene: Path, tmp_path: Path) -> None:
     assert main(argv) == 0
     res = check_md_matches_json(out)
     assert res["n_frames"] == 14 and res["curves"] is None
+    # a walk: a wrong depth scale was said on stderr only; results.md says it when a run's counters show it
+    run = res["runs"][0]
+    assert run["metrics"]["mapper_depth_pixels"] > 0 and "depth scale off" not in (out / "results.md").read_text()
+    doctored = run | {"metrics": run["metrics"] | {"mapper_depth_pixels": 10, "mapper_depth_out_of_range_pixels": 9}}
+    assert "**90% of the keyframes' depth values were outside" in report_module.markdown(res | {"runs": [doctored]})
     every = next(r for r in res["runs"] if r["label"] == "every-n:n=6")
     assert every["metrics"]["keyframe_ids"] == [0, 6, 12] and every["chosen_positions"] == [0, 6, 12]
     assert res["summary"]["every-n:n=6"]["n_keyframes"]["mean"] == 3

@@ -278,6 +278,8 @@ def metric_notes(metrics: dict[str, Any]) -> list[str]:
     (a 4-frame run's recall 0.998 read as a whole room's), most of the depth out of range (a wrong depth scale), and
     why PSNR/SSIM are missing.
     """
+    from roigsf_ros.mapping.mapper import depth_scale_note  # here: the command line starts without torch
+
     notes = []
     if metrics.get("tf_reparented"):
         notes.append(f"TF: {metrics.get('tf_reparent_note')} ({metrics['tf_reparented']} change(s) of parent): the "
@@ -288,10 +290,8 @@ def metric_notes(metrics: dict[str, Any]) -> list[str]:
     if seen is not None and not str(metrics.get("gt_culling", "none")).startswith("none"):
         notes.append(f"recall and completion count the GT in view of the run's poses: {seen:.0%} of the GT mesh "
                      "(gt_culling in metrics.json)")  # fmt: skip
-    out, total = metrics.get("mapper_depth_out_of_range_pixels"), metrics.get("mapper_depth_pixels")
-    if out and total and out > 0.5 * total:
-        notes.append(f"{out / total:.0%} of the keyframes' depth values were outside min_depth_m..max_depth_m and "
-                     "masked: a depth scale off (a cam_params.json 'scale', millimetres read as metres)?")  # fmt: skip
+    if depth_note := depth_scale_note(metrics):
+        notes.append(depth_note)
     if metrics.get("n_eval_frames") == 0:
         notes.append("no PSNR/SSIM: every frame was a keyframe, and they are measured on the frames that were not")
     return notes

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -449,6 +449,7 @@ def run_pool(
     metrics["wall_s"] = time.perf_counter() - t_start
     metrics["pool_config"] = config.to_dict()
     metrics["config"] = mcfg.to_dict()
+    metrics |= {f"mapper_{k}": v for k, v in asdict(mapper.stats).items()}  # as a stream run's (depth_scale_note)
     metrics = evaluation.to_json_safe(metrics)
     if out_dir is not None:
         with atomic_dir(out_dir, overwrite, **keep) as tmp:

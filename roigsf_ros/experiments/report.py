@@ -99,6 +99,10 @@ def markdown(results: dict[str, Any]) -> str:
     ]
     if results.get("tf_child_frame_note"):
         lines.append(f"- **TF: {results['tf_child_frame_note']}; every figure is wrong**")
+    from roigsf_ros.mapping.mapper import depth_scale_note  # here: torch only where a report is written
+
+    depth_notes = {depth_scale_note(r.get("metrics", {})) for r in results.get("runs", [])} - {""}
+    lines += [f"- **{note} (in at least one run)**" for note in sorted(depth_notes)]  # it was said on stderr only
     if results.get("command"):
         lines.append(f"- command: `{results['command']}`")
     if setting == "pool":

@@ -24,6 +24,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "Mapper",
             "MapperConfig",
             "MapperStats",
+            "depth_scale_note",
             "read_h_train",
             "read_map_meta",
             "valid_depth_mask",

@@ -199,6 +199,17 @@ class MapperConfig(Config):
         }
 
 
+def depth_scale_note(metrics: dict[str, Any]) -> str:
+    """A run's note when most of its keyframes' depth values were out of range (a wrong depth scale), from the
+    ``mapper_*`` counters of its metrics (:class:`MapperStats`); "" otherwise.
+    """
+    out, total = metrics.get("mapper_depth_out_of_range_pixels"), metrics.get("mapper_depth_pixels")
+    if not out or not total or out <= 0.5 * total:
+        return ""
+    return (f"{out / total:.0%} of the keyframes' depth values were outside min_depth_m..max_depth_m and masked: a "
+            "depth scale off (a cam_params.json 'scale', millimetres read as metres)?")  # fmt: skip
+
+
 @dataclass
 class MapperStats:
     """Counters of what the mapper skipped, masked, added and removed (all logged as they happen)."""
@@ -1159,6 +1170,7 @@ __all__ = [
     "Mapper",
     "MapperConfig",
     "MapperStats",
+    "depth_scale_note",
     "read_h_train",
     "read_map_meta",
     "valid_depth_mask",
