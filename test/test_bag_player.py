@@ -247,11 +247,15 @@ def _run_main(*ros_args: str, plain: tuple[str, ...] = (), module: str = "bag_pl
 
 
 def test_main_takes_the_bag_as_a_positional_argument(bag: Path) -> None:
-    """``bag_player BAG``, as ``ros2 bag play BAG`` (before: "no bag given", exit 2)."""
-    proc = _run_main("-p", "rate:=0.0", "-p", "start_delay_s:=0.2", "-p", "wait_for_subscribers:=0", plain=(str(bag),))
+    """``bag_player BAG``, as ``ros2 bag play BAG`` (before: "no bag given", exit 2). Its start-up line names the
+    topics as published, remapped (a walk: it named none, so a player's remap could not be checked)."""
+    proc = _run_main("-p", "rate:=0.0", "-p", "start_delay_s:=0.2", "-p", "wait_for_subscribers:=0",
+                     "-r", "/camera/color/image_raw:=/my/rgb", plain=(str(bag),))  # fmt: skip
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0, output
     assert "finished: published 20 messages on 4 topics" in output
+    assert "topics as published (remapped): /camera/camera_info, /camera/depth/image_raw, /camera/pose, /my/rgb" \
+        in output, output  # fmt: skip
 
 
 _CONSOLE = (

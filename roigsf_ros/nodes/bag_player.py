@@ -243,7 +243,8 @@ class BagPlayer(Node):
         start = f"{n} subscriber(s) on every topic (at most {self.wait_timeout_s:g} s), then " if n > 0 else ""
         self.get_logger().info(
             f"playing {self.bag_path}: {self.total_per_loop} messages on {len(types)} topics {mode}"
-            f"{' in a loop' if self.loop else ''}, starting after {start}{self.start_delay_s:g} s"
+            f"{' in a loop' if self.loop else ''}, starting after {start}{self.start_delay_s:g} s; topics as published "
+            f"(remapped): {', '.join(sorted(p.topic_name for p in self._publishers_by_topic.values()))}"
         )
         self._thread = threading.Thread(target=self._run, name=f"{node_name}_playback", daemon=True)
         self._thread.start()
