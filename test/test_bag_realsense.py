@@ -511,3 +511,5 @@ def test_perf_novelty_reads_a_robots_bag_with_the_camera_options(
     data = json.loads(out.read_text())
     assert data["camera_topics"]["pose_source"] == "tf" and data["summary"]["all_equal"], data
     assert [w["first_frame"] for w in data["windows"]] == [1, 3], data["windows"]  # 6 frames: two windows of 2
+    assert cli_main(["perf", "novelty", "--realsense", "--window", "2", "--lookahead", "1", "--repeats", "1"]) == 2
+    assert "leave out --realsense" in capsys.readouterr().err  # the shipped sample is in this package's layout

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 from collections.abc import Callable
+from pathlib import Path
 
 from roigsf_ros.cli import add_camera_options, camera_topics, with_bag_hint
 from roigsf_ros.core.errors import InputError
@@ -37,9 +38,10 @@ def _with_camera_topics(run: Callable[..., int]) -> Callable[[argparse.Namespace
     def with_topics(args: argparse.Namespace) -> int:
         try:
             return run(args, topics=camera_topics(args))
-        except InputError as exc:
-            if args.bag is not None and str(exc.where) == str(args.bag):
-                raise with_bag_hint(exc, args, args.bag) from None
+        except InputError as exc:  # the bag named, or the shipped sample (--realsense on it: "leave it out")
+            bag = args.bag if args.bag is not None else Path(str(exc.where))
+            if str(exc.where) == str(bag) and bag.exists():
+                raise with_bag_hint(exc, args, bag) from None
             raise
 
     return with_topics
