@@ -943,12 +943,12 @@ class Mapper:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:  # a regular file on the way: said as the package's error, naming the folder
             raise InputError(out, f"cannot create the map folder: {exc.strerror or exc}") from None
-        saved_h_train = out / H_TRAIN_FILE
-        if not self.h_train_to_save:  # another map's Fisher saved here before would not match this map: load refused it
+        saved_h_train, with_h_train = out / H_TRAIN_FILE, self.h_train_to_save
+        if not with_h_train:  # another map's Fisher saved here before would not match this map: load refused it
             saved_h_train.unlink(missing_ok=True)
         self.map.save_ply(out / "map.ply")
         write_map_meta(out / "keyframes.json", *self.map_keyframes(), self.intr, self.config)
-        if self.h_train_to_save:
+        if with_h_train:
             write_h_train(saved_h_train, self.h_train)
 
     @classmethod
