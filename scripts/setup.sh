@@ -142,33 +142,39 @@ rm -rf "$REPO/build" "$REPO"/*.egg-info
 # 6. The numba kernels (rasteriser, Fisher, ROI), compiled once into numba's disk cache beside the installed
 #    modules: cold, they take 80-170 s, which the planner's first requests on a fresh machine used to pay (the
 #    selector's fallback decided those windows). Redone when the package's sources or the pinned packages
-#    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled.
-#    Alone, the compile splits the kernels over every CPU (--jobs, by the package's kernel signature list: 147-166 s
-#    on one process, 80-98 s on two, 2 cores). With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy,
-#    which the tests import, is warmed up at the same time, in one process: mostly a cache load (1 s, where a second
-#    process would add 5 s); when both compile, each takes one process. In the background; set-up waits at its end.
+#    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled, split
+#    over every CPU (--jobs, by the package's kernel signature list: 147-166 s on one process, 80-98 s on two, 2 cores).
+#    With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy, which the tests import, is warmed up next:
+#    numba names a cache by module, function and line and stamps it with the source's hash, so the installed copy's
+#    compiled kernels are copied into the checkout (--seed-from; byte-identical modules only) and load in about a
+#    second. (The two copies used to compile side by side, one process each: about a minute longer on 2 cores.)
+#    In the background; set-up waits at its end.
 KERNEL_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_ros/*/*.py "$REPO/roigsf_ros/nbv/kernel_signatures.json" \
     | sha256sum | cut -d" " -f1)"
 KERNEL_STAMP="$VENV/.roigsf-kernels.sha256"
-WARM_PIDS=()
+WARM_PID=""
 WARM_INSTALLED=0
 WARM_CHECKOUT="${ROIGSF_WARM_CHECKOUT:-0}"
+INSTALLED_PKG="$(compgen -G "$VENV/lib/python3*/site-packages/roigsf_ros" | head -n 1 || true)"
+[ -n "$INSTALLED_PKG" ] || setup_fail "roigsf_ros is not in $VENV's site-packages after step 5"
 if [ "$(cat "$KERNEL_STAMP" 2>/dev/null || true)" != "$KERNEL_HASH" ] \
-    || ! compgen -G "$VENV/lib/python3*/site-packages/roigsf_ros/render/__pycache__/*.nbi" >/dev/null; then
+    || ! compgen -G "$INSTALLED_PKG/render/__pycache__/*.nbi" >/dev/null; then
     WARM_INSTALLED=1
 fi
-WARM_JOBS="$(nproc)"
-[ "$WARM_INSTALLED$WARM_CHECKOUT" != 11 ] || WARM_JOBS=1
-if [ "$WARM_INSTALLED" = 1 ]; then
-    log "compiling the numba kernels (once; cached on disk; processes: $WARM_JOBS)"
-    (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs "$WARM_JOBS" | sed 's/^/[setup] /' >&2) &
-    WARM_PIDS+=("$!")
-    SETUP_BG_PIDS+=("$!")
-fi
-if [ "$WARM_CHECKOUT" = 1 ]; then
-    (cd "$REPO" && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs 1 | sed 's/^/[test] /' >&2) &
-    WARM_PIDS+=("$!")
-    SETUP_BG_PIDS+=("$!")
+warm_kernels() {  # the installed copy (when its cache is stale), then the checkout seeded from it (when asked)
+    if [ "$WARM_INSTALLED" = 1 ]; then
+        (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs "$(nproc)" | sed 's/^/[setup] /' >&2)
+    fi
+    if [ "$WARM_CHECKOUT" = 1 ]; then
+        (cd "$REPO" && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs 1 --seed-from "$INSTALLED_PKG" \
+            | sed 's/^/[test] /' >&2)
+    fi
+}
+if [ "$WARM_INSTALLED$WARM_CHECKOUT" != 00 ]; then
+    [ "$WARM_INSTALLED" = 0 ] || log "compiling the numba kernels (once; cached on disk; processes: $(nproc))"
+    warm_kernels &
+    WARM_PID="$!"
+    SETUP_BG_PIDS+=("$WARM_PID")
 fi
 
 # The background work of steps 4 and 6.
@@ -176,7 +182,7 @@ IFACE_RC=0
 [ -z "$IFACE_PID" ] || wait "$IFACE_PID" || IFACE_RC=$?
 [ "$IFACE_RC" -eq 0 ] || setup_fail "building the interfaces failed (exit $IFACE_RC)" "$IFACE_RC"
 WARM_RC=0
-for pid in "${WARM_PIDS[@]}"; do wait "$pid" || WARM_RC=$?; done
+[ -z "$WARM_PID" ] || wait "$WARM_PID" || WARM_RC=$?
 SETUP_BG_PIDS=()
 [ -z "$IFACE_PID" ] || echo "$IFACE_HASH" > "$IFACE_STAMP"
 [ "$WARM_RC" -eq 0 ] || { log "error: compiling the numba kernels failed (exit $WARM_RC)"; exit "$WARM_RC"; }

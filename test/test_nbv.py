@@ -1237,3 +1237,12 @@ def test_installed_package_carries_the_kernel_signature_list() -> None:
         pytest.skip("roigsf_ros is not installed in this interpreter (run scripts/setup.sh)")
     installed = Path(res.stdout.strip()) / "nbv" / "kernel_signatures.json"
     assert installed.is_file(), f"{installed} missing: setup.py's package_data must carry it"
+
+
+def test_warmup_seed_from_must_be_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--seed-from`` (set-up: the installed copy's roigsf_ros folder) names a missing folder in its error, before any
+    kernel is compiled or loaded."""
+    with pytest.raises(SystemExit) as exc:
+        warmup.main(["--jobs", "1", "--seed-from", str(tmp_path / "no_such_copy")])
+    assert exc.value.code == 2
+    assert f"--seed-from: {tmp_path / 'no_such_copy'} is not a folder" in capsys.readouterr().err

@@ -614,6 +614,56 @@ def test_kernel_cache_dropped_when_compile_options_change(tmp_path: Path, monkey
     assert all(p.stat().st_mtime_ns != mtimes.get(p) for p in cache.glob("kmod_cache_probe.k_double-*.nbc"))
 
 
+_SEED_PROBE = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+from roigsf_ros.render.numba_setup import Kernels
+from sub import kmod_seed_probe as m
+k = Kernels(double=m.k_double)
+x = np.ones(4)
+k["double"](x)
+d = k.dispatchers()["double"]
+hits, misses = d.stats.cache_hits, d.stats.cache_misses
+print(json.dumps({"x": x.tolist(), "hits": sum(hits.values()), "misses": sum(misses.values())}))
+"""
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+def test_seeded_kernel_cache_loads_in_another_copy(tmp_path: Path) -> None:
+    """set-up compiles the installed copy once and seeds the checkout from it: a byte-identical module at another path
+    loads the copied code (no compile); a changed module is not seeded; a current cache is kept."""
+    from roigsf_ros.render.numba_setup import STAMP_SUFFIX, seed_kernel_cache
+
+    repo = Path(__file__).resolve().parents[1]
+    roots = [tmp_path / name for name in ("installed", "checkout", "edited")]
+    for root in roots:
+        (root / "sub").mkdir(parents=True)
+        (root / "sub" / "__init__.py").write_text("")
+        (root / "sub" / "kmod_seed_probe.py").write_text(_KERNEL_MODULE)
+    (roots[2] / "sub" / "kmod_seed_probe.py").write_text(_KERNEL_MODULE + "# edited\n")
+
+    def run(root: Path) -> dict:
+        res = subprocess.run([sys.executable, "-c", _SEED_PROBE, str(root)], cwd=repo, capture_output=True, text=True,
+                             timeout=120)  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+        assert out["x"] == [2.0] * 4
+        return out
+
+    assert run(roots[0]) == {"x": [2.0] * 4, "hits": 0, "misses": 1}  # compiled into installed/sub/__pycache__
+    assert seed_kernel_cache(roots[0], roots[1]) == ["sub/kmod_seed_probe.k_double"]
+    assert seed_kernel_cache(roots[0], roots[2]) == []  # the module differs: nothing copied
+    assert not (roots[2] / "sub" / "__pycache__").exists()
+    seeded = run(roots[1])
+    assert seeded["hits"] == 1 and seeded["misses"] == 0  # loaded at another path, not compiled
+    cache = roots[1] / "sub" / "__pycache__"
+    mtimes = {p.name: p.stat().st_mtime_ns for p in cache.iterdir() if p.suffix in (".nbi", ".nbc", STAMP_SUFFIX)}
+    assert len(mtimes) >= 3 and seed_kernel_cache(roots[0], roots[1]) == []  # current: kept as it is
+    assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir() if p.name in mtimes} == mtimes
+    assert seed_kernel_cache(roots[0], roots[0]) == []
+
+
 def test_kernel_stamp_is_the_same_in_every_process() -> None:
     """The cache stamp of a kernel set with a fastmath flag set is the same under different hash seeds (else every
     process would drop the others' cache and compile anew)."""

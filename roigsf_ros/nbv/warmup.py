@@ -13,6 +13,9 @@ Cold, that is one process on one core (151 s on a 2-core AMD EPYC). ``--jobs N``
 processes from :data:`SIGNATURES_PATH`, the argument types the warm-up's own calls compile (checked by a test against
 a real warm-up; rewritten by ``scripts/kernel_compile_times.py --write-signatures``), and then runs the warm-up, which
 loads them from the disk cache and compiles whatever the list missed: a stale list costs time, never a wrong kernel.
+``--seed-from DIR`` first copies another copy's compiled kernels
+(:func:`~roigsf_ros.render.numba_setup.seed_kernel_cache`): set-up compiles the installed copy once and seeds the
+checkout the tests import with it.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 from roigsf_ros.nbv.config import RECOMMENDED_UNSEEN, NBVConfig
 from roigsf_ros.nbv.scorer import NBVScorer
 from roigsf_ros.nbv.state import ScoringState
-from roigsf_ros.render.numba_setup import Kernels
+from roigsf_ros.render.numba_setup import Kernels, seed_kernel_cache
 
 WARMUP_INTRINSICS = Intrinsics(width=32, height=24, fx=24.0, fy=24.0, cx=15.5, cy=11.5)
 """The warm-up camera: small enough that, compiled, the whole pass takes well under a second."""
@@ -278,7 +281,7 @@ def _cpus() -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m roigsf_ros.nbv.warmup [--jobs N]``: warm the kernels up and print how long it took."""
+    """``python -m roigsf_ros.nbv.warmup [--jobs N] [--seed-from DIR]``: warm the kernels up; print how long it took."""
     parser = argparse.ArgumentParser(description="Compile (or load) every numba kernel mapping and NBV scoring use.")
     parser.add_argument(
         "--jobs",
@@ -286,19 +289,32 @@ def main(argv: list[str] | None = None) -> int:
         default=_cpus(),
         help="processes compiling the listed kernels first (default: the CPUs this process may use; 1: no split)",
     )
+    parser.add_argument(
+        "--seed-from",
+        type=Path,
+        metavar="DIR",
+        help="another copy's roigsf_ros folder (set-up: the installed one): copy its compiled kernels first, for each "
+        "module whose source is the same as this copy's, so they load instead of compiling again",
+    )
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
-    split = ""
+    extra = ""
+    if args.seed_from is not None:
+        if not args.seed_from.is_dir():
+            parser.error(f"--seed-from: {args.seed_from} is not a folder")
+        here = Path(__file__).resolve().parents[1]
+        seeded = seed_kernel_cache(args.seed_from, here)
+        extra = f"; {len(seeded)} kernels' compiled code copied from {args.seed_from}"
     if args.jobs > 1:
         par = compile_in_parallel(args.jobs)
-        split = f"; first {par['signatures']} listed signatures on {par['jobs']} processes, {par['seconds']:.1f} s"
+        extra += f"; first {par['signatures']} listed signatures on {par['jobs']} processes, {par['seconds']:.1f} s"
         if par["error"]:
             print(f"warning: the parallel compile fell short ({par['error']}); the warm-up compiles the rest",
                   file=sys.stderr)  # fmt: skip
     times = warm_up_kernels()
     print(
         f"numba kernels ready in {time.perf_counter() - t0:.1f} s (warm-up: mapping {times['mapping_s']:.1f} s, "
-        f"scoring {times['scoring_s']:.1f} s{split})"
+        f"scoring {times['scoring_s']:.1f} s{extra})"
     )
     return 0
 

@@ -22,6 +22,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "numba_setup": [
             "KERNEL_LOCK",
             "PIN_ENV",
+            "STAMP_SUFFIX",
             "Kernels",
             "balanced_bounds",
             "configure_numba",
@@ -30,6 +31,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "pin_workers",
             "pinned_workers",
             "prange",
+            "seed_kernel_cache",
             "set_numba_threads",
             "use_numba",
             "worker_ids",

@@ -171,6 +171,62 @@ def balanced_bounds(cost: Tensor | np.ndarray, parts: int) -> np.ndarray:
     return np.concatenate([[0], cuts.numpy(), [cost.numel()]]).astype(np.int64)
 
 
+STAMP_SUFFIX = ".roigsf-stamp"
+"""A kernel's stamp file in its module's ``__pycache__`` (``MODULE.KERNEL.roigsf-stamp``), written by
+:class:`Kernels` beside numba's own cache files (``MODULE.KERNEL-LINE.pyXY.nbi`` and ``.nbc``)."""
+
+
+def _copy_file(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst`` by way of a temporary name, so a reader never sees half a file."""
+    tmp = dst.with_name(f"{dst.name}.seed.{os.getpid()}")
+    try:
+        tmp.write_bytes(src.read_bytes())
+        tmp.replace(dst)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def seed_kernel_cache(src_package: Path, dst_package: Path) -> list[str]:
+    """Copy the kernels' disk cache from one copy of roigsf_ros to another; the kernels seeded
+    (``"render/fisher._k_fisher"``). ``src_package``, ``dst_package``: the two ``roigsf_ros`` folders.
+
+    Why: numba stamps a cache with the hash of its module's source and names it by module, function and line, not
+    by path, so code compiled for one copy (set-up's installed one) loads in the other (the checkout the tests
+    import) instead of being compiled a second time, 80-160 s on 2 cores. A kernel is seeded when its module's
+    source is byte-identical in both copies and the destination has no cache of the same stamp (:data:`STAMP_SUFFIX`):
+    a current cache there is kept (it may hold signatures the source lacks). The kernel's old
+    files go first and its stamp is written last, so a seeding cut short reads as stale. Best effort: what cannot be
+    read or written is skipped, and that kernel compiles as before.
+    """
+    src_root, dst_root = Path(src_package).resolve(), Path(dst_package).resolve()
+    if src_root == dst_root:
+        return []
+    seeded: list[str] = []
+    for stamp in sorted(src_root.rglob(f"__pycache__/*{STAMP_SUFFIX}")):
+        prefix = stamp.name.removesuffix(STAMP_SUFFIX)  # MODULE.KERNEL
+        rel = stamp.parent.parent.relative_to(src_root)
+        src_cache, dst_cache = stamp.parent, dst_root / rel / "__pycache__"
+        module = f"{prefix.split('.', 1)[0]}.py"
+        dst_stamp = dst_cache / stamp.name
+        try:
+            if (src_root / rel / module).read_bytes() != (dst_root / rel / module).read_bytes():
+                continue
+            current = dst_stamp.is_file() and dst_stamp.read_bytes() == stamp.read_bytes()
+            if current and any(dst_cache.glob(f"{prefix}-*.nbi")):
+                continue
+            dst_cache.mkdir(exist_ok=True)
+            dst_stamp.unlink(missing_ok=True)
+            for old in dst_cache.glob(f"{prefix}-*.nb[ic]"):
+                old.unlink()
+            for f in sorted(src_cache.glob(f"{prefix}-*.nb[ic]")):
+                _copy_file(f, dst_cache / f.name)
+            _copy_file(stamp, dst_stamp)
+        except OSError:
+            continue
+        seeded.append(f"{rel.as_posix()}/{prefix}")
+    return seeded
+
+
 _AUTO_PARALLEL = ("comprehension", "reduction", "inplace_binop", "setitem", "numpy", "stencil")
 """numba's automatic parallelisation passes, all off: only the kernels' explicit ``prange`` loops run in parallel."""
 
@@ -235,14 +291,14 @@ class Kernels:
             if not src:
                 continue
             cache, prefix = Path(src).parent / "__pycache__", f"{Path(src).stem}.{fn.__qualname__}"
-            marker = cache / f"{prefix}.roigsf-stamp"
+            marker = cache / f"{prefix}{STAMP_SUFFIX}"
             try:
                 if marker.is_file() and marker.read_text() == stamp:
                     continue
                 for old in cache.glob(f"{prefix}-*.nb[ic]"):
                     old.unlink(missing_ok=True)
                 cache.mkdir(exist_ok=True)
-                tmp = cache / f"{prefix}.roigsf-stamp.{os.getpid()}"
+                tmp = cache / f"{prefix}{STAMP_SUFFIX}.{os.getpid()}"
                 tmp.write_text(stamp)
                 tmp.replace(marker)
             except OSError:
@@ -289,6 +345,7 @@ class Kernels:
 __all__ = [
     "KERNEL_LOCK",
     "PIN_ENV",
+    "STAMP_SUFFIX",
     "Kernels",
     "balanced_bounds",
     "configure_numba",
@@ -297,6 +354,7 @@ __all__ = [
     "pin_workers",
     "pinned_workers",
     "prange",
+    "seed_kernel_cache",
     "set_numba_threads",
     "use_numba",
     "worker_ids",
