@@ -960,22 +960,31 @@ def test_remapped_topics_are_watched_and_named_as_subscribed(mapped: Mapper, cap
     """A walk: with ``-r /roigsf/map:=/x/map`` the planner mapped and scored, yet said "no node publishes the map on
     /roigsf/map now (the mapper stopped?)" and set ``map_publisher_gone``: it counted publishers on the parameter's
     name, not on the topic it subscribed to. Its graph checks and the camera input's start-up line now use the names
-    as subscribed (namespace and remapping applied)."""
+    as subscribed (namespace and remapping applied).
+
+    Each name is remapped once, as ROS does (the first rule that matches): the review found the nodes subscribing
+    with the remapped name, which rcl remapped again, so a chain of rules (``a:=b b:=c``, here the second rule of each
+    pair) took them a step further than ROS goes."""
     import rclpy
 
     from roigsf_ros.nodes.camera_input import CameraInput, describe_topics
 
     ctx = rclpy.Context()
-    remaps = ["--ros-args", "-r", "/roigsf/map:=/x/map", "-r", "/camera/color/image_raw:=/my/cam/image"]
+    remaps = ["--ros-args", "-r", "/roigsf/map:=/x/map", "-r", "/x/map:=/y/map",
+              "-r", "/camera/color/image_raw:=/my/cam/image", "-r", "/my/cam/image:=/other/image"]  # fmt: skip
     rclpy.init(args=remaps, context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
     try:
         planner = NBVPlannerNode(context=ctx, parameter_overrides=[Parameter("warm_up", value=False)])
         probe = Node("test_remapped_source", context=ctx)
         camera = CameraInput(probe, lambda bf: None, reliable_qos(10), subscribe=False)
         assert camera.topics.color == "/my/cam/image" and "colour /my/cam/image (raw)" in describe_topics(camera.topics)
+        camera.subscribe()
+        subscribed = {name for name, _ in probe.get_subscriber_names_and_types_by_node("test_remapped_source", "/")}
+        assert "/my/cam/image" in subscribed and "/other/image" not in subscribed, subscribed
         cloud = surfel_map_to_cloud(mapped.map, 1, "map", mapped.h_train, mapped.config.fisher_outputs)
-        with _spinning(ctx, planner, probe):  # destroys both on exit
-            probe.create_publisher(PointCloud2, "/x/map", latched_qos()).publish(cloud)
+        source = Node("test_unremapped_source", context=ctx, use_global_arguments=False)  # publishes on /x/map itself
+        with _spinning(ctx, planner, probe, source):  # destroys them on exit
+            source.create_publisher(PointCloud2, "/x/map", latched_qos()).publish(cloud)
             _wait(lambda: planner._cloud is not None, 10.0, "the map on the remapped topic")
             planner._watch_map_publisher()
             assert planner.status()["map_publisher_gone"] is False

@@ -291,7 +291,12 @@ class CameraInput:
         for name in ("color_transport", "depth_transport"):
             if getattr(requested, name) == AUTO:
                 raise InputError(f"parameter '{name}'", "'auto' is for bags; name the transport of a live topic")
-        self.topics = remapped_topics(node, requested.resolved())
+        given = requested.resolved()
+        self.topics = remapped_topics(node, given)
+        self._given_names = {getattr(self.topics, f): getattr(given, f) for f in _TOPIC_FIELDS if getattr(given, f)}
+        """Each topic as subscribed -> as the parameter gives it: the subscriptions are created with the parameter's
+        name, which rcl remaps once; created with the remapped name, a chain of rules (``a:=b b:=c``) went a step
+        further than ROS goes."""
         self.input_size = input_size
         self.tf_wait_s = float(tf_wait_s)
         self.max_pending = int(max_pending)
@@ -371,14 +376,23 @@ class CameraInput:
             cls = _MESSAGE_CLASSES[type_name]
             events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_callback_for(topic, qos))
             node.create_subscription(
-                cls, topic, self._callback_for(topic), qos, callback_group=callback_group, event_callbacks=events
+                cls,
+                self._given_names.get(topic, topic),
+                self._callback_for(topic),
+                qos,
+                callback_group=callback_group,
+                event_callbacks=events,
             )
         if t.uses_tf:
             tf_cls = tf_message_class()
             self._tf = TransformBuffer(cache_s=self._tf_cache_s, tolerance_s=t.tf_tolerance_s)
             for topic, static, tqos in ((t.tf_topic, False, tf_qos()), (t.tf_static_topic, True, tf_static_qos())):
                 node.create_subscription(
-                    tf_cls, topic, self._tf_callback_for(topic, static), tqos, callback_group=callback_group
+                    tf_cls,
+                    self._given_names.get(topic, topic),
+                    self._tf_callback_for(topic, static),
+                    tqos,
+                    callback_group=callback_group,
                 )
             expire = lambda: self._counted(self._expire_awaiting)  # noqa: E731 - it delivers frames: counted too
             node.create_timer(TF_EXPIRE_PERIOD_S, expire, callback_group=callback_group)

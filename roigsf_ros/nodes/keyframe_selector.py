@@ -368,8 +368,8 @@ class KeyframeSelectorNode(SystemNode):
             self._startup_timer = self.create_timer(0.05, self._start_camera, callback_group=inputs)
         if status_hz > 0:
             self.create_timer(1.0 / status_hz, self.publish_status, callback_group=planner)
-        self._map_topic = map_topic = self.resolve_topic_name(map_topic)  # as subscribed (namespace, remapping)
-        if shared is None and self.reads_map:
+        self._map_topic = self.resolve_topic_name(map_topic)  # as subscribed (namespace, remapping), for the logs
+        if shared is None and self.reads_map:  # the parameter's name: rcl remaps it once
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
         if self.waits_for_map:
             if shared is None:

@@ -225,19 +225,19 @@ class NBVPlannerNode(SystemNode):
 
         scoring = MutuallyExclusiveCallbackGroup()
         inputs = MutuallyExclusiveCallbackGroup()
-        # as subscribed (namespace, remapping): the graph checks and logs named the parameters' values, so a remapped
-        # map read "no node publishes the map (the mapper stopped?)" while it came
-        map_topic, info_topic, map_info_topic, poses_topic = (
-            self.resolve_topic_name(name) for name in (map_topic, info_topic, map_info_topic, poses_topic)
-        )
-        self._map_topic, self._info_topic, self._map_info_topic = map_topic, info_topic, map_info_topic
-        if shared is None:
+        if shared is None:  # the parameters' names: rcl remaps them once (a remapped name would be remapped again)
             self.create_subscription(PointCloud2, map_topic, self._on_cloud, latched_qos(), callback_group=inputs)
             self.create_subscription(PoseArray, poses_topic, self._on_poses, latched_qos(), callback_group=inputs)
             self.create_subscription(CameraInfo, info_topic, self._on_info, info_qos, callback_group=inputs)
             self.create_subscription(
                 CameraInfo, map_info_topic, self._on_map_info, latched_qos(), callback_group=inputs
             )
+        # as subscribed (namespace, remapping): the graph checks and logs named the parameters' values, so a remapped
+        # map read "no node publishes the map (the mapper stopped?)" while it came
+        map_topic, info_topic, map_info_topic, poses_topic = (
+            self.resolve_topic_name(name) for name in (map_topic, info_topic, map_info_topic, poses_topic)
+        )
+        self._map_topic, self._info_topic, self._map_info_topic = map_topic, info_topic, map_info_topic
         self._best_pub = self.create_publisher(PoseStamped, "~/best_view", latched_qos())
         self._markers_pub = self.create_publisher(MarkerArray, "~/candidate_scores", latched_qos())
         self._uncertainty_pub = self.create_publisher(Image, "~/uncertainty", latched_qos())
