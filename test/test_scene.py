@@ -268,6 +268,16 @@ def test_render_sequence_failure_leaves_nothing(tmp_path: Path, monkeypatch: pyt
     assert list(tmp_path.iterdir()) == []
 
 
+def test_render_sequence_progress_is_the_callers_choice(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``progress=True`` draws the bar wherever stderr goes, as every other library call does (bags, mapping); the
+    command line passes it on a terminal only. The review found the scene renderer checking for a terminal itself,
+    so a library caller's ``progress=True`` in a notebook or a log drew nothing."""
+    render_sequence(synth_room(0), synth_trajectory(0, 2), synth_intrinsics(16, 12), tmp_path / "a", progress=True)
+    assert "render a" in capsys.readouterr().err
+    render_sequence(synth_room(0), synth_trajectory(0, 2), synth_intrinsics(16, 12), tmp_path / "b", progress=False)
+    assert "render b" not in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------------------------

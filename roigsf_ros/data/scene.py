@@ -15,7 +15,6 @@ information to mean anything.
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -749,7 +748,8 @@ def render_sequence(
     With a ``sensor`` (:class:`~roigsf_ros.data.sensor.SensorModel`) every ideal frame goes through it
     (noisy depth with holes, noisy JPEG colour), ``traj.txt`` holds the poses as its tracker writes them
     (not exactly orthonormal, optionally drifting), ``traj_gt.txt`` the true ones, and ``render.json``
-    the sensor's constants and hole fractions. Returns ``out_dir``.
+    the sensor's constants and hole fractions. ``progress``: a bar on stderr, as every library call draws it (the
+    command line passes it on a terminal only). Returns ``out_dir``.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(poses) == 0:
@@ -759,12 +759,10 @@ def render_sequence(
     renderer = MeshRenderer(mesh, texture_strength=texture_strength, texture_seed=texture_seed)
     out_dir = Path(out_dir)
     with atomic_dir(out_dir, overwrite, marks=SCENE_MARKS, what="a scene") as tmp:
-        show = progress and sys.stderr.isatty()
-
         written = poses if sensor is None else sensor.poses(poses)
 
         def frames() -> Iterator[Frame]:
-            for i, T in enumerate(tqdm(poses, desc=f"render {out_dir.name}", unit="frame", disable=not show)):
+            for i, T in enumerate(tqdm(poses, desc=f"render {out_dir.name}", unit="frame", disable=not progress)):
                 if sensor is None:
                     rgb, depth_m = renderer.render(T, intr, pixel_offset)
                     yield Frame(index=i, rgb=rgb, depth_m=depth_m, T_wc=T)
