@@ -774,3 +774,22 @@ def test_progress_bars_are_drawn_on_a_terminal_only(
         for argv in commands:
             assert main(argv) == 2 and main([*argv, "--no-progress"]) == 2
     assert asked == [False, False, False, False, True, False, True, False], asked
+
+
+def test_bag_from_replica_warns_of_a_wrong_depth_scale_before_writing(
+    tiny_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: a Replica folder whose cam_params.json had the wrong depth 'scale' was converted without a word; every
+    reader of the bag then masked most of its depth (F@5cm 0.000). The conversion still writes what the camera file
+    says, but says so first; a right scale says nothing."""
+    assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "right"), "--no-progress"]) == 0
+    assert "depth scale" not in capsys.readouterr().err
+    cam_file = tiny_scene / "cam_params.json"
+    cam = json.loads(cam_file.read_text())
+    cam["camera"]["scale"] = cam["camera"]["scale"] / 100.0  # every depth 100x too far
+    cam_file.write_text(json.dumps(cam))
+    assert main(["bag", "from-replica", str(tiny_scene), "--out", str(tmp_path / "wrong"), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "of frame 0's depth values are outside 0.1-10 m (the mapper's default min_depth_m..max_depth_m)" in err, err
+    assert f"read at depth scale {cam['camera']['scale']:g}" in err and "a wrong depth scale?" in err, err
+    assert (tmp_path / "wrong" / "metadata.yaml").is_file()  # written all the same

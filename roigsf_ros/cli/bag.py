@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from roigsf_ros.cli import (
     OVERWRITE_HELP,
@@ -179,6 +182,31 @@ def _print_mesh(mesh: Path | None, folder: Path, out: Path, no_mesh: bool) -> No
         print(f"  no ground-truth mesh: none in {folder} nor {folder.name}_mesh.ply beside it")
 
 
+def _depth_scale_warning(seq: ReplicaSequence) -> str:
+    """A warning when most of the first frame's depth lies outside the mapper's default depth range (a wrong depth
+    scale: millimetres read as metres, a 'scale' of 1000 for Replica's 6553.5); "" otherwise.
+
+    Why here: the bag is written as the camera file says, and every reader of it (map, demo, bench, the nodes) then
+    masks those values and warns, but only after the conversion and a mapping run; this says it before the minutes
+    of writing.
+    """
+    from roigsf_ros.mapping.mapper import MapperConfig  # torch: imported only when a conversion runs
+
+    cfg = MapperConfig()
+    if not len(seq):
+        return ""
+    first = seq.frame(0)
+    depth_m = first.depth_m
+    shown = depth_m[np.isfinite(depth_m) & (depth_m > 0)]  # holes (0, NaN) are a sensor's, not a scale's
+    out = int(np.count_nonzero((shown < cfg.min_depth_m) | (shown > cfg.max_depth_m)))
+    if out <= 0.5 * depth_m.size:
+        return ""
+    return (f"warning: {out / depth_m.size:.0%} of frame {first.index}'s depth values are outside "
+            f"{cfg.min_depth_m:g}-{cfg.max_depth_m:g} m (the mapper's default min_depth_m..max_depth_m), read at depth "
+            f"scale {seq.native.depth_scale:g} (cam_params.json's 'scale', or --cam's): a wrong depth scale? The bag "
+            "is written as the camera file says, and every reader of it masks those values")  # fmt: skip
+
+
 def _from_replica(args: argparse.Namespace) -> int:
     # Checked here, before any work, so that errors name the options typed (write_bag's are rate_hz, ...).
     if not (math.isfinite(args.rate) and args.rate > 0):
@@ -191,6 +219,9 @@ def _from_replica(args: argparse.Namespace) -> int:
     check_out(args.out, args.overwrite, BAG_MARKS, "a bag", [args.dir])
     seq = ReplicaSequence(args.dir, cam=args.cam, size=size, allow_partial=args.allow_partial)
     mesh = _source_mesh(seq.root, args.no_mesh)
+    warning = _depth_scale_warning(seq)
+    if warning:
+        print(warning, file=sys.stderr)
     n = write_bag(
         seq,
         args.out,
