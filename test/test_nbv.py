@@ -1246,3 +1246,22 @@ def test_warmup_seed_from_must_be_a_folder(tmp_path: Path, capsys: pytest.Captur
         warmup.main(["--jobs", "1", "--seed-from", str(tmp_path / "no_such_copy")])
     assert exc.value.code == 2
     assert f"--seed-from: {tmp_path / 'no_such_copy'} is not a folder" in capsys.readouterr().err
+
+
+def test_scoring_state_for_map_takes_the_maps_mesh_settings() -> None:
+    """``ScoringState.for_map``: the scoring TSDF of ``score_views`` and the stream policies (the map's mesh voxel,
+    its truncation at least a voxel, its depth range), overridable; the constructor's positional voxel, truncation and
+    depth were easy to give in the wrong order, and each caller worked them out again."""
+    from roigsf_ros.core.errors import InputError
+    from roigsf_ros.mapping.mapper import MapperConfig
+
+    cfg = MapperConfig(mesh_voxel_size_m=0.03, mesh_sdf_trunc_m=0.05, max_depth_m=6.0)
+    state = ScoringState.for_map(cfg)
+    assert (state.voxel_size_m, state.sdf_trunc_m, state.depth_max_m) == (0.03, 0.05, 6.0)
+    assert state.config == NBVConfig() and state.train_fisher_cache is None
+    assert ScoringState.for_map(cfg, voxel_size_m=0.08).sdf_trunc_m == 0.08  # a coarser voxel: truncated at one voxel
+    kept = ScoringState.for_map(cfg, NBVConfig(mode="fisherrf"), 0.05, 0.2, cache_h_train=True)
+    assert (kept.voxel_size_m, kept.sdf_trunc_m, kept.config.mode) == (0.05, 0.2, "fisherrf")
+    assert kept.train_fisher_cache is not None
+    with pytest.raises(InputError, match="config: expected a NBVConfig, got MapperConfig"):
+        ScoringState.for_map(cfg, cfg)  # type: ignore[arg-type]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -32,7 +32,7 @@ from roigsf_ros.nbv.unseen import carve_depths, unseen_box
 from roigsf_ros.render.surfels import SurfelMap
 
 if TYPE_CHECKING:
-    from roigsf_ros.mapping.mapper import Mapper
+    from roigsf_ros.mapping.mapper import Mapper, MapperConfig
 
 
 def match_surfels(old_means: np.ndarray, new_means: np.ndarray, tol_m: float) -> np.ndarray:
@@ -267,6 +267,24 @@ class ScoringState:
         """The unseen term's carved grid, kept (``unseen_carve_rerender`` false), else None: carved at each call."""
         self._kept_space: ObservedSpace | None = None
 
+    @classmethod
+    def for_map(
+        cls,
+        mapper_config: MapperConfig,
+        config: NBVConfig | None = None,
+        voxel_size_m: float | None = None,
+        sdf_trunc_m: float | None = None,
+        **kwargs: Any,
+    ) -> ScoringState:
+        """A state whose scoring TSDF has a map's mesh settings, as :func:`score_views` and the stream policies make it:
+        ``mesh_voxel_size_m``, ``mesh_sdf_trunc_m`` (at least a voxel) and ``max_depth_m`` of ``mapper_config``;
+        ``voxel_size_m`` / ``sdf_trunc_m`` override the first two; ``config`` None is the paper's score; ``kwargs``
+        as the constructor's (``cache_h_train``, ``should_stop``, ...).
+        """
+        voxel = mapper_config.mesh_voxel_size_m if voxel_size_m is None else float(voxel_size_m)
+        trunc = max(mapper_config.mesh_sdf_trunc_m, voxel) if sdf_trunc_m is None else float(sdf_trunc_m)
+        return cls(NBVConfig.given(config), voxel, trunc, mapper_config.max_depth_m, **kwargs)
+
     @property
     def n_fused(self) -> int:
         """Keyframe poses fused into the scoring TSDF."""
@@ -417,8 +435,7 @@ def score_views(
     calls on a growing map keep a :class:`ScoringState` instead (it fuses only new keyframes).
     """
     cfg = mapper.config
-    voxel = cfg.mesh_voxel_size_m
-    state = ScoringState(NBVConfig.given(config), voxel, max(cfg.mesh_sdf_trunc_m, voxel), cfg.max_depth_m)
+    state = ScoringState.for_map(cfg, config)
     _, poses = mapper.map_keyframes()
     running = mapper.h_train if cfg.track_h_train and mapper.h_train_complete else None
     outputs = tuple(cfg.fisher_outputs)  # the map rendered as its mesh is fused: depth, and alpha threshold

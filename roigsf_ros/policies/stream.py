@@ -343,10 +343,7 @@ class StreamNBVPolicy(KeyframePolicy):
     def _state(self, keyframe_map: KeyframeMap) -> ScoringState:
         """The scoring state, made on first use with the TSDF settings (None: the map's mesh settings)."""
         if self.state is None:
-            cfg = keyframe_map.config
-            voxel = self.voxel_size_m if self.voxel_size_m is not None else cfg.mesh_voxel_size_m
-            trunc = self.sdf_trunc_m if self.sdf_trunc_m is not None else max(cfg.mesh_sdf_trunc_m, voxel)
-            self.state = ScoringState(self.config, voxel, trunc, cfg.max_depth_m)
+            self.state = ScoringState.for_map(keyframe_map.config, self.config, self.voxel_size_m, self.sdf_trunc_m)
         return self.state
 
     def _render(self, keyframe_map: KeyframeMap):
