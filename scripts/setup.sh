@@ -144,11 +144,11 @@ rm -rf "$REPO/build" "$REPO"/*.egg-info
 #    selector's fallback decided those windows). Redone when the package's sources or the pinned packages
 #    change, or when the cache files are gone; run outside the repo so the installed copy is the one compiled, split
 #    over every CPU (--jobs, by the package's kernel signature list: 147-166 s on one process, 80-98 s on two, 2 cores).
-#    With ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh) the checkout's own copy, which the tests import, is warmed up next:
-#    numba names a cache by module, function and line and stamps it with the source's hash, so the installed copy's
-#    compiled kernels are copied into the checkout (--seed-from; byte-identical modules only) and load in about a
-#    second. (The two copies used to compile side by side, one process each: about a minute longer on 2 cores.)
-#    In the background; set-up waits at its end.
+#    Then the checkout's own copy (which the tests and `python -m roigsf_ros...` in the repo import) is warmed up, after
+#    each compile and always with ROIGSF_WARM_CHECKOUT=1 (scripts/test.sh): numba names a cache by module, function and
+#    line and stamps it with the source's hash, so the installed copy's compiled kernels are copied into the checkout
+#    (--seed-from; byte-identical modules only) and load in about a second. (The two copies used to compile side by
+#    side, one process each: about a minute longer on 2 cores.) In the background; set-up waits at its end.
 KERNEL_HASH="$(cat "$REPO/requirements.txt" "$REPO"/roigsf_ros/*/*.py "$REPO/roigsf_ros/nbv/kernel_signatures.json" \
     | sha256sum | cut -d" " -f1)"
 KERNEL_STAMP="$VENV/.roigsf-kernels.sha256"
@@ -165,9 +165,9 @@ warm_kernels() {  # the installed copy (when its cache is stale), then the check
     if [ "$WARM_INSTALLED" = 1 ]; then
         (cd / && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs "$(nproc)" | sed 's/^/[setup] /' >&2)
     fi
-    if [ "$WARM_CHECKOUT" = 1 ]; then
+    if [ "$WARM_CHECKOUT$WARM_INSTALLED" != 00 ]; then
         (cd "$REPO" && "$VENV/bin/python" -m roigsf_ros.nbv.warmup --jobs 1 --seed-from "$INSTALLED_PKG" \
-            | sed 's/^/[test] /' >&2)
+            | sed 's/^/[checkout] /' >&2)
     fi
 }
 if [ "$WARM_INSTALLED$WARM_CHECKOUT" != 00 ]; then

@@ -22,13 +22,15 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 FAKE_PYTHON = """#!/usr/bin/env bash
-# Stands in for the venv's python: records the call; "pip install -r <repo>/requirements.txt" (the heavy wheels)
-# waits for the fake build's child to start, then fails (FAKE_HEAVY=fail) or hangs (FAKE_HEAVY=hang).
-echo "$*" >> "$FAKE_MARK/python.log"
+# Stands in for the venv's python: records the call and its folder; "pip install -r <repo>/requirements.txt" (the heavy
+# wheels) waits for the fake build's child to start, then fails (FAKE_HEAVY=fail) or hangs (FAKE_HEAVY=hang); the
+# package's install makes its folder in site-packages.
+echo "$PWD: $*" >> "$FAKE_MARK/python.log"
 case "$*" in
     *"-r $FAKE_REPO/requirements.txt"*)
         for _ in $(seq 100); do [ -s "$FAKE_MARK/build_child.pid" ] && break; sleep 0.1; done
         case "${FAKE_HEAVY:-ok}" in fail) exit 3 ;; hang) sleep 60 ;; esac ;;
+    *"--force-reinstall $FAKE_REPO"*) mkdir -p "$FAKE_REPO/.venv/lib/python3.11/site-packages/roigsf_ros" ;;
 esac
 exit 0
 """
@@ -180,3 +182,29 @@ def test_sourcing_set_up_leaves_the_callers_shell_options_alone(scratch: dict[st
     else:
         assert lines[0].endswith("rc 1, VIRTUAL_ENV=unset"), proc.stdout
         assert "nothing was exported" in proc.stderr
+
+
+def test_kernels_compile_once_and_the_checkout_is_seeded_from_them(scratch: dict[str, str]) -> None:
+    """The installed copy compiles the kernels on every CPU; only then does the checkout's warm-up run, seeded with
+    them (``--seed-from`` the installed package), after every compile (``python -m roigsf_ros...`` in the repo imports
+    the checkout) and, with a warm cache, for the tests only. The two copies used to compile side by side, one process
+    each, about a minute longer on 2 cores."""
+    repo, mark = Path(scratch["FAKE_REPO"]), Path(scratch["FAKE_MARK"])
+    installed = repo / ".venv" / "lib" / "python3.11" / "site-packages" / "roigsf_ros"
+    cpus = subprocess.run(["nproc"], capture_output=True, text=True, check=True).stdout.strip()
+    compile_all = f"/: -m roigsf_ros.nbv.warmup --jobs {cpus}"
+    seed = f"{repo}: -m roigsf_ros.nbv.warmup --jobs 1 --seed-from {installed}"
+
+    def warmups(warm_checkout: str) -> list[str]:
+        (mark / "python.log").unlink(missing_ok=True)
+        env = {**scratch, "FAKE_BUILD_S": "0", "ROIGSF_WARM_CHECKOUT": warm_checkout}
+        proc = subprocess.run(["bash", str(repo / "scripts" / "setup.sh")], env=env, capture_output=True, text=True,
+                              timeout=60)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        return [line for line in (mark / "python.log").read_text().splitlines() if "warmup" in line]
+
+    assert warmups("1") == [compile_all, seed]
+    assert warmups("0") == [compile_all, seed]  # no cache files yet: compiled again, and the checkout seeded
+    _write(installed / "render" / "__pycache__" / "rasterize._k_forward-1.py311.nbi", "")  # the cache is there now
+    assert warmups("0") == []
+    assert warmups("1") == [seed]
