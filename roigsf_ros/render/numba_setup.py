@@ -194,9 +194,10 @@ def seed_kernel_cache(src_package: Path, dst_package: Path) -> list[str]:
     by path, so code compiled for one copy (set-up's installed one) loads in the other (the checkout the tests
     import) instead of being compiled a second time, 80-160 s on 2 cores. A kernel is seeded when its module's
     source is byte-identical in both copies and the destination has no cache of the same stamp (:data:`STAMP_SUFFIX`):
-    a current cache there is kept (it may hold signatures the source lacks). The kernel's old
-    files go first and its stamp is written last, so a seeding cut short reads as stale. Best effort: what cannot be
-    read or written is skipped, and that kernel compiles as before.
+    a current cache there is kept (it may hold signatures the source lacks). The kernel's old files go first and its
+    stamp is written last, so a seeding cut short reads as stale. Best effort: what cannot be read or written is
+    skipped, and that kernel compiles as before. The in-tree caches only (``__pycache__``, numba's default; not a
+    ``NUMBA_CACHE_DIR``).
     """
     src_root, dst_root = Path(src_package).resolve(), Path(dst_package).resolve()
     if src_root == dst_root:
