@@ -209,6 +209,9 @@ def seed_kernel_cache(src_package: Path, dst_package: Path) -> list[str]:
         src_cache, dst_cache = stamp.parent, dst_root / rel / "__pycache__"
         module = f"{prefix.split('.', 1)[0]}.py"
         dst_stamp = dst_cache / stamp.name
+        files = sorted(src_cache.glob(f"{prefix}-*.nb[ic]"))
+        if not any(f.suffix == ".nbi" for f in files):  # stamped but not compiled there (or into a NUMBA_CACHE_DIR)
+            continue
         try:
             if (src_root / rel / module).read_bytes() != (dst_root / rel / module).read_bytes():
                 continue
@@ -219,7 +222,7 @@ def seed_kernel_cache(src_package: Path, dst_package: Path) -> list[str]:
             dst_stamp.unlink(missing_ok=True)
             for old in dst_cache.glob(f"{prefix}-*.nb[ic]"):
                 old.unlink()
-            for f in sorted(src_cache.glob(f"{prefix}-*.nb[ic]")):
+            for f in files:
                 _copy_file(f, dst_cache / f.name)
             _copy_file(stamp, dst_stamp)
         except OSError:
