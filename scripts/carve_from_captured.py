@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.cli import main as roigsf_main
+from roigsf_ros.cli import wrapped_command_args
 from roigsf_ros.core.camera import Intrinsics
 from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.fileio import write_json
@@ -88,14 +89,12 @@ def captured_carver(scene: Path, log: dict[str, Any]) -> Callable[..., ObservedS
 def main(argv: list[str] | None = None) -> int:
     """Run the bench with the captured carve in place, then restore the scorer's and write the call log as JSON."""
     argv = sys.argv[1:] if argv is None else argv
-    if "--" not in argv or "--scene" not in argv[argv.index("--") :]:
-        print("usage: carve_from_captured.py --out JSON -- --scene DIR <roigsf bench arguments>", file=sys.stderr)
-        return 2
-    split = argv.index("--")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     usage="%(prog)s --out JSON -- --scene DIR <roigsf bench arguments>")  # fmt: skip
     parser.add_argument("--out", required=True, type=Path, help="JSON file of the call log")
-    args = parser.parse_args(argv[:split])
-    bench_args = argv[split + 1 :]
+    args, bench_args = wrapped_command_args(parser, argv)
+    if "--scene" not in bench_args[:-1]:
+        parser.error("the bench's arguments must give --scene DIR: its captured depth is what this carves")
     scene = Path(bench_args[bench_args.index("--scene") + 1])
     log: dict[str, Any] = {"calls": 0, "max_pose_error": 0.0}
     try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import numpy as np
 
 import roigsf_ros.nbv.scorer as scorer_module
 from roigsf_ros.cli import main as cli_main
+from roigsf_ros.core.fileio import write_json
 from roigsf_ros.data.bags import SAMPLE_BAG, sample_path
 from roigsf_ros.nbv.config import NBVConfig
 
@@ -25,12 +27,12 @@ POLICIES = "roi-gsurfisher,roi-gsurfisher:unseen_weight=2:unseen_source=carved:u
 """The paper's method and F3 (``config/recommended/planner.yaml``)."""
 
 
-def main() -> int:
-    """Run the two benches with the recording fusion; write and print the spreads."""
+def main(argv: list[str] | None = None) -> int:
+    """Run the two benches with the recording fusion; write and print the spreads (nothing when a bench fails)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", type=Path, default=None, help="bag or scene folder (default: the shipped bag)")
     parser.add_argument("--out", type=Path, required=True, help="folder for the two benches and spread.json")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     scene = str(args.scene if args.scene is not None else sample_path(SAMPLE_BAG))
     stds: list[float] = []
     fuse = scorer_module.fuse_scores
@@ -39,19 +41,26 @@ def main() -> int:
         stds.append(float(np.asarray(close_front, dtype=np.float64).std()))
         return fuse(fisher, close_front, *rest, **kw)
 
-    scorer_module.fuse_scores = recording  # type: ignore[assignment]
     common = ["--scene", scene, "--policies", POLICIES, "--seeds", "1", "--uncertainty-views", "0", "--overwrite",
               "--no-progress"]  # fmt: skip
-    rc_pool = cli_main(["bench", *common, "--setting", "pool", "--pool-set", "n_views=12", "--pool-set",
-                        "pool_stride=2", "--out", str(args.out / "pool")])  # fmt: skip
-    n_pool = len(stds)
-    rc_stream = cli_main(["bench", *common, "--setting", "stream", "--stride", "2", "--out", str(args.out / "stream")])
+    scorer_module.fuse_scores = recording  # type: ignore[assignment]
+    try:
+        rc = cli_main(["bench", *common, "--setting", "pool", "--pool-set", "n_views=12", "--pool-set",
+                       "pool_stride=2", "--out", str(args.out / "pool")])  # fmt: skip
+        n_pool = len(stds)
+        if rc == 0:
+            rc = cli_main(["bench", *common, "--setting", "stream", "--stride", "2", "--out", str(args.out / "stream")])
+    finally:
+        scorer_module.fuse_scores = fuse
+    if rc != 0:  # the bench said why; no spread.json that reads like a result of runs that did not happen
+        print(f"close_front_spread.py: error: a bench failed (exit {rc}); no {args.out / 'spread.json'} written",
+              file=sys.stderr)  # fmt: skip
+        return int(rc)
     s = np.asarray(stds)
     floor = NBVConfig().close_front_min_std
     result = {
         "scene": scene,
         "policies": POLICIES,
-        "exit_codes": {"pool": rc_pool, "stream": rc_stream},
         "fusions": int(s.size),
         "pool_fusions": n_pool,
         "close_front_min_std": floor,
@@ -61,9 +70,9 @@ def main() -> int:
         "median_spread": float(np.median(s)) if s.size else None,
         "spreads": stds,
     }
-    (args.out / "spread.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out / "spread.json", result)
     print(json.dumps({k: v for k, v in result.items() if k != "spreads"}, indent=2))
-    return 0 if rc_pool == rc_stream == 0 else 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from roigsf_ros.cli import main as roigsf_main
+from roigsf_ros.cli import wrapped_command_args
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.policies.stream import StreamNBVPolicy
 
@@ -36,14 +37,11 @@ from roigsf_ros.policies.stream import StreamNBVPolicy
 def main(argv: list[str] | None = None) -> int:
     """Run the bench with the hand-over in place, then restore the policy's ``choose`` and write the pick log."""
     argv = sys.argv[1:] if argv is None else argv
-    if "--" not in argv:
-        print("usage: late_handover.py --after H --log JSON -- <roigsf bench arguments>", file=sys.stderr)
-        return 2
-    split = argv.index("--")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     usage="%(prog)s --after H --log JSON -- <roigsf bench arguments>")  # fmt: skip
     parser.add_argument("--after", required=True, type=int, help="keyframes in the map from which FisherRF picks")
     parser.add_argument("--log", required=True, type=Path, help="JSON file of the pick counts")
-    args = parser.parse_args(argv[:split])
+    args, bench_args = wrapped_command_args(parser, argv)
     if args.after < 1:
         parser.error(f"--after must be >= 1, got {args.after}")
     log: dict[str, Any] = {"after": args.after, "picks": {}}
@@ -64,12 +62,12 @@ def main(argv: list[str] | None = None) -> int:
 
     StreamNBVPolicy.choose = choose  # type: ignore[method-assign]
     try:
-        rc = roigsf_main(["bench", *argv[split + 1 :]])
+        rc = roigsf_main(["bench", *bench_args])
     finally:
         StreamNBVPolicy.choose = original  # type: ignore[method-assign]
     if rc:
         return int(rc)  # the bench failed (it said why): no log that looks complete
-    write_json(args.log, {"bench_args": argv[split + 1 :], **log})
+    write_json(args.log, {"bench_args": bench_args, **log})
     print(f"late hand-over after {args.after} views: picks {log['picks']}")
     return 0
 

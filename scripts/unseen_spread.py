@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from roigsf_ros.cli import main as roigsf_main
+from roigsf_ros.cli import wrapped_command_args
 from roigsf_ros.core.fileio import write_json
 from roigsf_ros.nbv import scorer as scorer_module
 
@@ -60,22 +61,19 @@ def record_calls(log: list[dict[str, Any]]) -> Any:
 def main(argv: list[str] | None = None) -> int:
     """Run the bench with the scorer wrapped, write the per-call records as JSON and print them as a table."""
     argv = sys.argv[1:] if argv is None else argv
-    if "--" not in argv:
-        print("usage: unseen_spread.py --out JSON -- <roigsf bench arguments>", file=sys.stderr)
-        return 2
-    split = argv.index("--")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     usage="%(prog)s --out JSON -- <roigsf bench arguments>")  # fmt: skip
     parser.add_argument("--out", required=True, type=Path, help="JSON file of the per-call records")
-    args = parser.parse_args(argv[:split])
+    args, bench_args = wrapped_command_args(parser, argv)
     log: list[dict[str, Any]] = []
     original = record_calls(log)
     try:
-        rc = roigsf_main(["bench", *argv[split + 1 :]])
+        rc = roigsf_main(["bench", *bench_args])
     finally:
         scorer_module.NBVScorer.score = original  # type: ignore[method-assign]
     if rc:
         return int(rc)  # the bench failed (it said why): no records that look complete
-    write_json(args.out, {"bench_args": argv[split + 1 :], "calls": log})
+    write_json(args.out, {"bench_args": bench_args, "calls": log})
     print("| call | candidates | U mean | U std | U min | U max | U of the pick | the pick has the largest U |")
     print("|---|---|---|---|---|---|---|---|")
     for i, c in enumerate(log):

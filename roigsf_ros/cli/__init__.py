@@ -272,6 +272,20 @@ def command_line(command: str) -> str | None:
     return "roigsf " + " ".join(shlex.quote(a) for a in sys.argv[1:])
 
 
+def wrapped_command_args(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
+    """For a script that wraps a ``roigsf`` command (``scripts/unseen_spread.py --out J -- <bench arguments>``): its own
+    options, before ``--``, parsed by ``parser`` (so ``--help`` works alone), and the command's arguments after it.
+
+    A parser error (exit 2, with the usage) when ``--`` or anything after it is missing: those scripts answered
+    ``--help`` with a one-line usage and exit 2.
+    """
+    split = argv.index("--") if "--" in argv else len(argv)
+    args = parser.parse_args(argv[:split])
+    if split >= len(argv) - 1:
+        parser.error("give the wrapped command's arguments after --")
+    return args, argv[split + 1 :]
+
+
 def metric_notes(metrics: dict[str, Any]) -> list[str]:
     """Lines under a run's table that say what its figures count: a TF frame that changed parent (its poses may be
     wrong), poses of another frame than the images', recall and completion against the GT in view of the run's poses
