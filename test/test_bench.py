@@ -434,6 +434,23 @@ def test_interrupted_overwrite_keeps_the_old_bench(
     assert [p.name for p in tmp_path.iterdir()] == ["bench"]  # no temporary folder left beside it
 
 
+def test_a_key_given_twice_in_a_policy_spec_is_warned(caplog: pytest.LogCaptureFixture) -> None:
+    """A walk of the figures: ``$F2:unseen_weight=2`` (F2 holds ``unseen_weight=1``), as the documented commands write
+    F3, ran F3 without a word, under a label that reads both weights. The later value is still the one used (those
+    commands re-make their figures), now with a warning naming the key and both values."""
+    from roigsf_ros.experiments.bench import parse_policies
+
+    f2 = "roi-gsurfisher:unseen_weight=1:unseen_source=carved:unseen_measure=rays"
+    with caplog.at_level("WARNING", logger="roigsf_ros"):
+        (spec,) = parse_policies(f"{f2}:unseen_weight=2", "pool")
+    assert spec.params["unseen_weight"] == 2 and spec.label == f"{f2}:unseen_weight=2"
+    assert "--policies: unseen_weight given twice (1, then 2): the later is used" in caplog.text, caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="roigsf_ros"):
+        parse_policies(f2, "pool")
+    assert not caplog.records
+
+
 def test_a_policy_spelt_twice_and_a_setting_s_unused_options_are_refused(scene: Path) -> None:
     """A walk ran ``roi-gsurfisher:unseen_weight=1,roi-gsurfisher:unseen_weight=1.0`` as two rows (and the keys in
     another order, and every-n's alias ``n``), took ``window`` and ``trigger_every`` in the pool setting and

@@ -14,6 +14,7 @@ from __future__ import annotations
 import difflib
 import functools
 import inspect
+import logging
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Protocol
 
@@ -26,6 +27,8 @@ from roigsf_ros.core.errors import InputError
 from roigsf_ros.core.frame import Frame
 from roigsf_ros.mapping.mapper import MapperConfig
 from roigsf_ros.render.surfels import SurfelMap
+
+_log = logging.getLogger(__name__)
 
 
 class KeyframeMap(Protocol):
@@ -199,14 +202,18 @@ def parse_value(text: str) -> bool | int | float | str | tuple[str, ...]:
 def parse_params(pairs: Iterable[str], where: str, expected: str) -> dict[str, Any]:
     """``KEY=VALUE`` texts (a policy spec's ``name:key=value:...`` after the name) as a dict, values by
     :func:`parse_value`: the one reader of ``roigsf bench --policies``, ``roigsf map --policy`` and the keyframe
-    selector's ``policy_params``; a pair without ``=`` or key is an InputError at ``where`` saying ``expected``.
+    selector's ``policy_params``; a pair without ``=`` or key is an InputError at ``where`` saying ``expected``; a key
+    given twice takes the later value, with a warning (the spec's label still reads both).
     """
     params: dict[str, Any] = {}
     for pair in (p.strip() for p in pairs if p.strip()):
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
             raise InputError(where, f"{expected}, got {pair!r}")
-        params[key.strip()] = parse_value(value)
+        key, parsed = key.strip(), parse_value(value)
+        if key in params:  # `$F2:unseen_weight=2` (F2 has unseen_weight=1): documented commands rely on it
+            _log.warning("%s: %s given twice (%s, then %s): the later is used", where, key, params[key], parsed)
+        params[key] = parsed
     return params
 
 
