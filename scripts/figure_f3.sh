@@ -19,10 +19,9 @@
 # met. Needs the Replica sample in ../shared/data for the office0 scenes.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-# shellcheck source=scripts/setup.sh
-source "$REPO/scripts/setup.sh"
-cd "$REPO"
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
 TAG="${TAG:-f3}"
 F3="roi-gsurfisher:unseen_weight=2:unseen_source=carved:unseen_measure=rays"
 # name:figure_nbv_pool.sh's settings:bench folder (without runs/bench_pool_ and _TAG); reported first, then held out
@@ -38,9 +37,15 @@ SCENE_LIST=(
 )
 names=()
 for entry in "${SCENE_LIST[@]}"; do names+=("${entry%%:*}"); done
-for want in ${ONLY:-}; do  # a name not in the list is an error now, not after hours of benches
-    [[ " ${names[*]} " == *" $want "* ]] || { echo "ONLY: unknown scene '$want' (one of: ${names[*]})" >&2; exit 2; }
+require_words ONLY "${names[@]}"  # a name not in the list is an error now, not after hours of benches
+for name in ${ONLY:-${names[*]}}; do  # the Replica sample checked now, not at the first office0 scene (10-13 min in)
+    [[ "$name" != office0* ]] || { require_replica "$REPO"; break; }
 done
+[[ "$TAG" =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "TAG=$TAG: letters, digits, '_', '.' and '-' only (it names folders)" >&2; exit 2; }
+# shellcheck source=scripts/setup.sh
+source "$REPO/scripts/setup.sh"
+cd "$REPO"
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 OUT="runs/f3_$TAG"
 mkdir -p "$OUT"
 for entry in "${SCENE_LIST[@]}"; do

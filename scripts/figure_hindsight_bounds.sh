@@ -23,6 +23,12 @@
 # 3 min a scene, the stream part 2 min a layout; 25 min in all in a fresh clone that made two of the benches.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+PARTS="${PARTS:-pool suite}"
+require_words PARTS pool suite
+[[ " $PARTS " != *" pool "* ]] || require_replica "$REPO"  # office0 from pose 5 is a pool part
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 cd "$REPO"

@@ -21,6 +21,9 @@
 # (twenty-ninth session: 3-7 min a scene; the 2.5 cm ones of the thirtieth session as long) were added.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
 cd "$REPO"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 V="roi-gsurfisher:unseen_weight=1:unseen_backfaces=unconfirmed"

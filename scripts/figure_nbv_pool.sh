@@ -119,6 +119,22 @@
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+SEEDS="${SEEDS:-3}"
+SCENES="${SCENES:-office0 synth object}"
+SCALE="${SCALE:-1}"
+require_int SEEDS 1
+require_int SCALE 1
+for scene in $SCENES; do  # every name checked before any work (an unknown one used to stop the run after the others)
+    case "$scene" in
+        office0) require_replica "$REPO" ;;
+        synth | object | dome | clutter | shelf | bins | dining | room[1-9] | room[1-9][0-9]) ;;
+        *) echo "SCENES: unknown scene $scene (office0, synth, object, dome, clutter, shelf, bins, dining, room1 ... room99)" >&2
+           exit 2 ;;
+    esac
+done
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"

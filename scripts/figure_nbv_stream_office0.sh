@@ -64,14 +64,24 @@
 # shared): 1832 s, and 841 s for the ablations.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+WINDOW="${WINDOW:-9}"
+WINDOW10="${WINDOW10:-13}"
+SEEDS="${SEEDS:-1}"
+require_int WINDOW 1
+require_int WINDOW10 1
+require_int SEEDS 1
+mapfile -t ROW_NAMES < <(sed -n 's/^ *row \([a-z0-9-]*\) .*/\1/p' "${BASH_SOURCE[0]}")
+require_words ROWS "${ROW_NAMES[@]}"
+require_replica "$REPO"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
 WINDOW="${WINDOW:-9}"
 WINDOW10="${WINDOW10:-13}"
 SEEDS="${SEEDS:-1}"
 NICE="${NICE:-10}"
-[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
 SCENE=runs/office0_240_s5${SENSOR:+_$SENSOR}
 if [ ! -f "$SCENE/mesh.ply" ]; then

@@ -36,6 +36,15 @@
 # runs/bench_stream_{synth,suite}_sN/ (thirty-second session: a suite nothing was chosen on, LAYOUT=10).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+WINDOW="${WINDOW:-12}"
+SEEDS="${SEEDS:-1}"
+require_int WINDOW 1
+require_int SEEDS 1
+require_words BENCHES gaus-slam variants baselines novelty lookahead pixels stretch pixels-stretch fused-stretch \
+    fused4-stretch f3unseen-stretch fused-pixels-stretch
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 KIND="${KIND:-room}"

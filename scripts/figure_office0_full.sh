@@ -7,11 +7,15 @@
 # Writes runs/office0_240_s1/ (the scene, reused when present) and runs/office0_full_roi/.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+require_replica "$REPO"
+WINDOW="${WINDOW:-9}"
+require_int WINDOW 1
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
 WINDOW="${WINDOW:-9}"
-[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
 if [ ! -f runs/office0_240_s1/mesh.ply ]; then
     roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \

@@ -4,10 +4,12 @@
 # Writes runs/office0_240/ (the scene) and runs/office0_gaus_slam/ (metrics.json, mesh.ply, map.ply, strip.png).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+require_replica "$REPO"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
-[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
 roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
     --out runs/office0_240 --width 240 --height 136 --stride 10 --overwrite

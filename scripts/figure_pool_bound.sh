@@ -16,6 +16,9 @@
 # another bench; the benches 8-14 min a scene when they are not there.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 cd "$REPO"

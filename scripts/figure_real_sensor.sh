@@ -13,10 +13,12 @@
 # 640x480 renders about 170 s, the four maps 87-189 s each.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+require_replica "$REPO"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
-[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
 SCENE=(--mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam kinect-v1 --stride 20 --overwrite)
 roigsf scene render "${SCENE[@]}" --out runs/office0_kinect_ideal

@@ -8,11 +8,13 @@
 # Measured 2026-11-26 (2 cores, nice -n 19 beside other work): benches 49-164 s each, the coverage script 253 s.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
+require_replica "$REPO"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-DATA="${ROIGSF_SHARED_DATA:-$REPO/../shared/data}/replica_office0"
 NICE="${NICE:-19}"
-[ -f "$DATA/office0_mesh.ply" ] || { echo "Replica office0 sample not found at $DATA" >&2; exit 2; }
 cd "$REPO"
 if [ ! -f runs/office0_240_s5/mesh.ply ]; then
     roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \

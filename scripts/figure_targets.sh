@@ -25,6 +25,9 @@
 # older verdict JSON. 2 min with the set-up's reinstall.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+script_args "${BASH_SOURCE[0]}" "$@"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 cd "$REPO"

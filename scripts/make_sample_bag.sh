@@ -2,8 +2,15 @@
 # Regenerate the shipped sample bag bags/synth_room (+ its ground-truth mesh) from `roigsf scene synth`.
 # Deterministic for the seed: re-running reproduces the same frames and mesh, and the poses up to the last bits of
 # their quaternions on another CPU.
+#
+#   bash scripts/make_sample_bag.sh           # rewrites bags/synth_room and bags/synth_room_mesh.ply (tracked files)
+#   bash scripts/make_sample_bag.sh --check   # regenerates into a temporary folder and compares with them instead
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/script_args.sh
+source "$REPO/scripts/script_args.sh"
+# Only --check, or nothing: anything else (--help, a typo such as --chek) used to rewrite the shipped bag.
+[ "$*" = --check ] || script_args "${BASH_SOURCE[0]}" "$@"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 # --check: regenerate into a temporary folder and compare with the shipped files instead of replacing them.
