@@ -129,3 +129,20 @@ def test_figure_scripts_check_their_settings_before_any_work(name: str, env: dic
     after the synthetic scenes' benches (10-13 min). Now each is refused first, naming the setting."""
     res = _bash(name, **env)
     assert res.returncode == 2 and said in res.stderr and "[setup]" not in res.stderr, res.stderr
+
+
+def test_compare_bags_fails_on_a_content_difference(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``make_sample_bag.sh --check`` runs it: it exited 0 whatever the images or poses held (only the topics and
+    counts were checked), so the check could not fail. Two bags of one seed compare equal; of two seeds, they differ."""
+    from roigsf_ros.data.bags import write_bag
+    from roigsf_ros.data.replica import ReplicaSequence
+    from roigsf_ros.perf.io import make_synthetic_replica
+
+    for name, seed in (("a", 1), ("b", 1), ("c", 2)):
+        make_synthetic_replica(tmp_path / f"scene_{name}", 16, 12, 2, seed=seed)
+        write_bag(ReplicaSequence(tmp_path / f"scene_{name}"), tmp_path / name, progress=False)
+    main = _script("compare_bags.py")["main"]
+    assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert main([str(tmp_path / "a"), str(tmp_path / "c")]) == 1
+    out = capsys.readouterr().out
+    assert "/camera/color/image_raw: 2 messages, 2 differ" in out and "the bags differ on " in out, out
