@@ -117,6 +117,7 @@
 # Issue 10's 240x136 office0 run: SCALE=2 SCENES=office0 SPLIT=1 NICE=19
 #   POLICIES="roi-gsurfisher:unseen_weight=1,fisherrf,random,roi-gsurfisher" bash scripts/figure_nbv_pool.sh
 # (2026-11-25: 36 min for the four policies x 3 seeds under nice 19 beside other jobs, load 2.6-4).
+# Each run writes over its benches' earlier output (--overwrite; a rendered scene is reused when its mesh.ply is there).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/script_args.sh

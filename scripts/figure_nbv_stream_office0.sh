@@ -62,6 +62,7 @@
 # gaus-slam's 160), gaus-slam + roi-gsurfisher + random in runs/bench_stream_office0/ and, unless ABLATION=0,
 # roi-fisher + close-front in runs/bench_stream_office0_ablation/. Measured (2026-11-21, older code, 2 cores
 # shared): 1832 s, and 841 s for the ablations.
+# Each run writes over the output of every row it runs (--overwrite; ROWS= runs some; the rendered scenes are reused).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/script_args.sh

@@ -34,6 +34,7 @@
 # keyframes, 18.7 %).
 # LAYOUT=N (default 7): the scene's layout seed instead of 7, into runs/synth_sN_400/ or runs/suite_sN_400/ and
 # runs/bench_stream_{synth,suite}_sN/ (thirty-second session: a suite nothing was chosen on, LAYOUT=10).
+# Each run writes over the output of every bench it runs (--overwrite; BENCHES= runs some; the scene is reused).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/script_args.sh

@@ -5,6 +5,7 @@
 # that counts is metrics.json's mapping wall time (target: the whole sequence in <= 10 min on 2 cores).
 # Needs the Replica sample in ../shared/data (not redistributable).
 # Writes runs/office0_240_s1/ (the scene, reused when present) and runs/office0_full_roi/.
+# Each run writes over its earlier map (--overwrite; the rendered scene is reused when its mesh.ply is there).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/script_args.sh

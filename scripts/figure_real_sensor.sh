@@ -11,6 +11,7 @@
 # mesh.ply, map.ply, strip.png) and runs/real_sensor/table.md.
 # Measured: 714 s (12 min) in all on the 2-core machine shared with other jobs (load 6-8): set-up and the two
 # 640x480 renders about 170 s, the four maps 87-189 s each.
+# Each run renders the scenes again and writes over its earlier output (--overwrite).
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/script_args.sh
