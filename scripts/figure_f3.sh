@@ -38,10 +38,10 @@ SCENE_LIST=(
 names=()
 for entry in "${SCENE_LIST[@]}"; do names+=("${entry%%:*}"); done
 require_words ONLY "${names[@]}"  # a name not in the list is an error now, not after hours of benches
+[[ "$TAG" =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "TAG=$TAG: letters, digits, '_', '.' and '-' only (it names folders)" >&2; exit 2; }
 for name in ${ONLY:-${names[*]}}; do  # the Replica sample checked now, not at the first office0 scene (10-13 min in)
     [[ "$name" != office0* ]] || { require_replica "$REPO"; break; }
 done
-[[ "$TAG" =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "TAG=$TAG: letters, digits, '_', '.' and '-' only (it names folders)" >&2; exit 2; }
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 cd "$REPO"
