@@ -79,9 +79,6 @@ require_words ROWS "${ROW_NAMES[@]}"
 require_replica "$REPO"
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-WINDOW="${WINDOW:-9}"
-WINDOW10="${WINDOW10:-13}"
-SEEDS="${SEEDS:-1}"
 NICE="${NICE:-10}"
 cd "$REPO"
 SCENE=runs/office0_240_s5${SENSOR:+_$SENSOR}

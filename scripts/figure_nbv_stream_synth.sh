@@ -49,7 +49,6 @@ require_words BENCHES gaus-slam variants baselines novelty lookahead pixels stre
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
 KIND="${KIND:-room}"
-WINDOW="${WINDOW:-12}"
 LAYOUT="${LAYOUT:-7}"
 [[ "$LAYOUT" =~ ^[0-9]+$ ]] || { echo "LAYOUT must be a layout seed (a whole number), got $LAYOUT" >&2; exit 2; }
 LS=""; [ "$LAYOUT" = 7 ] || LS="_s$LAYOUT"
@@ -59,7 +58,6 @@ case "$KIND" in
     *) echo "KIND must be room or suite, got $KIND" >&2; exit 2 ;;
 esac
 NICE="${NICE:-5}"
-SEEDS="${SEEDS:-1}"
 cd "$REPO"
 [ -f "$SCENE/mesh.ply" ] || roigsf scene synth --kind "$KIND" --out "$SCENE" --seed "$LAYOUT" --frames 400 --width 160 \
     --height 120 --overwrite

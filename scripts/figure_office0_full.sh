@@ -16,7 +16,6 @@ WINDOW="${WINDOW:-9}"
 require_int WINDOW 1
 # shellcheck source=scripts/setup.sh
 source "$REPO/scripts/setup.sh"
-WINDOW="${WINDOW:-9}"
 cd "$REPO"
 if [ ! -f runs/office0_240_s1/mesh.ply ]; then
     roigsf scene render --mesh "$DATA/office0_mesh.ply" --traj "$DATA/office0/traj.txt" --cam "$DATA/cam_params.json" \
